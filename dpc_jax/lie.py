@@ -192,7 +192,7 @@ def se3_log(transform: Array) -> Array:
 def _compose_rt(rotation: Array, translation: Array) -> Array:
     top = jnp.concatenate([rotation, translation[..., None]], axis=-1)
     bottom = jnp.broadcast_to(
-        jnp.asarray([0.0, 0.0, 0.0, 1.0], dtype=rotation.dtype), top.shape[:-2] + (1, 4)
+        jnp.asarray([0.0, 0.0, 0.0, 1.0], dtype=rotation.dtype), (*top.shape[:-2], 1, 4)
     )
     return jnp.concatenate([top, bottom], axis=-2)
 
@@ -229,7 +229,7 @@ def project_to_so3(matrix: Array) -> Array:
     _check_last(matrix, (3, 3), "matrix")
     u, _, vt = jnp.linalg.svd(matrix)
     det = jnp.linalg.det(u @ vt)
-    fix = jnp.ones(matrix.shape[:-2] + (3,), dtype=matrix.dtype).at[..., 2].set(det)
+    fix = jnp.ones((*matrix.shape[:-2], 3), dtype=matrix.dtype).at[..., 2].set(det)
     return (u * fix[..., None, :]) @ vt
 
 
