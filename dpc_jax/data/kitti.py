@@ -1,0 +1,315 @@
+"""Readers for the KITTI odometry and KITTI raw layouts (images, calibration, times, poses).
+
+Both readers return a :class:`StereoSequence`: the file lists of a rectified stereo pair, the
+intrinsics of its left camera, the baseline, the frame times and, when known, the ground-truth
+poses. Nothing is decoded here except the first left image (for the image size); images are
+read with :func:`load_image` when they are needed.
+
+Layouts (DESIGN §6):
+
+* odometry: ``ROOT/sequences/XX/{image_2,image_3}/NNNNNN.png`` (grey: ``image_0``, ``image_1``),
+  ``ROOT/sequences/XX/calib.txt`` (rows ``P0:`` … ``P3:``, 12 numbers each), ``times.txt`` (one
+  time in seconds per line), and ground truth ``ROOT/poses/XX.txt`` when it exists.
+* raw: ``ROOT/DATE/DATE_drive_NNNN_sync/image_0{2,3}/data/NNNNNNNNNN.png`` with
+  ``ROOT/DATE/calib_cam_to_cam.txt`` (``P_rect_02``, ``P_rect_03``) and
+  ``image_02/timestamps.txt``; ground truth from a pose file or a ``.mat`` file given by the caller.
+
+Poses are used as the files give them (camera-to-world, DESIGN §1). The odometry ground truth
+and the ss-DPC-Net ``.mat`` files describe camera 0 (grey left); the colour pair's left camera
+sits 6 cm to its side with the same orientation, which changes inter-frame translations by
+``|(I − R) t|`` (millimetres at KITTI's rotation rates), so the offset is not applied, as in the
+reference implementations.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from dpc_jax import trajectory
+from dpc_jax.lie import validate_poses
+
+
+@dataclass(frozen=True)
+class StereoSequence:
+    """A rectified stereo sequence on disk.
+
+    * ``name``: identifier used for caches and reports (``"09"``, ``"2011_09_26_drive_0001"``).
+    * ``left_paths``, ``right_paths``: the N image files of the left and right camera, in order.
+    * ``K``: float64 ``[3, 3]`` intrinsics of the left camera in pixels of the stored images.
+    * ``baseline``: metres; the right camera is at ``+baseline`` along x of the left camera.
+    * ``image_size``: ``(H, W)`` of the stored images.
+    * ``times``: float64 ``[N]`` seconds (from the first frame for the raw layout).
+    * ``poses``: float64 ``[N, 4, 4]`` camera-to-world ground truth, or None when unknown.
+    * ``sources``: the calibration, time and pose files read (their contents identify the inputs
+      of a preprocessing cache together with the image files).
+    """
+
+    name: str
+    left_paths: tuple[Path, ...]
+    right_paths: tuple[Path, ...]
+    K: np.ndarray
+    baseline: float
+    image_size: tuple[int, int]
+    times: np.ndarray
+    poses: np.ndarray | None = None
+    sources: tuple[Path, ...] = field(default=())
+
+    def __len__(self) -> int:
+        return len(self.left_paths)
+
+    def select(self, start: int, stop: int) -> StereoSequence:
+        """The frames ``start <= i < stop`` (Python slice bounds, validated) as a new sequence."""
+        n = len(self)
+        if not 0 <= start < stop <= n or stop - start < 2:
+            raise ValueError(
+                f"{self.name}: frame range [{start}, {stop}) must hold at least 2 of the {n} frames"
+            )
+        return replace(
+            self,
+            left_paths=self.left_paths[start:stop],
+            right_paths=self.right_paths[start:stop],
+            times=self.times[start:stop],
+            poses=None if self.poses is None else self.poses[start:stop],
+        )
+
+
+def load_image(path: str | Path, grey: bool = False) -> np.ndarray:
+    """Decode an image file: uint8 ``[H, W, 3]`` RGB, or ``[H, W]`` when ``grey``.
+
+    Raises ``FileNotFoundError`` when the file is missing and ``ValueError`` naming the file when
+    it cannot be decoded (truncated or not an image).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: image file not found")
+    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_COLOR)
+    if image is None:
+        raise ValueError(f"{path}: cannot decode the image (truncated or not a PNG/JPEG file)")
+    if image.dtype != np.uint8:
+        raise ValueError(f"{path}: expected an 8-bit image, got {image.dtype}")
+    return image if grey else cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def _frame_files(directory: Path) -> tuple[Path, ...]:
+    """The numbered PNGs of a camera folder, checked to be consecutive."""
+    if not directory.is_dir():
+        raise FileNotFoundError(f"{directory}: image folder not found")
+    files = sorted(p for p in directory.iterdir() if p.suffix.lower() == ".png")
+    if not files:
+        raise ValueError(f"{directory}: no PNG images")
+    numbers = []
+    for p in files:
+        if not re.fullmatch(r"\d+", p.stem):
+            raise ValueError(f"{p}: expected a frame number as the file name (e.g. 000000.png)")
+        numbers.append(int(p.stem))
+    first = numbers[0]
+    for k, number in enumerate(numbers):
+        if number != first + k:
+            raise ValueError(
+                f"{directory}: gap in frame numbering: expected frame {first + k} after "
+                f"{files[k - 1].name}, found {files[k].name}"
+            )
+    return tuple(files)
+
+
+def _pair_files(left_dir: Path, right_dir: Path) -> tuple[tuple[Path, ...], tuple[Path, ...]]:
+    left, right = _frame_files(left_dir), _frame_files(right_dir)
+    if len(left) != len(right):
+        raise ValueError(
+            f"{left_dir} holds {len(left)} frames but {right_dir} holds {len(right)}: "
+            "expected the same number of left and right frames"
+        )
+    for a, b in zip(left, right, strict=True):
+        if a.name != b.name:
+            raise ValueError(f"left frame {a} has no right counterpart {right_dir / a.name}")
+    return left, right
+
+
+def read_calibration(path: Path) -> dict[str, tuple[int, str]]:
+    """Lines ``KEY: values`` of a KITTI calibration file as ``{key: (line number, values)}``."""
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: calibration file not found")
+    entries: dict[str, tuple[int, str]] = {}
+    for number, line in enumerate(path.read_text().splitlines(), start=1):
+        if not line.strip():
+            continue
+        key, sep, values = line.partition(":")
+        if not sep:
+            raise ValueError(f"{path}, line {number}: expected 'KEY: values', got {line!r}")
+        entries[key.strip()] = (number, values)
+    return entries
+
+
+def projection_matrix(entries: dict[str, tuple[int, str]], key: str, path: Path) -> np.ndarray:
+    """The 3×4 projection matrix stored under ``key`` (12 numbers, row-major)."""
+    if key not in entries:
+        raise ValueError(f"{path}: calibration key {key!r} missing (expected a line '{key}: 12 numbers')")
+    number, values = entries[key]
+    try:
+        flat = np.array([float(v) for v in values.split()], dtype=np.float64)
+    except ValueError:
+        raise ValueError(f"{path}, line {number}: {key} holds a non-numeric value") from None
+    if flat.size != 12 or not np.isfinite(flat).all():
+        raise ValueError(f"{path}, line {number}: {key} must hold 12 finite numbers, got {flat.size}")
+    return flat.reshape(3, 4)
+
+
+def stereo_calibration(
+    path: Path, left_key: str, right_key: str
+) -> tuple[np.ndarray, float]:
+    """``(K [3, 3], baseline m)`` of a rectified pair from its projection matrices.
+
+    ``K`` is the left 3×3 block; ``baseline = (P_left[0, 3] − P_right[0, 3]) / fu`` (DESIGN §6).
+    """
+    entries = read_calibration(path)
+    p_left = projection_matrix(entries, left_key, path)
+    p_right = projection_matrix(entries, right_key, path)
+    K = p_left[:, :3].copy()
+    fu = K[0, 0]
+    if fu <= 0 or K[1, 1] <= 0 or K[2, 2] != 1.0:
+        raise ValueError(
+            f"{path}: {left_key} is not a pinhole projection [[fu,0,cu,·],[0,fv,cv,·],[0,0,1,·]]"
+        )
+    if not np.allclose(p_left[:, :3], p_right[:, :3], rtol=1e-6, atol=1e-9):
+        raise ValueError(f"{path}: {left_key} and {right_key} differ in K; expected a rectified pair")
+    baseline = float((p_left[0, 3] - p_right[0, 3]) / fu)
+    if baseline <= 0:
+        raise ValueError(
+            f"{path}: baseline ({left_key}[0,3] − {right_key}[0,3]) / fu = {baseline:.4g} m; expected > 0 "
+            "(right camera to the right of the left one)"
+        )
+    return K, baseline
+
+
+def _read_times(path: Path, n: int) -> np.ndarray:
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: times file not found")
+    values = []
+    for number, line in enumerate(path.read_text().splitlines(), start=1):
+        if not line.strip():
+            continue
+        try:
+            values.append(float(line))
+        except ValueError:
+            raise ValueError(f"{path}, line {number}: expected a time in seconds, got {line!r}") from None
+    return _check_times(np.array(values, dtype=np.float64), path, n)
+
+
+def _read_timestamps(path: Path, n: int) -> np.ndarray:
+    """KITTI raw ``timestamps.txt`` (``YYYY-MM-DD hh:mm:ss.nnnnnnnnn``) as seconds since the first."""
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: timestamps file not found")
+    stamps = []
+    for number, line in enumerate(path.read_text().splitlines(), start=1):
+        if not line.strip():
+            continue
+        try:
+            stamps.append(np.datetime64(line.strip().replace(" ", "T"), "ns"))
+        except ValueError:
+            raise ValueError(
+                f"{path}, line {number}: expected 'YYYY-MM-DD hh:mm:ss.fraction', got {line!r}"
+            ) from None
+    ns = np.array(stamps, dtype="datetime64[ns]")
+    seconds = (ns - ns[0]).astype(np.int64) / 1e9 if ns.size else np.zeros(0)
+    return _check_times(seconds, path, n)
+
+
+def _check_times(times: np.ndarray, path: Path, n: int) -> np.ndarray:
+    if times.size != n:
+        raise ValueError(f"{path}: {times.size} times for {n} frames; expected one time per frame")
+    if not np.isfinite(times).all() or (np.diff(times) <= 0).any():
+        bad = int(np.argmax(~(np.diff(times) > 0))) + 1 if n > 1 else 0
+        raise ValueError(f"{path}: times must be finite and increasing (frame {bad})")
+    return times
+
+
+def _check_poses(poses: np.ndarray, n: int, source: str) -> np.ndarray:
+    if poses.shape[0] != n:
+        raise ValueError(f"{source}: {poses.shape[0]} poses for {n} frames; expected one pose per frame")
+    return poses
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    image = load_image(path)
+    return int(image.shape[0]), int(image.shape[1])
+
+
+def open_odometry(root: str | Path, sequence: str | int, grey: bool = False) -> StereoSequence:
+    """Open KITTI odometry sequence ``sequence`` (``"09"`` or ``9``) under ``root``.
+
+    Colour pair ``image_2``/``image_3`` with ``P2``/``P3`` by default, grey pair
+    ``image_0``/``image_1`` with ``P0``/``P1`` when ``grey``. Ground truth is read from
+    ``root/poses/XX.txt`` when that file exists (None otherwise).
+    """
+    root = Path(root)
+    name = f"{int(sequence):02d}" if str(sequence).isdigit() else str(sequence)
+    seq_dir = root / "sequences" / name
+    if not seq_dir.is_dir():
+        raise FileNotFoundError(f"{seq_dir}: odometry sequence folder not found")
+    cams = (0, 1) if grey else (2, 3)
+    left, right = _pair_files(seq_dir / f"image_{cams[0]}", seq_dir / f"image_{cams[1]}")
+    calib_path = seq_dir / "calib.txt"
+    K, baseline = stereo_calibration(calib_path, f"P{cams[0]}", f"P{cams[1]}")
+    times_path = seq_dir / "times.txt"
+    times = _read_times(times_path, len(left))
+    pose_path = root / "poses" / f"{name}.txt"
+    sources = [calib_path, times_path]
+    poses = None
+    if pose_path.is_file():
+        poses = _check_poses(trajectory.read_trajectory(pose_path, "kitti"), len(left), str(pose_path))
+        sources.append(pose_path)
+    return StereoSequence(
+        name=name, left_paths=left, right_paths=right, K=K, baseline=baseline,
+        image_size=_image_size(left[0]), times=times, poses=poses, sources=tuple(sources),
+    )
+
+
+def read_ground_truth(source: str | Path, format: str | None = None) -> np.ndarray:
+    """Ground-truth trajectory ``[N, 4, 4]`` from a pose file; for ``.mat`` its ``poses_gt``."""
+    path = Path(source)
+    if (format or path.suffix.lstrip(".").lower()) == "mat":
+        gt, _ = trajectory.read_mat(path)
+        return gt
+    return trajectory.read_trajectory(path, format)
+
+
+def open_raw(
+    root: str | Path,
+    date: str,
+    drive: str | int,
+    poses: str | Path | np.ndarray | None = None,
+) -> StereoSequence:
+    """Open KITTI raw drive ``DATE_drive_NNNN_sync`` (colour pair ``image_02``/``image_03``).
+
+    ``poses``: ground truth as an array ``[N, 4, 4]``, or a pose file (KITTI or TUM text, or the
+    ``.mat`` layout whose ``poses_gt`` is used), or None. Times come from
+    ``image_02/timestamps.txt`` in seconds since the first frame.
+    """
+    root = Path(root)
+    drive_name = f"{date}_drive_{int(drive):04d}"
+    drive_dir = root / date / f"{drive_name}_sync"
+    if not drive_dir.is_dir():
+        raise FileNotFoundError(f"{drive_dir}: raw drive folder not found")
+    left, right = _pair_files(drive_dir / "image_02" / "data", drive_dir / "image_03" / "data")
+    calib_path = root / date / "calib_cam_to_cam.txt"
+    K, baseline = stereo_calibration(calib_path, "P_rect_02", "P_rect_03")
+    times_path = drive_dir / "image_02" / "timestamps.txt"
+    times = _read_timestamps(times_path, len(left))
+    sources = [calib_path, times_path]
+    gt = None
+    if poses is not None:
+        if isinstance(poses, np.ndarray):
+            label = f"{drive_name} ground truth"
+            gt = _check_poses(validate_poses(poses, label), len(left), label)
+        else:
+            gt = _check_poses(read_ground_truth(poses), len(left), str(poses))
+            sources.append(Path(poses))
+    return StereoSequence(
+        name=drive_name, left_paths=left, right_paths=right, K=K, baseline=baseline,
+        image_size=_image_size(left[0]), times=times, poses=gt, sources=tuple(sources),
+    )

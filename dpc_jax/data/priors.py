@@ -1,0 +1,73 @@
+"""Visual-odometry priors: loading estimates, checking them against the frames, ξ_vo, rescaling.
+
+A prior is the VO estimate of the whole sequence, camera-to-world ``[N, 4, 4]`` (DESIGN §1),
+one pose per camera frame. The network sees the relative poses ``T_vo_{t+1,t}`` as
+``ξ_vo = Log(T_vo_{t+1,t})``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from dpc_jax import trajectory
+from dpc_jax.lie import se3_log, validate_poses
+
+PRIOR_FORMATS = ("kitti", "tum", "mat")
+
+
+def load_prior(
+    source: str | Path | np.ndarray, n_frames: int, format: str | None = None
+) -> np.ndarray:
+    """VO estimate ``[N, 4, 4]`` float64, checked to hold one rigid pose per frame.
+
+    ``source``: an array ``[N, 4, 4]`` or ``[N, 3, 4]``, or a file: KITTI pose text, TUM text, or
+    the ss-DPC-Net ``.mat`` layout (its ``poses_est``). ``format`` (``kitti``|``tum``|``mat``)
+    overrides the guess from the extension. Raises ``ValueError`` naming the source when the
+    count differs from ``n_frames`` or a pose is not rigid.
+    """
+    if isinstance(source, np.ndarray):
+        label = "prior array"
+        poses = validate_poses(source, label)
+    else:
+        path = Path(source)
+        label = str(path)
+        if format is not None and format not in PRIOR_FORMATS:
+            raise ValueError(f"{path}: unknown prior format {format!r}; expected one of {PRIOR_FORMATS}")
+        poses = trajectory.read_trajectory(path, format)
+    if poses.shape[0] != n_frames:
+        raise ValueError(
+            f"{label}: {poses.shape[0]} prior poses for {n_frames} frames; expected one pose per frame"
+        )
+    return poses
+
+
+def relative_xi(poses: np.ndarray) -> np.ndarray:
+    """``ξ_{t+1,t} = Log(inv(T_{t+1}) T_t)`` of a trajectory ``[N, 4, 4]`` → ``[N-1, 6]`` (m, rad).
+
+    Computed with :func:`dpc_jax.lie.se3_log` (float64 with ``jax_enable_x64``, else float32),
+    returned as a numpy array.
+    """
+    return np.asarray(se3_log(trajectory.relative_poses(poses)))
+
+
+def rescale_monocular(prior: np.ndarray, ground_truth: np.ndarray) -> np.ndarray:
+    """Monocular prior with each step's translation rescaled to the ground-truth step length.
+
+    ss-DPC-Net protocol: for every pair the relative translation of the (scale-free) monocular
+    estimate is scaled so that its norm equals ``‖t_gt_{t+1,t}‖``; rotations are kept. The
+    rescaled steps are composed from the ground-truth first pose. A step whose estimated
+    translation is exactly zero has no direction to scale and stays zero.
+    Inputs and output ``[N, 4, 4]`` float64.
+    """
+    if prior.shape != ground_truth.shape:
+        raise ValueError(
+            f"prior {prior.shape} and ground truth {ground_truth.shape} must have the same shape"
+        )
+    rel = trajectory.relative_poses(prior).copy()
+    gt_dist = np.linalg.norm(trajectory.relative_poses(ground_truth)[:, :3, 3], axis=1)
+    est_dist = np.linalg.norm(rel[:, :3, 3], axis=1)
+    scale = np.divide(gt_dist, est_dist, out=np.zeros_like(gt_dist), where=est_dist > 0)
+    rel[:, :3, 3] *= scale[:, None]
+    return trajectory.compose(rel, ground_truth[0])
