@@ -1,0 +1,420 @@
+"""Trajectories: file formats, relative poses, composition and static-frame removal.
+
+A trajectory is a numpy array ``[N, 4, 4]`` of camera-to-world poses ``T_w_c`` ("Twv", DESIGN §1).
+Readers return float64 poses whose rotations are projected onto SO(3); they reject malformed
+rows, non-finite values and far-from-rigid matrices with a ``ValueError`` naming the file and the
+line (text formats) or the key (``.mat``). Writers are atomic: the text goes to a temporary file in
+the target directory, which then replaces the target, so a crash never leaves a half-written file.
+
+Formats:
+
+* **KITTI** pose text: one pose per line, the 12 numbers of the 3×4 matrix ``[R | t]`` row-major.
+* **TUM** text: ``timestamp tx ty tz qx qy qz qw`` per line (Hamilton quaternion, scalar last);
+  lines starting with ``#`` are comments.
+* **.mat** (ss-DPC-Net / pyslam release): ``poses_gt`` and ``poses_est`` as ``4 × 4 × N`` arrays
+  and ``convention`` ``'Twv'`` (camera-to-world) or ``'Tvw'`` (world-to-camera, inverted on read).
+  A file without ``convention`` is read as ``'Twv'``, the convention of every published file.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from dpc_jax.lie import validate_poses
+
+FORMATS = ("kitti", "tum", "mat")
+
+# The ss-DPC-Net static-frame rule (DESIGN §6): a frame pair moving less than this much in both
+# translation (m, ‖ρ‖ of the se(3) log) and rotation (rad, ‖φ‖) counts as static.
+STATIC_TRANSLATION_M = 1.5
+STATIC_ROTATION_RAD = 0.007
+_CHUNK = 1024
+
+
+# ----------------------------------------------------------------------------- atomic writes
+
+
+def atomic_write(path: str | os.PathLike[str], data: str | bytes) -> None:
+    """Write ``data`` to ``path`` atomically (temporary file in the same directory, then ``os.replace``).
+
+    The parent directory must exist. Text is written as UTF-8.
+    """
+    path = Path(path)
+    payload = data.encode("utf-8") if isinstance(data, str) else data
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            handle.write(payload)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+# ----------------------------------------------------------------------------- text parsing
+
+
+def _data_lines(path: Path, comment: str | None) -> list[tuple[int, list[str]]]:
+    """``(line number, fields)`` of every non-blank, non-comment line of a text file."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as error:
+        raise ValueError(f"{path}: not a text file ({error})") from None
+    rows = []
+    for number, line in enumerate(text.splitlines(), start=1):
+        stripped = line.strip()
+        if not stripped or (comment is not None and stripped.startswith(comment)):
+            continue
+        rows.append((number, stripped.replace(",", " ").split()))
+    if not rows:
+        raise ValueError(f"{path}: no poses (the file is empty)")
+    return rows
+
+
+def _parse_rows(
+    path: Path, rows: list[tuple[int, list[str]]], width: int, what: str
+) -> tuple[np.ndarray, list[int]]:
+    """Parse rows of exactly ``width`` finite numbers into ``[N, width]`` float64 plus line numbers."""
+    values = np.empty((len(rows), width))
+    for k, (number, fields) in enumerate(rows):
+        if len(fields) != width:
+            raise ValueError(
+                f"{path}, line {number}: expected {width} numbers ({what}), got {len(fields)}"
+            )
+        try:
+            values[k] = [float(f) for f in fields]
+        except ValueError:
+            raise ValueError(f"{path}, line {number}: not a number in {' '.join(fields)!r}") from None
+        if not np.isfinite(values[k]).all():
+            raise ValueError(f"{path}, line {number}: non-finite value (NaN or inf)")
+    return values, [number for number, _ in rows]
+
+
+def _validate_lines(poses: np.ndarray, path: Path, lines: list[int]) -> np.ndarray:
+    """:func:`validate_poses` with the failing pose mapped to its line in ``path``."""
+    try:
+        return validate_poses(poses, source=str(path))
+    except ValueError as error:
+        for i in range(poses.shape[0]):
+            try:
+                validate_poses(poses[i : i + 1], source=str(path))
+            except ValueError:
+                raise ValueError(f"{error} (line {lines[i]})") from None
+        raise
+
+
+# ----------------------------------------------------------------------------- quaternions
+
+
+def _quaternion_to_rotation(q: np.ndarray) -> np.ndarray:
+    """Unit quaternions ``[N, 4]`` as ``(x, y, z, w)`` -> rotation matrices ``[N, 3, 3]``."""
+    x, y, z, w = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def _rotation_to_quaternion(rotation: np.ndarray) -> np.ndarray:
+    """Rotation matrices ``[N, 3, 3]`` -> unit quaternions ``[N, 4]`` ``(x, y, z, w)`` with ``w ≥ 0``.
+
+    Shepperd's method: the largest of ``4w², 4x², 4y², 4z²`` is computed from the diagonal and the
+    others from off-diagonal sums, which keeps every branch well conditioned.
+    """
+    r = rotation
+    trace = r[:, 0, 0] + r[:, 1, 1] + r[:, 2, 2]
+    candidates = np.stack([trace, r[:, 0, 0], r[:, 1, 1], r[:, 2, 2]], -1)
+    branch = np.argmax(candidates, axis=-1)
+    q = np.empty((r.shape[0], 4))
+    for b in range(4):
+        sel = branch == b
+        m = r[sel]
+        if b == 0:
+            s = 2.0 * np.sqrt(1.0 + trace[sel])
+            q[sel] = np.stack(
+                [(m[:, 2, 1] - m[:, 1, 2]) / s, (m[:, 0, 2] - m[:, 2, 0]) / s,
+                 (m[:, 1, 0] - m[:, 0, 1]) / s, 0.25 * s], -1)
+        elif b == 1:
+            s = 2.0 * np.sqrt(1.0 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2])
+            q[sel] = np.stack(
+                [0.25 * s, (m[:, 0, 1] + m[:, 1, 0]) / s, (m[:, 0, 2] + m[:, 2, 0]) / s,
+                 (m[:, 2, 1] - m[:, 1, 2]) / s], -1)
+        elif b == 2:
+            s = 2.0 * np.sqrt(1.0 + m[:, 1, 1] - m[:, 0, 0] - m[:, 2, 2])
+            q[sel] = np.stack(
+                [(m[:, 0, 1] + m[:, 1, 0]) / s, 0.25 * s, (m[:, 1, 2] + m[:, 2, 1]) / s,
+                 (m[:, 0, 2] - m[:, 2, 0]) / s], -1)
+        else:
+            s = 2.0 * np.sqrt(1.0 + m[:, 2, 2] - m[:, 0, 0] - m[:, 1, 1])
+            q[sel] = np.stack(
+                [(m[:, 0, 2] + m[:, 2, 0]) / s, (m[:, 1, 2] + m[:, 2, 1]) / s, 0.25 * s,
+                 (m[:, 1, 0] - m[:, 0, 1]) / s], -1)
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[:, 3:4] < 0.0, -q, q)
+
+
+# ----------------------------------------------------------------------------- readers
+
+
+def read_kitti_poses(path: str | os.PathLike[str]) -> np.ndarray:
+    """Read a KITTI pose file -> ``[N, 4, 4]`` float64 (rotations projected onto SO(3))."""
+    path = Path(path)
+    values, lines = _parse_rows(path, _data_lines(path, comment=None), 12, "a row-major 3×4 pose")
+    return _validate_lines(values.reshape(-1, 3, 4), path, lines)
+
+
+def read_tum(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Read a TUM trajectory -> ``(timestamps [N] float64, poses [N, 4, 4] float64)``.
+
+    Quaternions must have unit norm within 1e-3 (rounding in text files); they are normalised.
+    """
+    path = Path(path)
+    values, lines = _parse_rows(
+        path, _data_lines(path, comment="#"), 8, "timestamp tx ty tz qx qy qz qw"
+    )
+    q = values[:, 4:8]
+    norm = np.linalg.norm(q, axis=-1)
+    bad = np.flatnonzero(np.abs(norm - 1.0) > 1e-3)
+    if bad.size:
+        i = int(bad[0])
+        raise ValueError(
+            f"{path}, line {lines[i]}: quaternion (qx qy qz qw) has norm {norm[i]:.6g}, expected 1"
+        )
+    poses = np.zeros((values.shape[0], 4, 4))
+    poses[:, :3, :3] = _quaternion_to_rotation(q / norm[:, None])
+    poses[:, :3, 3] = values[:, 1:4]
+    poses[:, 3, 3] = 1.0
+    return values[:, 0], _validate_lines(poses, path, lines)
+
+
+def _mat_poses(path: Path, contents: dict[str, object], key: str) -> np.ndarray:
+    if key not in contents:
+        present = sorted(k for k in contents if not k.startswith("__"))
+        raise ValueError(f"{path}: no key {key!r} (expected 'poses_gt' and 'poses_est'; found {present})")
+    raw = np.asarray(contents[key])
+    if raw.ndim != 3 or raw.shape[:2] != (4, 4) or not np.issubdtype(raw.dtype, np.number):
+        raise ValueError(f"{path}: {key!r} must be a numeric 4 × 4 × N array, got shape {raw.shape}")
+    return validate_poses(np.moveaxis(raw, -1, 0), source=f"{path} [{key!r}]")
+
+
+def read_mat(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Read an ss-DPC-Net ``.mat`` -> ``(ground truth, estimate)``, each ``[N, 4, 4]`` camera-to-world."""
+    import scipy.io
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    try:
+        contents = scipy.io.loadmat(str(path))
+    except (scipy.io.matlab.MatReadError, ValueError, TypeError, OSError, NotImplementedError) as error:
+        raise ValueError(f"{path}: not a readable MATLAB .mat file ({error})") from None
+    gt = _mat_poses(path, contents, "poses_gt")
+    est = _mat_poses(path, contents, "poses_est")
+    if gt.shape[0] != est.shape[0]:
+        raise ValueError(
+            f"{path}: 'poses_gt' has {gt.shape[0]} poses but 'poses_est' has {est.shape[0]}"
+        )
+    convention = "Twv"
+    if "convention" in contents:
+        convention = str(np.asarray(contents["convention"]).ravel()[0]).strip()
+    if convention == "Tvw":
+        return invert_poses(gt), invert_poses(est)
+    if convention != "Twv":
+        raise ValueError(f"{path}: 'convention' must be 'Twv' or 'Tvw', got {convention!r}")
+    return gt, est
+
+
+def detect_format(path: str | os.PathLike[str]) -> str:
+    """``"mat"`` for ``.mat``, ``"tum"`` for ``.tum``; other text by its column count (12 KITTI, 8 TUM)."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".mat":
+        return "mat"
+    if suffix == ".tum":
+        return "tum"
+    number, fields = _data_lines(path, comment="#")[0]
+    if len(fields) == 12:
+        return "kitti"
+    if len(fields) == 8:
+        return "tum"
+    raise ValueError(
+        f"{path}, line {number}: cannot tell the format: {len(fields)} columns, expected 12 (KITTI) "
+        "or 8 (TUM); pass the format explicitly"
+    )
+
+
+def read_trajectory(path: str | os.PathLike[str], format: str | None = None) -> np.ndarray:
+    """Read a trajectory file -> ``[N, 4, 4]`` float64 camera-to-world poses.
+
+    ``format``: ``"kitti" | "tum" | "mat" | None`` (None: :func:`detect_format`). For ``.mat`` the
+    estimate (``poses_est``) is returned; use :func:`read_mat` for both trajectories.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    fmt = detect_format(path) if format is None else format
+    if fmt == "kitti":
+        return read_kitti_poses(path)
+    if fmt == "tum":
+        return read_tum(path)[1]
+    if fmt == "mat":
+        return read_mat(path)[1]
+    raise ValueError(f"{path}: unknown trajectory format {fmt!r}; expected one of {', '.join(FORMATS)}")
+
+
+# ----------------------------------------------------------------------------- writers
+
+
+def _check_writable(poses: np.ndarray) -> np.ndarray:
+    arr = np.asarray(poses, dtype=np.float64)
+    if arr.ndim != 3 or arr.shape[1:] not in ((4, 4), (3, 4)):
+        raise ValueError(f"poses must have shape [N, 4, 4] or [N, 3, 4], got {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise ValueError("poses contain a non-finite value (NaN or inf)")
+    return arr
+
+
+def write_kitti_poses(path: str | os.PathLike[str], poses: np.ndarray) -> None:
+    """Write ``[N, 4, 4]`` (or ``[N, 3, 4]``) poses as KITTI text, atomically, to full float64 precision."""
+    arr = _check_writable(poses)
+    rows = arr[:, :3, :].reshape(-1, 12)
+    atomic_write(path, "".join(" ".join(f"{v:.17g}" for v in row) + "\n" for row in rows))
+
+
+def write_tum(
+    path: str | os.PathLike[str], poses: np.ndarray, timestamps: np.ndarray | None = None
+) -> None:
+    """Write poses as TUM text, atomically. ``timestamps`` ``[N]`` s (default: the frame index)."""
+    arr = _check_writable(poses)
+    n = arr.shape[0]
+    stamps = np.arange(n, dtype=np.float64) if timestamps is None else np.asarray(timestamps, np.float64)
+    if stamps.shape != (n,) or not np.isfinite(stamps).all():
+        raise ValueError(f"timestamps must be {n} finite numbers, got shape {stamps.shape}")
+    q = _rotation_to_quaternion(validate_poses(arr, source="poses to write")[:, :3, :3])
+    rows = np.concatenate([stamps[:, None], arr[:, :3, 3], q], axis=1)
+    atomic_write(path, "".join(" ".join(f"{v:.17g}" for v in row) + "\n" for row in rows))
+
+
+# ----------------------------------------------------------------------------- pose algebra (numpy)
+
+
+def invert_poses(poses: np.ndarray) -> np.ndarray:
+    """Closed-form inverse of rigid transforms ``[..., 4, 4]`` (dtype-preserving numpy)."""
+    poses = np.asarray(poses)
+    rotation_t = np.swapaxes(poses[..., :3, :3], -1, -2)
+    out = np.zeros_like(poses)
+    out[..., :3, :3] = rotation_t
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", rotation_t, poses[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def relative_poses(trajectory: np.ndarray) -> np.ndarray:
+    """``[N, 4, 4]`` -> ``[N-1, 4, 4]`` with ``T_{t+1,t} = inv(T_w_{t+1}) @ T_w_t`` (DESIGN §1).
+
+    ``T_{t+1,t}`` maps a point expressed in frame t into frame t+1. Dtype-preserving numpy.
+    """
+    trajectory = np.asarray(trajectory)
+    if trajectory.ndim != 3 or trajectory.shape[1:] != (4, 4) or trajectory.shape[0] < 1:
+        raise ValueError(f"trajectory must have shape [N, 4, 4] with N ≥ 1, got {trajectory.shape}")
+    return invert_poses(trajectory[1:]) @ trajectory[:-1]
+
+
+def compose(relative: np.ndarray, first_pose: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`relative_poses`: ``T_w_{t+1} = T_w_t @ inv(T_{t+1,t})`` from ``T_w_0 = first_pose``.
+
+    ``relative``: ``[N-1, 4, 4]``; ``first_pose``: ``[4, 4]`` -> ``[N, 4, 4]`` in the dtype of
+    ``relative``. The product is accumulated sequentially, exactly as the papers compose VO.
+    """
+    relative = np.asarray(relative)
+    if relative.ndim != 3 or relative.shape[1:] != (4, 4):
+        raise ValueError(f"relative must have shape [N-1, 4, 4], got {relative.shape}")
+    first = np.asarray(first_pose, dtype=relative.dtype)
+    if first.shape != (4, 4):
+        raise ValueError(f"first_pose must have shape [4, 4], got {first.shape}")
+    steps = invert_poses(relative)
+    out = np.empty((relative.shape[0] + 1, 4, 4), dtype=relative.dtype)
+    out[0] = first
+    for t in range(relative.shape[0]):
+        out[t + 1] = out[t] @ steps[t]
+    return out
+
+
+# ----------------------------------------------------------------------------- static frames
+
+@functools.cache
+def _log_norm_function() -> Callable[[np.ndarray], tuple[object, object]]:
+    """Jitted ``(‖ρ‖, ‖φ‖)`` of se(3) logs; built on first use so importing this module stays light."""
+    import jax
+    import jax.numpy as jnp
+
+    from dpc_jax.lie import se3_log
+
+    def norms(transforms: jax.Array) -> tuple[jax.Array, jax.Array]:
+        xi = se3_log(transforms)
+        return jnp.linalg.norm(xi[..., :3], axis=-1), jnp.linalg.norm(xi[..., 3:], axis=-1)
+
+    return jax.jit(norms)
+
+
+def _log_norms(transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(‖ρ‖ m, ‖φ‖ rad)`` of the se(3) logs of ``[M, 4, 4]`` transforms.
+
+    Evaluated in fixed chunks padded with identities, so it compiles once per process and dtype.
+    """
+    function = _log_norm_function()
+    m = transforms.shape[0]
+    padded = np.broadcast_to(np.eye(4), (-(-m // _CHUNK) * _CHUNK, 4, 4)).copy()
+    padded[:m] = transforms
+    rho, phi = zip(*(function(padded[k : k + _CHUNK]) for k in range(0, m, _CHUNK)), strict=True)
+    return np.concatenate(rho)[:m].astype(np.float64), np.concatenate(phi)[:m].astype(np.float64)
+
+
+def remove_static_frames(
+    reference: np.ndarray,
+    prior: np.ndarray | None = None,
+    translation_m: float = STATIC_TRANSLATION_M,
+    rotation_rad: float = STATIC_ROTATION_RAD,
+) -> np.ndarray:
+    """Indices of the frames kept by the ss-DPC-Net static-frame rule (DESIGN §6).
+
+    ``reference``: ``[N, 4, 4]``, the trajectory whose frames are kept or dropped (typically the
+    ground truth); ``prior``: ``[N, 4, 4]``, the trajectory the rule reads (the VO prior, as in
+    ss-DPC-Net), or None to read ``reference`` itself (sequences without a prior). Both lose the
+    same frames. Returns sorted int64 indices into ``[0, N)``.
+
+    The rule, on the current (already shortened) sequence: for each pair ``(i, i+1)`` with ``i``
+    even, ``[ρ, φ] = Log(inv(T_{i+1}) T_i)`` of the prior; frame ``i`` is dropped when
+    ``‖ρ‖ < translation_m`` (m) **and** ``‖φ‖ < rotation_rad`` (rad). Passes repeat until one
+    drops nothing. The last frame is never dropped (it is never the first of a pair).
+    """
+    reference = np.asarray(reference)
+    source = reference if prior is None else np.asarray(prior)
+    if reference.ndim != 3 or reference.shape[1:] != (4, 4):
+        raise ValueError(f"reference must have shape [N, 4, 4], got {reference.shape}")
+    if source.shape != reference.shape:
+        raise ValueError(
+            f"prior has {source.shape[0]} poses but reference has {reference.shape[0]}; "
+            "they must describe the same frames"
+        )
+    poses = source.astype(np.float64)
+    kept = np.arange(poses.shape[0])
+    while kept.size >= 2:
+        first = kept[0 : kept.size - 1 : 2]
+        second = kept[1 : kept.size : 2]
+        rho, phi = _log_norms(invert_poses(poses[second]) @ poses[first])
+        static = (rho < translation_m) & (phi < rotation_rad)
+        if not static.any():
+            break
+        kept = np.setdiff1d(kept, first[static], assume_unique=True)
+    return kept.astype(np.int64)
