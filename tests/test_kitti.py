@@ -1,0 +1,205 @@
+"""KITTI readers on generated odometry-layout fixtures and on the real raw excerpt."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from conftest import SHARED
+from scipy.spatial.transform import Rotation
+
+from dpc_jax.data.kitti import load_image, open_odometry, open_raw
+
+RAW = SHARED / "data" / "kitti-raw"
+RAW_MAT = RAW / "libviso2" / "stereo_2011_09_26_drive_0001.mat"
+
+FU, CU, FV, CV = 50.0, 15.5, 48.0, 9.5
+BASELINE_COLOUR = 0.54
+BASELINE_GREY = 0.5
+
+
+def fixture_poses(n: int, seed: int = 0, step: float = 1.0) -> np.ndarray:
+    """Camera-to-world poses driving forward (+z) with small random rotations."""
+    rng = np.random.default_rng(seed)
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    for k in range(1, n):
+        rel = np.eye(4)
+        rel[:3, :3] = Rotation.from_rotvec(rng.normal(scale=0.01, size=3)).as_matrix()
+        rel[:3, 3] = [0.0, 0.0, step]
+        poses[k] = poses[k - 1] @ rel
+    return poses
+
+
+def projection_row(fu: float, cu: float, fv: float, cv: float, tx: float) -> str:
+    p = np.array([[fu, 0, cu, tx], [0, fv, cv, 0], [0, 0, 1, 0]])
+    return " ".join(f"{v:.12e}" for v in p.ravel())
+
+
+def write_odometry(
+    root: Path, name: str = "00", n: int = 6, size: tuple[int, int] = (20, 32), seed: int = 0,
+    poses: np.ndarray | None = None,
+) -> dict:
+    """A tiny KITTI odometry sequence: colour and grey pairs, calib.txt, times.txt, poses/XX.txt.
+
+    Returns what was written (images as RGB uint8, poses, times) for comparisons.
+    """
+    rng = np.random.default_rng(seed)
+    seq = root / "sequences" / name
+    images = {}
+    for cam in (0, 1, 2, 3):
+        folder = seq / f"image_{cam}"
+        folder.mkdir(parents=True)
+        shape = size if cam < 2 else (*size, 3)
+        images[cam] = rng.integers(0, 256, size=(n, *shape), dtype=np.uint8)
+        for k in range(n):
+            img = images[cam][k] if cam < 2 else cv2.cvtColor(images[cam][k], cv2.COLOR_RGB2BGR)
+            assert cv2.imwrite(str(folder / f"{k:06d}.png"), img)
+    calib = [
+        f"P0: {projection_row(FU, CU, FV, CV, 0.0)}",
+        f"P1: {projection_row(FU, CU, FV, CV, -FU * BASELINE_GREY)}",
+        f"P2: {projection_row(FU, CU, FV, CV, FU * 0.06)}",
+        f"P3: {projection_row(FU, CU, FV, CV, FU * (0.06 - BASELINE_COLOUR))}",
+        "Tr: " + " ".join(["0"] * 12),
+    ]
+    (seq / "calib.txt").write_text("\n".join(calib) + "\n")
+    times = np.arange(n) * 0.1
+    (seq / "times.txt").write_text("".join(f"{t:e}\n" for t in times))
+    poses = fixture_poses(n, seed) if poses is None else poses
+    (root / "poses").mkdir(exist_ok=True)
+    np.savetxt(root / "poses" / f"{name}.txt", poses[:, :3, :].reshape(n, 12), fmt="%.12e")
+    return {"images": images, "poses": poses, "times": times}
+
+
+@pytest.fixture
+def odometry(tmp_path: Path) -> tuple[Path, dict]:
+    return tmp_path, write_odometry(tmp_path)
+
+
+def test_odometry_colour_and_grey_pairs(odometry: tuple[Path, dict]) -> None:
+    root, written = odometry
+    seq = open_odometry(root, 0)
+    assert seq.name == "00" and len(seq) == 6 and seq.image_size == (20, 32)
+    np.testing.assert_allclose(seq.K, [[FU, 0, CU], [0, FV, CV], [0, 0, 1]])
+    assert seq.baseline == pytest.approx(BASELINE_COLOUR, abs=1e-12)
+    np.testing.assert_allclose(seq.times, written["times"])
+    np.testing.assert_allclose(seq.poses, written["poses"], atol=1e-10)
+    assert [p.name for p in seq.left_paths] == [f"{k:06d}.png" for k in range(6)]
+    assert seq.left_paths[0].parent.name == "image_2" and seq.right_paths[0].parent.name == "image_3"
+    np.testing.assert_array_equal(load_image(seq.left_paths[3]), written["images"][2][3])
+    np.testing.assert_array_equal(load_image(seq.right_paths[5]), written["images"][3][5])
+
+    grey = open_odometry(root, "00", grey=True)
+    assert grey.baseline == pytest.approx(BASELINE_GREY, abs=1e-12)
+    assert grey.left_paths[0].parent.name == "image_0"
+    np.testing.assert_array_equal(load_image(grey.right_paths[2], grey=True), written["images"][1][2])
+
+
+def test_select_frame_range(odometry: tuple[Path, dict]) -> None:
+    root, written = odometry
+    part = open_odometry(root, "00").select(2, 5)
+    assert [p.name for p in part.left_paths] == ["000002.png", "000003.png", "000004.png"]
+    np.testing.assert_allclose(part.poses, written["poses"][2:5], atol=1e-10)
+    with pytest.raises(ValueError, match=r"frame range \[4, 9\)"):
+        open_odometry(root, "00").select(4, 9)
+
+
+def test_missing_sequence_poses_is_none(tmp_path: Path) -> None:
+    write_odometry(tmp_path, name="03")
+    (tmp_path / "poses" / "03.txt").unlink()
+    assert open_odometry(tmp_path, 3).poses is None
+
+
+def test_gap_in_frame_numbering(odometry: tuple[Path, dict]) -> None:
+    root, _ = odometry
+    (root / "sequences/00/image_2/000003.png").unlink()
+    expected = r"image_2: gap in frame numbering: expected frame 3 .* found 000004\.png"
+    with pytest.raises(ValueError, match=expected):
+        open_odometry(root, "00")
+
+
+def test_left_right_count_mismatch(odometry: tuple[Path, dict]) -> None:
+    root, _ = odometry
+    (root / "sequences/00/image_3/000005.png").unlink()
+    with pytest.raises(ValueError, match=r"image_2 holds 6 frames but .*image_3 holds 5"):
+        open_odometry(root, "00")
+
+
+def test_poses_of_other_length(odometry: tuple[Path, dict]) -> None:
+    root, written = odometry
+    path = root / "poses" / "00.txt"
+    np.savetxt(path, written["poses"][:5, :3, :].reshape(5, 12))
+    with pytest.raises(ValueError, match=r"00\.txt: 5 poses for 6 frames"):
+        open_odometry(root, "00")
+
+
+def test_times_of_other_length(odometry: tuple[Path, dict]) -> None:
+    root, _ = odometry
+    (root / "sequences/00/times.txt").write_text("0.0\n0.1\n")
+    with pytest.raises(ValueError, match=r"times\.txt: 2 times for 6 frames"):
+        open_odometry(root, "00")
+
+
+def test_non_rigid_pose_names_file_and_line(odometry: tuple[Path, dict]) -> None:
+    root, written = odometry
+    bad = written["poses"].copy()
+    bad[2, :3, :3] *= 1.2
+    np.savetxt(root / "poses" / "00.txt", bad[:, :3, :].reshape(6, 12))
+    with pytest.raises(ValueError, match=r"00\.txt.*line 3"):
+        open_odometry(root, "00")
+
+
+def test_calibration_missing_key(odometry: tuple[Path, dict]) -> None:
+    root, _ = odometry
+    calib = root / "sequences/00/calib.txt"
+    kept = [line for line in calib.read_text().splitlines() if not line.startswith("P3")]
+    calib.write_text("\n".join(kept) + "\n")
+    with pytest.raises(ValueError, match=r"calib\.txt: calibration key 'P3' missing"):
+        open_odometry(root, "00")
+    open_odometry(root, "00", grey=True)  # the grey pair does not need P3
+
+
+def test_calibration_malformed_row(odometry: tuple[Path, dict]) -> None:
+    root, _ = odometry
+    calib = root / "sequences/00/calib.txt"
+    lines = calib.read_text().splitlines()
+    lines[2] = "P2: 1 2 3"
+    calib.write_text("\n".join(lines))
+    with pytest.raises(ValueError, match=r"calib\.txt, line 3: P2 must hold 12 finite numbers, got 3"):
+        open_odometry(root, "00")
+
+
+def test_truncated_and_missing_png(odometry: tuple[Path, dict], tmp_path: Path) -> None:
+    root, _ = odometry
+    path = root / "sequences/00/image_2/000001.png"
+    path.write_bytes(path.read_bytes()[:60])
+    with pytest.raises(ValueError, match=r"000001\.png: cannot decode"):
+        load_image(path)
+    with pytest.raises(FileNotFoundError, match=r"nothing\.png"):
+        load_image(tmp_path / "nothing.png")
+
+
+def test_real_raw_excerpt() -> None:
+    seq = open_raw(RAW, "2011_09_26", 1, poses=RAW_MAT)
+    assert seq.name == "2011_09_26_drive_0001"
+    assert len(seq) == 108 and len(seq.right_paths) == 108
+    assert seq.image_size == (375, 1242)
+    # README: fu = fv = 721.5377, cu = 609.5593, cv = 172.854, baseline ≈ 0.532 m.
+    np.testing.assert_allclose(seq.K, [[721.5377, 0, 609.5593], [0, 721.5377, 172.854], [0, 0, 1]])
+    assert seq.baseline == pytest.approx((4.485728e01 + 3.395242e02) / 721.5377, rel=1e-12)
+    assert seq.times[0] == 0.0 and np.all(np.diff(seq.times) > 0.09) and np.all(np.diff(seq.times) < 0.12)
+    assert seq.poses.shape == (108, 4, 4)
+    steps = np.linalg.norm(np.diff(seq.poses[:, :3, 3], axis=0), axis=1)
+    assert 100 < steps.sum() < 115  # README: about 107 m
+    image = load_image(seq.left_paths[0])
+    assert image.shape == (375, 1242, 3) and image.dtype == np.uint8
+    # cv2 reads BGR; the reader must return RGB.
+    np.testing.assert_array_equal(image[..., ::-1], cv2.imread(str(seq.left_paths[0])))
+
+
+def test_raw_ground_truth_of_wrong_length() -> None:
+    with pytest.raises(ValueError, match=r"ground truth: 10 poses for 108 frames"):
+        open_raw(RAW, "2011_09_26", "0001", poses=np.tile(np.eye(4), (10, 1, 1)))
+    with pytest.raises(FileNotFoundError, match="drive_0002_sync"):
+        open_raw(RAW, "2011_09_26", 2)
