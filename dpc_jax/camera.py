@@ -1,0 +1,83 @@
+"""Pinhole camera: intrinsics scaling, pixel grids, back-projection and projection.
+
+Pure ``jnp`` functions, batched over leading axes and dtype-preserving. Conventions (DESIGN §1):
+``K = [[fu, 0, cu], [0, fv, cv], [0, 0, 1]]`` in pixels; pixel coordinates are ``(x, y) =
+(column, row)`` with pixel centres at integers; camera frame x right, y down, z forward (metres).
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jax import Array
+
+
+def _float(x: Array) -> Array:
+    x = jnp.asarray(x)
+    return x if jnp.issubdtype(x.dtype, jnp.floating) else x.astype(jnp.float32)
+
+
+def _check_intrinsics(K: Array) -> None:
+    if K.ndim < 2 or K.shape[-2:] != (3, 3):
+        raise ValueError(f"K must have shape [..., 3, 3], got {K.shape}")
+
+
+def scale_intrinsics(K: Array, sx: float | Array, sy: float | Array) -> Array:
+    """Intrinsics of an image resized by ``(sx, sy)`` (new width = sx · old width).
+
+    Row 0 (fu, skew, cu) is multiplied by ``sx`` and row 1 (fv, cv) by ``sy`` (DESIGN §1).
+    ``K``: ``[..., 3, 3]`` -> ``[..., 3, 3]``; ``sx``, ``sy`` scalars or arrays broadcasting
+    against the leading axes.
+    """
+    K = _float(K)
+    _check_intrinsics(K)
+    sx = jnp.asarray(sx, dtype=K.dtype)
+    sy = jnp.asarray(sy, dtype=K.dtype)
+    one = jnp.ones_like(sx * sy)
+    scale = jnp.stack([sx * one, sy * one, one], axis=-1)
+    return K * scale[..., :, None]
+
+
+def pixel_grid(height: int, width: int, dtype: jnp.dtype = jnp.float32) -> Array:
+    """Pixel coordinates ``[H, W, 2]``: ``grid[v, u] = (u, v)`` (x = column, y = row)."""
+    xs = jnp.arange(width, dtype=dtype)
+    ys = jnp.arange(height, dtype=dtype)
+    return jnp.stack(jnp.meshgrid(xs, ys, indexing="xy"), axis=-1)
+
+
+def backproject(depth: Array, K: Array) -> Array:
+    """3-D points ``depth(u, v) · K⁻¹ [u, v, 1]ᵀ`` of every pixel.
+
+    ``depth``: ``[..., H, W]`` z-depth in metres; ``K``: ``[..., 3, 3]`` whose leading axes
+    broadcast against those of ``depth`` -> points ``[..., H, W, 3]`` in the camera frame.
+    """
+    depth, K = _float(depth), _float(K)
+    _check_intrinsics(K)
+    if depth.ndim < 2:
+        raise ValueError(f"depth must have shape [..., H, W], got {depth.shape}")
+    dtype = jnp.result_type(depth.dtype, K.dtype)
+    height, width = depth.shape[-2:]
+    grid = pixel_grid(height, width, dtype)
+    homogeneous = jnp.concatenate([grid, jnp.ones((height, width, 1), dtype)], axis=-1)
+    rays = jnp.einsum("...ij,hwj->...hwi", jnp.linalg.inv(K.astype(dtype)), homogeneous)
+    return rays * depth[..., None]
+
+
+def project(points: Array, K: Array, eps: float = 1e-3) -> tuple[Array, Array]:
+    """Pixel coordinates of 3-D points and a mask of points in front of the camera.
+
+    ``points``: ``[..., H, W, 3]`` (camera frame, metres; any two spatial axes);
+    ``K``: ``[..., 3, 3]`` broadcasting against the leading axes of ``points``.
+    Returns ``uv``: ``[..., H, W, 2]`` (x = column, y = row) and ``valid``: bool ``[..., H, W]``,
+    true where ``z > eps``. Where ``z ≤ eps`` the division uses 1 instead of ``z``, so ``uv``
+    and its gradient stay finite there; such pixels must be discarded through ``valid``.
+    """
+    points, K = _float(points), _float(K)
+    _check_intrinsics(K)
+    if points.ndim < 3 or points.shape[-1] != 3:
+        raise ValueError(f"points must have shape [..., H, W, 3], got {points.shape}")
+    dtype = jnp.result_type(points.dtype, K.dtype)
+    pixels = jnp.einsum("...ij,...hwj->...hwi", K.astype(dtype), points.astype(dtype))
+    z = pixels[..., 2]
+    valid = z > eps
+    safe_z = jnp.where(valid, z, jnp.ones_like(z))
+    return pixels[..., :2] / safe_z[..., None], valid

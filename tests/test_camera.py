@@ -1,0 +1,85 @@
+"""Camera model against float64 numpy loops and known geometry."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from dpc_jax.camera import backproject, pixel_grid, project, scale_intrinsics
+
+K_NP = np.array([[40.0, 0.0, 31.5], [0.0, 38.0, 23.5], [0.0, 0.0, 1.0]])
+
+
+def test_scale_intrinsics_rows() -> None:
+    scaled = np.asarray(scale_intrinsics(K_NP, 0.5, 0.25))
+    expected = K_NP.copy()
+    expected[0] *= 0.5
+    expected[1] *= 0.25
+    np.testing.assert_array_equal(scaled, expected)
+
+
+def test_scale_intrinsics_batched_and_dtype() -> None:
+    K = np.stack([K_NP, 2 * K_NP]).astype(np.float32)
+    K[:, 2, 2] = 1.0
+    scaled = scale_intrinsics(K, jnp.array([1.0, 2.0]), 3.0)
+    assert scaled.dtype == jnp.float32 and scaled.shape == (2, 3, 3)
+    np.testing.assert_allclose(np.asarray(scaled[1, 0]), 2.0 * K[1, 0], rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(scaled[1, 1]), 3.0 * K[1, 1], rtol=1e-6)
+    np.testing.assert_array_equal(np.asarray(scaled[:, 2]), K[:, 2])
+
+
+def test_pixel_grid_is_column_row() -> None:
+    grid = np.asarray(pixel_grid(3, 4, jnp.float64))
+    assert grid.shape == (3, 4, 2) and grid.dtype == np.float64
+    for v in range(3):
+        for u in range(4):
+            assert tuple(grid[v, u]) == (u, v)
+
+
+def test_backproject_matches_numpy_loop() -> None:
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(1.0, 10.0, (2, 5, 6))
+    points = np.asarray(backproject(depth, K_NP))
+    K_inv = np.linalg.inv(K_NP)
+    for b in range(2):
+        for v in range(5):
+            for u in range(6):
+                expected = depth[b, v, u] * K_inv @ np.array([u, v, 1.0])
+                np.testing.assert_allclose(points[b, v, u], expected, rtol=1e-13)
+
+
+def test_project_inverts_backproject_and_flags_points_behind() -> None:
+    rng = np.random.default_rng(1)
+    depth = rng.uniform(0.5, 20.0, (3, 4, 5)).astype(np.float32)
+    K = np.broadcast_to(K_NP.astype(np.float32), (3, 3, 3))
+    uv, valid = project(backproject(depth, K), K)
+    assert uv.dtype == jnp.float32 and uv.shape == (3, 4, 5, 2)
+    assert bool(valid.all())
+    np.testing.assert_allclose(np.asarray(uv), np.broadcast_to(np.asarray(pixel_grid(4, 5)), uv.shape),
+                               atol=1e-4)
+
+    points = np.array([[[[1.0, 2.0, 0.0005], [1.0, 2.0, -3.0], [1.0, 2.0, 2.0]]]])
+    uv, valid = project(points, K_NP, eps=1e-3)
+    assert valid.tolist() == [[[False, False, True]]]
+    assert bool(jnp.isfinite(uv).all())
+    np.testing.assert_allclose(np.asarray(uv[0, 0, 2]), [40 * 0.5 + 31.5, 38 * 1.0 + 23.5])
+
+
+def test_project_gradient_finite_at_zero_depth() -> None:
+    points = jnp.zeros((1, 2, 3))
+    grad = jax.grad(lambda p: project(p, K_NP)[0].sum())(points)
+    assert bool(jnp.isfinite(grad).all())
+
+
+@pytest.mark.parametrize(
+    ("call", "message"),
+    [
+        (lambda: backproject(np.ones((4, 5)), np.eye(4)), "K must have shape"),
+        (lambda: backproject(np.ones(4), K_NP), "depth must have shape"),
+        (lambda: project(np.ones((4, 5, 2)), K_NP), "points must have shape"),
+        (lambda: scale_intrinsics(np.eye(2), 1.0, 1.0), "K must have shape"),
+    ],
+)
+def test_shape_errors(call, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        call()
