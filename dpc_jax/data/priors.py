@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import jax
 import numpy as np
 
 from dpc_jax import trajectory
@@ -43,13 +44,25 @@ def load_prior(
     return poses
 
 
-def relative_xi(poses: np.ndarray) -> np.ndarray:
-    """``ξ_{t+1,t} = Log(inv(T_{t+1}) T_t)`` of a trajectory ``[N, 4, 4]`` → ``[N-1, 6]`` (m, rad).
+_jit_se3_log = jax.jit(se3_log)
 
-    Computed with :func:`dpc_jax.lie.se3_log` (float64 with ``jax_enable_x64``, else float32),
-    returned as a numpy array.
+
+def log_poses(transforms: np.ndarray) -> np.ndarray:
+    """:func:`dpc_jax.lie.se3_log` of ``[M, 4, 4]`` transforms as a numpy ``[M, 6]`` array.
+
+    Compiled once per power-of-two bucket of M (identity padding), so loaders and caches of any
+    length reuse a handful of compilations instead of tracing op by op. float64 with
+    ``jax_enable_x64``, else float32.
     """
-    return np.asarray(se3_log(trajectory.relative_poses(poses)))
+    m = transforms.shape[0]
+    bucket = 1 << max(m - 1, 1).bit_length()
+    padded = np.concatenate([transforms, np.tile(np.eye(4), (bucket - m, 1, 1))])
+    return np.asarray(_jit_se3_log(padded))[:m]
+
+
+def relative_xi(poses: np.ndarray) -> np.ndarray:
+    """``ξ_{t+1,t} = Log(inv(T_{t+1}) T_t)`` of a trajectory ``[N, 4, 4]`` → ``[N-1, 6]`` (m, rad)."""
+    return log_poses(trajectory.relative_poses(poses))
 
 
 def rescale_monocular(prior: np.ndarray, ground_truth: np.ndarray) -> np.ndarray:

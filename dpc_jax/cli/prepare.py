@@ -1,0 +1,105 @@
+"""``dpc-jax prepare``: build the preprocessing cache of KITTI (or synthetic) sequences."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+HELP = "Decode, resize and cache stereo sequences with their VO prior (and optical flow) for training."
+
+EPILOG = """examples:
+  dpc-jax prepare --kitti-odometry ROOT --sequence 00 05 --prior 'priors/stereo_{seq}.mat' --out cache --flow
+  dpc-jax prepare --kitti-raw ROOT --date 2011_09_26 --drive 1 \\
+      --prior libviso2/stereo_2011_09_26_drive_0001.mat --out cache --frames 0:12 --size 120x188
+The synthetic sequences use the odometry layout (--kitti-odometry). '{seq}' in --prior/--gt is replaced by
+each sequence name. Ground truth: poses/XX.txt (odometry), else --gt, else the poses_gt of a .mat prior."""
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        h, w = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected HxW such as 240x376, got {text!r}") from None
+    return h, w
+
+
+def _frames(text: str) -> tuple[int, int]:
+    try:
+        start, stop = (int(v) for v in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected START:STOP such as 0:12, got {text!r}") from None
+    return start, stop
+
+
+class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """Keeps the examples' line breaks and shows the defaults."""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.epilog = EPILOG
+    parser.formatter_class = _Formatter
+    layout = parser.add_mutually_exclusive_group(required=True)
+    layout.add_argument("--kitti-odometry", type=Path, metavar="ROOT",
+                        help="odometry layout root (holds sequences/ and poses/); also the synthetic layout")
+    layout.add_argument("--kitti-raw", type=Path, metavar="ROOT", help="raw layout root (holds DATE/)")
+    parser.add_argument("--sequence", nargs="+", default=[], metavar="XX", help="odometry sequence(s)")
+    parser.add_argument("--grey", action="store_true", help="odometry: use the grey pair image_0/image_1")
+    parser.add_argument("--date", help="raw: recording date, e.g. 2011_09_26")
+    parser.add_argument("--drive", nargs="+", default=[], metavar="NNNN", help="raw: drive number(s)")
+    parser.add_argument("--prior", required=True, metavar="FILE",
+                        help="VO estimate per frame (KITTI/TUM text or .mat); '{seq}' = sequence name")
+    parser.add_argument("--prior-format", choices=("kitti", "tum", "mat"), help="override the extension")
+    parser.add_argument("--gt", metavar="FILE",
+                        help="ground-truth pose file (KITTI/TUM/.mat); '{seq}' allowed")
+    parser.add_argument("--out", required=True, type=Path, metavar="CACHE_DIR", help="cache root folder")
+    parser.add_argument("--size", type=_size, default=(240, 376), metavar="HxW", help="stored image size")
+    parser.add_argument("--frames", type=_frames, metavar="START:STOP", help="keep only these source frames")
+    parser.add_argument("--remove-static", action="store_true", help="drop static frames (ss-DPC-Net rule)")
+    parser.add_argument("--flow", action="store_true", help="store Farnebäck flow of consecutive pairs")
+    parser.add_argument("--flow-augment", action="store_true",
+                        help="also the flow of reversed and frame-skip pairs (implies --flow)")
+    parser.add_argument("--mono-rescale", action="store_true",
+                        help="rescale each prior step to the ground-truth step length (monocular VO)")
+    parser.add_argument("--force", action="store_true", help="rebuild even when the cache is up to date")
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+
+
+def run(args: argparse.Namespace) -> int:
+    from dpc_jax.data.cache import prepare_sequence
+    from dpc_jax.data.kitti import open_odometry, open_raw
+
+    if args.kitti_odometry is not None:
+        if not args.sequence or args.date or args.drive:
+            print("error: --kitti-odometry needs --sequence (and no --date/--drive)", file=sys.stderr)
+            return 2
+        jobs = [(s, lambda s=s: open_odometry(args.kitti_odometry, s, grey=args.grey)) for s in args.sequence]
+    else:
+        if not args.date or not args.drive or args.sequence:
+            print("error: --kitti-raw needs --date and --drive (and no --sequence)", file=sys.stderr)
+            return 2
+        jobs = [(d, lambda d=d: open_raw(args.kitti_raw, args.date, d)) for d in args.drive]
+    progress = None if not args.no_progress else False
+    for key, opener in jobs:
+        try:
+            sequence = opener()
+            path = prepare_sequence(
+                sequence,
+                args.prior.replace("{seq}", sequence.name),
+                args.out,
+                size=args.size,
+                remove_static=args.remove_static,
+                flow=args.flow,
+                flow_augment=args.flow_augment,
+                mono_rescale=args.mono_rescale,
+                frames=args.frames,
+                prior_format=args.prior_format,
+                ground_truth=None if args.gt is None else args.gt.replace("{seq}", sequence.name),
+                force=args.force,
+                progress=progress,
+            )
+        except (OSError, ValueError, KeyError) as error:
+            print(f"error: {key}: {error}", file=sys.stderr)
+            return 1
+        print(path)
+    return 0

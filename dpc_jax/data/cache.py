@@ -1,0 +1,368 @@
+"""Preprocessing cache: decoded, resized stereo frames, flow and poses as memory-mappable arrays.
+
+``prepare_sequence`` turns a :class:`~dpc_jax.data.kitti.StereoSequence` and its VO prior into a
+folder ``OUT/NAME/`` that the input pipeline memory-maps, so an epoch never decodes a PNG:
+
+====================  ===================  ==================================================
+file                  array                meaning
+====================  ===================  ==================================================
+``left.npy``          uint8 [N, H, W, 3]   left RGB frames, resized with ``cv2.INTER_AREA``
+``right.npy``         uint8 [N, H, W, 3]   right RGB frames
+``prior.npy``         float64 [N, 4, 4]    VO prior, camera-to-world (rescaled if asked)
+``gt.npy``            float64 [N, 4, 4]    ground truth (only when known)
+``K.npy``             float64 [3, 3]       intrinsics of the resized images
+``baseline.npy``      float64 []           stereo baseline (m)
+``indices.npy``       int64 [N]            frame numbers in the source sequence (kept frames)
+``times.npy``         float64 [N]          frame times (s)
+``flow.npy``          float32 [N-1,2,H,W,2]  Farnebäck flow k → k+1, left (0) and right (1)
+``flow_reverse.npy``  float32 [N-1,2,H,W,2]  flow k+1 → k (stored at index k)
+``flow_skip.npy``     float32 [N-2,2,H,W,2]  flow k → k+2
+``flow_skip_reverse.npy`` float32 [N-2,2,H,W,2]  flow k+2 → k (stored at index k)
+``manifest.json``     —                    sources, parameters, input hash, array shapes
+====================  ===================  ==================================================
+
+The three augmentation flows exist only with ``flow_augment`` (needed when training with flow
+and frame-skip or reversed pairs). Flow channels are ``[Δx column, Δy row]`` in pixels of the
+resized images, computed on their grey versions with the Farnebäck parameters of DESIGN §3.
+
+Identity of the inputs (``manifest["input_hash"]``): SHA-256 over the cache format version, the
+parameters, the calibration/time/pose/prior files by *content* (small), in-memory prior or
+ground-truth arrays by content, and the image files by *path, size and modification time* —
+hashing gigabytes of PNGs on every run would cost more than the check saves; a replaced image
+changes its mtime. Re-running with the same hash finds the complete cache and does nothing.
+
+Atomicity: everything is written into a hidden temporary folder beside the target, the manifest
+last, and the folder is renamed into place; a failure removes the temporary folder, so an
+interrupted or failed prepare never leaves a folder that :func:`~dpc_jax.data.pipeline.load_cache`
+accepts (it requires ``manifest.json``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import os
+import shutil
+import tempfile
+from collections.abc import Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm.auto import tqdm
+
+from dpc_jax import trajectory
+from dpc_jax.data.kitti import StereoSequence, load_image, read_ground_truth
+from dpc_jax.data.priors import load_prior, rescale_monocular
+from dpc_jax.lie import validate_poses
+
+log = logging.getLogger(__name__)
+
+CACHE_VERSION = 1
+DEFAULT_SIZE = (240, 376)
+MANIFEST = "manifest.json"
+FLOW_FILES = {
+    "forward": "flow.npy",
+    "reverse": "flow_reverse.npy",
+    "skip": "flow_skip.npy",
+    "skip_reverse": "flow_skip_reverse.npy",
+}
+# DESIGN §3: pyr_scale 0.5, 3 levels, window 15, 3 iterations, poly_n 5, poly_sigma 1.2.
+FARNEBACK = {"pyr_scale": 0.5, "levels": 3, "winsize": 15, "iterations": 3, "poly_n": 5, "poly_sigma": 1.2}
+
+
+def scale_intrinsics(K: np.ndarray, old_size: tuple[int, int], new_size: tuple[int, int]) -> np.ndarray:
+    """K of an image resized from ``(H, W)`` to ``(H', W')``: row 0 × W'/W, row 1 × H'/H (DESIGN §1).
+
+    As in DESIGN §1 and the reference code the half-pixel shift of the pixel-centre convention
+    (``c' = (c + ½) s − ½``, at most 0.35 px for KITTI → 240×376) is not applied.
+    """
+    out = np.array(K, dtype=np.float64)
+    out[0] *= new_size[1] / old_size[1]
+    out[1] *= new_size[0] / old_size[0]
+    return out
+
+
+def farneback_flow(source_grey: np.ndarray, target_grey: np.ndarray) -> np.ndarray:
+    """Dense flow source → target, float32 ``[H, W, 2]`` (Δx, Δy) px, DESIGN §3 parameters.
+
+    ``target(y + Δy, x + Δx) ≈ source(y, x)``.
+    """
+    flow = cv2.calcOpticalFlowFarneback(source_grey, target_grey, None, flags=0, **FARNEBACK)
+    return flow.astype(np.float32, copy=False)
+
+
+def _file_digest(path: Path) -> str:
+    h = hashlib.sha256()
+    with path.open("rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def input_hash(
+    sequence: StereoSequence,
+    prior_source: str | Path | np.ndarray,
+    parameters: dict,
+    extra_arrays: Iterable[np.ndarray] = (),
+) -> str:
+    """SHA-256 identifying a cache's inputs (see the module docstring for what is hashed)."""
+    h = hashlib.sha256()
+    h.update(json.dumps({"version": CACHE_VERSION, "parameters": parameters}, sort_keys=True).encode())
+    for path in sequence.sources:
+        h.update(f"{Path(path).resolve()}:{_file_digest(Path(path))}".encode())
+    if isinstance(prior_source, np.ndarray):
+        h.update(np.ascontiguousarray(prior_source, dtype=np.float64).tobytes())
+    else:
+        h.update(f"{Path(prior_source).resolve()}:{_file_digest(Path(prior_source))}".encode())
+    for array in extra_arrays:
+        h.update(np.ascontiguousarray(array, dtype=np.float64).tobytes())
+    for path in (*sequence.left_paths, *sequence.right_paths):
+        st = path.stat()
+        h.update(f"{path.resolve()}:{st.st_size}:{st.st_mtime_ns}".encode())
+    return h.hexdigest()
+
+
+def read_manifest(cache_dir: str | Path) -> dict | None:
+    """The manifest of a complete cache folder, or None when there is none."""
+    path = Path(cache_dir) / MANIFEST
+    if not path.is_file():
+        return None
+    return json.loads(path.read_text())
+
+
+def _resized_frame(path: Path, expected: tuple[int, int], size: tuple[int, int]) -> np.ndarray:
+    image = load_image(path)
+    if image.shape[:2] != expected:
+        raise ValueError(
+            f"{path}: image is {image.shape[0]}×{image.shape[1]}, expected {expected[0]}×{expected[1]} "
+            "like the sequence's first frame"
+        )
+    if image.shape[:2] == size:
+        return image
+    return cv2.resize(image, (size[1], size[0]), interpolation=cv2.INTER_AREA)
+
+
+def _ordered_map(fn, items: list, workers: int) -> Iterator:
+    """``map`` over a thread pool (OpenCV releases the GIL), results in order, bounded look-ahead."""
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        pending = []
+        for item in items:
+            pending.append(pool.submit(fn, item))
+            if len(pending) > 2 * workers:
+                yield pending.pop(0).result()
+        for future in pending:
+            yield future.result()
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+
+
+def _write_flows(
+    tmp: Path, left: np.ndarray, right: np.ndarray, augment: bool, workers: int, progress: bool
+) -> None:
+    n = left.shape[0]
+    kinds = {"forward": (1, False)}
+    if augment:
+        kinds |= {"reverse": (1, True), "skip": (2, False), "skip_reverse": (2, True)}
+    for kind, (step, backward) in kinds.items():
+        count = n - step
+        if count < 1:
+            raise ValueError(f"{n} frames are too few for {kind} flow (needs at least {step + 1})")
+        out = np.lib.format.open_memmap(
+            tmp / FLOW_FILES[kind], mode="w+", dtype=np.float32, shape=(count, 2, *left.shape[1:3], 2)
+        )
+
+        def pair_flow(k: int, step: int = step, backward: bool = backward) -> np.ndarray:
+            a, b = (k + step, k) if backward else (k, k + step)
+            return np.stack([
+                farneback_flow(_grey(cam[a]), _grey(cam[b])) for cam in (left, right)
+            ])
+
+        results = _ordered_map(pair_flow, list(range(count)), workers)
+        for k, flow in enumerate(tqdm(results, total=count, desc=f"flow ({kind})", disable=not progress)):
+            out[k] = flow
+        out.flush()
+        del out
+
+
+def prepare_sequence(
+    sequence: StereoSequence,
+    prior: str | Path | np.ndarray,
+    out_dir: str | Path,
+    *,
+    size: tuple[int, int] = DEFAULT_SIZE,
+    remove_static: bool = False,
+    flow: bool = False,
+    flow_augment: bool = False,
+    mono_rescale: bool = False,
+    frames: tuple[int, int] | None = None,
+    prior_format: str | None = None,
+    ground_truth: str | Path | np.ndarray | None = None,
+    name: str | None = None,
+    force: bool = False,
+    progress: bool | None = None,
+    workers: int | None = None,
+) -> Path:
+    """Build (or find up to date) the cache ``out_dir/name`` of one sequence; return its path.
+
+    * ``prior``: VO estimate of every frame of ``sequence`` (array or file, see
+      :func:`~dpc_jax.data.priors.load_prior`; ``prior_format`` overrides the extension).
+    * ``ground_truth``: replaces ``sequence.poses`` (array or pose file; ``.mat`` → ``poses_gt``).
+      When the sequence has none and the prior is a ``.mat`` file, its ``poses_gt`` is used.
+    * ``frames``: ``(start, stop)`` keeps only those source frames (before anything else).
+    * ``size``: ``(H, W)`` of the stored images (INTER_AREA), K scaled accordingly.
+    * ``mono_rescale``: rescale each prior step to the ground-truth step length (monocular VO);
+      needs ground truth.
+    * ``remove_static``: drop static frames by the ss-DPC-Net rule on the *prior* (DESIGN §6, as
+      available at run time, without ground truth); the ground truth loses the same frames.
+    * ``flow``: Farnebäck flow per consecutive kept pair; ``flow_augment`` adds the flows of the
+      reversed and frame-skip pairs (implies ``flow``).
+    * ``name``: folder name, default ``sequence.name``; ``force`` rebuilds even when up to date.
+    * ``progress``: tqdm bars (default: when stderr is a terminal); ``workers``: decoding and
+      flow threads (default: CPU count).
+
+    Bad input (unreadable or differently sized images, prior or ground truth of the wrong length
+    or not rigid) raises ``ValueError``/``FileNotFoundError`` naming the file and frame, and no
+    cache is written.
+    """
+    out_dir = Path(out_dir)
+    name = name or sequence.name
+    progress = os.isatty(2) if progress is None else progress
+    workers = workers or os.cpu_count() or 1
+    flow = flow or flow_augment
+    size = (int(size[0]), int(size[1]))
+    if size[0] < 8 or size[1] < 8:
+        raise ValueError(f"image size {size} too small; expected (H, W) of at least 8×8")
+
+    n_all = len(sequence)
+    gt_source = ground_truth
+    if gt_source is None and sequence.poses is None and not isinstance(prior, np.ndarray):
+        if (prior_format or Path(prior).suffix.lstrip(".").lower()) == "mat":
+            gt_source = prior
+    gt_all = sequence.poses
+    if gt_source is not None:
+        gt_all = _load_ground_truth(gt_source, n_all)
+    prior_all = load_prior(prior, n_all, prior_format)
+
+    start, stop = frames if frames is not None else (0, n_all)
+    sequence = sequence.select(start, stop)
+    prior_poses = prior_all[start:stop]
+    gt = None if gt_all is None else gt_all[start:stop]
+    if mono_rescale:
+        if gt is None:
+            raise ValueError(f"{sequence.name}: mono_rescale needs ground truth, and none was given")
+        prior_poses = rescale_monocular(prior_poses, gt)
+
+    parameters = {
+        "size": list(size), "remove_static": remove_static, "flow": flow, "flow_augment": flow_augment,
+        "mono_rescale": mono_rescale, "frames": [start, stop], "prior_format": prior_format,
+        "farneback": FARNEBACK if flow else None, "interpolation": "INTER_AREA",
+    }
+    extra = [gt_source] if isinstance(gt_source, np.ndarray) else []
+    if gt_source is not None and not isinstance(gt_source, np.ndarray):
+        sequence = dataclasses.replace(sequence, sources=(*sequence.sources, Path(gt_source)))
+    digest = input_hash(sequence, prior, parameters, extra)
+    target = out_dir / name
+    existing = read_manifest(target)
+    if not force and existing is not None and existing.get("input_hash") == digest:
+        log.info("%s: up to date (input hash %s)", target, digest[:12])
+        return target
+
+    kept = np.arange(len(sequence))
+    if remove_static:
+        kept = np.asarray(trajectory.remove_static_frames(prior_poses), dtype=np.int64)
+        if kept.size < 2:
+            raise ValueError(f"{sequence.name}: static-frame removal left {kept.size} frame(s); need 2")
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{name}.tmp-", dir=out_dir))
+    try:
+        tmp.chmod(0o755)  # mkdtemp makes it private; the cache is shared like any output folder
+        n = kept.size
+        shape = (n, *size, 3)
+        arrays = {}
+        for camera, paths in (("left", sequence.left_paths), ("right", sequence.right_paths)):
+            out = np.lib.format.open_memmap(tmp / f"{camera}.npy", mode="w+", dtype=np.uint8, shape=shape)
+            frames_iter = _ordered_map(
+                lambda p: _resized_frame(p, sequence.image_size, size), [paths[i] for i in kept], workers
+            )
+            bar = tqdm(frames_iter, total=n, desc=f"{name} {camera}", disable=not progress)
+            for k, image in enumerate(bar):
+                out[k] = image
+            out.flush()
+            arrays[camera] = out
+        if flow:
+            _write_flows(tmp, arrays["left"], arrays["right"], flow_augment, workers, progress)
+        del arrays
+        K = scale_intrinsics(sequence.K, sequence.image_size, size)
+        np.save(tmp / "prior.npy", prior_poses[kept])
+        if gt is not None:
+            np.save(tmp / "gt.npy", gt[kept])
+        np.save(tmp / "K.npy", K)
+        np.save(tmp / "baseline.npy", np.float64(sequence.baseline))
+        np.save(tmp / "indices.npy", kept + start)
+        np.save(tmp / "times.npy", sequence.times[kept])
+        manifest = {
+            "version": CACHE_VERSION,
+            "name": name,
+            "sequence": sequence.name,
+            "input_hash": digest,
+            "hash_method": "sha256: parameters, text/pose/prior files by content, images by path+size+mtime",
+            "parameters": parameters,
+            "sources": {
+                "left_images": str(sequence.left_paths[0].parent.resolve()),
+                "right_images": str(sequence.right_paths[0].parent.resolve()),
+                "files": [str(Path(p).resolve()) for p in sequence.sources],
+                "prior": "array" if isinstance(prior, np.ndarray) else str(Path(prior).resolve()),
+                "ground_truth": (
+                    None if gt is None else "array" if isinstance(gt_source, np.ndarray)
+                    else str(Path(gt_source).resolve()) if gt_source is not None else "sequence poses"
+                ),
+            },
+            "source_image_size": list(sequence.image_size),
+            "n_frames": int(n),
+            "n_source_frames": len(sequence),
+            "image_size": list(size),
+            "baseline": float(sequence.baseline),
+            "K": K.tolist(),
+            "has_gt": gt is not None,
+            "flows": [k for k, f in FLOW_FILES.items() if (tmp / f).exists()],
+        }
+        manifest_tmp = tmp / (MANIFEST + ".part")
+        manifest_tmp.write_text(json.dumps(manifest, indent=2))
+        os.replace(manifest_tmp, tmp / MANIFEST)
+        _install(tmp, target)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return target
+
+
+def _load_ground_truth(source: str | Path | np.ndarray, n: int) -> np.ndarray:
+    if isinstance(source, np.ndarray):
+        label = "ground-truth array"
+        poses = validate_poses(source, label)
+    else:
+        label = str(source)
+        poses = read_ground_truth(source)
+    if poses.shape[0] != n:
+        raise ValueError(
+            f"{label}: {poses.shape[0]} ground-truth poses for {n} frames; expected one per frame"
+        )
+    return poses
+
+
+def _install(tmp: Path, target: Path) -> None:
+    """Move the finished folder ``tmp`` to ``target``, replacing an older cache there."""
+    if target.exists():
+        old = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=target.parent))
+        os.replace(target, old / target.name)
+        os.replace(tmp, target)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(tmp, target)

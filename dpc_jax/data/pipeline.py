@@ -1,0 +1,400 @@
+"""numpy input pipeline: prepared caches → fixed-shape :class:`~dpc_jax.batch.Batch` es.
+
+A *sample* is an ordered frame pair ``(i, j)`` of one cached sequence: the network reconstructs
+frame j from frame i, its prior is ``T_vo_{j,i} = inv(T_vo_j) T_vo_i`` and, when ground truth is
+known, ``xi_gt = Log(T_gt_{j,i})`` (reporting only). Pair kinds:
+
+* ``forward``: ``(k, k+1)``, the consecutive pairs of the sequence;
+* ``skip`` (augmentation, on by default for training): ``(k, k+2)`` for every k, i.e. the
+  every-second-frame copies of the sequence starting at frame 0 and at frame 1 (faster motion);
+  the prior is the composition of the two prior steps, the ground truth likewise;
+* ``reverse`` / ``skip_reverse`` (optional augmentation): ``(k+1, k)`` / ``(k+2, k)``, the
+  sequences played backwards, with inverted priors.
+
+Flow, when used, is read from the cache (``flow_augment`` at prepare time is needed for the
+augmented kinds). ``xi_vo``/``xi_gt`` of every sample are computed once when a loader is built.
+
+Training (:class:`TrainLoader`): shuffled from ``(seed, epoch)`` only, so an epoch is
+reproducible and independent of the number of workers; batches have exactly ``batch_size``
+samples and **the last partial batch of an epoch is dropped** (a different subset each epoch).
+Evaluation (:func:`iterate_sequence`): the forward pairs of one sequence in order; **the last
+batch is padded to ``batch_size`` with copies of the last pair whose ``weight`` is 0**.
+
+Batches are assembled by background threads (:func:`prefetch`): a bounded number of batches in
+flight, order preserved, a worker's exception re-raised in the consumer, workers stopped when
+the consumer stops iterating (the generator is closed or garbage collected).
+"""
+
+from __future__ import annotations
+
+import json
+from collections import deque
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from dpc_jax.batch import Batch
+from dpc_jax.data.cache import FLOW_FILES, MANIFEST
+from dpc_jax.data.priors import log_poses
+
+PAIR_KINDS = {"forward": (1, False), "reverse": (1, True), "skip": (2, False), "skip_reverse": (2, True)}
+
+
+@dataclass(frozen=True)
+class SequenceCache:
+    """A prepared sequence, memory-mapped (see :mod:`dpc_jax.data.cache` for the arrays)."""
+
+    path: Path
+    name: str
+    left: np.ndarray
+    right: np.ndarray
+    prior: np.ndarray
+    gt: np.ndarray | None
+    K: np.ndarray
+    baseline: float
+    indices: np.ndarray
+    times: np.ndarray
+    flows: dict[str, np.ndarray]
+    manifest: dict
+
+    def __len__(self) -> int:
+        return int(self.left.shape[0])
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        return int(self.left.shape[1]), int(self.left.shape[2])
+
+
+def load_cache(path: str | Path) -> SequenceCache:
+    """Memory-map the cache folder ``path`` written by :func:`~dpc_jax.data.cache.prepare_sequence`.
+
+    Raises ``FileNotFoundError`` when the folder has no manifest (not a cache, or an interrupted
+    prepare) and ``ValueError`` when its arrays disagree with the manifest.
+    """
+    path = Path(path)
+    manifest_path = path / MANIFEST
+    if not manifest_path.is_file():
+        raise FileNotFoundError(f"{path}: not a prepared cache (no {MANIFEST}); run `dpc-jax prepare`")
+    manifest = json.loads(manifest_path.read_text())
+
+    def array(file: str) -> np.ndarray:
+        if not (path / file).is_file():
+            raise FileNotFoundError(f"{path / file}: missing from the cache (listed in {manifest_path})")
+        return np.load(path / file, mmap_mode="r")
+
+    left, right = array("left.npy"), array("right.npy")
+    n = int(manifest["n_frames"])
+    shape = (n, *manifest["image_size"], 3)
+    for file, arr in (("left.npy", left), ("right.npy", right)):
+        if arr.shape != shape or arr.dtype != np.uint8:
+            raise ValueError(f"{path / file}: {arr.dtype} {arr.shape}, manifest says uint8 {shape}")
+    flows = {}
+    for kind in manifest["flows"]:
+        flows[kind] = array(FLOW_FILES[kind])
+        expected = (n - PAIR_KINDS[kind][0], 2, *manifest["image_size"], 2)
+        if flows[kind].shape != expected:
+            raise ValueError(f"{path / FLOW_FILES[kind]}: shape {flows[kind].shape}, expected {expected}")
+    return SequenceCache(
+        path=path,
+        name=manifest["name"],
+        left=left,
+        right=right,
+        prior=np.load(path / "prior.npy"),
+        gt=np.load(path / "gt.npy") if manifest["has_gt"] else None,
+        K=np.load(path / "K.npy"),
+        baseline=float(np.load(path / "baseline.npy")),
+        indices=np.load(path / "indices.npy"),
+        times=np.load(path / "times.npy"),
+        flows=flows,
+        manifest=manifest,
+    )
+
+
+def _as_caches(caches: Sequence[SequenceCache | str | Path]) -> list[SequenceCache]:
+    return [c if isinstance(c, SequenceCache) else load_cache(c) for c in caches]
+
+
+def pair_indices(n_frames: int, kind: str) -> tuple[np.ndarray, np.ndarray]:
+    """Source and target frame indices ``(i [M], j [M])`` of the pairs of one kind."""
+    step, backward = PAIR_KINDS[kind]
+    first = np.arange(n_frames - step)
+    return (first + step, first) if backward else (first, first + step)
+
+
+def _relative_poses(poses: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """``inv(T_j) T_i`` for index arrays i, j → float64 ``[M, 4, 4]``.
+
+    Formed in float64 numpy: world coordinates reach kilometres, where float32 would cost
+    0.1 mm per step.
+    """
+    rot_t = np.swapaxes(poses[j, :3, :3], 1, 2)
+    inv = np.zeros((j.size, 4, 4))
+    inv[:, :3, :3] = rot_t
+    inv[:, :3, 3] = -np.einsum("nab,nb->na", rot_t, poses[j, :3, 3])
+    inv[:, 3, 3] = 1.0
+    return inv @ poses[i]
+
+
+@dataclass(frozen=True)
+class _SampleTable:
+    """All samples of a loader: which cache, which frames, which flow slot, and their ξ."""
+
+    cache: np.ndarray  # int [S]
+    source: np.ndarray  # int [S]
+    target: np.ndarray  # int [S]
+    kind: np.ndarray  # int [S], index into PAIR_KINDS order
+    flow_slot: np.ndarray  # int [S], index into the kind's flow array
+    xi_vo: np.ndarray  # float32 [S, 6]
+    xi_gt: np.ndarray | None  # float32 [S, 6]
+
+    def __len__(self) -> int:
+        return int(self.cache.shape[0])
+
+
+_KIND_NAMES = tuple(PAIR_KINDS)
+
+
+def _build_table(caches: list[SequenceCache], kinds: Sequence[str], use_flow: bool) -> _SampleTable:
+    keys = ("cache", "source", "target", "kind", "slot", "vo", "gt")
+    parts: dict[str, list[np.ndarray]] = {k: [] for k in keys}
+    with_gt = all(c.gt is not None for c in caches)
+    for c_id, cache in enumerate(caches):
+        for kind in kinds:
+            if use_flow and kind not in cache.flows:
+                raise ValueError(
+                    f"{cache.path}: no {kind} flow in the cache; prepare it with flow_augment "
+                    f"(--flow-augment), or train without flow or without the {kind} pairs"
+                )
+            i, j = pair_indices(len(cache), kind)
+            if i.size == 0:
+                continue
+            parts["cache"].append(np.full(i.size, c_id))
+            parts["source"].append(i)
+            parts["target"].append(j)
+            parts["kind"].append(np.full(i.size, _KIND_NAMES.index(kind)))
+            parts["slot"].append(np.minimum(i, j))
+            parts["vo"].append(_relative_poses(cache.prior, i, j))
+            if with_gt:
+                parts["gt"].append(_relative_poses(cache.gt, i, j))
+    if not parts["cache"]:
+        raise ValueError("no frame pairs: every sequence is too short for the requested pair kinds")
+    cat = {k: np.concatenate(v) for k, v in parts.items() if v}
+    # One logarithm call for every pair of every sequence (a single compilation).
+    relative = cat["vo"] if not with_gt else np.concatenate([cat["vo"], cat["gt"]])
+    xi = log_poses(relative).astype(np.float32)
+    count = cat["vo"].shape[0]
+    return _SampleTable(
+        cache=cat["cache"], source=cat["source"], target=cat["target"], kind=cat["kind"],
+        flow_slot=cat["slot"], xi_vo=xi[:count], xi_gt=xi[count:] if with_gt else None,
+    )
+
+
+def _check_compatible(caches: list[SequenceCache]) -> None:
+    sizes = {c.image_size for c in caches}
+    if len(sizes) != 1:
+        raise ValueError(f"caches have different image sizes {sorted(sizes)}; prepare them with one --size")
+
+
+def _assemble(
+    caches: list[SequenceCache], table: _SampleTable, rows: np.ndarray, weight: np.ndarray, use_flow: bool
+) -> Batch:
+    """Gather the samples ``rows`` of ``table`` into one Batch of numpy arrays."""
+    b = rows.size
+    h, w = caches[0].image_size
+    left = np.empty((b, 2, h, w, 3), np.uint8)
+    right = np.empty((b, 2, h, w, 3), np.uint8)
+    flow = np.empty((b, 2, h, w, 2), np.float32) if use_flow else None
+    intrinsics = np.empty((b, 3, 3), np.float32)
+    baseline = np.empty(b, np.float32)
+    for n, r in enumerate(rows):
+        cache = caches[table.cache[r]]
+        i, j = table.source[r], table.target[r]
+        left[n, 0], left[n, 1] = cache.left[i], cache.left[j]
+        right[n, 0], right[n, 1] = cache.right[i], cache.right[j]
+        if flow is not None:
+            flow[n] = cache.flows[_KIND_NAMES[table.kind[r]]][table.flow_slot[r]]
+        intrinsics[n] = cache.K
+        baseline[n] = cache.baseline
+    return Batch(
+        left=left,
+        right=right,
+        xi_vo=table.xi_vo[rows],
+        intrinsics=intrinsics,
+        baseline=baseline,
+        weight=weight.astype(np.float32),
+        flow=flow,
+        xi_gt=None if table.xi_gt is None else table.xi_gt[rows],
+    )
+
+
+def prefetch(tasks: Iterator[Callable[[], Batch]], depth: int = 4, workers: int = 2) -> Iterator[Batch]:
+    """Run ``tasks`` (callables) on ``workers`` threads, yielding their results in order.
+
+    At most ``depth`` tasks are in flight (bounded memory). An exception of a task is raised in
+    the consumer at its position. When the consumer stops (closes the generator, or drops it),
+    the pending tasks are cancelled and the threads joined. ``workers=0`` runs inline.
+    """
+    if workers == 0:
+        for task in tasks:
+            yield task()
+        return
+    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="dpc-data")
+    pending: deque[Future] = deque()
+    try:
+        for task in tasks:
+            pending.append(pool.submit(task))
+            if len(pending) >= depth:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+    finally:
+        for future in pending:
+            future.cancel()
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+class TrainLoader:
+    """Shuffled, fixed-shape training batches over several cached sequences.
+
+    ``caches``: cache folders or loaded :class:`SequenceCache` s (same image size).
+    ``frame_skip`` adds the ``(k, k+2)`` pairs, ``reverse`` the reversed pairs of every kind in
+    use. ``flow``: include flow (None → when every cache has it). Batches hold ``xi_gt`` only
+    when every sequence has ground truth, so the batch structure is the same for every batch.
+
+    ``len(loader)`` is the number of batches per epoch, ``floor(samples / batch_size)``: the
+    last partial batch is dropped. ``epoch(e)`` shuffles with ``numpy.random.default_rng((seed,
+    e))`` and yields batches prepared by ``workers`` background threads (``workers=0``: inline).
+    """
+
+    def __init__(
+        self,
+        caches: Sequence[SequenceCache | str | Path],
+        batch_size: int,
+        *,
+        seed: int = 0,
+        frame_skip: bool = True,
+        reverse: bool = False,
+        flow: bool | None = None,
+        shuffle: bool = True,
+        workers: int = 2,
+        depth: int = 4,
+    ) -> None:
+        if batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        self.caches = _as_caches(caches)
+        if not self.caches:
+            raise ValueError("TrainLoader needs at least one cache")
+        _check_compatible(self.caches)
+        self.use_flow = all(c.flows for c in self.caches) if flow is None else flow
+        kinds = ["forward"] + (["skip"] if frame_skip else [])
+        if reverse:
+            kinds += ["reverse"] + (["skip_reverse"] if frame_skip else [])
+        self.kinds = tuple(kinds)
+        self.table = _build_table(self.caches, self.kinds, self.use_flow)
+        self.batch_size = batch_size
+        self.seed = seed
+        self.shuffle = shuffle
+        self.workers = workers
+        self.depth = depth
+        if len(self) == 0:
+            raise ValueError(f"{len(self.table)} samples are fewer than one batch of {batch_size}")
+
+    @property
+    def num_samples(self) -> int:
+        return len(self.table)
+
+    def __len__(self) -> int:
+        return self.num_samples // self.batch_size
+
+    def order(self, epoch: int) -> np.ndarray:
+        """Sample order of epoch ``epoch`` (a permutation, or the identity without shuffling)."""
+        if not self.shuffle:
+            return np.arange(self.num_samples)
+        return np.random.default_rng((self.seed, epoch)).permutation(self.num_samples)
+
+    def epoch(self, epoch: int) -> Iterator[Batch]:
+        """The ``len(self)`` batches of epoch ``epoch``, prefetched in the background."""
+        order = self.order(epoch)
+        ones = np.ones(self.batch_size, np.float32)
+
+        def tasks() -> Iterator[Callable[[], Batch]]:
+            for b in range(len(self)):
+                rows = order[b * self.batch_size:(b + 1) * self.batch_size]
+                yield lambda rows=rows: _assemble(self.caches, self.table, rows, ones, self.use_flow)
+
+        return prefetch(tasks(), self.depth, self.workers)
+
+
+def iterate_sequence(
+    cache: SequenceCache | str | Path,
+    batch_size: int,
+    *,
+    flow: bool | None = None,
+    workers: int = 1,
+    depth: int = 4,
+) -> Iterator[Batch]:
+    """The forward pairs ``(k, k+1)``, k = 0 … N-2, of one sequence in order, in fixed-size batches.
+
+    The last batch is padded with copies of the final pair whose ``weight`` is 0, so every batch
+    has ``batch_size`` samples; ``ceil((N-1) / batch_size)`` batches in all.
+    """
+    [loaded] = _as_caches([cache])
+    use_flow = bool(loaded.flows) if flow is None else flow
+    table = _build_table([loaded], ["forward"], use_flow)
+    n = len(table)
+
+    def tasks() -> Iterator[Callable[[], Batch]]:
+        for start in range(0, n, batch_size):
+            real = np.arange(start, min(start + batch_size, n))
+            rows = np.concatenate([real, np.full(batch_size - real.size, n - 1)])
+            weight = (np.arange(batch_size) < real.size).astype(np.float32)
+            yield lambda rows=rows, weight=weight: _assemble([loaded], table, rows, weight, use_flow)
+
+    return prefetch(tasks(), depth, workers)
+
+
+@dataclass(frozen=True)
+class Split:
+    """Sequence names for training, validation (epoch selection) and test."""
+
+    train: tuple[str, ...]
+    validation: str | None
+    test: str | None
+
+
+def leave_one_out(
+    names: Sequence[str],
+    *,
+    test: str | None,
+    validation: str | None = None,
+    train: Sequence[str] | None = None,
+) -> Split:
+    """Leave-one-out split: train on every sequence of ``names`` but the validation and test ones.
+
+    An explicit ``train`` list is checked instead: it must not hold the validation or the test
+    sequence. Raises ``ValueError`` for unknown names, validation == test, or overlap.
+    """
+    known = list(dict.fromkeys(names))
+    for role, value in (("test", test), ("validation", validation)):
+        if value is not None and value not in known:
+            raise ValueError(f"{role} sequence {value!r} is not one of {known}")
+    if test is not None and test == validation:
+        raise ValueError(f"sequence {test!r} cannot be both the validation and the test sequence")
+    held_out = {test, validation} - {None}
+    if train is None:
+        chosen = tuple(n for n in known if n not in held_out)
+    else:
+        chosen = tuple(dict.fromkeys(train))
+        unknown = [n for n in chosen if n not in known]
+        if unknown:
+            raise ValueError(f"training sequences {unknown} are not among {known}")
+        overlap = [n for n in chosen if n in held_out]
+        if overlap:
+            role = "validation" if validation in overlap else "test"
+            raise ValueError(f"sequence {overlap[0]!r} is the {role} sequence and cannot also be in training")
+    if not chosen:
+        raise ValueError("no training sequence left after removing the validation and test sequences")
+    return Split(train=chosen, validation=validation, test=test)

@@ -1,0 +1,217 @@
+"""Preprocessing cache on the real excerpt (first frames) and on generated odometry fixtures."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import scipy.io
+from conftest import SHARED
+from test_kitti import write_odometry
+
+from dpc_jax.cli import main
+from dpc_jax.data.cache import prepare_sequence
+from dpc_jax.data.kitti import open_odometry, open_raw
+from dpc_jax.data.pipeline import load_cache
+from dpc_jax.warp import stereo_warp
+
+RAW = SHARED / "data" / "kitti-raw"
+STEREO_MAT = RAW / "libviso2" / "stereo_2011_09_26_drive_0001.mat"
+FRAMES = (3, 12)
+SIZE = (240, 376)
+
+
+@pytest.fixture(scope="module")
+def excerpt(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Frames 3..11 of the real excerpt at 240×376 with forward flow."""
+    sequence = open_raw(RAW, "2011_09_26", 1)
+    out = tmp_path_factory.mktemp("cache")
+    return prepare_sequence(sequence, STEREO_MAT, out, frames=FRAMES, flow=True, progress=False)
+
+
+def mat(key: str) -> np.ndarray:
+    return np.moveaxis(scipy.io.loadmat(str(STEREO_MAT))[key], -1, 0)
+
+
+def test_excerpt_images_poses_and_intrinsics(excerpt: Path) -> None:
+    cache = load_cache(excerpt)
+    n = FRAMES[1] - FRAMES[0]
+    assert cache.left.shape == cache.right.shape == (n, *SIZE, 3) and cache.left.dtype == np.uint8
+    np.testing.assert_array_equal(cache.indices, np.arange(*FRAMES))
+    seq = open_raw(RAW, "2011_09_26", 1)
+    for k in (0, n - 1):
+        for stored, paths in ((cache.left, seq.left_paths), (cache.right, seq.right_paths)):
+            bgr = cv2.imread(str(paths[FRAMES[0] + k]))
+            expected = cv2.resize(bgr, SIZE[::-1], interpolation=cv2.INTER_AREA)[..., ::-1]
+            np.testing.assert_array_equal(stored[k], expected)
+    np.testing.assert_allclose(cache.prior, mat("poses_est")[FRAMES[0]:FRAMES[1]], atol=1e-6)
+    np.testing.assert_allclose(cache.gt, mat("poses_gt")[FRAMES[0]:FRAMES[1]], atol=1e-6)
+    sx, sy = 376 / 1242, 240 / 375
+    np.testing.assert_allclose(
+        cache.K, [[721.5377 * sx, 0, 609.5593 * sx], [0, 721.5377 * sy, 172.854 * sy], [0, 0, 1]]
+    )
+    assert cache.baseline == pytest.approx(0.5327, abs=1e-4)
+    assert cache.manifest["parameters"]["size"] == list(SIZE)
+    assert cache.manifest["flows"] == ["forward"]
+
+
+def test_flow_is_farneback_of_the_stored_grey_frames(excerpt: Path) -> None:
+    cache = load_cache(excerpt)
+    assert cache.flows["forward"].shape == (len(cache) - 1, 2, *SIZE, 2)
+    k = 4
+    grey = lambda img: cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY)
+    expected = cv2.calcOpticalFlowFarneback(
+        grey(cache.right[k]), grey(cache.right[k + 1]), None, 0.5, 3, 15, 3, 5, 1.2, 0
+    )
+    np.testing.assert_allclose(cache.flows["forward"][k, 1], expected, atol=1e-5)
+    # Driving forward: the image expands away from the focus of expansion, so flow on the
+    # left third points left and on the right third points right.
+    dx = cache.flows["forward"][k, 0, ..., 0]
+    assert np.median(dx[:, :120]) < -0.5 and np.median(dx[:, -120:]) > 0.5
+
+
+def test_stereo_warp_with_block_matching_disparity_reconstructs_left(excerpt: Path) -> None:
+    """Acceptance check: images, baseline and K of the cache agree with real stereo geometry."""
+    cache = load_cache(excerpt)
+    left, right = cache.left[0], cache.right[0]
+    sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=64, blockSize=5, P1=200, P2=800,
+                                 uniquenessRatio=10, speckleWindowSize=50, speckleRange=2)
+    grey = lambda img: cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY)
+    disparity = sgbm.compute(grey(left), grey(right)).astype(np.float64) / 16.0
+    matched = disparity > 0.5
+    assert matched.mean() > 0.5
+    source = right.astype(np.float64) / 255
+    recon, valid = stereo_warp(source, np.where(matched, disparity, 0.0), "right_to_left")
+    use = np.asarray(valid) & matched
+    target = left.astype(np.float64) / 255
+    warped_error = np.abs(np.asarray(recon) - target)[use].mean()
+    unwarped_error = np.abs(source - target)[use].mean()
+    assert warped_error < 0.5 * unwarped_error
+    # Depth of the road just in front of the car (bottom rows, centre): Z = fu·B/d, a few metres.
+    fu_b = cache.K[0, 0] * cache.baseline
+    road = disparity[-20:, 150:230]
+    depth = fu_b / np.median(road[road > 0.5])
+    assert 3.0 < depth < 12.0
+
+
+def test_rerun_with_same_inputs_does_nothing(excerpt: Path) -> None:
+    manifest = excerpt / "manifest.json"
+    before = (manifest.stat().st_mtime_ns, (excerpt / "left.npy").stat().st_mtime_ns)
+    sequence = open_raw(RAW, "2011_09_26", 1)
+    again = prepare_sequence(sequence, STEREO_MAT, excerpt.parent, frames=FRAMES, flow=True, progress=False)
+    assert again == excerpt
+    assert (manifest.stat().st_mtime_ns, (excerpt / "left.npy").stat().st_mtime_ns) == before
+
+
+def test_changed_parameters_rebuild_in_place(tmp_path: Path) -> None:
+    write_odometry(tmp_path / "kitti", n=5)
+    seq = open_odometry(tmp_path / "kitti", "00")
+    prior = seq.poses
+    first = prepare_sequence(seq, prior, tmp_path / "out", size=(10, 16), progress=False)
+    digest = json.loads((first / "manifest.json").read_text())["input_hash"]
+    second = prepare_sequence(seq, prior, tmp_path / "out", size=(12, 16), progress=False)
+    assert second == first
+    manifest = json.loads((second / "manifest.json").read_text())
+    assert manifest["input_hash"] != digest and load_cache(second).left.shape == (5, 12, 16, 3)
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["00"]  # no temporary folders left
+
+
+def test_touched_image_changes_the_input_hash(tmp_path: Path) -> None:
+    write_odometry(tmp_path / "kitti", n=4)
+    seq = open_odometry(tmp_path / "kitti", "00")
+    path = prepare_sequence(seq, seq.poses, tmp_path / "out", size=(10, 16), progress=False)
+    digest = json.loads((path / "manifest.json").read_text())["input_hash"]
+    image = seq.left_paths[2]
+    stat = image.stat()
+    os.utime(image, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))
+    prepare_sequence(seq, seq.poses, tmp_path / "out", size=(10, 16), progress=False)
+    assert json.loads((path / "manifest.json").read_text())["input_hash"] != digest
+
+
+def test_bad_input_writes_no_cache_and_keeps_the_old_one(tmp_path: Path) -> None:
+    write_odometry(tmp_path / "kitti", n=5)
+    seq = open_odometry(tmp_path / "kitti", "00")
+    out = tmp_path / "out"
+    with pytest.raises(ValueError, match="prior array: 4 prior poses for 5 frames"):
+        prepare_sequence(seq, seq.poses[:4], out, size=(10, 16), progress=False)
+    assert not (out / "00").exists()
+    good = prepare_sequence(seq, seq.poses, out, size=(10, 16), progress=False)
+    bad_png = seq.right_paths[3]
+    bad_png.write_bytes(bad_png.read_bytes()[:50])
+    with pytest.raises(ValueError, match=r"image_3/000003\.png: cannot decode"):
+        prepare_sequence(seq, seq.poses, out, size=(12, 16), progress=False)
+    assert sorted(p.name for p in out.iterdir()) == ["00"]
+    assert load_cache(good).left.shape == (5, 10, 16, 3)  # the previous cache is intact
+
+
+def test_image_of_wrong_size_is_named(tmp_path: Path) -> None:
+    write_odometry(tmp_path / "kitti", n=4)
+    seq = open_odometry(tmp_path / "kitti", "00")
+    cv2.imwrite(str(seq.left_paths[2]), np.zeros((21, 32, 3), np.uint8))
+    with pytest.raises(ValueError, match=r"image_2/000002\.png: image is 21×32, expected 20×32"):
+        prepare_sequence(seq, seq.poses, tmp_path / "out", size=(10, 16), progress=False)
+    assert not (tmp_path / "out" / "00").exists()
+
+
+def test_static_frames_removed_from_images_prior_and_ground_truth(tmp_path: Path) -> None:
+    # Forward positions (m); frames 2, 3, 4 are at one place. By hand (DESIGN §6): pass 1 reads
+    # pairs (0,1) 2 m, (2,3) 0 m → drop 2, (4,5) 2 m; pass 2 on [0,1,3,4,5,6] reads (0,1),
+    # (3,4) 0 m → drop 3, (5,6); pass 3 on [0,1,4,5,6] drops nothing.
+    z = [0.0, 2.0, 4.0, 4.0, 4.0, 6.0, 8.0]
+    poses = np.tile(np.eye(4), (len(z), 1, 1))
+    poses[:, 2, 3] = z
+    written = write_odometry(tmp_path / "kitti", n=len(z), poses=poses)
+    seq = open_odometry(tmp_path / "kitti", "00")
+    gt = seq.poses.copy()
+    gt[:, 0, 3] = 0.01  # a ground truth that differs from the prior: it loses the same frames
+    path = prepare_sequence(
+        seq, poses, tmp_path / "out", ground_truth=gt, size=(20, 32), remove_static=True, progress=False
+    )
+    cache = load_cache(path)
+    kept = [0, 1, 4, 5, 6]
+    np.testing.assert_array_equal(cache.indices, kept)
+    np.testing.assert_allclose(cache.prior, poses[kept])
+    np.testing.assert_allclose(cache.gt, gt[kept], atol=1e-10)
+    np.testing.assert_array_equal(cache.left, written["images"][2][kept])  # size unchanged: exact
+    np.testing.assert_array_equal(cache.right, written["images"][3][kept])
+
+
+def test_mono_rescale_needs_ground_truth(tmp_path: Path) -> None:
+    write_odometry(tmp_path / "kitti", n=4)
+    (tmp_path / "kitti" / "poses" / "00.txt").unlink()
+    seq = open_odometry(tmp_path / "kitti", "00")
+    prior = np.tile(np.eye(4), (4, 1, 1))
+    with pytest.raises(ValueError, match="mono_rescale needs ground truth"):
+        prepare_sequence(seq, prior, tmp_path / "out", mono_rescale=True, progress=False)
+
+
+def test_mono_rescale_applies_ground_truth_step_lengths(tmp_path: Path) -> None:
+    written = write_odometry(tmp_path / "kitti", n=5)
+    seq = open_odometry(tmp_path / "kitti", "00")
+    prior = written["poses"].copy()
+    prior[:, :3, 3] *= 0.1  # a monocular estimate of a tenth of the true scale
+    path = prepare_sequence(seq, prior, tmp_path / "out", mono_rescale=True, size=(10, 16), progress=False)
+    stored = load_cache(path).prior
+    steps = lambda t: np.linalg.norm(np.diff(t[:, :3, 3], axis=0), axis=1)
+    np.testing.assert_allclose(steps(stored), steps(written["poses"]), rtol=1e-9)
+
+
+def test_cli_prepares_fixture_and_reports_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    written = write_odometry(tmp_path / "kitti", n=5)
+    prior = tmp_path / "prior_00.txt"
+    np.savetxt(prior, written["poses"][:, :3, :].reshape(5, 12))
+    args = ["prepare", "--kitti-odometry", str(tmp_path / "kitti"), "--sequence", "00",
+            "--prior", str(tmp_path / "prior_{seq}.txt"), "--out", str(tmp_path / "out"),
+            "--size", "10x16", "--flow", "--no-progress"]
+    assert main(args) == 0
+    assert capsys.readouterr().out.strip() == str(tmp_path / "out" / "00")
+    assert load_cache(tmp_path / "out" / "00").flows["forward"].shape == (4, 2, 10, 16, 2)
+
+    np.savetxt(prior, written["poses"][:3, :3, :].reshape(3, 12))
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    assert "prior_00.txt: 3 prior poses for 5 frames" in err and "Traceback" not in err
