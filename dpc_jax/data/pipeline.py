@@ -164,9 +164,10 @@ def _build_table(caches: list[SequenceCache], kinds: Sequence[str], use_flow: bo
     for c_id, cache in enumerate(caches):
         for kind in kinds:
             if use_flow and kind not in cache.flows:
+                how = "flow (--flow)" if kind == "forward" else "flow_augment (--flow-augment)"
                 raise ValueError(
-                    f"{cache.path}: no {kind} flow in the cache; prepare it with flow_augment "
-                    f"(--flow-augment), or train without flow or without the {kind} pairs"
+                    f"{cache.path}: no {kind} flow in the cache; prepare it with {how}, "
+                    f"or use the pairs without flow"
                 )
             i, j = pair_indices(len(cache), kind)
             if i.size == 0:
@@ -261,7 +262,8 @@ class TrainLoader:
 
     ``caches``: cache folders or loaded :class:`SequenceCache` s (same image size).
     ``frame_skip`` adds the ``(k, k+2)`` pairs, ``reverse`` the reversed pairs of every kind in
-    use. ``flow``: include flow (None → when every cache has it). Batches hold ``xi_gt`` only
+    use. ``flow``: include flow (None → when every cache holds the flow of every pair kind in
+    use; True → an error names a cache that lacks one). Batches hold ``xi_gt`` only
     when every sequence has ground truth, so the batch structure is the same for every batch.
 
     ``len(loader)`` is the number of batches per epoch, ``floor(samples / batch_size)``: the
@@ -288,11 +290,13 @@ class TrainLoader:
         if not self.caches:
             raise ValueError("TrainLoader needs at least one cache")
         _check_compatible(self.caches)
-        self.use_flow = all(c.flows for c in self.caches) if flow is None else flow
         kinds = ["forward"] + (["skip"] if frame_skip else [])
         if reverse:
             kinds += ["reverse"] + (["skip_reverse"] if frame_skip else [])
         self.kinds = tuple(kinds)
+        if flow is None:
+            flow = all(kind in c.flows for c in self.caches for kind in self.kinds)
+        self.use_flow = flow
         self.table = _build_table(self.caches, self.kinds, self.use_flow)
         self.batch_size = batch_size
         self.seed = seed

@@ -50,12 +50,12 @@ _jit_se3_log = jax.jit(se3_log)
 def log_poses(transforms: np.ndarray) -> np.ndarray:
     """:func:`dpc_jax.lie.se3_log` of ``[M, 4, 4]`` transforms as a numpy ``[M, 6]`` array.
 
-    Compiled once per power-of-two bucket of M (identity padding), so loaders and caches of any
-    length reuse a handful of compilations instead of tracing op by op. float64 with
-    ``jax_enable_x64``, else float32.
+    Compiled once per power-of-two bucket of M, at least 1024 (identity padding), so loaders
+    and caches of any length reuse one or two compilations instead of tracing op by op.
+    float64 with ``jax_enable_x64``, else float32.
     """
     m = transforms.shape[0]
-    bucket = 1 << max(m - 1, 1).bit_length()
+    bucket = max(1024, 1 << max(m - 1, 1).bit_length())
     padded = np.concatenate([transforms, np.tile(np.eye(4), (bucket - m, 1, 1))])
     return np.asarray(_jit_se3_log(padded))[:m]
 
