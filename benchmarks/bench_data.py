@@ -1,0 +1,111 @@
+"""Throughput of the input pipeline: batches/s of stereo pairs (with flow) read from a cache.
+
+    python benchmarks/bench_data.py                      # synthetic cache of random data in a temp dir
+    python benchmarks/bench_data.py --cache CACHE/09     # a prepared cache (dpc-jax prepare)
+
+The synthetic cache has the layout and sizes of a real one (uint8 frames, float32 flows of all
+four pair kinds, float64 poses); its arrays are random, which makes no difference to copying.
+Reported: the inline loader (``workers=0``: the cost of assembling one batch) and the prefetching
+loader (background threads), as batches/s with a consumer that does no work, median over
+repeated epochs after a warm-up epoch (page cache warm). Compare with the train step: a batch
+is consumed every step, so batches/s must be several times the steps/s of training.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from dpc_jax.data.cache import FLOW_FILES, MANIFEST
+from dpc_jax.data.pipeline import PAIR_KINDS, TrainLoader, load_cache
+
+
+def synthetic_cache(root: Path, frames: int, size: tuple[int, int], seed: int = 0) -> Path:
+    """A cache folder of random content with the real layout (see dpc_jax.data.cache)."""
+    rng = np.random.default_rng(seed)
+    path = root / "synthetic"
+    path.mkdir()
+    h, w = size
+    for camera in ("left", "right"):
+        np.save(path / f"{camera}.npy", rng.integers(0, 256, (frames, h, w, 3), dtype=np.uint8))
+    for kind, file in FLOW_FILES.items():
+        count = frames - PAIR_KINDS[kind][0]
+        flow = np.lib.format.open_memmap(path / file, "w+", np.float32, (count, 2, h, w, 2))
+        for k in range(count):
+            flow[k] = rng.standard_normal((2, h, w, 2), dtype=np.float32)
+        flow.flush()
+        del flow
+    poses = np.tile(np.eye(4), (frames, 1, 1))
+    poses[:, 2, 3] = np.arange(frames) * 1.2
+    for name in ("prior", "gt"):
+        np.save(path / f"{name}.npy", poses)
+    np.save(path / "K.npy", np.array([[218.4, 0, 184.5], [0, 461.8, 110.6], [0, 0, 1]]))
+    np.save(path / "baseline.npy", np.float64(0.54))
+    np.save(path / "indices.npy", np.arange(frames))
+    np.save(path / "times.npy", np.arange(frames) * 0.1)
+    manifest = {"name": "synthetic", "n_frames": frames, "image_size": [h, w], "has_gt": True,
+                "flows": list(FLOW_FILES)}
+    (path / MANIFEST).write_text(json.dumps(manifest))
+    return path
+
+
+def epoch_rate(loader: TrainLoader, epoch: int) -> float:
+    """Batches per second of one full epoch with a consumer that only touches each batch."""
+    start = time.perf_counter()
+    count = 0
+    for batch in loader.epoch(epoch):
+        count += int(batch.left.shape[0] > 0)
+    return count / (time.perf_counter() - start)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--cache", type=Path, help="a prepared cache folder (default: synthetic)")
+    parser.add_argument("--frames", type=int, default=160, help="frames of the synthetic cache")
+    parser.add_argument("--size", default="240x376", help="HxW of the synthetic cache")
+    parser.add_argument("--batch", type=int, default=32)
+    parser.add_argument("--repeats", type=int, default=5, help="timed epochs per configuration")
+    args = parser.parse_args()
+    h, w = (int(v) for v in args.size.split("x"))
+
+    with tempfile.TemporaryDirectory(prefix="bench_data_") as tmp:
+        path = args.cache or synthetic_cache(Path(tmp), args.frames, (h, w))
+        cache = load_cache(path)
+        print(f"cache: {path} ({len(cache)} frames, {cache.image_size[0]}×{cache.image_size[1]}, "
+              f"flows: {', '.join(cache.flows) or 'none'})")
+        print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
+              f"load average {os.getloadavg()[0]:.1f}")
+        rows = []
+        configs = [
+            ("inline (workers=0)", {"workers": 0}, None),
+            ("prefetch (2 threads, depth 4)", {"workers": 2, "depth": 4}, None),
+            ("prefetch (4 threads, depth 8)", {"workers": 4, "depth": 8}, None),
+            ("prefetch, no flow (2 threads)", {"workers": 2, "depth": 4}, False),
+        ]
+        for label, kwargs, flow in configs:
+            loader = TrainLoader([cache], args.batch, frame_skip=True, flow=flow, **kwargs)
+            first = next(iter(loader.epoch(0)))
+            mbytes = sum(a.nbytes for a in first if a is not None) / 2**20
+            epoch_rate(loader, 0)  # warm-up: page cache and threads
+            rates = [epoch_rate(loader, e) for e in range(1, args.repeats + 1)]
+            rate = statistics.median(rates)
+            flow_shape = "-" if first.flow is None else tuple(first.flow.shape)
+            shape = f"{tuple(first.left.shape)} + flow {flow_shape}"
+            rows.append((label, shape, len(loader), rate, rate * mbytes))
+        print(f"\n{'loader':32} {'batch (left; right alike)':44} {'batches':>7} {'batch/s':>8} {'MB/s':>7}")
+        for label, shape, n, rate, mbs in rows:
+            print(f"{label:32} {shape:44} {n:7d} {rate:8.1f} {mbs:7.0f}")
+
+
+if __name__ == "__main__":
+    main()
