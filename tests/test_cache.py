@@ -74,6 +74,21 @@ def test_flow_is_farneback_of_the_stored_grey_frames(excerpt: Path) -> None:
     assert np.median(dx[:, :120]) < -0.5 and np.median(dx[:, -120:]) > 0.5
 
 
+def test_augmentation_flows_pair_the_right_frames(tmp_path: Path) -> None:
+    sequence = open_raw(RAW, "2011_09_26", 1)
+    path = prepare_sequence(sequence, STEREO_MAT, tmp_path, frames=(0, 5), size=(48, 94),
+                            flow_augment=True, progress=False)
+    cache = load_cache(path)
+    grey = lambda img: cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY)
+    farneback = lambda a, b: cv2.calcOpticalFlowFarneback(grey(a), grey(b), None, 0.5, 3, 15, 3, 5, 1.2, 0)
+    expected = {"forward": (1, 2), "reverse": (2, 1), "skip": (1, 3), "skip_reverse": (3, 1)}
+    for kind, (a, b) in expected.items():
+        assert cache.flows[kind].shape[0] == 5 - abs(b - a)
+        for camera, frames in enumerate((cache.left, cache.right)):
+            stored = cache.flows[kind][1, camera]
+            np.testing.assert_allclose(stored, farneback(frames[a], frames[b]), atol=1e-5)
+
+
 def test_stereo_warp_with_block_matching_disparity_reconstructs_left(excerpt: Path) -> None:
     """Acceptance check: images, baseline and K of the cache agree with real stereo geometry."""
     cache = load_cache(excerpt)

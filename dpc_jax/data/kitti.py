@@ -222,9 +222,9 @@ def _read_timestamps(path: Path, n: int) -> np.ndarray:
 def _check_times(times: np.ndarray, path: Path, n: int) -> np.ndarray:
     if times.size != n:
         raise ValueError(f"{path}: {times.size} times for {n} frames; expected one time per frame")
-    if not np.isfinite(times).all() or (np.diff(times) <= 0).any():
-        bad = int(np.argmax(~(np.diff(times) > 0))) + 1 if n > 1 else 0
-        raise ValueError(f"{path}: times must be finite and increasing (frame {bad})")
+    bad = np.flatnonzero(~np.isfinite(times) | np.concatenate([[False], np.diff(times) < 0]))
+    if bad.size:
+        raise ValueError(f"{path}: time of frame {int(bad[0])} is not finite or goes backwards")
     return times
 
 
