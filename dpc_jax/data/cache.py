@@ -218,8 +218,9 @@ def prepare_sequence(
     * ``size``: ``(H, W)`` of the stored images (INTER_AREA), K scaled accordingly.
     * ``mono_rescale``: rescale each prior step to the ground-truth step length (monocular VO);
       needs ground truth.
-    * ``remove_static``: drop static frames by the ss-DPC-Net rule on the *prior* (DESIGN §6, as
-      available at run time, without ground truth); the ground truth loses the same frames.
+    * ``remove_static``: drop static frames by the ss-DPC-Net rule (DESIGN §6) read on the
+      *prior*, which exists at test time too (after ``mono_rescale`` when both are asked, so
+      the 1.5 m threshold sees metric steps); the ground truth loses the same frames.
     * ``flow``: Farnebäck flow per consecutive kept pair; ``flow_augment`` adds the flows of the
       reversed and frame-skip pairs (implies ``flow``).
     * ``name``: folder name, default ``sequence.name``; ``force`` rebuilds even when up to date.
