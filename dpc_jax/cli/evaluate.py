@@ -1,0 +1,123 @@
+"""``dpc-jax evaluate``: metrics of estimated trajectories against ground truth, reports and exports.
+
+Examples::
+
+    dpc-jax evaluate --mat stereo_00.mat --remove-static --json -
+    dpc-jax evaluate --gt 00.txt --est prior.txt --est corrected.txt --label prior --label corrected \\
+        --report out/report --export out/trajectories
+
+Everything is read, checked and computed before anything is written; bad input ends with a
+message on stderr and exit status 2, and no file is written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+HELP = "Evaluate trajectories against ground truth (m-ATE, segment errors, ATE, RPE, loop closures)."
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--gt", type=Path, metavar="FILE", help="ground-truth trajectory")
+    source.add_argument(
+        "--mat", type=Path, metavar="FILE",
+        help="ss-DPC-Net .mat holding poses_gt and poses_est (label 'est')",
+    )
+    parser.add_argument(
+        "--est", type=Path, action="append", default=[], metavar="FILE",
+        help="estimated trajectory (repeatable; with --gt)",
+    )
+    parser.add_argument(
+        "--label", action="append", default=[], metavar="NAME",
+        help="label of each --est, in order (default: the file name without extension)",
+    )
+    parser.add_argument(
+        "--format", choices=("kitti", "tum", "mat"), default=None,
+        help="format of --gt/--est files (default: from the extension or the column count)",
+    )
+    parser.add_argument(
+        "--remove-static", action="store_true",
+        help="drop static frames with the ss-DPC-Net rule read on the (first) estimate; the estimate "
+        "is re-composed from its relative poses between kept frames",
+    )
+    parser.add_argument("--align", choices=("none", "se3", "sim3"), default="none", help="alignment for ATE")
+    parser.add_argument("--rpe-delta", type=int, default=1, metavar="N", help="frame offset of RPE")
+    parser.add_argument("--json", metavar="PATH", help="write the metrics as JSON to PATH ('-': stdout)")
+    parser.add_argument(
+        "--report", type=Path, metavar="DIR", help="write report.md, CSV tables and PNG plots"
+    )
+    parser.add_argument(
+        "--export", type=Path, metavar="DIR", help="write every trajectory as KITTI and TUM text (evo)"
+    )
+
+
+def _error(message: str) -> int:
+    print(f"dpc-jax evaluate: error: {message}", file=sys.stderr)
+    return 2
+
+
+def _inputs(args: argparse.Namespace) -> tuple[object, dict[str, object]]:
+    """Read ground truth and estimates -> ``(gt, {label: estimate})``; raises ValueError/OSError."""
+    from dpc_jax.evaluation import check_label
+    from dpc_jax.trajectory import read_mat, read_trajectory
+
+    if args.mat is not None:
+        if args.est or args.label:
+            raise ValueError("--mat holds the estimate; do not combine it with --est or --label")
+        gt, est = read_mat(args.mat)
+        return gt, {"est": est}
+    if not args.est:
+        raise ValueError("--gt needs at least one --est FILE")
+    if args.label and len(args.label) != len(args.est):
+        raise ValueError(f"{len(args.label)} --label for {len(args.est)} --est; give one label per estimate")
+    labels = args.label or [Path(p).name.split(".")[0] for p in args.est]
+    for label in labels:
+        check_label(label)
+    if len(set(labels)) != len(labels):
+        raise ValueError(f"estimate labels must be unique, got {labels}; use --label")
+    gt = read_trajectory(args.gt, args.format)
+    estimates = {}
+    for label, path in zip(labels, args.est, strict=True):
+        est = read_trajectory(path, args.format)
+        if est.shape[0] != gt.shape[0]:
+            raise ValueError(
+                f"{path} has {est.shape[0]} poses but the ground truth {args.gt} has {gt.shape[0]}"
+            )
+        estimates[label] = est
+    return gt, estimates
+
+
+def run(args: argparse.Namespace) -> int:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from dpc_jax.evaluation import evaluate, export_trajectories, format_table, write_report
+    from dpc_jax.trajectory import atomic_write
+
+    if args.json not in (None, "-") and not Path(args.json).parent.is_dir():
+        return _error(f"--json {args.json}: directory {Path(args.json).parent} does not exist")
+    for option, path in (("--report", args.report), ("--export", args.export)):
+        if path is not None and path.exists() and not path.is_dir():
+            return _error(f"{option} {path}: exists and is not a directory")
+    try:
+        gt, estimates = _inputs(args)
+        result = evaluate(gt, estimates, remove_static=args.remove_static, align=args.align,
+                          rpe_delta=args.rpe_delta)
+    except (ValueError, OSError) as error:
+        return _error(str(error))
+
+    if args.json == "-":
+        sys.stdout.write(result.to_json())
+    elif args.json is not None:
+        atomic_write(args.json, result.to_json())
+    if args.report is not None:
+        source = args.mat if args.mat is not None else args.gt
+        write_report(args.report, result, title=f"Trajectory evaluation: {source.name}")
+    if args.export is not None:
+        export_trajectories(args.export, result)
+    if args.json != "-":
+        sys.stdout.write(format_table(result))
+    return 0

@@ -1,0 +1,309 @@
+"""Evaluate estimated trajectories against ground truth, and write reports and evo-readable exports.
+
+:func:`evaluate` is the one entry point every command that reports metrics uses (``evaluate``,
+``train``, ``correct``, ``demo``). It prepares the trajectories as the papers do, then computes every
+metric of :mod:`dpc_jax.metrics` in one compiled call per estimate:
+
+* **Re-anchoring** (DESIGN §7): each estimate is moved rigidly onto the first ground-truth pose,
+  ``E_i ← G_0 · inv(E_0) · E_i``.
+* **Static frames** (``remove_static=True``, DESIGN §6): the ss-DPC-Net rule, read on the prior
+  (the estimate named ``static_prior``, by default the first one), selects the kept frames; the
+  ground truth and every estimate lose the same frames, and each estimate is re-composed from its
+  relative poses between consecutive kept frames, starting at the first kept ground-truth pose.
+
+Values are computed in float64 when ``jax_enable_x64`` is on (the CLI turns it on), float32
+otherwise. The result is an :class:`Evaluation`: a read-only mapping equal to the JSON summary
+``{"num_poses": N, "estimates": {label: {metric: value}}}`` (NaN becomes ``None``), with the
+prepared trajectories and the per-length and cumulative curves as attributes.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import re
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dpc_jax.trajectory import (
+    atomic_write,
+    compose,
+    invert_poses,
+    relative_poses,
+    remove_static_frames,
+    write_kitti_poses,
+    write_tum,
+)
+
+SUMMARY_KEYS: tuple[str, ...] = (
+    "m_ate_trans_m",
+    "m_ate_rot_deg",
+    "seg_trans_pct",
+    "seg_rot_deg_per_100m",
+    "kitti_trans_pct",
+    "kitti_rot_deg_per_100m",
+    "ate_m",
+    "rpe_trans_m",
+    "rpe_rot_deg",
+    "loop_closures",
+)
+# Column titles of the Markdown table, in the order of SUMMARY_KEYS.
+_TITLES = (
+    "m-ATE (m)", "m-ATE (°)", "seg. t (%)", "seg. r (°/100 m)", "KITTI t (%)", "KITTI r (°/100 m)",
+    "ATE (m)", "RPE t (m)", "RPE r (°)", "loops",
+)
+_LABEL = re.compile(r"[A-Za-z0-9_.+-]+")
+GT_LABEL = "gt"
+
+
+@dataclass(frozen=True)
+class EstimateMetrics:
+    """Metrics of one estimate: the summary scalars and the curves behind the plots."""
+
+    summary: dict[str, float | int | None]  # SUMMARY_KEYS -> value (None for NaN)
+    seg_lengths_m: np.ndarray  # [L]
+    seg_per_length_trans_pct: np.ndarray  # [L], NaN where no segment exists
+    seg_per_length_rot_deg_per_100m: np.ndarray  # [L]
+    seg_counts: np.ndarray  # [L]
+    c_ate_trans_m: np.ndarray  # [N]
+    c_ate_rot_deg: np.ndarray  # [N]
+
+
+@dataclass(frozen=True, eq=False)
+class Evaluation(Mapping[str, object]):
+    """Result of :func:`evaluate`; as a mapping, the JSON summary."""
+
+    gt: np.ndarray  # [N, 4, 4] ground truth of the evaluated frames
+    estimates: dict[str, np.ndarray]  # label -> [N, 4, 4] prepared estimate
+    frames: np.ndarray  # [N] indices of the evaluated frames in the input sequence
+    metrics: dict[str, EstimateMetrics]
+    align: str = "none"
+    rpe_delta: int = 1
+    remove_static: bool = False
+    _summary: dict[str, object] = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        summary = {
+            "num_poses": int(self.gt.shape[0]),
+            "estimates": {label: dict(m.summary) for label, m in self.metrics.items()},
+        }
+        object.__setattr__(self, "_summary", summary)
+
+    def __getitem__(self, key: str) -> object:
+        return self._summary[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._summary)
+
+    def __len__(self) -> int:
+        return len(self._summary)
+
+    def to_json(self) -> str:
+        """The summary as JSON text (strict: no NaN literals)."""
+        return json.dumps(self._summary, indent=2, allow_nan=False) + "\n"
+
+
+def check_label(label: str) -> str:
+    """Labels name files and table rows: letters, digits and ``_ . + -``, and not ``gt``."""
+    if not isinstance(label, str) or not _LABEL.fullmatch(label) or label == GT_LABEL:
+        raise ValueError(
+            f"invalid estimate label {label!r}: use letters, digits and _ . + - (and not {GT_LABEL!r})"
+        )
+    return label
+
+
+def _scalar(value: np.ndarray, integer: bool = False) -> float | int | None:
+    if integer:
+        return int(value)
+    value = float(value)
+    return None if math.isnan(value) else value
+
+
+def evaluate(
+    gt: np.ndarray,
+    estimates: Mapping[str, np.ndarray] | np.ndarray,
+    remove_static: bool = False,
+    align: str = "none",
+    rpe_delta: int = 1,
+    static_prior: str | None = None,
+) -> Evaluation:
+    """Evaluate estimates ``{label: [N, 4, 4]}`` (or one array, labelled ``est``) against ``gt``.
+
+    ``align`` (``none | se3 | sim3``) applies to ATE only; ``rpe_delta`` is the RPE frame offset;
+    ``remove_static`` and ``static_prior`` are described in the module docstring. Raises
+    ``ValueError`` for mismatched lengths (both counts named), bad labels or shapes.
+    """
+    import jax
+
+    from dpc_jax.metrics import ALIGNMENTS, trajectory_metrics
+
+    if align not in ALIGNMENTS:
+        raise ValueError(f"align must be one of {', '.join(ALIGNMENTS)}, got {align!r}")
+    gt = np.asarray(gt, dtype=np.float64)
+    if gt.ndim != 3 or gt.shape[1:] != (4, 4) or gt.shape[0] < 2:
+        raise ValueError(f"ground truth must have shape [N, 4, 4] with N ≥ 2, got {gt.shape}")
+    if not isinstance(estimates, Mapping):
+        estimates = {"est": estimates}
+    if not estimates:
+        raise ValueError("no estimate to evaluate")
+    prepared: dict[str, np.ndarray] = {}
+    for label, est in estimates.items():
+        est = np.asarray(est, dtype=np.float64)
+        if est.shape != gt.shape:
+            raise ValueError(
+                f"estimate {check_label(label)!r} has {est.shape[0] if est.ndim == 3 else est.shape} poses "
+                f"but the ground truth has {gt.shape[0]}; they must cover the same frames"
+            )
+        prepared[check_label(label)] = est
+    if static_prior is not None and static_prior not in prepared:
+        raise ValueError(f"static_prior {static_prior!r} is not one of the estimates {list(prepared)}")
+
+    if remove_static:
+        prior = prepared[static_prior if static_prior is not None else next(iter(prepared))]
+        frames = remove_static_frames(gt, prior)
+        gt = gt[frames]
+        prepared = {k: compose(relative_poses(v[frames]), gt[0]) for k, v in prepared.items()}
+    else:
+        frames = np.arange(gt.shape[0])
+        prepared = {k: gt[0] @ invert_poses(v[0]) @ v for k, v in prepared.items()}
+    if not 1 <= rpe_delta < gt.shape[0]:
+        raise ValueError(
+            f"rpe_delta must be in [1, {gt.shape[0] - 1}] for {gt.shape[0]} poses, got {rpe_delta}"
+        )
+
+    results = {}
+    for label, est in prepared.items():
+        out = jax.device_get(trajectory_metrics(gt, est, align=align, rpe_delta=rpe_delta))
+        results[label] = EstimateMetrics(
+            summary={key: _scalar(out[key], integer=key == "loop_closures") for key in SUMMARY_KEYS},
+            seg_lengths_m=np.asarray(out["seg_lengths_m"], np.float64),
+            seg_per_length_trans_pct=np.asarray(out["seg_per_length_trans_pct"], np.float64),
+            seg_per_length_rot_deg_per_100m=np.asarray(out["seg_per_length_rot_deg_per_100m"], np.float64),
+            seg_counts=np.asarray(out["seg_counts"], np.int64),
+            c_ate_trans_m=np.asarray(out["c_ate_trans_m"], np.float64),
+            c_ate_rot_deg=np.asarray(out["c_ate_rot_deg"], np.float64),
+        )
+    return Evaluation(
+        gt=gt, estimates=prepared, frames=frames, metrics=results, align=align, rpe_delta=rpe_delta,
+        remove_static=remove_static,
+    )
+
+
+# ----------------------------------------------------------------------------- text outputs
+
+
+def _fmt(value: float | int | None) -> str:
+    if value is None:
+        return "n/a"
+    if isinstance(value, int):
+        return str(value)
+    return f"{value:.4g}" if abs(value) < 1e4 else f"{value:.0f}"
+
+
+def format_table(result: Evaluation) -> str:
+    """Markdown table of the summary, one row per estimate."""
+    lines = ["| estimate | " + " | ".join(_TITLES) + " |", "|---" * (len(_TITLES) + 1) + "|"]
+    for label, m in result.metrics.items():
+        lines.append(f"| {label} | " + " | ".join(_fmt(m.summary[k]) for k in SUMMARY_KEYS) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def format_segment_table(result: Evaluation) -> str:
+    """Markdown table of the per-length segment errors (translation % / rotation °/100 m)."""
+    lengths = next(iter(result.metrics.values())).seg_lengths_m
+    lines = [
+        "| estimate | " + " | ".join(f"{length:g} m" for length in lengths) + " |",
+        "|---" * (len(lengths) + 1) + "|",
+    ]
+    for label, m in result.metrics.items():
+        cells = [
+            "n/a" if np.isnan(t) else f"{t:.3g} / {r:.3g}"
+            for t, r in zip(m.seg_per_length_trans_pct, m.seg_per_length_rot_deg_per_100m, strict=True)
+        ]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def metrics_csv(result: Evaluation) -> str:
+    """CSV text: header ``label,<SUMMARY_KEYS>``, one row per estimate (empty cell for NaN)."""
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(["label", *SUMMARY_KEYS])
+    for label, m in result.metrics.items():
+        writer.writerow([label, *("" if m.summary[k] is None else m.summary[k] for k in SUMMARY_KEYS)])
+    return buffer.getvalue()
+
+
+def segment_csv(result: Evaluation) -> str:
+    """CSV text: ``label,length_m,count,trans_pct,rot_deg_per_100m``, one row per estimate and length."""
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(["label", "length_m", "count", "trans_pct", "rot_deg_per_100m"])
+    for label, m in result.metrics.items():
+        for length, count, t, r in zip(
+            m.seg_lengths_m, m.seg_counts, m.seg_per_length_trans_pct, m.seg_per_length_rot_deg_per_100m,
+            strict=True,
+        ):
+            writer.writerow(
+                [label, f"{length:g}", int(count), "" if np.isnan(t) else t, "" if np.isnan(r) else r]
+            )
+    return buffer.getvalue()
+
+
+def write_report(
+    directory: str | Path, result: Evaluation, title: str = "Trajectory evaluation"
+) -> list[Path]:
+    """Write ``report.md``, ``metrics.csv``, ``segment_errors.csv`` and the PNG plots into ``directory``.
+
+    Plots: ``trajectory.png`` (horizontal plane), ``segment_errors.png`` (per length, translation
+    and rotation), ``c_ate.png`` (cumulative errors). Every file is written atomically; the
+    directory is created if needed. Returns the written paths.
+    """
+    from dpc_jax import plots
+
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    settings = [
+        f"{result['num_poses']} poses evaluated",
+        "static frames removed (ss-DPC-Net rule)" if result.remove_static else "all frames",
+        f"ATE alignment: {result.align}",
+        f"RPE Δ = {result.rpe_delta} frame(s)",
+    ]
+    report = "\n".join([
+        f"# {title}", "", "; ".join(settings) + ".", "", format_table(result),
+        "Segment errors per length (translation % / rotation °/100 m):", "", format_segment_table(result),
+        "![trajectories](trajectory.png)", "", "![segment errors](segment_errors.png)", "",
+        "![cumulative error](c_ate.png)", "",
+    ])
+    written = []
+    texts = {"report.md": report, "metrics.csv": metrics_csv(result)}
+    texts["segment_errors.csv"] = segment_csv(result)
+    for name, text in texts.items():
+        atomic_write(directory / name, text)
+        written.append(directory / name)
+    written.append(plots.plot_trajectories(directory / "trajectory.png", result.gt, result.estimates))
+    written.append(plots.plot_segment_errors(directory / "segment_errors.png", result.metrics))
+    written.append(plots.plot_c_ate(directory / "c_ate.png", result.metrics))
+    return written
+
+
+def export_trajectories(directory: str | Path, result: Evaluation) -> list[Path]:
+    """Write the evaluated ground truth and estimates as ``NAME.kitti.txt`` and ``NAME.tum.txt`` (evo).
+
+    ``NAME`` is ``gt`` or the estimate's label. The TUM timestamps are the frame indices of the
+    evaluated frames in the input sequence, so GT and estimates associate one to one in evo.
+    """
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    stamps = result.frames.astype(np.float64)
+    written = []
+    for name, traj in ((GT_LABEL, result.gt), *result.estimates.items()):
+        write_kitti_poses(directory / f"{name}.kitti.txt", traj)
+        write_tum(directory / f"{name}.tum.txt", traj, stamps)
+        written += [directory / f"{name}.kitti.txt", directory / f"{name}.tum.txt"]
+    return written

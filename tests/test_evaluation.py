@@ -1,0 +1,200 @@
+"""evaluate(), reports, exports and the ``dpc-jax evaluate`` command."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import reference_metrics as ref
+import scipy.io
+from conftest import SHARED
+from scipy.spatial.transform import Rotation
+
+from dpc_jax.cli import main
+from dpc_jax.evaluation import SUMMARY_KEYS, evaluate
+from dpc_jax.trajectory import compose, read_kitti_poses, read_mat, read_tum, write_kitti_poses, write_tum
+
+MAT = SHARED / "data" / "kitti-libviso2" / "stereo_00.mat"
+N = 300
+
+
+def drive(seed: int, yaw_bias: float = 0.0, stop: slice | None = None) -> np.ndarray:
+    """Car-like trajectory, 3 m steps with gentle turns; frames in ``stop`` do not move (static)."""
+    rng = np.random.default_rng(seed)
+    rel = np.tile(np.eye(4), (N - 1, 1, 1))
+    yaw = 0.04 * np.sin(np.arange(N - 1) / 15.0) + yaw_bias + 1e-4 * rng.normal(size=N - 1)
+    rel[:, :3, :3] = Rotation.from_rotvec(np.outer(yaw, [0.0, 1.0, 0.0])).as_matrix()
+    rel[:, 2, 3] = -3.0
+    if stop is not None:
+        rel[stop, :3, :3] = np.eye(3)
+        rel[stop, 2, 3] = -0.01
+    return compose(rel, np.eye(4))
+
+
+@pytest.fixture(scope="module")
+def pair() -> tuple[np.ndarray, np.ndarray]:
+    gt = drive(0, stop=slice(100, 140))
+    est = drive(1, yaw_bias=0.001, stop=slice(100, 140))
+    offset = np.eye(4)
+    offset[:3, :3] = Rotation.from_rotvec([0.1, 0.5, -0.2]).as_matrix()
+    offset[:3, 3] = [10.0, -4.0, 7.0]
+    return gt, offset @ est  # the estimate starts elsewhere: evaluate re-anchors it
+
+
+def test_evaluate_reanchors_and_matches_reference(pair: tuple[np.ndarray, np.ndarray]) -> None:
+    gt, est = pair
+    result = evaluate(gt, {"prior": est, "perfect": gt})
+    assert list(result) == ["num_poses", "estimates"] and result["num_poses"] == N
+    assert list(result["estimates"]["prior"]) == list(SUMMARY_KEYS)
+    anchored = gt[0] @ np.linalg.inv(est[0]) @ est
+    np.testing.assert_allclose(result.estimates["prior"], anchored, atol=1e-9)
+    prior = result["estimates"]["prior"]
+    m_ate = [prior["m_ate_trans_m"], prior["m_ate_rot_deg"]]
+    np.testing.assert_allclose(m_ate, ref.m_ate(gt, anchored), rtol=1e-9)
+    np.testing.assert_allclose(prior["seg_trans_pct"], ref.segment_errors(gt, anchored)[0], rtol=1e-9)
+    np.testing.assert_allclose(prior["ate_m"], ref.ate(gt, anchored), rtol=1e-9)
+    assert isinstance(prior["loop_closures"], int)
+    perfect = result["estimates"]["perfect"]
+    assert perfect["m_ate_trans_m"] < 1e-9 and perfect["seg_trans_pct"] < 1e-9
+    assert json.loads(result.to_json()) == dict(result)
+
+
+def test_evaluate_remove_static(pair: tuple[np.ndarray, np.ndarray]) -> None:
+    gt, est = pair
+    result = evaluate(gt, {"prior": est}, remove_static=True)
+    kept = ref.remove_static_frames(est)
+    np.testing.assert_array_equal(result.frames, kept)
+    assert kept.size < N and result["num_poses"] == kept.size
+    np.testing.assert_allclose(result.gt, gt[kept])
+    # Re-composed from the relative poses between kept frames, starting at the first kept GT pose.
+    expected = [gt[kept[0]]]
+    for a, b in itertools.pairwise(kept):
+        expected.append(expected[-1] @ np.linalg.inv(np.linalg.inv(est[b]) @ est[a]))
+    np.testing.assert_allclose(result.estimates["prior"], np.stack(expected), atol=1e-8)
+    m = result["estimates"]["prior"]
+    np.testing.assert_allclose(m["rpe_rot_deg"], ref.rpe(gt[kept], np.stack(expected))[1], rtol=1e-7)
+
+
+def test_evaluate_bad_input(pair: tuple[np.ndarray, np.ndarray]) -> None:
+    gt, est = pair
+    with pytest.raises(ValueError, match="has 299 poses but the ground truth has 300"):
+        evaluate(gt, {"est": est[:-1]})
+    with pytest.raises(ValueError, match="invalid estimate label"):
+        evaluate(gt, {"a b": est})
+    with pytest.raises(ValueError, match="invalid estimate label 'gt'"):
+        evaluate(gt, {"gt": est})
+    with pytest.raises(ValueError, match="align must be one of"):
+        evaluate(gt, est, align="affine")
+    with pytest.raises(ValueError, match="rpe_delta"):
+        evaluate(gt, est, rpe_delta=N)
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory: pytest.TempPathFactory, pair: tuple[np.ndarray, np.ndarray]) -> dict[str, Path]:
+    gt, est = pair
+    root = tmp_path_factory.mktemp("inputs")
+    write_kitti_poses(root / "gt.txt", gt)
+    write_kitti_poses(root / "prior.txt", est)
+    write_tum(root / "other.tum", gt[0] @ np.linalg.inv(est[0]) @ est)
+    return {"gt": root / "gt.txt", "prior": root / "prior.txt", "tum": root / "other.tum", "root": root}
+
+
+def test_cli_json_report_export(
+    files: dict[str, Path],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    pair: tuple[np.ndarray, np.ndarray],
+) -> None:
+    gt, est = pair
+    args = ["evaluate", "--gt", str(files["gt"]), "--est", str(files["prior"]), "--est", str(files["tum"]),
+            "--label", "prior", "--label", "tum"]
+    assert main([*args, "--json", "-"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    expected = evaluate(gt, {"prior": est, "tum": est})  # the files hold 17 significant digits
+    assert printed["num_poses"] == expected["num_poses"] == N
+    for label in ("prior", "tum"):
+        assert printed["estimates"][label] == pytest.approx(expected["estimates"][label], rel=1e-9)
+
+    report, export, out_json = tmp_path / "report", tmp_path / "export", tmp_path / "m.json"
+    assert main([*args, "--json", str(out_json), "--report", str(report), "--export", str(export)]) == 0
+    assert "| prior |" in capsys.readouterr().out  # the table goes to stdout
+    assert json.loads(out_json.read_text()) == printed
+    assert sorted(p.name for p in report.iterdir()) == [
+        "c_ate.png", "metrics.csv", "report.md", "segment_errors.csv", "segment_errors.png", "trajectory.png"
+    ]
+    for png in report.glob("*.png"):
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
+    lines = (report / "metrics.csv").read_text().splitlines()
+    assert lines[0] == "label," + ",".join(SUMMARY_KEYS) and lines[1].startswith("prior,")
+    assert float(lines[1].split(",")[1]) == pytest.approx(printed["estimates"]["prior"]["m_ate_trans_m"])
+    text = (report / "report.md").read_text()
+    assert "| tum |" in text and "trajectory.png" in text and "800 m" in text
+    assert len((report / "segment_errors.csv").read_text().splitlines()) == 1 + 2 * 8
+    np.testing.assert_allclose(read_kitti_poses(export / "gt.kitti.txt"), gt, atol=1e-12)
+    times, poses = read_tum(export / "prior.tum.txt")
+    np.testing.assert_allclose(times, np.arange(N))
+    np.testing.assert_allclose(poses, gt[0] @ np.linalg.inv(est[0]) @ est, atol=1e-9)
+    assert sorted(p.name for p in export.iterdir()) == [
+        "gt.kitti.txt", "gt.tum.txt", "prior.kitti.txt", "prior.tum.txt", "tum.kitti.txt", "tum.tum.txt"
+    ]
+
+
+def bad_inputs(files: dict[str, Path]) -> list[tuple[list[str], str]]:
+    root = files["root"]
+    short = root / "short.txt"
+    short.write_text("".join(files["prior"].read_text().splitlines(keepends=True)[:-1]))
+    broken = root / "broken.txt"
+    rows = files["prior"].read_text().splitlines()
+    rows[6] = rows[6] + " 1.0"
+    broken.write_text("\n".join(rows) + "\n")
+    nan = root / "nan.txt"
+    rows = files["prior"].read_text().splitlines()
+    rows[9] = " ".join(["nan", *rows[9].split()[1:]])
+    nan.write_text("\n".join(rows) + "\n")
+    badmat = root / "bad.mat"
+    scipy.io.savemat(badmat, {"poses": np.zeros((4, 4, 2))})
+    gt = ["--gt", str(files["gt"])]
+    return [
+        ([*gt, "--est", str(short)], "has 299 poses but the ground truth"),
+        ([*gt, "--est", str(broken)], "line 7: expected 12 numbers"),
+        ([*gt, "--est", str(nan)], "line 10: non-finite"),
+        (["--mat", str(badmat)], "no key 'poses_gt'"),
+        ([*gt, "--est", str(files["prior"]), "--format", "tum"], "expected 8 numbers"),
+        ([*gt, "--est", str(files["prior"]), "--label", "a", "--label", "b"], "2 --label for 1 --est"),
+        ([*gt], "needs at least one --est"),
+        (["--mat", str(badmat), "--est", str(files["prior"])], "do not combine"),
+        ([*gt, "--est", str(root / "missing.txt")], "missing.txt"),
+    ]
+
+
+def test_cli_bad_input_writes_nothing(
+    files: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "out"
+    for args, needle in bad_inputs(files):
+        outputs = ["--json", str(tmp_path / "m.json"), "--report", str(out / "r"), "--export", str(out / "e")]
+        assert main(["evaluate", *args, *outputs]) == 2, args
+        err = capsys.readouterr().err
+        assert needle in err and "Traceback" not in err, (args, err)
+        assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.slow
+def test_cli_real_sequence_subprocess() -> None:
+    """The documented command, as a user runs it (fresh process: import, compile, compute)."""
+    done = subprocess.run(
+        [sys.executable, "-m", "dpc_jax", "evaluate", "--mat", str(MAT), "--remove-static", "--json", "-"],
+        capture_output=True, text=True, check=True, timeout=300,
+    )
+    printed = json.loads(done.stdout)
+    _, est = read_mat(MAT)
+    kept = ref.remove_static_frames(est)
+    assert printed["num_poses"] == kept.size == 3032
+    m = printed["estimates"]["est"]
+    assert set(m) == set(SUMMARY_KEYS)
+    assert 2.0 < m["seg_trans_pct"] < 3.5 and 0.8 < m["seg_rot_deg_per_100m"] < 2.0  # libviso2-s on 00
