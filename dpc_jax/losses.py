@@ -1,0 +1,379 @@
+"""Self-supervised losses of ss-DPC-Net and Stereo DPC (DESIGN §2 and §4).
+
+Pure ``jnp`` functions of a :class:`~dpc_jax.outputs.DPCOutputs` and a
+:class:`~dpc_jax.batch.Batch`; they never import the models. They work under ``jax.jit`` (pass
+the config as a static argument or close over it: it is a frozen, hashable dataclass) and are
+dtype-preserving: the computation runs in the dtype of ``outputs.left.inv_depth`` (float32 in
+training). Images arrive as uint8 and are divided by 255.
+
+Averaging: every term is a mean over *valid* pixels of *real* samples. A pixel that left the
+source image or fell behind the camera, and every pixel of a padding sample
+(``batch.weight == 0``), contributes nothing to the numerator or the denominator; samples are
+weighted by ``batch.weight``. Explainability masks multiply the per-pixel error but do not enter
+the denominator (the mask regulariser keeps them from collapsing to zero).
+
+Relative poses: ``T_vo = Exp(ξ_vo)`` is ``T_{t+1,t}``, mapping frame-t points into frame t+1,
+and ``T* = Exp(ξ_corr) · T_vo`` (:func:`~dpc_jax.correction.apply_correction`). Reconstructing
+frame t+1 from frame t therefore needs ``T_{t,t+1} = inv(T*)``, computed exactly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax.numpy as jnp
+from jax import Array
+
+from dpc_jax.batch import Batch
+from dpc_jax.correction import apply_correction
+from dpc_jax.lie import se3_exp, se3_inverse
+from dpc_jax.outputs import BranchOutputs, DPCOutputs
+from dpc_jax.ssim import ssim_loss
+from dpc_jax.warp import disparity_consistency, inverse_warp, stereo_warp
+
+# ITU-R BT.601 luma weights, as in cv2.cvtColor(..., COLOR_RGB2GRAY).
+_GREY_WEIGHTS = (0.299, 0.587, 0.114)
+
+
+@dataclass(frozen=True)
+class SSDPCLossConfig:
+    """ss-DPC-Net loss (Wagstaff et al. 2020, eq. 7–11).
+
+    * ``exp_weight``: λ_exp of the explainability-mask regulariser (paper 0.23; the reference
+      scripts default to 0.18).
+    * ``rot_weight``, ``rot_threshold``: a sample whose prior rotation ``‖Log(R_vo)‖ ≥ γ``
+      (rad) has its photometric term multiplied by ``1 + λ_rot``.
+    * ``rotation_only``: apply only the rotation part of ``ξ_corr`` (ss-DPC-Net on libviso2-s).
+    * ``ssim_weight``: λ_s of :func:`photometric_error`; the paper's loss is pure L1 (0). A
+      model that learns λ_s (``outputs.ssim_weight`` not None) overrides it.
+    * ``grad_threshold``: γ_grad of the gradient mask (epoch selection only).
+    * ``mask_floor``: clamp of the mask inside ``−log W``.
+    * ``depth_eps``: points closer than this (m) to the source camera plane are invalid.
+    """
+
+    exp_weight: float = 0.23
+    rot_weight: float = 4.0
+    rot_threshold: float = 0.005
+    rotation_only: bool = False
+    ssim_weight: float = 0.0
+    grad_threshold: float = 0.03
+    mask_floor: float = 1e-6
+    depth_eps: float = 1e-3
+
+
+@dataclass(frozen=True)
+class StereoDPCLossConfig:
+    """Stereo DPC loss (Zhang et al. 2021, eq. 14).
+
+    * ``alpha``: (α1 spatial, α2 disparity consistency, α3 temporal, α4 mask regulariser).
+    * ``ssim_weight``: fixed λ_s; a model that learns λ_s (``outputs.ssim_weight``) overrides it.
+    * ``rotation_only``, ``grad_threshold``, ``mask_floor``, ``depth_eps``: as in
+      :class:`SSDPCLossConfig`.
+    """
+
+    alpha: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 0.08)
+    ssim_weight: float = 0.85
+    rotation_only: bool = False
+    grad_threshold: float = 0.03
+    mask_floor: float = 1e-6
+    depth_eps: float = 1e-3
+
+
+# --- building blocks --------------------------------------------------------------------------
+
+
+def to_unit_images(images: Array, dtype: jnp.dtype) -> Array:
+    """uint8 images in [0, 255] -> ``dtype`` in [0, 1]; float images are only cast."""
+    images = jnp.asarray(images)
+    if jnp.issubdtype(images.dtype, jnp.integer):
+        return images.astype(dtype) / 255.0
+    return images.astype(dtype)
+
+
+def photometric_error(
+    target: Array, reconstruction: Array, ssim_weight: float | Array = 0.85, valid: Array | None = None
+) -> Array:
+    """Per-pixel photometric error ``λ_s · L_SSIM + (1 − λ_s) · |I − I*|``, channels averaged.
+
+    ``target``, ``reconstruction``: ``[..., H, W, C]`` in [0, 1] -> ``[..., H, W]``.
+    ``ssim_weight`` (λ_s) is a Python float (0 skips the SSIM computation) or a scalar array
+    (a learned value, e.g. the sigmoid of a parameter). ``valid`` (bool ``[..., H, W]``): where
+    given, invalid reconstructed pixels are replaced by the target before SSIM, so the zeros
+    that the sampler puts outside the source image do not corrupt the 3×3 statistics of their
+    valid neighbours (invalid pixels themselves are dropped later by :func:`masked_mean`).
+    """
+    l1 = jnp.mean(jnp.abs(target - reconstruction), axis=-1)
+    if isinstance(ssim_weight, (int, float)) and ssim_weight == 0:
+        return l1
+    if valid is not None:
+        reconstruction = jnp.where(valid[..., None], reconstruction, target)
+    structural = jnp.mean(ssim_loss(target, reconstruction), axis=-1)
+    return ssim_weight * structural + (1.0 - ssim_weight) * l1
+
+
+def masked_mean(values: Array, valid: Array, weight: Array, scale: Array | None = None) -> Array:
+    """``Σ w_b s_b v e / Σ w_b v`` over the batch and all pixels; 0 when nothing is valid.
+
+    ``values`` (e), ``valid`` (v, bool or {0, 1}): ``[B, ...]``; ``weight`` (w): ``[B]`` sample
+    weights (0 = padding); ``scale`` (s): optional ``[B]`` factors that multiply the numerator
+    only (up-weighting without renormalising). Non-finite values at excluded pixels cannot leak
+    into the result.
+    """
+    extra = (1,) * (values.ndim - 1)
+    keep = (valid > 0) & (weight.reshape(-1, *extra) > 0)
+    w = jnp.broadcast_to(weight.reshape(-1, *extra).astype(values.dtype), values.shape)
+    if scale is not None:
+        w_num = w * scale.reshape(-1, *extra).astype(values.dtype)
+    else:
+        w_num = w
+    numerator = jnp.sum(jnp.where(keep, w_num * values, 0.0))
+    denominator = jnp.sum(jnp.where(keep, w, 0.0))
+    return jnp.where(denominator > 0, numerator / jnp.where(denominator > 0, denominator, 1.0), 0.0)
+
+
+def explainability_loss(mask: Array, weight: Array, floor: float = 1e-6) -> Array:
+    """``mean(−log W)`` over all pixels of real samples (cross-entropy against label 1).
+
+    ``mask``: ``[B, ...]`` in (0, 1); ``weight``: ``[B]``. W is clamped to ``[floor, 1]``
+    inside the log, so the loss is at most ``−log(floor)`` per pixel.
+    """
+    nll = -jnp.log(jnp.clip(mask, floor, 1.0))
+    return masked_mean(nll, jnp.ones(mask.shape, dtype=bool), weight)
+
+
+def rotation_weights(xi_vo: Array, threshold: float = 0.005, rot_weight: float = 4.0) -> Array:
+    """Per-sample factor ``1 + λ_rot`` where ``‖φ_vo‖ ≥ γ``, else 1 (ss-DPC-Net eq. 10).
+
+    ``xi_vo``: ``[B, 6]`` prior ``[ρ, φ]``; ``φ`` is ``Log(R_vo)``. -> ``[B]``.
+    """
+    angle = jnp.linalg.norm(xi_vo[..., 3:], axis=-1)
+    return jnp.where(angle >= threshold, 1.0 + rot_weight, 1.0).astype(xi_vo.dtype)
+
+
+def gradient_mask(image: Array, threshold: float = 0.03) -> Array:
+    """High-gradient pixels ``(|∇x I| + |∇y I|) / 2 > γ_grad`` (ss-DPC-Net eq. 11).
+
+    ``image``: ``[..., H, W, 3]`` RGB in [0, 1], converted to grey with BT.601 weights.
+    Forward differences ``I(u+1, v) − I(u, v)`` and ``I(u, v+1) − I(u, v)``; the last column
+    (row) has no forward neighbour and gets a zero x (y) difference. -> bool ``[..., H, W]``.
+    """
+    grey = jnp.tensordot(image, jnp.asarray(_GREY_WEIGHTS, dtype=image.dtype), axes=([-1], [0]))
+    dx = jnp.abs(jnp.diff(grey, axis=-1, append=grey[..., -1:]))
+    dy = jnp.abs(jnp.diff(grey, axis=-2, append=grey[..., -1:, :]))
+    return 0.5 * (dx + dy) > threshold
+
+
+def disparity_consistency_loss(
+    disparity_left: Array, disparity_right: Array, weight: Array
+) -> tuple[Array, Array]:
+    """Left and right disparity-consistency terms (Zhang eq. 7–8), each a masked mean.
+
+    ``disparity_*``: ``[B, ..., H, W]`` in pixels; errors are in units of the image width (see
+    :func:`~dpc_jax.warp.disparity_consistency`). -> ``(L_disp^l, L_disp^r)``.
+    """
+    err_l, valid_l, err_r, valid_r = disparity_consistency(disparity_left, disparity_right)
+    return masked_mean(err_l, valid_l, weight), masked_mean(err_r, valid_r, weight)
+
+
+def _ssim_weight(outputs: DPCOutputs, fixed: float) -> float | Array:
+    return fixed if outputs.ssim_weight is None else outputs.ssim_weight
+
+
+def _check_branch(branch: BranchOutputs, frames: int, images: Array, name: str) -> None:
+    expected = (images.shape[0], frames, *images.shape[2:4])
+    for field in ("inv_depth", "mask"):
+        shape = getattr(branch, field).shape
+        if tuple(shape) != expected:
+            raise ValueError(f"{name}.{field} has shape {tuple(shape)}, expected {expected} [B, F, H, W]")
+
+
+def _corrected_pose(outputs: DPCOutputs, batch: Batch, rotation_only: bool, dtype: jnp.dtype) -> Array:
+    """``T*_{t+1,t}`` ``[B, 4, 4]``."""
+    T_vo = se3_exp(jnp.asarray(batch.xi_vo).astype(dtype))
+    return apply_correction(jnp.asarray(outputs.xi_corr).astype(dtype), T_vo, rotation_only)
+
+
+# --- ss-DPC-Net ---------------------------------------------------------------------------------
+
+
+def _ss_dpc_reconstruction(
+    outputs: DPCOutputs, batch: Batch, config: SSDPCLossConfig
+) -> tuple[Array, Array, Array, Array]:
+    """Target t+1, its reconstruction from t, validity, and dtype-cast weights."""
+    dtype = outputs.left.inv_depth.dtype
+    left = to_unit_images(batch.left, dtype)
+    _check_branch(outputs.left, 1, left, "outputs.left")
+    target, source = left[:, 1], left[:, 0]
+    T_star = _corrected_pose(outputs, batch, config.rotation_only, dtype)
+    K = jnp.asarray(batch.intrinsics).astype(dtype)
+    recon, valid = inverse_warp(source, 1.0 / outputs.left.inv_depth[:, 0], se3_inverse(T_star), K,
+                                config.depth_eps)
+    return target, recon, valid, jnp.asarray(batch.weight).astype(dtype)
+
+
+def ss_dpc_loss(outputs: DPCOutputs, batch: Batch, config: SSDPCLossConfig) -> tuple[Array, dict[str, Array]]:
+    """ss-DPC-Net loss (DESIGN §4, Wagstaff et al. eq. 7–10). Single scale, left camera only.
+
+    Target = frame t+1 (``batch.left[:, 1]``), source = frame t (``batch.left[:, 0]``), target
+    depth ``1 / outputs.left.inv_depth[:, 0]``, mask ``W = outputs.left.mask[:, 0]``.
+    ``loss = masked_mean(W · e) · (1 + λ_rot)[large rotation] + λ_exp · mean(−log W)`` with
+    ``e`` the per-pixel photometric error (L1 unless ``ssim_weight`` says otherwise).
+
+    Returns ``(loss, metrics)``; metrics: ``loss``, ``photometric`` (after rotation weighting),
+    ``explainability``, ``valid_fraction``, ``ssim_weight``.
+    """
+    target, recon, valid, weight = _ss_dpc_reconstruction(outputs, batch, config)
+    mask = outputs.left.mask[:, 0]
+    ssim_weight = _ssim_weight(outputs, config.ssim_weight)
+    error = photometric_error(target, recon, ssim_weight, valid)
+    scale = rotation_weights(jnp.asarray(batch.xi_vo).astype(error.dtype), config.rot_threshold,
+                             config.rot_weight)
+    photometric = masked_mean(mask * error, valid, weight, scale)
+    explainability = explainability_loss(mask, weight, config.mask_floor)
+    loss = photometric + config.exp_weight * explainability
+    metrics = {
+        "loss": loss,
+        "photometric": photometric,
+        "explainability": explainability,
+        "valid_fraction": masked_mean(valid.astype(error.dtype), jnp.ones_like(valid), weight),
+        "ssim_weight": jnp.asarray(ssim_weight, dtype=error.dtype),
+    }
+    return loss, metrics
+
+
+# --- Stereo DPC ---------------------------------------------------------------------------------
+
+
+def _left_to_right(baseline: Array) -> Array:
+    """Extrinsic ``C`` ``[B, 4, 4]`` mapping left-camera points to right-camera points."""
+    translation = jnp.stack([-baseline, jnp.zeros_like(baseline), jnp.zeros_like(baseline)], axis=-1)
+    eye = jnp.broadcast_to(jnp.eye(4, dtype=baseline.dtype), (*baseline.shape, 4, 4))
+    return eye.at[..., :3, 3].set(translation)
+
+
+def _stereo_temporal(
+    images: Array, branch: BranchOutputs, T_star: Array, K: Array, eps: float
+) -> tuple[tuple[Array, Array, Array], tuple[Array, Array, Array]]:
+    """Both temporal reconstructions of one camera.
+
+    Returns ``((target k+1, recon of k+1 from k, valid), (target k, recon of k from k+1, valid))``.
+    """
+    depth = 1.0 / branch.inv_depth
+    recon_k1, valid_k1 = inverse_warp(images[:, 0], depth[:, 1], se3_inverse(T_star), K, eps)
+    recon_k, valid_k = inverse_warp(images[:, 1], depth[:, 0], T_star, K, eps)
+    return (images[:, 1], recon_k1, valid_k1), (images[:, 0], recon_k, valid_k)
+
+
+def _stereo_setup(
+    outputs: DPCOutputs, batch: Batch, config: StereoDPCLossConfig
+) -> tuple[Array, Array, Array, Array, dict[str, Array], Array]:
+    """Unit images, intrinsics, weights and per-camera ``T*`` for the stereo loss."""
+    if outputs.right is None:
+        raise ValueError("stereo_dpc_loss needs outputs.right (a StereoDPC model's outputs)")
+    dtype = outputs.left.inv_depth.dtype
+    left = to_unit_images(batch.left, dtype)
+    right = to_unit_images(batch.right, dtype)
+    _check_branch(outputs.left, 2, left, "outputs.left")
+    _check_branch(outputs.right, 2, right, "outputs.right")
+    K = jnp.asarray(batch.intrinsics).astype(dtype)
+    baseline = jnp.asarray(batch.baseline).astype(dtype)
+    T_star = _corrected_pose(outputs, batch, config.rotation_only, dtype)
+    # The rig is rigid: the right camera's motion is the left one's conjugated by the extrinsic.
+    C = _left_to_right(baseline)
+    poses = {"left": T_star, "right": C @ T_star @ se3_inverse(C)}
+    return left, right, K, baseline, poses, jnp.asarray(batch.weight).astype(dtype)
+
+
+def stereo_dpc_loss(
+    outputs: DPCOutputs, batch: Batch, config: StereoDPCLossConfig
+) -> tuple[Array, dict[str, Array]]:
+    """Stereo DPC loss (DESIGN §4, Zhang et al. eq. 14).
+
+    ``α1 (L^l + L^r) + α2 (L_disp^l + L_disp^r) + α3 Σ temporal + α4 L_exp``:
+
+    * spatial ``L^l``: left images of frames k and k+1 rebuilt from the right ones with
+      ``d_l = fu · B · inv_depth_l``, photometric error (SSIM + L1), one masked mean over both
+      frames; ``L^r`` symmetrically with ``d_r``. No explainability mask.
+    * disparity consistency of both cameras over both frames, in units of the image width.
+    * temporal, per camera: frame k+1 rebuilt from k with the depth of k+1 and ``inv(T*)``,
+      weighted by the mask of k+1; frame k rebuilt from k+1 with the depth of k and ``T*``,
+      weighted by the mask of k. The right camera uses ``C T* C⁻¹`` (``C`` = left→right
+      extrinsic, a translation by ``−B`` along x), exact for a rigid rig.
+    * ``L_exp``: the sum over the four masks (left/right × k/k+1) of ``mean(−log W)``, one
+      regulariser per mask-weighted temporal term.
+
+    Returns ``(loss, metrics)``; metrics hold every term separately plus ``loss`` and
+    ``ssim_weight``.
+    """
+    left, right, K, baseline, poses, weight = _stereo_setup(outputs, batch, config)
+    ssim_weight = _ssim_weight(outputs, config.ssim_weight)
+    a_spatial, a_disp, a_temporal, a_exp = config.alpha
+
+    focal_baseline = (K[:, 0, 0] * baseline)[:, None, None, None]
+    disp_l = focal_baseline * outputs.left.inv_depth
+    disp_r = focal_baseline * outputs.right.inv_depth
+    recon_l, valid_l = stereo_warp(right, disp_l, "right_to_left")
+    recon_r, valid_r = stereo_warp(left, disp_r, "left_to_right")
+    metrics = {
+        "spatial_left": masked_mean(photometric_error(left, recon_l, ssim_weight, valid_l), valid_l, weight),
+        "spatial_right": masked_mean(
+            photometric_error(right, recon_r, ssim_weight, valid_r), valid_r, weight
+        ),
+    }
+    metrics["disparity_left"], metrics["disparity_right"] = disparity_consistency_loss(disp_l, disp_r, weight)
+
+    temporal_names = []
+    explainability = jnp.zeros((), left.dtype)
+    for camera, images, branch in (("left", left, outputs.left), ("right", right, outputs.right)):
+        forward, backward = _stereo_temporal(images, branch, poses[camera], K, config.depth_eps)
+        for (target, recon, valid), mask, name in (
+            (forward, branch.mask[:, 1], f"temporal_{camera}_k_to_k1"),
+            (backward, branch.mask[:, 0], f"temporal_{camera}_k1_to_k"),
+        ):
+            error = photometric_error(target, recon, ssim_weight, valid)
+            metrics[name] = masked_mean(mask * error, valid, weight)
+            temporal_names.append(name)
+            explainability = explainability + explainability_loss(mask, weight, config.mask_floor)
+    metrics["explainability"] = explainability
+
+    loss = (
+        a_spatial * (metrics["spatial_left"] + metrics["spatial_right"])
+        + a_disp * (metrics["disparity_left"] + metrics["disparity_right"])
+        + a_temporal * sum(metrics[name] for name in temporal_names)
+        + a_exp * explainability
+    )
+    metrics["loss"] = loss
+    metrics["ssim_weight"] = jnp.asarray(ssim_weight, dtype=left.dtype)
+    return loss, metrics
+
+
+# --- epoch selection ----------------------------------------------------------------------------
+
+
+def gradient_loss(
+    outputs: DPCOutputs, batch: Batch, config: SSDPCLossConfig | StereoDPCLossConfig
+) -> Array:
+    """Photometric loss restricted to high-gradient target pixels (ss-DPC-Net §IV, epoch selection).
+
+    The per-pixel photometric error of the temporal reconstruction (λ_s as in the training loss)
+    is averaged over pixels that are valid *and* in the :func:`gradient_mask` of the target
+    image. No explainability mask and no rotation weighting: the criterion measures geometric
+    agreement only, so a model cannot lower it by masking pixels out. The config's type picks the
+    assembly: :class:`SSDPCLossConfig` uses frame t+1 rebuilt from t (left camera);
+    :class:`StereoDPCLossConfig` averages the four temporal terms (both cameras, both
+    directions). Returns a scalar; padding samples contribute nothing.
+    """
+    if isinstance(config, SSDPCLossConfig):
+        target, recon, valid, weight = _ss_dpc_reconstruction(outputs, batch, config)
+        error = photometric_error(target, recon, _ssim_weight(outputs, config.ssim_weight), valid)
+        return masked_mean(error, valid & gradient_mask(target, config.grad_threshold), weight)
+    if not isinstance(config, StereoDPCLossConfig):
+        raise TypeError(f"config must be SSDPCLossConfig or StereoDPCLossConfig, got {type(config).__name__}")
+    left, right, K, _, poses, weight = _stereo_setup(outputs, batch, config)
+    ssim_weight = _ssim_weight(outputs, config.ssim_weight)
+    terms = []
+    for camera, images, branch in (("left", left, outputs.left), ("right", right, outputs.right)):
+        for target, recon, valid in _stereo_temporal(images, branch, poses[camera], K, config.depth_eps):
+            error = photometric_error(target, recon, ssim_weight, valid)
+            terms.append(masked_mean(error, valid & gradient_mask(target, config.grad_threshold), weight))
+    return sum(terms) / len(terms)
