@@ -79,7 +79,7 @@ class VOConfig:
     min_distance: int = 10
     fast_threshold: int = 12
     margin: int = 10
-    window: int = 15
+    window: int = 11
     track_levels: int = 3
     stereo_levels: int = 4
     max_backward_error: float = 0.5
