@@ -330,3 +330,45 @@ def test_real_excerpt_within_125_percent_of_libviso2() -> None:
     ours, theirs = errors(result.poses), errors(libviso2)
     assert ours[0] <= 1.25 * theirs[0], (ours, theirs)
     assert ours[1] <= 1.25 * theirs[1], (ours, theirs)
+
+
+def _odometry_layout(root: Path, frames: list, poses: np.ndarray) -> None:
+    seq = root / "sequences" / "00"
+    for cam in ("image_2", "image_3"):
+        (seq / cam).mkdir(parents=True)
+    for i, (left, right) in enumerate(frames):
+        cv2.imwrite(str(seq / "image_2" / f"{i:06d}.png"), left)
+        cv2.imwrite(str(seq / "image_3" / f"{i:06d}.png"), right)
+    P = np.hstack([K, np.zeros((3, 1))])
+    P_right = P.copy()
+    P_right[0, 3] = -K[0, 0] * BASELINE
+    rows = [P, P, P, P_right]
+    calib = "".join(f"P{i}: " + " ".join(map(str, m.ravel())) + "\n" for i, m in enumerate(rows))
+    (seq / "calib.txt").write_text(calib)
+    (seq / "times.txt").write_text("".join(f"{0.1 * i}\n" for i in range(len(frames))))
+    (root / "poses").mkdir()
+    (root / "poses" / "00.txt").write_text("".join(" ".join(map(str, T[:3].ravel())) + "\n" for T in poses))
+
+
+def test_cli_writes_trajectory_and_csv(
+    tmp_path: Path, scene: tuple[np.ndarray, list], capsys: pytest.CaptureFixture[str]
+) -> None:
+    from dpc_jax.cli import main
+    from dpc_jax.trajectory import read_kitti_poses
+
+    poses, frames = scene
+    _odometry_layout(tmp_path / "kitti", frames[:4], poses[:4])
+    out = tmp_path / "out" / "00.txt"
+    code = main(["vo", "--kitti-odometry", str(tmp_path / "kitti"), "--sequence", "00", "--out", str(out),
+                 "--start", "gt", "--no-progress"])
+    assert code == 0
+    written = read_kitti_poses(out)
+    expected = run_vo_frames(frames[:4], K, BASELINE, VOConfig(), first_pose=poses[0]).poses
+    np.testing.assert_allclose(written, expected, atol=1e-12)
+    lines = out.with_suffix(".csv").read_text().splitlines()
+    assert len(lines) == 4 and lines[0].startswith("frame,inliers,status")
+    assert "m-ATE" in capsys.readouterr().out
+    root = str(tmp_path / "kitti")
+    assert main(["vo", "--kitti-odometry", root, "--out", str(out)]) == 2
+    assert main(["vo", "--kitti-odometry", root, "--sequence", "07", "--out", str(out)]) == 1
+    assert "07" in capsys.readouterr().err
