@@ -6,9 +6,10 @@
 The synthetic cache has the layout and sizes of a real one (uint8 frames, float32 flows of all
 four pair kinds, float64 poses); its arrays are random, which makes no difference to copying.
 Reported: the inline loader (``workers=0``: the cost of assembling one batch) and the prefetching
-loader (background threads), as batches/s with a consumer that does no work, median over
-repeated epochs after a warm-up epoch (page cache warm). Compare with the train step: a batch
-is consumed every step, so batches/s must be several times the steps/s of training.
+loader (background threads), as batches/s with a consumer that does no work and as process CPU
+time per batch, medians over repeated epochs after a warm-up epoch (page cache warm). Compare
+with the train step: a batch is consumed every step, so batches/s must be several times the
+steps/s of training.
 """
 
 from __future__ import annotations
@@ -54,16 +55,23 @@ def synthetic_cache(root: Path, frames: int, size: tuple[int, int], seed: int = 
     manifest = {"name": "synthetic", "n_frames": frames, "image_size": [h, w], "has_gt": True,
                 "flows": list(FLOW_FILES)}
     (path / MANIFEST).write_text(json.dumps(manifest))
+    for file in path.iterdir():  # finish the write-back now, not during the timed epochs
+        with file.open("rb") as f:
+            os.fsync(f.fileno())
     return path
 
 
-def epoch_rate(loader: TrainLoader, epoch: int) -> float:
-    """Batches per second of one full epoch with a consumer that only touches each batch."""
-    start = time.perf_counter()
+def epoch_rate(loader: TrainLoader, epoch: int) -> tuple[float, float]:
+    """(batches per second, process CPU ms per batch) of one epoch; the consumer does nothing.
+
+    The CPU time (all threads) is the figure to trust on a loaded machine: wall-clock rates
+    there mostly measure how long the process waited for a core.
+    """
+    start, cpu = time.perf_counter(), time.process_time()
     count = 0
     for batch in loader.epoch(epoch):
         count += int(batch.left.shape[0] > 0)
-    return count / (time.perf_counter() - start)
+    return count / (time.perf_counter() - start), 1000 * (time.process_time() - cpu) / count
 
 
 def main() -> None:
@@ -88,23 +96,27 @@ def main() -> None:
         rows = []
         configs = [
             ("inline (workers=0)", {"workers": 0}, None),
+            ("prefetch (1 thread, depth 3)", {"workers": 1, "depth": 3}, None),
             ("prefetch (2 threads, depth 4)", {"workers": 2, "depth": 4}, None),
             ("prefetch (4 threads, depth 8)", {"workers": 4, "depth": 8}, None),
-            ("prefetch, no flow (2 threads)", {"workers": 2, "depth": 4}, False),
+            ("inline, no flow", {"workers": 0}, False),
+            ("prefetch, no flow (1 thread)", {"workers": 1, "depth": 3}, False),
         ]
         for label, kwargs, flow in configs:
             loader = TrainLoader([cache], args.batch, frame_skip=True, flow=flow, **kwargs)
             first = next(iter(loader.epoch(0)))
             mbytes = sum(a.nbytes for a in first if a is not None) / 2**20
             epoch_rate(loader, 0)  # warm-up: page cache and threads
-            rates = [epoch_rate(loader, e) for e in range(1, args.repeats + 1)]
-            rate = statistics.median(rates)
+            timings = [epoch_rate(loader, e) for e in range(1, args.repeats + 1)]
+            rate = statistics.median(t[0] for t in timings)
+            cpu_ms = statistics.median(t[1] for t in timings)
             flow_shape = "-" if first.flow is None else tuple(first.flow.shape)
             shape = f"{tuple(first.left.shape)} + flow {flow_shape}"
-            rows.append((label, shape, len(loader), rate, rate * mbytes))
-        print(f"\n{'loader':32} {'batch (left; right alike)':44} {'batches':>7} {'batch/s':>8} {'MB/s':>7}")
-        for label, shape, n, rate, mbs in rows:
-            print(f"{label:32} {shape:44} {n:7d} {rate:8.1f} {mbs:7.0f}")
+            rows.append((label, shape, len(loader), rate, rate * mbytes, cpu_ms))
+        header = f"{'loader':30} {'batch (left; right alike)':50} {'batches':>7} {'batch/s':>8} {'MB/s':>6}"
+        print(f"\n{header} {'CPU ms/batch':>12}")
+        for label, shape, n, rate, mbs, cpu_ms in rows:
+            print(f"{label:30} {shape:50} {n:7d} {rate:8.1f} {mbs:6.0f} {cpu_ms:12.1f}")
 
 
 if __name__ == "__main__":

@@ -28,7 +28,6 @@ the consumer stops iterating (the generator is closed or garbage collected).
 from __future__ import annotations
 
 import json
-import os
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -269,9 +268,10 @@ class TrainLoader:
 
     ``len(loader)`` is the number of batches per epoch, ``floor(samples / batch_size)``: the
     last partial batch is dropped. ``epoch(e)`` shuffles with ``numpy.random.default_rng((seed,
-    e))`` and yields batches prepared by ``workers`` background threads (default: up to 4, as
-    the copy is memory-bound; ``workers=0``: inline) with at most ``depth`` batches in flight
-    (each ~80 MB at batch 32, 240×376, with flow).
+    e))`` and yields batches prepared by ``workers`` background threads (``workers=0``:
+    inline) with at most ``depth`` batches in flight (each ~80 MB at batch 32, 240×376, with
+    flow). Assembly is a memory-bound copy: one thread keeps up with the train step (see
+    ``benchmarks/bench_data.py``); more threads help only on machines with idle cores.
     """
 
     def __init__(
@@ -284,8 +284,8 @@ class TrainLoader:
         reverse: bool = False,
         flow: bool | None = None,
         shuffle: bool = True,
-        workers: int | None = None,
-        depth: int = 4,
+        workers: int = 1,
+        depth: int = 3,
     ) -> None:
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
@@ -304,7 +304,7 @@ class TrainLoader:
         self.batch_size = batch_size
         self.seed = seed
         self.shuffle = shuffle
-        self.workers = min(4, os.cpu_count() or 1) if workers is None else workers
+        self.workers = workers
         self.depth = depth
         if len(self) == 0:
             raise ValueError(f"{len(self.table)} samples are fewer than one batch of {batch_size}")
