@@ -1,0 +1,75 @@
+"""``dpc-jax train``: train a DPC network on prepared sequences, resumably."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+HELP = "Train ss-DPC-Net or Stereo DPC on prepared sequences (checkpoints, metrics.csv, TensorBoard)."
+
+EPILOG = """examples:
+  dpc-jax train --config experiments/configs/synthetic_small.py --workdir runs/synthetic_small
+  dpc-jax train --config experiments/configs/synthetic_small.py --workdir runs/synthetic_small --resume
+The config file defines CONFIG = TrainConfig(...) or a dict of its fields (see dpc_jax.train.TrainConfig).
+Outputs in WORKDIR: checkpoints/{epochs,best_gradient_loss,best_loop_closures}/EPOCH, checkpoints/config.json,
+checkpoints/split.json, metrics.csv, tensorboard/. Several hosts: set distributed=True in the config and
+pass --coordinator-address/--num-processes/--process-id on each host (or nothing on clusters JAX detects)."""
+
+
+class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """Keeps the examples' line breaks and shows the defaults."""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.epilog = EPILOG
+    parser.formatter_class = _Formatter
+    parser.add_argument(
+        "--config",
+        required=True,
+        type=Path,
+        metavar="FILE",
+        help="experiments/configs/NAME.py defining CONFIG (or a config.json of a run)",
+    )
+    parser.add_argument("--workdir", required=True, type=Path, metavar="DIR", help="run folder")
+    parser.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the run in WORKDIR from its newest epoch (same config required)",
+    )
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--workers", type=int, default=2, help="data-loading threads")
+    parser.add_argument("--coordinator-address", metavar="HOST:PORT", help="multi-host: process 0's address")
+    parser.add_argument("--num-processes", type=int, help="multi-host: number of processes")
+    parser.add_argument("--process-id", type=int, help="multi-host: this process's index")
+
+
+def run(args: argparse.Namespace) -> int:
+    from dpc_jax import config as config_lib
+    from dpc_jax.config import ConfigError
+    from dpc_jax.train import NonFiniteLossError, TrainConfig, train
+
+    distributed = {
+        "coordinator_address": args.coordinator_address,
+        "num_processes": args.num_processes,
+        "process_id": args.process_id,
+    }
+    try:
+        config = config_lib.load_file(args.config, TrainConfig)
+        summary = train(
+            config,
+            args.workdir,
+            resume=args.resume,
+            progress=False if args.no_progress else None,
+            distributed=distributed,
+            workers=args.workers,
+        )
+    except ConfigError as error:
+        print(f"dpc-jax train: error: {error}", file=sys.stderr)
+        return 2
+    except NonFiniteLossError as error:
+        print(f"dpc-jax train: stopped: {error}", file=sys.stderr)
+        return 1
+    print(json.dumps(summary, indent=2, default=float))
+    return 0
