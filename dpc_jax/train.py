@@ -23,6 +23,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import dataclasses
+import functools
 import io
 import itertools
 import math
@@ -224,31 +225,10 @@ def make_optimizer(config: TrainConfig, steps_per_epoch: int) -> optax.GradientT
     )
 
 
-def create_train_state(
-    make_model: Callable[[], nnx.Module], tx: optax.GradientTransformation, mesh: Mesh | None = None
-) -> tuple[nnx.GraphDef, nnx.State]:
-    """``nnx.split((model, optimizer))`` of ``make_model()`` in training mode and its ``nnx.Optimizer``.
-
-    The initialisation runs as one jitted program (eager NNX initialisation dispatches, and on
-    CPU compiles, every initializer separately, which costs far more), and with ``mesh`` the
-    state is created directly replicated on it.
-    """
-    graphdefs: list[nnx.GraphDef] = []
-
-    def init() -> nnx.State:
-        model = make_model()
-        model.train()
-        graphdef, state = nnx.split((model, nnx.Optimizer(model, tx, wrt=nnx.Param)))
-        graphdefs.append(graphdef)  # static structure, captured while tracing
-        return state
-
-    if mesh is None:
-        state = jax.jit(init)()
-    else:
-        from dpc_jax.parallel import replicated
-
-        state = jax.jit(init, out_shardings=replicated(mesh))()
-    return graphdefs[0], state
+def create_train_state(model: nnx.Module, tx: optax.GradientTransformation) -> tuple[nnx.GraphDef, nnx.State]:
+    """``nnx.split((model, optimizer))`` of ``model`` in training mode and its ``nnx.Optimizer``."""
+    model.train()
+    return nnx.split((model, nnx.Optimizer(model, tx, wrt=nnx.Param)))
 
 
 def state_step(state: nnx.State) -> int:
@@ -276,10 +256,13 @@ def make_loss_functions(config: TrainConfig) -> tuple[LossFn, GradientLossFn]:
     return loss_fn, gradient_loss_fn
 
 
+@functools.lru_cache(maxsize=8)
 def make_train_step(
     loss_fn: LossFn, mesh: Mesh | None = None
 ) -> Callable[[nnx.GraphDef, nnx.State, Batch, jax.Array], tuple[nnx.State, dict[str, jax.Array]]]:
     """The jitted ``train_step(graphdef, state, batch, key) -> (state, metrics)``; ``state`` donated.
+
+    Cached per ``(loss_fn, mesh)``, so runs that share both share the compiled program.
 
     ``metrics``: ``loss``, the loss's named terms, ``grad_norm`` (global L2 norm of the gradient
     before weight decay) — scalars. ``key`` drives dropout. With ``mesh``, the outputs are
@@ -298,7 +281,7 @@ def make_train_step(
 
         (loss, terms), grads = nnx.value_and_grad(objective, has_aux=True)(model)
         optimizer.update(model, grads)
-        metrics = {"loss": loss, **terms, "grad_norm": optax.global_norm(grads)}
+        metrics = {"loss": loss, **terms, "grad_norm": optax.tree.norm(grads)}
         return nnx.state((model, optimizer)), metrics
 
     kwargs: dict[str, Any] = {}
@@ -309,6 +292,7 @@ def make_train_step(
     return jax.jit(step, static_argnums=0, donate_argnums=1, **kwargs)
 
 
+@functools.lru_cache(maxsize=8)
 def make_eval_step(
     loss_fn: LossFn, gradient_loss_fn: GradientLossFn, mesh: Mesh | None = None
 ) -> Callable[[nnx.GraphDef, nnx.State, Batch], dict[str, jax.Array]]:
@@ -483,7 +467,8 @@ class MetricsLog:
         writer.writeheader()
         writer.writerows(self.rows)
         atomic_write(self.path, buffer.getvalue())
-        numbers = {k: float(v) for k, v in row.items() if k not in ("epoch", "step") and v != ""}
+        numbers = {k: float(v) for k, v in row.items() if k not in ("epoch", "step")}
+        numbers = {k: v for k, v in numbers.items() if math.isfinite(v)}
         self.scalars(int(row["step"]), numbers, "epoch")
         self.writer.flush()
 
@@ -712,12 +697,10 @@ def train(
         raise ConfigError(str(error)) from None
     is_main = jax.process_index() == 0
 
-    model_config = config.model_config()
-    graphdef, state = create_train_state(
-        lambda: create_model(config.method, model_config, config.seed),
-        make_optimizer(config, data.steps_per_epoch),
-        mesh,
-    )
+    model = create_model(config.method, config.model_config(), config.seed)
+    graphdef, state = create_train_state(model, make_optimizer(config, data.steps_per_epoch))
+    del model
+    state = parallel.replicate(state, mesh)
     checkpoints = Checkpoints(workdir, keep_last=config.keep_checkpoints)
     meta: dict[str, Any] | None = None
     if has_run and checkpoints.latest_epoch() is not None:

@@ -48,7 +48,7 @@ SCRIPT = textwrap.dedent(
         flow=rng.normal(size=(B, 2, H, W, 2)).astype(np.float32),
     )
     loss_fn, _ = make_loss_functions(config)
-    graphdef, initial = create_train_state(lambda: create_model("ss_dpc", config.model_config(), 0),
+    graphdef, initial = create_train_state(create_model("ss_dpc", config.model_config(), 0),
                                            make_optimizer(config, 10))
     initial = jax.device_get(initial)
     results = []
