@@ -225,10 +225,18 @@ def make_optimizer(config: TrainConfig, steps_per_epoch: int) -> optax.GradientT
     )
 
 
-def create_train_state(model: nnx.Module, tx: optax.GradientTransformation) -> tuple[nnx.GraphDef, nnx.State]:
-    """``nnx.split((model, optimizer))`` of ``model`` in training mode and its ``nnx.Optimizer``."""
+def create_train_state(
+    model: nnx.Module, tx: optax.GradientTransformation, mesh: Mesh | None = None
+) -> tuple[nnx.GraphDef, nnx.State]:
+    """``nnx.split((model, optimizer))`` of ``model`` in training mode and its ``nnx.Optimizer``.
+
+    With ``mesh`` the state is placed replicated on it. Build the model eagerly
+    (``create_model``): every initializer compiles once per shape and process, which later runs
+    in the same process reuse (one jitted initialisation would recompile as a whole every run).
+    """
     model.train()
-    return nnx.split((model, nnx.Optimizer(model, tx, wrt=nnx.Param)))
+    graphdef, state = nnx.split((model, nnx.Optimizer(model, tx, wrt=nnx.Param)))
+    return graphdef, state if mesh is None else parallel.replicate(state, mesh)
 
 
 def state_step(state: nnx.State) -> int:
@@ -697,10 +705,11 @@ def train(
         raise ConfigError(str(error)) from None
     is_main = jax.process_index() == 0
 
-    model = create_model(config.method, config.model_config(), config.seed)
-    graphdef, state = create_train_state(model, make_optimizer(config, data.steps_per_epoch))
-    del model
-    state = parallel.replicate(state, mesh)
+    graphdef, state = create_train_state(
+        create_model(config.method, config.model_config(), config.seed),
+        make_optimizer(config, data.steps_per_epoch),
+        mesh,
+    )
     checkpoints = Checkpoints(workdir, keep_last=config.keep_checkpoints)
     meta: dict[str, Any] | None = None
     if has_run and checkpoints.latest_epoch() is not None:

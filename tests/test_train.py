@@ -177,8 +177,8 @@ def test_loop_writes_checkpoints_metrics_and_refuses_other_runs(
     split = json.loads((tmp_path / "checkpoints" / "split.json").read_text())
     assert split["train"] == ["00", "01"] and split["validation"] == ["02"] and split["steps_per_epoch"] == 3
     # The optimizer step count in the checkpoint is the number of updates made.
-    model = create_model(config.method, config.model_config(), 0)
-    _, fresh = create_train_state(model, make_optimizer(config, 3))
+    _, fresh = create_train_state(create_model(config.method, config.model_config(), 0),
+                                  make_optimizer(config, 3))
     restored, meta = ckpt.restore(jax.tree.map(ocp.utils.to_shape_dtype_struct, fresh))
     assert state_step(restored) == 6 and meta["step"] == 6 and meta["data"]["next_epoch"] == 3
     ckpt.close()
