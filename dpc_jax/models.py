@@ -1,0 +1,518 @@
+"""Flax NNX networks: ss-DPC-Net (``MonoDPC``) and Stereo DPC (``StereoDPC``), DESIGN §3.
+
+Both are built from one encoder–decoder *branch* and a fully connected pose head:
+
+* **Encoder**: ``depth`` blocks conv(k, stride 2, padding (k−1)//2) → ReLU → BatchNorm, no pooling.
+  Each block maps a side ``n`` to ``ceil(n / 2)``.
+* **Depth decoder**: per stage, transposed conv 3×3 stride 2 (exactly doubles the size) → ReLU,
+  crop to the skip tensor of the encoder at that scale (the doubled size is never smaller, since
+  the encoder rounds up), concatenate the skip, conv 3×3 → ReLU → BatchNorm. Inverse-depth heads
+  (conv 3×3 → ReLU, + 0.001) on the last ``depth_scales`` stages; each head's output is upsampled
+  ×2 (bilinear, half-pixel centres as PyTorch's ``interpolate``), cropped, and concatenated into
+  the next stage. As in the reference code the finest head is halved: ``0.5 (ReLU(conv) + 0.001)``.
+  Only the finest (full-resolution) inverse depth is returned.
+* **Mask decoder**: transposed conv 3×3 stride 2 → ReLU from the output of encoder block
+  ``mask_source_block`` up to full resolution (cropped to each encoder scale), conv 3×3 → sigmoid.
+* **Pose head**: flatten the bottleneck → dropout → FC → dropout → FC → dropout; prior branch
+  FC 6→· → dropout → FC → dropout; concatenate → FC 6, times 0.01, = ξ_corr ``[ρ, φ]``.
+  ``fc_activation="none"`` (no non-linearity between the FC layers) is what the reference code
+  does; ``"relu"`` puts a ReLU after each hidden FC.
+
+Because the pose head flattens the bottleneck, its first FC layer's input size depends on the
+image size; NNX creates every parameter at construction, so the image size is part of
+``ModelConfig`` (``image_size``) and the model rejects any other size with a ``ValueError``. To
+use another size: ``dataclasses.replace(PRESETS["reference"], image_size=(H, W))``. The
+convolutional parts accept any ``H × W`` (the crop-to-skip logic handles sizes that are not
+multiples of ``2**depth``).
+
+Inputs (see ``dpc_jax.batch.Batch``): uint8 images are converted to [0, 1] and whitened with the
+ImageNet statistics inside the model; optical flow (pixels) is appended unscaled, as in the
+reference. Everything is NHWC inside; dense outputs are returned as ``[B, F, H, W]``.
+
+Modes: ``model.train()`` uses batch statistics in BatchNorm (and updates the running averages)
+and applies dropout, for which ``model(batch, key=...)`` needs an explicit PRNG key;
+``model.eval()`` uses the running averages and no dropout (the key is ignored). The mode is a
+static attribute, so ``graphdef, state = nnx.split(model)`` captures it and a pure jitted function
+can ``nnx.merge(graphdef, state)``, call the model, and return ``nnx.state(merged)`` with the
+updated BatchNorm statistics.
+
+Deviations from the reference (PyTorch, utiasSTARS/ss-dpc-net), none of which changes the
+parameter count: BatchNorm running variance uses the biased batch variance (PyTorch's is
+unbiased); the transposed-conv kernel is not spatially flipped (a re-parametrisation).
+BatchNorm momentum 0.9 (Flax convention, weight of the old average) equals PyTorch's default
+momentum 0.1. ``create_model`` initialises the weights as PyTorch does by default.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+
+from dpc_jax.batch import Batch
+from dpc_jax.outputs import BranchOutputs, DPCOutputs
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+POSE_SCALE = 0.01
+INV_DEPTH_OFFSET = 0.001
+
+Method = Literal["ss_dpc", "stereo_dpc"]
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Architecture of both networks (defaults = the reference code, 240×376 input).
+
+    * ``image_size``: ``(H, W)`` of the input images; fixes the pose head's first FC size.
+    * ``encoder_planes``, ``encoder_kernels``: output channels and (odd) kernel size per encoder
+      block; their length is the encoder depth.
+    * ``decoder_planes``: output channels of the transposed conv of each depth-decoder stage,
+      deepest first (same length as the encoder). The mask decoder uses the last
+      ``mask_source_block`` entries.
+    * ``width_multiplier``: scales every encoder/decoder plane count (rounded, at least 1).
+    * ``mask_source_block``: 1-based encoder block whose output feeds the mask decoder.
+    * ``depth_scales``: number of inverse-depth heads (the last stages of the decoder).
+    * ``fc_planes``: ``(hidden, out)`` sizes of the two FC layers of each pose-head reduction.
+    * ``fc_activation``: ``"none"`` (reference code) or ``"relu"`` between the FC layers.
+    * ``dropout``: dropout rate on the pose head (training mode only).
+    * ``flow``: append Farnebäck flow (2 channels) to each branch's input; ``None`` = the
+      method's default (ss-DPC-Net: True, Stereo DPC: False).
+    * ``frames``: frames ``F`` with inverse depth and mask per branch; ``None`` = the method's
+      default (ss-DPC-Net: 1, the target t+1; Stereo DPC: 2, frames k and k+1). ss-DPC-Net also
+      accepts 2 (frames t and t+1); Stereo DPC needs 2 (its temporal loss goes both ways).
+    * ``learn_ssim_weight``: hold a scalar parameter ``s`` and return λ_s = sigmoid(s) in
+      ``DPCOutputs.ssim_weight``, initialised to ``ssim_weight_init``; otherwise return None and
+      the loss uses its fixed value.
+    * ``bn_momentum``: BatchNorm running-average momentum, Flax convention.
+    """
+
+    image_size: tuple[int, int] = (240, 376)
+    encoder_planes: tuple[int, ...] = (8, 16, 32, 64, 128, 256, 256)
+    encoder_kernels: tuple[int, ...] = (7, 5, 3, 3, 3, 3, 3)
+    decoder_planes: tuple[int, ...] = (256, 128, 64, 32, 16, 8, 8)
+    width_multiplier: float = 1.0
+    mask_source_block: int = 5
+    depth_scales: int = 4
+    fc_planes: tuple[int, int] = (256, 128)
+    fc_activation: Literal["none", "relu"] = "none"
+    dropout: float = 0.5
+    flow: bool | None = None
+    frames: int | None = None
+    learn_ssim_weight: bool = False
+    ssim_weight_init: float = 0.85
+    bn_momentum: float = 0.9
+
+    def __post_init__(self) -> None:
+        depth = len(self.encoder_planes)
+        problems = []
+        if len(self.image_size) != 2 or min(self.image_size) < 1:
+            problems.append(f"image_size must be (H, W) with H, W >= 1, got {self.image_size}")
+        if len(self.encoder_kernels) != depth or len(self.decoder_planes) != depth:
+            problems.append(
+                f"encoder_planes, encoder_kernels and decoder_planes must have the same length, got "
+                f"{depth}, {len(self.encoder_kernels)}, {len(self.decoder_planes)}"
+            )
+        if any(k < 1 or k % 2 == 0 for k in self.encoder_kernels):
+            problems.append(f"encoder_kernels must be odd and positive, got {self.encoder_kernels}")
+        if not 1 <= self.depth_scales <= depth:
+            problems.append(f"depth_scales must be in [1, {depth}], got {self.depth_scales}")
+        if not 1 <= self.mask_source_block <= depth:
+            problems.append(f"mask_source_block must be in [1, {depth}], got {self.mask_source_block}")
+        if self.width_multiplier <= 0:
+            problems.append(f"width_multiplier must be > 0, got {self.width_multiplier}")
+        if len(self.fc_planes) != 2 or min(self.fc_planes) < 1:
+            problems.append(f"fc_planes must be two positive sizes, got {self.fc_planes}")
+        if self.fc_activation not in ("none", "relu"):
+            problems.append(f"fc_activation must be 'none' or 'relu', got {self.fc_activation!r}")
+        if not 0.0 <= self.dropout < 1.0:
+            problems.append(f"dropout must be in [0, 1), got {self.dropout}")
+        if self.frames not in (None, 1, 2):
+            problems.append(f"frames must be None, 1 or 2, got {self.frames}")
+        if not 0.0 < self.ssim_weight_init < 1.0:
+            problems.append(f"ssim_weight_init must be in (0, 1), got {self.ssim_weight_init}")
+        if not 0.0 <= self.bn_momentum < 1.0:
+            problems.append(f"bn_momentum must be in [0, 1), got {self.bn_momentum}")
+        if problems:
+            raise ValueError("invalid ModelConfig: " + "; ".join(problems))
+
+    def scaled(self, planes: int) -> int:
+        """Plane count after the width multiplier."""
+        return max(1, round(planes * self.width_multiplier))
+
+    def scale_sizes(self) -> list[tuple[int, int]]:
+        """``(h, w)`` of the input followed by the output of every encoder block."""
+        sizes = [tuple(self.image_size)]
+        for _ in self.encoder_planes:
+            h, w = sizes[-1]
+            sizes.append((-(-h // 2), -(-w // 2)))
+        return sizes
+
+
+PRESETS: dict[str, ModelConfig] = {
+    "reference": ModelConfig(),
+    # Tests and the CPU demo: 5 encoder blocks at half width, small FC layers, 64×96 images.
+    "small": ModelConfig(
+        image_size=(64, 96),
+        encoder_planes=(8, 16, 32, 64, 128),
+        encoder_kernels=(7, 5, 3, 3, 3),
+        decoder_planes=(128, 64, 32, 16, 8),
+        width_multiplier=0.5,
+        mask_source_block=4,
+        fc_planes=(64, 32),
+    ),
+}
+
+
+def upsample2x_bilinear(x: jax.Array) -> jax.Array:
+    """Bilinear ×2 upsampling of ``[B, H, W, C]`` to ``[B, 2H, 2W, C]``.
+
+    Half-pixel centres with edge clamping, i.e. PyTorch ``interpolate(scale_factor=2,
+    mode="bilinear", align_corners=False)`` and ``cv2.resize(INTER_LINEAR)``: output pixel 2i
+    is 0.75·x[i] + 0.25·x[i−1] and 2i+1 is 0.75·x[i] + 0.25·x[i+1], indices clamped.
+    """
+
+    def along(a: jax.Array, axis: int) -> jax.Array:
+        n = a.shape[axis]
+        prev = jnp.take(a, jnp.maximum(jnp.arange(n) - 1, 0), axis=axis)
+        nxt = jnp.take(a, jnp.minimum(jnp.arange(n) + 1, n - 1), axis=axis)
+        even = 0.75 * a + 0.25 * prev
+        odd = 0.75 * a + 0.25 * nxt
+        stacked = jnp.stack([even, odd], axis=axis + 1)
+        shape = (*a.shape[:axis], 2 * n, *a.shape[axis + 1 :])
+        return stacked.reshape(shape)
+
+    return along(along(x, 1), 2)
+
+
+def _crop(x: jax.Array, size: tuple[int, int]) -> jax.Array:
+    """Crop ``[B, h, w, C]`` to its top-left ``size`` (the skip tensor's ``(h, w)``)."""
+    return x[:, : size[0], : size[1], :]
+
+
+class _ConvBlock(nnx.Module):
+    """conv(k, stride s, padding (k−1)//2) → ReLU → BatchNorm."""
+
+    def __init__(self, cin: int, cout: int, kernel: int, stride: int, momentum: float, rngs: nnx.Rngs):
+        pad = (kernel - 1) // 2
+        self.conv = nnx.Conv(
+            cin, cout, (kernel, kernel), strides=stride, padding=((pad, pad), (pad, pad)), rngs=rngs
+        )
+        self.norm = nnx.BatchNorm(cout, momentum=momentum, rngs=rngs)
+
+    def __call__(self, x: jax.Array) -> jax.Array:
+        return self.norm(jax.nn.relu(self.conv(x)))
+
+
+class _UpConv(nnx.Module):
+    """Transposed conv 3×3 stride 2 → ReLU; the output is exactly twice the input size.
+
+    The explicit padding (1, 2) of the dilated input is PyTorch's ``padding=1, output_padding=1``.
+    """
+
+    def __init__(self, cin: int, cout: int, rngs: nnx.Rngs):
+        self.conv = nnx.ConvTranspose(cin, cout, (3, 3), strides=2, padding=((1, 2), (1, 2)), rngs=rngs)
+
+    def __call__(self, x: jax.Array) -> jax.Array:
+        return jax.nn.relu(self.conv(x))
+
+
+class _Head(nnx.Module):
+    """conv 3×3 (stride 1, same size) without normalisation."""
+
+    def __init__(self, cin: int, cout: int, rngs: nnx.Rngs):
+        self.conv = nnx.Conv(cin, cout, (3, 3), padding=((1, 1), (1, 1)), rngs=rngs)
+
+    def __call__(self, x: jax.Array) -> jax.Array:
+        return self.conv(x)
+
+
+class Branch(nnx.Module):
+    """One encoder with its depth and mask decoders (DESIGN §3, shared building blocks).
+
+    ``__call__(x [B, H, W, C_in]) -> (bottleneck [B, h, w, C], inv_depth [B, H, W, F],
+    mask [B, H, W, F])``; ``H, W`` may be any size.
+    """
+
+    def __init__(self, config: ModelConfig, in_channels: int, frames: int, rngs: nnx.Rngs):
+        c = config
+        enc = [c.scaled(p) for p in c.encoder_planes]
+        dec = [c.scaled(p) for p in c.decoder_planes]
+        depth = len(enc)
+        self.depth = depth
+        self.depth_scales = c.depth_scales
+        self.mask_source = c.mask_source_block
+
+        cins = [in_channels, *enc[:-1]]
+        blocks = zip(cins, enc, c.encoder_kernels, strict=True)
+        self.encoder = nnx.List([_ConvBlock(ci, co, k, 2, c.bn_momentum, rngs) for ci, co, k in blocks])
+        # Stage s = depth, ..., 1 upsamples to the scale of encoder output s−1 (0 = the input).
+        upconvs, iconvs, heads = [], [], []
+        for i, s in enumerate(range(depth, 0, -1)):
+            cin = enc[-1] if i == 0 else dec[i - 1]
+            upconvs.append(_UpConv(cin, dec[i], rngs))
+            skip = enc[s - 2] if s >= 2 else 0
+            previous_head = frames if s < c.depth_scales else 0
+            iconvs.append(_ConvBlock(dec[i] + skip + previous_head, dec[i], 3, 1, c.bn_momentum, rngs))
+            if s <= c.depth_scales:
+                heads.append(_Head(dec[i], frames, rngs))
+        self.upconvs = nnx.List(upconvs)
+        self.iconvs = nnx.List(iconvs)
+        self.heads = nnx.List(heads)
+
+        mask_planes = dec[depth - c.mask_source_block :]
+        mask_cins = [enc[c.mask_source_block - 1], *mask_planes[:-1]]
+        mask_stages = zip(mask_cins, mask_planes, strict=True)
+        self.mask_upconvs = nnx.List([_UpConv(ci, co, rngs) for ci, co in mask_stages])
+        self.mask_head = _Head(mask_planes[-1], frames, rngs)
+
+    def __call__(self, x: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        features = [x]
+        for block in self.encoder:
+            features.append(block(features[-1]))
+        sizes = [f.shape[1:3] for f in features]
+
+        y = features[-1]
+        inv_depth_up: jax.Array | None = None
+        inv_depth: jax.Array | None = None
+        head_index = 0
+        for i, s in enumerate(range(self.depth, 0, -1)):
+            y = _crop(self.upconvs[i](y), sizes[s - 1])
+            parts = [y]
+            if s >= 2:
+                parts.append(features[s - 1])
+            if inv_depth_up is not None:
+                parts.append(inv_depth_up)
+            y = self.iconvs[i](jnp.concatenate(parts, axis=-1))
+            if s <= self.depth_scales:
+                inv_depth = jax.nn.relu(self.heads[head_index](y)) + INV_DEPTH_OFFSET
+                head_index += 1
+                if s >= 2:
+                    inv_depth_up = _crop(upsample2x_bilinear(inv_depth), sizes[s - 2])
+        inv_depth = 0.5 * inv_depth
+
+        m = features[self.mask_source]
+        for j, upconv in enumerate(self.mask_upconvs):
+            m = _crop(upconv(m), sizes[self.mask_source - 1 - j])
+        mask = jax.nn.sigmoid(self.mask_head(m))
+        return features[-1], inv_depth, mask
+
+
+class FCReduction(nnx.Module):
+    """[dropout →] FC → [ReLU] → dropout → FC → [ReLU] → dropout, ``[B, n_in] -> [B, fc_planes[1]]``."""
+
+    def __init__(self, n_in: int, config: ModelConfig, dropout_input: bool, rngs: nnx.Rngs):
+        hidden, out = config.fc_planes
+        self.fc1 = nnx.Linear(n_in, hidden, rngs=rngs)
+        self.fc2 = nnx.Linear(hidden, out, rngs=rngs)
+        self.dropout = nnx.Dropout(config.dropout)
+        self.relu = config.fc_activation == "relu"
+        self.dropout_input = dropout_input
+
+    def __call__(self, x: jax.Array, key: jax.Array | None) -> jax.Array:
+        keys = [None] * 3 if key is None else list(jax.random.split(key, 3))
+        if self.dropout_input:
+            x = self.dropout(x, rngs=keys[0])
+        for fc, k in ((self.fc1, keys[1]), (self.fc2, keys[2])):
+            x = fc(x)
+            if self.relu:
+                x = jax.nn.relu(x)
+            x = self.dropout(x, rngs=k)
+        return x
+
+
+def _whiten(images: jax.Array) -> jax.Array:
+    """uint8 ``[..., 3]`` → float32 in [0, 1] → ImageNet-whitened."""
+    x = images.astype(jnp.float32) / 255.0
+    return (x - jnp.asarray(IMAGENET_MEAN, jnp.float32)) / jnp.asarray(IMAGENET_STD, jnp.float32)
+
+
+def _branch_input(images: jax.Array, flow: jax.Array | None) -> jax.Array:
+    """``images`` uint8 ``[B, 2, H, W, 3]`` (+ flow ``[B, H, W, 2]``) → ``[B, H, W, 6 (+2)]``."""
+    parts = [_whiten(images[:, 0]), _whiten(images[:, 1])]
+    if flow is not None:
+        parts.append(flow.astype(jnp.float32))
+    return jnp.concatenate(parts, axis=-1)
+
+
+def _dense_outputs(inv_depth: jax.Array, mask: jax.Array) -> BranchOutputs:
+    """NHWF → ``BranchOutputs`` with ``[B, F, H, W]``."""
+    return BranchOutputs(jnp.moveaxis(inv_depth, -1, 1), jnp.moveaxis(mask, -1, 1))
+
+
+def _ssim_logit(config: ModelConfig) -> jax.Array:
+    """Initial λ_s parameter: sigmoid⁻¹(ssim_weight_init)."""
+    p = config.ssim_weight_init
+    return jnp.asarray(math.log(p / (1.0 - p)), jnp.float32)
+
+
+class _DPCBase(nnx.Module):
+    """Shared checks, the prior branch, the output layer and the optional λ_s parameter."""
+
+    def __init__(self, config: ModelConfig, method: Method, n_pose_inputs: int, rngs: nnx.Rngs):
+        self.config = config
+        self.method = method
+        self.use_flow = config.flow if config.flow is not None else method == "ss_dpc"
+        self.frames = config.frames if config.frames is not None else (1 if method == "ss_dpc" else 2)
+        self.in_channels = 6 + (2 if self.use_flow else 0)
+        h, w = config.scale_sizes()[-1]
+        self.bottleneck_features = h * w * config.scaled(config.encoder_planes[-1])
+        self.prior = FCReduction(6, config, dropout_input=False, rngs=rngs)
+        self.fc_out = nnx.Linear(n_pose_inputs * config.fc_planes[1], 6, rngs=rngs)
+        if config.learn_ssim_weight:
+            self.ssim_logit = nnx.Param(_ssim_logit(config))
+        else:
+            self.ssim_logit = nnx.data(None)
+
+    def _check(self, batch: Batch, key: jax.Array | None) -> None:
+        name = type(self).__name__
+        expected = (2, *self.config.image_size, 3)
+        for field in ("left", "right") if self.method == "stereo_dpc" else ("left",):
+            images = getattr(batch, field)
+            if images.ndim != 5 or tuple(images.shape[1:]) != expected:
+                raise ValueError(
+                    f"{name}: batch.{field} must have shape [B, {', '.join(map(str, expected))}] "
+                    f"(ModelConfig.image_size={self.config.image_size}), got {tuple(images.shape)}"
+                )
+        if self.use_flow:
+            if batch.flow is None:
+                raise ValueError(f"{name}: the model was configured with flow input but batch.flow is None")
+            expected_flow = (batch.left.shape[0], 2, *self.config.image_size, 2)
+            if tuple(batch.flow.shape) != expected_flow:
+                raise ValueError(
+                    f"{name}: batch.flow must have shape {list(expected_flow)}, got {tuple(batch.flow.shape)}"
+                )
+        if tuple(batch.xi_vo.shape) != (batch.left.shape[0], 6):
+            raise ValueError(f"{name}: batch.xi_vo must have shape [B, 6], got {tuple(batch.xi_vo.shape)}")
+        training_dropout = not self.prior.dropout.deterministic and self.config.dropout > 0
+        if training_dropout and key is None:
+            raise ValueError(f"{name}: training mode applies dropout and needs key=jax.random.key(...)")
+
+    def _keys(self, key: jax.Array | None, n: int) -> list[jax.Array | None]:
+        if key is None or self.prior.dropout.deterministic:
+            return [None] * n
+        return list(jax.random.split(key, n))
+
+    def _pose(self, reduced: list[jax.Array], xi_vo: jax.Array, key: jax.Array | None) -> jax.Array:
+        features = jnp.concatenate([*reduced, self.prior(xi_vo.astype(jnp.float32), key)], axis=-1)
+        return POSE_SCALE * self.fc_out(features)
+
+    def _ssim_weight(self) -> jax.Array | None:
+        return None if self.ssim_logit is None else jax.nn.sigmoid(self.ssim_logit[...])
+
+
+class MonoDPC(_DPCBase):
+    """ss-DPC-Net: input ``[I_t, I_{t+1}(, flow t→t+1)]`` of the left camera and the prior.
+
+    ``model(batch, key=None) -> DPCOutputs`` with ``xi_corr [B, 6]``, ``left`` = inverse depth and
+    mask ``[B, F, H, W]`` (``F = 1``: the target t+1), ``right = None``.
+    """
+
+    def __init__(self, config: ModelConfig, rngs: nnx.Rngs):
+        super().__init__(config, "ss_dpc", 2, rngs)
+        self.branch = Branch(config, self.in_channels, self.frames, rngs)
+        self.reduce = FCReduction(self.bottleneck_features, config, dropout_input=True, rngs=rngs)
+
+    def __call__(self, batch: Batch, *, key: jax.Array | None = None) -> DPCOutputs:
+        self._check(batch, key)
+        flow = batch.flow[:, 0] if self.use_flow else None
+        bottleneck, inv_depth, mask = self.branch(_branch_input(batch.left, flow))
+        k_reduce, k_prior = self._keys(key, 2)
+        reduced = self.reduce(bottleneck.reshape(bottleneck.shape[0], -1), k_reduce)
+        xi_corr = self._pose([reduced], batch.xi_vo, k_prior)
+        return DPCOutputs(xi_corr, _dense_outputs(inv_depth, mask), None, self._ssim_weight())
+
+
+class StereoDPC(_DPCBase):
+    """Stereo DPC (Zhang et al.): left branch on ``[I_k^l, I_{k+1}^l]``, right branch (separate
+    weights) on ``[I_k^r, I_{k+1}^r]`` (each optionally + its flow), one ξ_corr from both reduced
+    bottlenecks and the prior.
+
+    ``model(batch, key=None) -> DPCOutputs`` with ``left`` and ``right`` inverse depth and masks
+    ``[B, 2, H, W]`` of frames k and k+1.
+    """
+
+    def __init__(self, config: ModelConfig, rngs: nnx.Rngs):
+        super().__init__(config, "stereo_dpc", 3, rngs)
+        if self.frames != 2:
+            raise ValueError(f"StereoDPC predicts frames k and k+1 (frames=2), got frames={config.frames}")
+        self.left_branch = Branch(config, self.in_channels, self.frames, rngs)
+        self.right_branch = Branch(config, self.in_channels, self.frames, rngs)
+        self.left_reduce = FCReduction(self.bottleneck_features, config, dropout_input=True, rngs=rngs)
+        self.right_reduce = FCReduction(self.bottleneck_features, config, dropout_input=True, rngs=rngs)
+
+    def __call__(self, batch: Batch, *, key: jax.Array | None = None) -> DPCOutputs:
+        self._check(batch, key)
+        left_flow = batch.flow[:, 0] if self.use_flow else None
+        right_flow = batch.flow[:, 1] if self.use_flow else None
+        bl, dl, ml = self.left_branch(_branch_input(batch.left, left_flow))
+        br, dr, mr = self.right_branch(_branch_input(batch.right, right_flow))
+        k_left, k_right, k_prior = self._keys(key, 3)
+        reduced = [
+            self.left_reduce(bl.reshape(bl.shape[0], -1), k_left),
+            self.right_reduce(br.reshape(br.shape[0], -1), k_right),
+        ]
+        xi_corr = self._pose(reduced, batch.xi_vo, k_prior)
+        return DPCOutputs(xi_corr, _dense_outputs(dl, ml), _dense_outputs(dr, mr), self._ssim_weight())
+
+
+def _init_like_pytorch(model: nnx.Module, seed: int) -> None:
+    """Fill the weights of an (abstract) model in place with PyTorch's default initialisation.
+
+    Conv, transposed conv and linear kernels and biases ~ U(−1/√fan_in, 1/√fan_in) (PyTorch's
+    ``kaiming_uniform_(a=√5)`` and bias rule; for a transposed conv PyTorch takes the fan-in from
+    its output channels), BatchNorm scale 1, bias 0, running mean 0, variance 1. The reference
+    trained from this initialisation. Drawing with numpy also avoids compiling one XLA random
+    kernel per parameter shape, which costs tens of seconds on a CPU.
+    """
+    rng = np.random.default_rng(seed)
+    for _, module in nnx.iter_modules(model):
+        if isinstance(module, nnx.ConvTranspose):
+            *window, _, cout = module.kernel.shape
+            fan_in = cout * math.prod(window)
+        elif isinstance(module, nnx.Conv | nnx.Linear):
+            fan_in = math.prod(module.kernel.shape[:-1])
+        elif isinstance(module, nnx.BatchNorm):
+            n = module.num_features
+            for var, value in (
+                (module.scale, 1.0),
+                (module.bias, 0.0),
+                (module.mean, 0.0),
+                (module.var, 1.0),
+            ):
+                var.set_value(jnp.full((n,), value, jnp.float32))
+            continue
+        else:
+            continue
+        bound = 1.0 / math.sqrt(fan_in)
+        for var in (module.kernel, module.bias):
+            var.set_value(jnp.asarray(rng.uniform(-bound, bound, var.shape).astype(np.float32)))
+
+
+def create_model(method: Method, config: ModelConfig, seed: int) -> MonoDPC | StereoDPC:
+    """Build ``MonoDPC`` (``"ss_dpc"``) or ``StereoDPC`` (``"stereo_dpc"``) in training mode.
+
+    Weights are drawn from ``seed`` with PyTorch's default initialisation (see
+    ``_init_like_pytorch``); call ``model.eval()`` for inference.
+    """
+    classes = {"ss_dpc": MonoDPC, "stereo_dpc": StereoDPC}
+    if method not in classes:
+        raise ValueError(f"unknown method {method!r}; expected 'ss_dpc' or 'stereo_dpc'")
+    model = nnx.eval_shape(lambda: classes[method](config, nnx.Rngs(params=seed)))
+    _init_like_pytorch(model, seed)
+    if config.learn_ssim_weight:
+        model.ssim_logit.set_value(_ssim_logit(config))
+    leftover = [x for x in jax.tree.leaves(nnx.state(model)) if isinstance(x, jax.ShapeDtypeStruct)]
+    if leftover:
+        raise RuntimeError(f"create_model left {len(leftover)} variables uninitialised")
+    return model
+
+
+def count_parameters(model: nnx.Module) -> int:
+    """Number of trainable scalars (``nnx.Param``; BatchNorm running statistics excluded)."""
+    return sum(x.size for x in jax.tree.leaves(nnx.state(model, nnx.Param)))

@@ -1,0 +1,312 @@
+"""Tests of dpc_jax.models: shapes, parameter counts, modes, split/merge under jit, gradients."""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import nnx
+
+from dpc_jax.batch import Batch
+from dpc_jax.losses import StereoDPCLossConfig, stereo_dpc_loss
+from dpc_jax.models import PRESETS, ModelConfig, create_model, upsample2x_bilinear
+
+TINY = (24, 40)
+SMALL = dataclasses.replace(PRESETS["small"], image_size=TINY)
+
+
+def make_batch(b: int, hw: tuple[int, int], seed: int = 0, flow: bool = True) -> Batch:
+    """Random images, a small prior, KITTI-like intrinsics scaled to ``hw``."""
+    r = np.random.default_rng(seed)
+    h, w = hw
+    k = np.array([[0.6 * w, 0, w / 2], [0, 0.6 * w, h / 2], [0, 0, 1]], np.float32)
+    return Batch(
+        left=r.integers(0, 256, (b, 2, h, w, 3), dtype=np.uint8),
+        right=r.integers(0, 256, (b, 2, h, w, 3), dtype=np.uint8),
+        xi_vo=(0.05 * r.normal(size=(b, 6))).astype(np.float32),
+        intrinsics=np.tile(k, (b, 1, 1)),
+        baseline=np.full(b, 0.54, np.float32),
+        weight=np.ones(b, np.float32),
+        flow=r.normal(size=(b, 2, h, w, 2)).astype(np.float32) if flow else None,
+    )
+
+
+def abstract_forward(
+    method: str, config: ModelConfig, batch: Batch, key: jax.Array | None = None, train: bool = False
+):
+    """Output shapes of a forward pass, without creating arrays or compiling."""
+    model = nnx.eval_shape(lambda: create_model(method, config, 0))
+    if not train:
+        model.eval()
+    graphdef, state = nnx.split(model)
+    return jax.eval_shape(lambda s, b: nnx.merge(graphdef, s)(b, key=key), state, batch)
+
+
+def n_params(model: nnx.Module) -> int:
+    return sum(x.size for x in jax.tree.leaves(nnx.state(model, nnx.Param)))
+
+
+# Parameter count of the PyTorch definition (utiasSTARS/ss-dpc-net models/mono_model_joint.py),
+# written layer by layer from its constructor: Conv2d k·k·cin·cout + cout, BatchNorm2d 2·cout
+# (weight, bias), Linear cin·cout + cout.
+def _conv(k: int, cin: int, cout: int) -> int:
+    return k * k * cin * cout + cout
+
+
+def _linear(cin: int, cout: int) -> int:
+    return cin * cout + cout
+
+
+def torch_branch_count(in_channels: int, frames: int) -> int:
+    p, u, ks = [8, 16, 32, 64, 128, 256, 256], [256, 128, 64, 32, 16, 8, 8], [7, 5, 3, 3, 3, 3, 3]
+    n, cin = 0, in_channels
+    for k, c in zip(ks, p, strict=True):
+        n += _conv(k, cin, c) + 2 * c
+        cin = c
+    n += sum(_conv(3, a, b) for a, b in zip([p[6], *u[:6]], u, strict=True))  # depth_upconv7..1
+    n += sum(_conv(3, a, b) for a, b in itertools.pairwise(u[1:]))  # mask_upconv5..1
+    iconv_in = [u[0] + p[5], u[1] + p[4], u[2] + p[3], u[3] + p[2], frames + u[4] + p[1]]
+    iconv_in += [frames + u[5] + p[0], frames + u[6]]
+    n += sum(_conv(3, a, b) + 2 * b for a, b in zip(iconv_in, u, strict=True))
+    n += sum(_conv(3, c, frames) for c in u[3:])  # predict_disp4..1
+    return n + _conv(3, u[6], frames)  # predict_mask
+
+
+def torch_pose_count(n_branches: int) -> int:
+    bottleneck = 256 * 2 * 3  # 240×376 → 2×3 after seven stride-2 blocks
+    reductions = n_branches * (_linear(bottleneck, 256) + _linear(256, 128))
+    return reductions + _linear(6, 256) + _linear(256, 128) + _linear(128 * (n_branches + 1), 6)
+
+
+def test_reference_parameter_count() -> None:
+    mono = nnx.eval_shape(lambda: create_model("ss_dpc", PRESETS["reference"], 0))
+    stereo = nnx.eval_shape(lambda: create_model("stereo_dpc", PRESETS["reference"], 0))
+    assert torch_branch_count(8, 1) + torch_pose_count(1) == 4_110_619
+    assert n_params(mono) == 4_110_619
+    assert n_params(stereo) == 2 * torch_branch_count(6, 2) + torch_pose_count(2)
+    # BatchNorm running statistics are state, not parameters.
+    assert sum(x.size for x in jax.tree.leaves(nnx.state(mono, nnx.BatchStat))) == 2 * (
+        sum([8, 16, 32, 64, 128, 256, 256]) + sum([256, 128, 64, 32, 16, 8, 8])
+    )
+
+
+@pytest.mark.parametrize("hw", [(60, 94), (120, 188), (240, 376), (97, 131)])
+@pytest.mark.parametrize("method", ["ss_dpc", "stereo_dpc"])
+def test_reference_output_shapes(method: str, hw: tuple[int, int]) -> None:
+    """Shapes only (abstract evaluation), so the reference preset costs no compilation."""
+    config = dataclasses.replace(PRESETS["reference"], image_size=hw)
+    out = abstract_forward(method, config, make_batch(3, hw))
+    frames = 1 if method == "ss_dpc" else 2
+    assert out.xi_corr.shape == (3, 6)
+    assert out.left.inv_depth.shape == out.left.mask.shape == (3, frames, *hw)
+    if method == "ss_dpc":
+        assert out.right is None
+    else:
+        assert out.right.inv_depth.shape == out.right.mask.shape == (3, 2, *hw)
+    assert out.ssim_weight is None
+
+
+@pytest.mark.parametrize(
+    "changes",
+    [
+        {"flow": False},
+        {"frames": 2},
+        {"fc_activation": "relu", "learn_ssim_weight": True},
+        {
+            "encoder_planes": (8, 16, 32, 64),
+            "encoder_kernels": (7, 5, 3, 3),
+            "decoder_planes": (64, 32, 16, 8),
+        },
+        {"depth_scales": 1, "mask_source_block": 1},
+        {"image_size": (5, 3)},
+    ],
+)
+def test_config_variants_shapes(changes: dict) -> None:
+    config = dataclasses.replace(SMALL, **changes)
+    hw = config.image_size
+    out = abstract_forward("ss_dpc", config, make_batch(2, hw, flow=config.flow is not False))
+    frames = config.frames or 1
+    assert out.left.inv_depth.shape == out.left.mask.shape == (2, frames, *hw)
+    assert (out.ssim_weight is not None) == config.learn_ssim_weight
+
+
+@pytest.mark.parametrize(
+    "changes",
+    [
+        {"encoder_kernels": (7, 5, 3)},
+        {"encoder_kernels": (7, 4, 3, 3, 3)},
+        {"depth_scales": 0},
+        {"mask_source_block": 6},
+        {"fc_activation": "tanh"},
+        {"dropout": 1.0},
+        {"frames": 3},
+        {"width_multiplier": 0.0},
+        {"image_size": (0, 10)},
+    ],
+)
+def test_config_rejects_invalid(changes: dict) -> None:
+    with pytest.raises(ValueError, match="invalid ModelConfig"):
+        dataclasses.replace(SMALL, **changes)
+
+
+def test_input_errors() -> None:
+    batch = make_batch(1, TINY)
+    with pytest.raises(ValueError, match=r"batch.left must have shape \[B, 2, 24, 40, 3\]"):
+        abstract_forward("ss_dpc", SMALL, make_batch(1, (32, 40)))
+    with pytest.raises(ValueError, match=r"batch\.right"):
+        abstract_forward("stereo_dpc", SMALL, batch._replace(right=np.zeros((1, 2, 3, 4, 3))))
+    with pytest.raises(ValueError, match=r"batch\.flow is None"):
+        abstract_forward("ss_dpc", SMALL, make_batch(1, TINY, flow=False))
+    with pytest.raises(ValueError, match=r"batch.flow must have shape \[1, 2, 24, 40, 2\]"):
+        abstract_forward("ss_dpc", SMALL, batch._replace(flow=batch.flow[:, :, :-1]))
+    with pytest.raises(ValueError, match="xi_vo"):
+        abstract_forward("ss_dpc", SMALL, batch._replace(xi_vo=np.zeros((1, 3))))
+    with pytest.raises(ValueError, match="needs key"):
+        abstract_forward("ss_dpc", SMALL, batch, train=True)
+    abstract_forward("ss_dpc", dataclasses.replace(SMALL, dropout=0.0), batch, train=True)
+    with pytest.raises(ValueError, match="frames=2"):
+        create_model("stereo_dpc", dataclasses.replace(SMALL, frames=1), 0)
+    with pytest.raises(ValueError, match="unknown method"):
+        create_model("mono", SMALL, 0)
+
+
+def test_upsample2x_matches_opencv() -> None:
+    x = np.random.default_rng(1).normal(size=(2, 5, 7, 3))
+    got = np.asarray(upsample2x_bilinear(jnp.asarray(x)))
+    for b in range(2):
+        want = cv2.resize(x[b], (14, 10), interpolation=cv2.INTER_LINEAR)
+        np.testing.assert_allclose(got[b], want, atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def stereo_split() -> tuple[nnx.GraphDef, nnx.State]:
+    config = dataclasses.replace(SMALL, learn_ssim_weight=True)
+    return nnx.split(create_model("stereo_dpc", config, 0))
+
+
+@jax.jit
+def _forward_eval(graphdef: nnx.GraphDef, state: nnx.State, batch: Batch, key: jax.Array):
+    model = nnx.merge(graphdef, state)
+    model.eval()
+    return model(batch, key=key)
+
+
+@jax.jit
+def _forward_train(graphdef: nnx.GraphDef, state: nnx.State, batch: Batch, key: jax.Array):
+    model = nnx.merge(graphdef, state)
+    model.train()
+    out = model(batch, key=key)
+    return out, nnx.state(model)
+
+
+def test_outputs_in_range(stereo_split) -> None:
+    out, _ = _forward_train(*stereo_split, make_batch(2, TINY), jax.random.key(0))
+    for branch in (out.left, out.right):
+        assert branch.inv_depth.shape == branch.mask.shape == (2, 2, *TINY)
+        assert bool(jnp.all(branch.inv_depth >= 0.0005)) and bool(jnp.all(jnp.isfinite(branch.inv_depth)))
+        assert bool(jnp.all((branch.mask > 0) & (branch.mask < 1)))
+    assert out.xi_corr.dtype == jnp.float32
+    np.testing.assert_allclose(float(out.ssim_weight), 0.85, rtol=1e-6)
+
+
+def test_eval_deterministic_and_uses_running_averages(stereo_split) -> None:
+    batch = make_batch(3, TINY)
+    a = _forward_eval(*stereo_split, batch, jax.random.key(0))
+    b = _forward_eval(*stereo_split, batch, jax.random.key(1))
+    jax.tree.map(np.testing.assert_array_equal, a, b)
+    # Running averages, not batch statistics: a sample's output does not depend on the others.
+    alone = _forward_eval(*stereo_split, jax.tree.map(lambda x: x[:1], batch), jax.random.key(0))
+    np.testing.assert_allclose(alone.xi_corr, a.xi_corr[:1], rtol=1e-4, atol=1e-9)
+    np.testing.assert_allclose(alone.left.inv_depth, a.left.inv_depth[:1], rtol=1e-4, atol=1e-7)
+
+
+def test_train_dropout_depends_on_key(stereo_split) -> None:
+    batch = make_batch(3, TINY)
+    a, _ = _forward_train(*stereo_split, batch, jax.random.key(0))
+    b, _ = _forward_train(*stereo_split, batch, jax.random.key(0))
+    c, _ = _forward_train(*stereo_split, batch, jax.random.key(1))
+    np.testing.assert_array_equal(a.xi_corr, b.xi_corr)
+    assert not np.allclose(a.xi_corr, c.xi_corr)
+    # Dropout acts on the pose head only: the dense outputs do not depend on the key.
+    np.testing.assert_array_equal(a.left.inv_depth, c.left.inv_depth)
+    # Training mode normalises with batch statistics: a sample's output depends on the batch.
+    alone, _ = _forward_train(*stereo_split, jax.tree.map(lambda x: x[:2], batch), jax.random.key(0))
+    assert not np.allclose(alone.left.inv_depth, a.left.inv_depth[:2])
+
+
+def test_split_merge_updates_batch_statistics(stereo_split) -> None:
+    """Two identical training passes from zero means: m1 = 0.1 b, m2 = 0.9 m1 + 0.1 b = 1.9 m1.
+
+    Parameters do not change and training mode normalises with batch statistics, so every
+    BatchNorm sees the same batch statistic b both times; likewise v2 = 1.9 v1 − 0.9 from v0 = 1.
+    """
+    graphdef, state = stereo_split
+    batch = make_batch(2, TINY)
+    _, state1 = _forward_train(graphdef, state, batch, jax.random.key(0))
+    _, state2 = _forward_train(graphdef, state1, batch, jax.random.key(0))
+    stats = [nnx.state(nnx.merge(graphdef, s), nnx.BatchStat) for s in (state, state1, state2)]
+    params = [nnx.state(nnx.merge(graphdef, s), nnx.Param) for s in (state, state2)]
+    jax.tree.map(np.testing.assert_array_equal, params[0], params[1])
+    paths0 = jax.tree_util.tree_leaves_with_path(stats[0])
+    assert len(paths0) == 2 * 2 * (5 + 5)  # mean and var of 10 BatchNorms per branch
+    for (path, s0), s1, s2 in zip(paths0, jax.tree.leaves(stats[1]), jax.tree.leaves(stats[2]), strict=True):
+        name = jax.tree_util.keystr(path)
+        assert not np.allclose(s0, s1), name
+        if "mean" in name:
+            np.testing.assert_array_equal(s0, 0.0)
+            np.testing.assert_allclose(s2, 1.9 * s1, rtol=2e-5, atol=1e-7, err_msg=name)
+        else:
+            np.testing.assert_array_equal(s0, 1.0)
+            np.testing.assert_allclose(s2, 1.9 * s1 - 0.9, rtol=2e-5, atol=1e-6, err_msg=name)
+
+
+def test_stereo_loss_gradient_reaches_every_parameter(stereo_split) -> None:
+    model = nnx.merge(*stereo_split)
+    model.train()
+    gd, params, others = nnx.split(model, nnx.Param, ...)
+    batch = make_batch(2, TINY, seed=3)
+
+    @jax.jit
+    def loss_fn(p: nnx.State, others: nnx.State) -> jax.Array:
+        m = nnx.merge(gd, p, others)
+        outputs = m(batch, key=jax.random.key(2))
+
+        return stereo_dpc_loss(outputs, batch, StereoDPCLossConfig())[0]
+
+    grads = jax.grad(loss_fn)(params, others)
+    leaves = jax.tree_util.tree_leaves_with_path(grads)
+    assert len(leaves) == len(jax.tree.leaves(params))
+    for path, g in leaves:
+        assert np.all(np.isfinite(g)), jax.tree_util.keystr(path)
+        assert np.any(g != 0), jax.tree_util.keystr(path)
+
+
+def test_jit_compiles_once_per_shape() -> None:
+    model = create_model("ss_dpc", SMALL, 0)
+    model.eval()
+    graphdef, state = nnx.split(model)
+    traces = []
+
+    @jax.jit
+    def forward(state: nnx.State, batch: Batch) -> jax.Array:
+        traces.append(batch.left.shape)
+        return nnx.merge(graphdef, state)(batch).xi_corr
+
+    for seed in range(3):
+        forward(state, make_batch(2, TINY, seed))
+    assert traces == [(2, 2, *TINY, 3)]
+    forward(state, make_batch(1, TINY))
+    forward(state, make_batch(1, TINY, 5))
+    assert traces == [(2, 2, *TINY, 3), (1, 2, *TINY, 3)]
+    assert forward._cache_size() == 2
+
+
+def test_model_config_is_hashable_static() -> None:
+    """The config rides in the graphdef, which jit hashes as a static argument."""
+    assert hash(PRESETS["small"]) == hash(dataclasses.replace(PRESETS["small"]))
+    assert isinstance(PRESETS["reference"], ModelConfig)
