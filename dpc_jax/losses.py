@@ -4,7 +4,8 @@ Pure ``jnp`` functions of a :class:`~dpc_jax.outputs.DPCOutputs` and a
 :class:`~dpc_jax.batch.Batch`; they never import the models. They work under ``jax.jit`` (pass
 the config as a static argument or close over it: it is a frozen, hashable dataclass) and are
 dtype-preserving: the computation runs in the dtype of ``outputs.left.inv_depth`` (float32 in
-training). Images arrive as uint8 and are divided by 255.
+training). Images arrive as uint8 and are divided by 255; float images are taken to be in
+[0, 1] already (the tests pass exact float renderings).
 
 Averaging: every term is a mean over *valid* pixels of *real* samples. A pixel that left the
 source image or fell behind the camera, and every pixel of a padding sample
