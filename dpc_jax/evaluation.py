@@ -76,10 +76,16 @@ class EstimateMetrics:
 
 @dataclass(frozen=True, eq=False)
 class Evaluation(Mapping[str, object]):
-    """Result of :func:`evaluate`; as a mapping, the JSON summary."""
+    """Result of :func:`evaluate`.
+
+    As a mapping it is the JSON summary (``result["estimates"][label]["seg_trans_pct"]``,
+    ``dict(result)``, :meth:`to_json`); the attributes hold what the report plots: the evaluated
+    ground truth, the prepared estimates (``trajectories``), the indices of the evaluated frames in
+    the input sequence, and each estimate's :class:`EstimateMetrics`.
+    """
 
     gt: np.ndarray  # [N, 4, 4] ground truth of the evaluated frames
-    estimates: dict[str, np.ndarray]  # label -> [N, 4, 4] prepared estimate
+    trajectories: dict[str, np.ndarray]  # label -> [N, 4, 4] prepared (re-anchored) estimate
     frames: np.ndarray  # [N] indices of the evaluated frames in the input sequence
     metrics: dict[str, EstimateMetrics]
     align: str = "none"
@@ -189,7 +195,7 @@ def evaluate(
             c_ate_rot_deg=np.asarray(out["c_ate_rot_deg"], np.float64),
         )
     return Evaluation(
-        gt=gt, estimates=prepared, frames=frames, metrics=results, align=align, rpe_delta=rpe_delta,
+        gt=gt, trajectories=prepared, frames=frames, metrics=results, align=align, rpe_delta=rpe_delta,
         remove_static=remove_static,
     )
 
@@ -286,7 +292,7 @@ def write_report(
     for name, text in texts.items():
         atomic_write(directory / name, text)
         written.append(directory / name)
-    written.append(plots.plot_trajectories(directory / "trajectory.png", result.gt, result.estimates))
+    written.append(plots.plot_trajectories(directory / "trajectory.png", result.gt, result.trajectories))
     written.append(plots.plot_segment_errors(directory / "segment_errors.png", result.metrics))
     written.append(plots.plot_c_ate(directory / "c_ate.png", result.metrics))
     return written
@@ -302,7 +308,7 @@ def export_trajectories(directory: str | Path, result: Evaluation) -> list[Path]
     directory.mkdir(parents=True, exist_ok=True)
     stamps = result.frames.astype(np.float64)
     written = []
-    for name, traj in ((GT_LABEL, result.gt), *result.estimates.items()):
+    for name, traj in ((GT_LABEL, result.gt), *result.trajectories.items()):
         write_kitti_poses(directory / f"{name}.kitti.txt", traj)
         write_tum(directory / f"{name}.tum.txt", traj, stamps)
         written += [directory / f"{name}.kitti.txt", directory / f"{name}.tum.txt"]

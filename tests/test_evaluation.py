@@ -52,7 +52,7 @@ def test_evaluate_reanchors_and_matches_reference(pair: tuple[np.ndarray, np.nda
     assert list(result) == ["num_poses", "estimates"] and result["num_poses"] == N
     assert list(result["estimates"]["prior"]) == list(SUMMARY_KEYS)
     anchored = gt[0] @ np.linalg.inv(est[0]) @ est
-    np.testing.assert_allclose(result.estimates["prior"], anchored, atol=1e-9)
+    np.testing.assert_allclose(result.trajectories["prior"], anchored, atol=1e-9)
     prior = result["estimates"]["prior"]
     m_ate = [prior["m_ate_trans_m"], prior["m_ate_rot_deg"]]
     np.testing.assert_allclose(m_ate, ref.m_ate(gt, anchored), rtol=1e-9)
@@ -75,7 +75,7 @@ def test_evaluate_remove_static(pair: tuple[np.ndarray, np.ndarray]) -> None:
     expected = [gt[kept[0]]]
     for a, b in itertools.pairwise(kept):
         expected.append(expected[-1] @ np.linalg.inv(np.linalg.inv(est[b]) @ est[a]))
-    np.testing.assert_allclose(result.estimates["prior"], np.stack(expected), atol=1e-8)
+    np.testing.assert_allclose(result.trajectories["prior"], np.stack(expected), atol=1e-8)
     m = result["estimates"]["prior"]
     np.testing.assert_allclose(m["rpe_rot_deg"], ref.rpe(gt[kept], np.stack(expected))[1], rtol=1e-7)
 
