@@ -1,0 +1,31 @@
+"""Synthetic stereo driving world, rendered exactly, in the KITTI odometry layout (DESIGN §6).
+
+* :class:`SynthConfig`, :func:`render_sequence`, :func:`iter_frames` (``sequence``): the Python API.
+* :func:`write_sequences`, :func:`write_sequence` (``writer``): KITTI-layout output.
+* ``world`` (road and town layout), ``trajectory`` (car-like motion), ``render`` (jitted ray
+  casting), ``textures`` (band-limited procedural materials).
+"""
+
+from dpc_jax.synth.sequence import (
+    SynthConfig,
+    SynthFrame,
+    SynthSequence,
+    iter_frames,
+    kitti_intrinsics,
+    render_sequence,
+    sequence_poses,
+)
+from dpc_jax.synth.writer import calib_text, write_sequence, write_sequences
+
+__all__ = [
+    "SynthConfig",
+    "SynthFrame",
+    "SynthSequence",
+    "calib_text",
+    "iter_frames",
+    "kitti_intrinsics",
+    "render_sequence",
+    "sequence_poses",
+    "write_sequence",
+    "write_sequences",
+]
