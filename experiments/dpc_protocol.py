@@ -1,0 +1,342 @@
+"""What the experiment entry points share: priors, caches, folds, training, correction, result tables.
+
+An experiment is a list of *folds*. A fold trains one network (``dpc_jax.train.train``) on its
+training sequences, selects the epoch on its validation sequence without ground truth, corrects
+the prior of each of its test sequences (``dpc_jax.correct``) and evaluates prior and corrected
+trajectories against the ground truth. Everything lives under one work folder::
+
+    WORKDIR/cache/NAME/             prepared sequences (dpc-jax prepare), reused when up to date
+    WORKDIR/priors/NAME.txt         priors computed with our classical VO (when asked)
+    WORKDIR/runs/FOLD/              training runs (checkpoints, metrics.csv, TensorBoard)
+    WORKDIR/corrected/FOLD/NAME.txt corrected trajectories (KITTI pose text)
+    WORKDIR/reports/FOLD/NAME/      evaluation reports (report.md, CSV, plots)
+    WORKDIR/results.md, results.csv the results table: prior vs corrected per test sequence
+
+Runs resume: an interrupted experiment re-run with the same arguments continues each training
+from its newest epoch and redoes only what is missing.
+
+This module also writes *fake* KITTI odometry trees from ``dpc_jax.synth`` (rendered stereo,
+exact poses, priors = ground truth + noise) so the entry points can be run end to end without
+KITTI (their ``--smoke`` tests).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+import math
+import runpy
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dpc_jax.trajectory import atomic_write
+
+# Odometry sequence ↔ raw drive (DESIGN §6): raw drives that *are* an odometry sequence must not be
+# used for training when that sequence is tested.
+ODOMETRY_DRIVES = {
+    "00": "2011_10_03_drive_0027", "01": "2011_10_03_drive_0042", "02": "2011_10_03_drive_0034",
+    "04": "2011_09_30_drive_0016", "05": "2011_09_30_drive_0018", "06": "2011_09_30_drive_0020",
+    "07": "2011_09_30_drive_0027", "08": "2011_09_30_drive_0028", "09": "2011_09_30_drive_0033",
+    "10": "2011_09_30_drive_0034",
+}
+
+# --smoke: one epoch of two steps on tiny images, to check an experiment runs end to end.
+SMOKE = {"preset": "small", "image_size": (32, 48), "batch_size": 2, "epochs": 1, "steps_per_epoch": 2}
+
+
+@dataclass(frozen=True)
+class Fold:
+    """One trained network: its name, training/validation/test sequences and TrainConfig overrides."""
+
+    name: str
+    train: tuple[str, ...]
+    validation: str
+    test: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class Result:
+    """Prior and corrected figures of one test sequence (segment errors: t in %, r in °/100 m)."""
+
+    fold: str
+    sequence: str
+    prior_label: str
+    epoch: int
+    selection: str
+    frames: int
+    metrics: dict[str, dict[str, Any]]  # {"prior": summary, "corrected": summary}
+
+
+def load_protocol(path: str | Path) -> tuple[Any, dict[str, Any]]:
+    """``(CONFIG, PROTOCOL)`` of an experiment config file (``CONFIG`` is a TrainConfig or its dict)."""
+    from dpc_jax import config as config_lib
+    from dpc_jax.train import TrainConfig
+
+    namespace = runpy.run_path(str(path))
+    config = config_lib.load_file(path, TrainConfig)
+    return config, dict(namespace.get("PROTOCOL", {}))
+
+
+def parse_overrides(pairs: Sequence[str]) -> dict[str, Any]:
+    """``KEY=VALUE`` strings → dict; VALUE is JSON (``epochs=2``, ``image_size=[64,96]``) or a string."""
+    out: dict[str, Any] = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or not key:
+            raise ValueError(f"--set {pair!r}: expected KEY=VALUE, e.g. epochs=2")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+    return out
+
+
+def fold_config(base: Any, fold: Fold, cache_root: Path, overrides: dict[str, Any]) -> Any:
+    """The fold's TrainConfig: ``base`` with its split, the cache root and the overrides."""
+    from dpc_jax import config as config_lib
+    from dpc_jax.train import TrainConfig
+
+    data = config_lib.to_dict(base)
+    unknown = [k for k in overrides if k not in data]
+    if unknown:
+        raise config_lib.unknown_key_error(unknown[0], list(data), "--set")
+    data.update(overrides)
+    data.update(
+        cache_root=str(cache_root), train_sequences=list(fold.train),
+        validation_sequences=[fold.validation], test_sequences=list(fold.test),
+    )
+    return config_lib.from_dict(TrainConfig, data, where=f"fold {fold.name}")
+
+
+# --------------------------------------------------------------------------- priors and caches
+
+
+def find_prior(directory: Path, name: str, kind: str = "stereo") -> Path:
+    """The prior file of sequence ``name`` in ``directory``.
+
+    Tried in order: ``{kind}_{name}.mat`` (the ss-DPC-Net libviso2 release), ``{name}.mat``,
+    ``{name}.txt`` (KITTI pose text), ``{name}.tum``.
+    """
+    candidates = [f"{kind}_{name}.mat", f"{name}.mat", f"{name}.txt", f"{name}.tum"]
+    for candidate in candidates:
+        if (directory / candidate).is_file():
+            return directory / candidate
+    raise FileNotFoundError(f"{directory}: no prior for sequence {name} (looked for {', '.join(candidates)})")
+
+
+def vo_prior(sequence: Any, out: Path, progress: bool) -> Path:
+    """Our classical stereo VO over ``sequence``, started at its first GT pose, as KITTI text ``out``."""
+    from dpc_jax.trajectory import write_kitti_poses
+    from dpc_jax.vo import run_vo
+
+    if not out.is_file():
+        first = None if sequence.poses is None else sequence.poses[0]
+        result = run_vo(sequence, first_pose=first, progress=progress)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        write_kitti_poses(out, result.poses)
+    return out
+
+
+def prepare(
+    sequence: Any, prior: Path | np.ndarray, cache_root: Path, config: Any, *, name: str | None = None,
+    frames: tuple[int, int] | None = None, ground_truth: Path | None = None, mono_rescale: bool = False,
+    progress: bool = False,
+) -> Path:
+    """Prepare (or find up to date) a sequence's cache at the config's image size.
+
+    Flow (with the augmentation flows for frame-skip/reversed pairs) is stored when the network
+    reads flow. Static frames are kept: the trajectories are corrected and evaluated on every
+    frame, like the published tables.
+    """
+    from dpc_jax.data.cache import prepare_sequence
+
+    model = config.model_config()
+    flow = model.flow if model.flow is not None else config.method == "ss_dpc"
+    return prepare_sequence(
+        sequence, prior, cache_root, size=config.resolved_image_size, flow=flow,
+        flow_augment=flow and (config.frame_skip or config.reverse), mono_rescale=mono_rescale,
+        frames=frames, ground_truth=ground_truth, name=name, progress=progress,
+    )
+
+
+# --------------------------------------------------------------------------- train, correct, report
+
+
+def train_fold(config: Any, workdir: Path, progress: bool) -> dict[str, Any]:
+    """Train (or resume, or find finished) the fold's run in ``workdir``."""
+    from dpc_jax.train import train
+
+    return train(config, workdir, resume=True, progress=progress)
+
+
+def correct_and_evaluate(
+    fold: str, run_dir: Path, cache: Path, out_root: Path, *, select: str = "gradient",
+    prior_label: str = "prior", rotation_only: bool | None = None, progress: bool = False,
+) -> Result:
+    """Correct the prior of ``cache`` with the run's selected epoch; write trajectory and report."""
+    from dpc_jax.correct import correct_cache, load_run, write_correction_report, write_trajectory
+
+    run = load_run(run_dir, select)
+    correction = correct_cache(run, cache, rotation_only=rotation_only, progress=progress)
+    if correction.evaluation is None:
+        raise ValueError(f"{cache}: no ground truth; the experiment needs it to evaluate")
+    name = Path(cache).name
+    (out_root / "corrected" / fold).mkdir(parents=True, exist_ok=True)
+    write_trajectory(out_root / "corrected" / fold / f"{name}.txt", correction)
+    write_correction_report(
+        out_root / "reports" / fold / name, correction,
+        f"{fold}: {name} ({prior_label} prior, epoch {run.epoch} by {select})",
+    )
+    estimates = correction.evaluation["estimates"]
+    return Result(fold, name, prior_label, run.epoch, select, int(correction.corrected.shape[0]),
+                  {"prior": estimates["prior"], "corrected": estimates["corrected"]})
+
+
+COLUMNS = (
+    ("seg_trans_pct", "seg. t (%)"), ("seg_rot_deg_per_100m", "seg. r (°/100 m)"),
+    ("m_ate_trans_m", "m-ATE (m)"), ("m_ate_rot_deg", "m-ATE (°)"), ("ate_m", "ATE (m)"),
+)
+
+
+def _cell(value: Any) -> str:
+    return "n/a" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.4g}"
+
+
+def results_markdown(results: Sequence[Result], title: str, notes: Sequence[str] = ()) -> str:
+    """The results table: one row per test sequence and prior, prior → corrected for each metric."""
+    header = ["fold", "sequence", "prior", "epoch", "frames", *(t for _, t in COLUMNS)]
+    lines = [f"# {title}", "", *(f"{n}" for n in notes), "" if notes else None]
+    lines = [x for x in lines if x is not None]
+    lines += ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
+    for r in results:
+        cells = [f"{_cell(r.metrics['prior'][k])} → {_cell(r.metrics['corrected'][k])}" for k, _ in COLUMNS]
+        lines.append("| " + " | ".join(
+            [r.fold, r.sequence, r.prior_label, f"{r.epoch} ({r.selection})", str(r.frames), *cells]
+        ) + " |")
+    lines += ["", "Each cell: prior → corrected. Segment errors are the mean of the per-length means over "
+              "100–800 m (n/a when the sequence is shorter than 100 m)."]
+    return "\n".join(lines) + "\n"
+
+
+def results_csv(results: Sequence[Result]) -> str:
+    """CSV: one row per test sequence, prior and corrected value of every summary metric."""
+    buffer = io.StringIO()
+    keys = list(results[0].metrics["prior"]) if results else []
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(["fold", "sequence", "prior", "epoch", "selection", "frames",
+                     *(f"{which}_{k}" for which in ("prior", "corrected") for k in keys)])
+    for r in results:
+        values = [r.metrics[which][k] for which in ("prior", "corrected") for k in keys]
+        writer.writerow([r.fold, r.sequence, r.prior_label, r.epoch, r.selection, r.frames,
+                         *("" if v is None else v for v in values)])
+    return buffer.getvalue()
+
+
+def write_results(workdir: Path, results: Sequence[Result], title: str, notes: Sequence[str] = ()) -> Path:
+    """``WORKDIR/results.md`` and ``results.csv`` (atomic); returns the Markdown path."""
+    workdir.mkdir(parents=True, exist_ok=True)
+    atomic_write(workdir / "results.csv", results_csv(results))
+    atomic_write(workdir / "results.md", results_markdown(results, title, notes))
+    return workdir / "results.md"
+
+
+# --------------------------------------------------------------------------- fake KITTI (smoke tests)
+
+
+def write_fake_odometry(
+    root: Path, names: Sequence[str], *, frames: int = 12, size: tuple[int, int] = (48, 72), seed: int = 0,
+    prior_dir: Path | None = None, prior_noise: tuple[float, float] = (0.02, 0.002),
+) -> Path:
+    """A KITTI odometry tree rendered with ``dpc_jax.synth`` (one world per sequence) → ``root``.
+
+    Writes ``sequences/XX/{image_2,image_3}/NNNNNN.png``, ``calib.txt``, ``times.txt`` and
+    ``poses/XX.txt``. With ``prior_dir``: priors in the libviso2 release's ``.mat`` layout
+    (``stereo_XX.mat``: ``poses_est`` = ground truth with each step perturbed by Gaussian noise of
+    ``prior_noise`` = (m, rad) per axis, and ``poses_gt``), and ``mono_XX.mat`` with the steps'
+    translations also scaled by 0.3 (an arbitrary monocular scale).
+    """
+    import cv2
+    import scipy.io
+
+    from dpc_jax.lie import se3_exp
+    from dpc_jax.synth.sequence import SynthConfig, render_sequence
+    from dpc_jax.trajectory import compose, relative_poses, write_kitti_poses
+
+    rng = np.random.default_rng(seed)
+    for k, name in enumerate(names):
+        s = render_sequence(SynthConfig(frames=frames, height=size[0], width=size[1], seed=seed + 101 * k))
+        seq = root / "sequences" / name
+        for camera, images in (("image_2", s.left), ("image_3", s.right)):
+            (seq / camera).mkdir(parents=True, exist_ok=True)
+            for i, image in enumerate(images):
+                cv2.imwrite(str(seq / camera / f"{i:06d}.png"), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+        P = np.hstack([s.K, np.zeros((3, 1))])
+        P_right = P.copy()
+        P_right[0, 3] = -s.K[0, 0] * s.baseline
+        calib = "".join(f"P{i}: " + " ".join(f"{v:.12e}" for v in m.ravel()) + "\n"
+                        for i, m in enumerate((P, P, P, P_right)))
+        atomic_write(seq / "calib.txt", calib)
+        atomic_write(seq / "times.txt", "".join(f"{t:.6e}\n" for t in s.times))
+        (root / "poses").mkdir(parents=True, exist_ok=True)
+        write_kitti_poses(root / "poses" / f"{name}.txt", s.poses)
+        if prior_dir is None:
+            continue
+        prior_dir.mkdir(parents=True, exist_ok=True)
+        steps = relative_poses(s.poses)
+        noise = np.concatenate([rng.normal(0, prior_noise[0], (len(steps), 3)),
+                                rng.normal(0, prior_noise[1], (len(steps), 3))], axis=1)
+        noisy = np.asarray(se3_exp(noise), np.float64) @ steps
+        for kind, scale in (("stereo", 1.0), ("mono", 0.3)):
+            scaled = noisy.copy()
+            scaled[:, :3, 3] *= scale
+            estimate = compose(scaled, s.poses[0])
+            buffer = io.BytesIO()
+            scipy.io.savemat(buffer, {
+                "poses_est": np.moveaxis(estimate, 0, -1), "poses_gt": np.moveaxis(s.poses, 0, -1),
+                "convention": "Twv",
+            })
+            atomic_write(prior_dir / f"{kind}_{name}.mat", buffer.getvalue())
+    return root
+
+
+# --------------------------------------------------------------------------- entry-point plumbing
+
+
+def add_common_arguments(parser: Any, config: Path) -> None:
+    """Options every entry point has: work folder, config, epoch selection, overrides, smoke, progress."""
+    parser.add_argument("--workdir", required=True, type=Path, metavar="DIR", help="everything goes here")
+    parser.add_argument("--config", type=Path, default=config, metavar="FILE", help="experiment config")
+    parser.add_argument("--select", choices=("gradient", "loop", "last"),
+                        help="epoch selection (default: the protocol's)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a TrainConfig field (JSON value), e.g. --set epochs=2")
+    parser.add_argument("--smoke", action="store_true",
+                        help=f"wiring check: {', '.join(f'{k}={v}' for k, v in SMOKE.items())}")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def overrides_from(args: Any) -> dict[str, Any]:
+    """``--smoke`` settings, then the ``--set`` overrides on top."""
+    # Orbax warns once per read-only checkpoint manager when a run is restored for correction.
+    logging.getLogger("absl").setLevel(logging.ERROR)
+    return {**(SMOKE if args.smoke else {}), **parse_overrides(args.set)}
+
+
+def prior_source(priors: str, directory_kind: str, sequence: Any, workdir: Path, progress: bool) -> Path:
+    """The prior file of ``sequence``: ``priors`` = a folder (see :func:`find_prior`) or ``vo`` (ours)."""
+    if priors == "vo":
+        if directory_kind != "stereo":
+            raise ValueError(f"--priors vo gives stereo priors only; {directory_kind} priors need a folder")
+        return vo_prior(sequence, workdir / "priors" / f"{sequence.name}.txt", progress)
+    return find_prior(Path(priors), sequence.name, directory_kind)
+
+
+def print_results(path: Path) -> None:
+    print(path.read_text())
+    print(f"results: {path}")
