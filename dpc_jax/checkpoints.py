@@ -52,13 +52,14 @@ class Record:
 
 
 def _manager(directory: Path, max_to_keep: int | None, read_only: bool = False) -> ocp.CheckpointManager:
-    options = ocp.CheckpointManagerOptions(
-        max_to_keep=max_to_keep,
-        create=not read_only,
-        read_only=read_only,
-        enable_async_checkpointing=False,
-        cleanup_tmp_directories=not read_only,
-    )
+    if read_only:
+        options = ocp.CheckpointManagerOptions(
+            read_only=True, create=False, max_to_keep=None, save_interval_steps=0
+        )
+    else:
+        options = ocp.CheckpointManagerOptions(
+            max_to_keep=max_to_keep, enable_async_checkpointing=False, cleanup_tmp_directories=True
+        )
     return ocp.CheckpointManager(directory, options=options, item_names=("state", "meta"))
 
 

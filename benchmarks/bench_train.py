@@ -1,0 +1,113 @@
+"""Training throughput: samples/s of the jitted train step (forward, loss, backward, Adam update).
+
+For each method and model preset at the preset's image size, one batch of random images (and
+flow for ss-DPC-Net) is placed on the device mesh once; the step is compiled, warmed up, then
+timed ``--repeats`` times (each call blocked on its result). Reported: compile time, median
+and spread of the step time, samples/s = batch / median. The input pipeline is not included
+(``benchmarks/bench_data.py`` shows it is much faster than the step).
+
+    python benchmarks/bench_train.py                         # both presets, both methods, batch 8
+    python benchmarks/bench_train.py --preset small --batch 4 16 --repeats 20
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import time
+
+import jax
+import numpy as np
+
+from dpc_jax import parallel
+from dpc_jax.batch import Batch
+from dpc_jax.models import PRESETS, create_model
+from dpc_jax.train import (
+    TrainConfig,
+    create_train_state,
+    make_loss_functions,
+    make_optimizer,
+    make_train_step,
+)
+
+
+def random_batch(batch: int, size: tuple[int, int], flow: bool, seed: int = 0) -> Batch:
+    rng = np.random.default_rng(seed)
+    h, w = size
+    K = np.array([[0.6 * w, 0, w / 2], [0, 0.6 * w, h / 2], [0, 0, 1]], np.float32)
+    return Batch(
+        left=rng.integers(0, 256, (batch, 2, h, w, 3), dtype=np.uint8),
+        right=rng.integers(0, 256, (batch, 2, h, w, 3), dtype=np.uint8),
+        xi_vo=(rng.normal(size=(batch, 6)) * [0.02, 0.02, 1.0, 0.002, 0.01, 0.002]).astype(np.float32),
+        intrinsics=np.tile(K, (batch, 1, 1)),
+        baseline=np.full(batch, 0.54, np.float32),
+        weight=np.ones(batch, np.float32),
+        flow=rng.normal(size=(batch, 2, h, w, 2)).astype(np.float32) if flow else None,
+    )
+
+
+def bench(method: str, preset: str, batch_size: int, warmup: int, repeats: int) -> dict[str, float]:
+    config = TrainConfig(method=method, preset=preset, batch_size=batch_size, validation_sequences=("v",))
+    mesh = parallel.make_mesh()
+    model_config = config.model_config()
+    graphdef, state = create_train_state(
+        create_model(method, model_config, 0), make_optimizer(config, 100), mesh
+    )
+    step = make_train_step(make_loss_functions(config)[0], mesh)
+    batch = parallel.shard_batch(random_batch(batch_size, model_config.image_size, method == "ss_dpc"), mesh)
+    key = jax.random.key(0)
+    began = time.perf_counter()
+    state, metrics = step(graphdef, state, batch, key)
+    jax.block_until_ready(metrics)
+    compile_s = time.perf_counter() - began
+    for _ in range(warmup):
+        state, metrics = step(graphdef, state, batch, key)
+    jax.block_until_ready(metrics)
+    times = []
+    for _ in range(repeats):
+        began = time.perf_counter()
+        state, metrics = step(graphdef, state, batch, key)
+        jax.block_until_ready(metrics)
+        times.append(time.perf_counter() - began)
+    median = statistics.median(times)
+    return {
+        "size": model_config.image_size,
+        "compile_s": compile_s,
+        "median_ms": 1e3 * median,
+        "min_ms": 1e3 * min(times),
+        "max_ms": 1e3 * max(times),
+        "samples_s": batch_size / median,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    methods = ["stereo_dpc", "ss_dpc"]
+    parser.add_argument("--method", nargs="+", default=methods, choices=methods)
+    parser.add_argument("--preset", nargs="+", default=["small", "reference"], choices=sorted(PRESETS))
+    parser.add_argument("--batch", nargs="+", type=int, default=[8])
+    parser.add_argument("--warmup", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=10)
+    args = parser.parse_args()
+    devices = jax.devices()
+    print(f"device: {len(devices)} x {devices[0].device_kind} ({jax.default_backend()}), "
+          f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
+          f"load average {os.getloadavg()[0]:.1f} at start")
+    print("| method | preset | image HxW | batch | compile (s) | step median (ms) | min–max (ms) "
+          "| samples/s |")
+    print("|---|---|---|---|---|---|---|---|")
+    for method in args.method:
+        for preset in args.preset:
+            for batch in args.batch:
+                r = bench(method, preset, batch, args.warmup, args.repeats)
+                h, w = r["size"]
+                print(f"| {method} | {preset} | {h}x{w} | {batch} | {r['compile_s']:.1f} | "
+                      f"{r['median_ms']:.0f} | {r['min_ms']:.0f}–{r['max_ms']:.0f} | {r['samples_s']:.1f} |",
+                      flush=True)
+    print(f"load average {os.getloadavg()[0]:.1f} at end")
+
+
+if __name__ == "__main__":
+    main()
