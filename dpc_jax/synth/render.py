@@ -40,7 +40,7 @@ SKY, GROUND, FACADE, CYLINDER, SPHERE, CAR = 0, 1, 2, 3, 4, 5
 # Cabin box along the car (fractions of the half length) and across (fraction of the half width).
 _CABIN_A = (-0.6, 0.4)
 _CABIN_B = 0.9
-_UNROLL = 2
+_UNROLL = 4
 
 
 class FrameScene(NamedTuple):
@@ -80,7 +80,7 @@ def _safe_inv(d: Array) -> Array:
 
 def _building_height(u: Array, layer: Array) -> Array:
     """Height (m) of the building of facade row ``layer`` at centreline arc length ``u``; 0 in a gap."""
-    k = jnp.floor(u / layer[1]).astype(jnp.int32)
+    k = jnp.floor(u * (1.0 / layer[1])).astype(jnp.int32)
     seed = layer[5].astype(jnp.int32)
     h = layer[2] + (layer[3] - layer[2]) * tx.hash3(k, seed, 92)
     return jnp.where(tx.hash3(k, seed, 91) < layer[4], 0.0, h)
@@ -120,12 +120,24 @@ def _wrap(a: Array) -> Array:
     return a - 2 * jnp.pi * jnp.floor((a + jnp.pi) / (2 * jnp.pi))
 
 
-def _arc_centre(piece: Array) -> tuple[Array, Array, Array, Array]:
-    k = piece[5]
+_PIECE_COLS = 13
+
+
+def _extend_pieces(pieces: Array) -> Array:
+    """Append derived columns to piece rows ``[P, 6]`` → ``[P, 13]``: ``sin ψ0, cos ψ0``, arc centre
+    ``cx, cz``, turn sign ``σ``, radius and ``tan`` of the arc angle (so that per-pixel code that
+    looks a piece up never evaluates trigonometric functions)."""
+    psi, k, length = pieces[:, 2], pieces[:, 5], pieces[:, 4]
+    sin0, cos0 = jnp.sin(psi), jnp.cos(psi)
     inv_k = 1.0 / jnp.where(k == 0, 1.0, k)
-    cx = piece[0] + jnp.cos(piece[2]) * inv_k
-    cz = piece[1] - jnp.sin(piece[2]) * inv_k
-    return cx, cz, jnp.sign(k), jnp.abs(inv_k)
+    tan_end = jnp.tan(jnp.abs(k) * length)
+    extra = [sin0, cos0, pieces[:, 0] + cos0 * inv_k, pieces[:, 1] - sin0 * inv_k, jnp.sign(k),
+             jnp.abs(inv_k), jnp.where(tan_end > 0, tan_end, 1.0)]
+    return jnp.concatenate([pieces, jnp.stack(extra, 1)], 1)
+
+
+def _arc_centre(piece: Array) -> tuple[Array, Array, Array, Array]:
+    return piece[8], piece[9], piece[10], piece[11]
 
 
 def _arc_s(qx: Array, qz: Array, piece: Array) -> Array:
@@ -136,18 +148,32 @@ def _arc_s(qx: Array, qz: Array, piece: Array) -> Array:
 
 
 def _straight_local(qx: Array, qz: Array, piece: Array) -> tuple[Array, Array]:
-    fx, fz = jnp.sin(piece[2]), jnp.cos(piece[2])
+    fx, fz = piece[6], piece[7]
     ex, ez = qx - piece[0], qz - piece[1]
     return ex * fx + ez * fz, ex * fz - ez * fx
 
 
-def _straight_facade_t(r: Rays, piece: Array, layer: Array) -> Array:
-    rx, rz = jnp.cos(piece[2]), -jnp.sin(piece[2])
-    den = r.dx * rx + r.dz * rz
-    num = layer[0] - ((r.ox - piece[0]) * rx + (r.oz - piece[1]) * rz)
-    t = num * _safe_inv(den)
-    s_loc, _ = _straight_local(r.ox + t * r.dx, r.oz + t * r.dz, piece)
-    return jnp.where(_facade_ok(r, t, s_loc, piece, layer), t, jnp.inf)
+def _closer(best: tuple[Array, Array], t: Array, index: Array | int) -> tuple[Array, Array]:
+    closer = t < best[0]
+    return jnp.where(closer, t, best[0]), jnp.where(closer, index, best[1])
+
+
+def _straight_facades_t(r: Rays, piece: Array, layers: Array) -> tuple[Array, Array]:
+    """Nearest hit on the facade rows of a straight piece (planes ``l = offset``) and its row.
+
+    The rows share the plane normal, so the per-pixel projections are computed once per piece.
+    """
+    fx, fz = piece[6], piece[7]
+    inv_den = _safe_inv(r.dx * fz - r.dz * fx)  # direction · r(ψ0), r = (cos ψ0, −sin ψ0)
+    ex, ez = r.ox - piece[0], r.oz - piece[1]
+    o_lat, o_s = ex * fz - ez * fx, ex * fx + ez * fz
+    d_s = r.dx * fx + r.dz * fz
+    best = (jnp.full(jnp.shape(inv_den * o_lat), jnp.inf, jnp.float32), jnp.zeros((), jnp.int32))
+    for j in range(layers.shape[0]):
+        t = (layers[j, 0] - o_lat) * inv_den
+        ok = _facade_ok(r, t, o_s + t * d_s, piece, layers[j])
+        best = _closer(best, jnp.where(ok, t, jnp.inf), j)
+    return best
 
 
 def _arc_param(qx: Array, qz: Array, piece: Array) -> tuple[Array, Array]:
@@ -159,29 +185,41 @@ def _arc_param(qx: Array, qz: Array, piece: Array) -> tuple[Array, Array]:
     surface. Facade textures and building outlines use it, the ground uses the true arc length.
     """
     cx, cz, sigma, _ = _arc_centre(piece)
-    fx, fz = jnp.sin(piece[2]), jnp.cos(piece[2])
+    fx, fz = piece[6], piece[7]
     vx, vz = qx - cx, qz - cz
     x = -sigma * (vx * fz - vz * fx)  # along the start radius (centre → start point)
     y = vx * fx + vz * fz  # along the start tangent
-    tan_end = jnp.tan(jnp.abs(piece[5]) * piece[4])
-    param = piece[4] * (y / jnp.where(x > 0, x, 1.0)) / jnp.where(tan_end > 0, tan_end, 1.0)
+    param = (piece[4] / piece[12]) * y / jnp.where(x > 0, x, 1.0)
     return param, x > 0
 
 
-def _arc_facade_t(r: Rays, a_xz: Array, piece: Array, layer: Array) -> Array:
+def _arc_facades_t(r: Rays, a_xz: Array, piece: Array, layers: Array) -> tuple[Array, Array]:
+    """Nearest hit on the facade rows of an arc piece (vertical cylinders about the arc's centre).
+
+    Inside a cylinder (the outer facade) only the far root lies ahead; outside it (the inner
+    facade) the near root is the visible side (the far one is the inside of the building block).
+    The facade parameter (see :func:`_arc_param`) is linear in ``t`` in its two components, whose
+    per-pixel parts are shared by the rows.
+    """
     cx, cz, sigma, radius = _arc_centre(piece)
-    rho = radius - sigma * layer[0]
+    fx, fz = piece[6], piece[7]
     ex, ez = r.ox - cx, r.oz - cz
     b = ex * r.dx + ez * r.dz
-    c = ex * ex + ez * ez - rho * rho
-    disc = b * b - a_xz * c
-    # Inside the cylinder (the outer facade) only the far root lies ahead; outside it (the inner
-    # facade) the near root is the visible side (the far one is the inside of the building block).
-    root = jnp.where(c < 0, 1.0, -1.0)
-    t = (-b + root * jnp.sqrt(jnp.maximum(disc, 0.0))) * _safe_inv(a_xz)
-    param, ahead = _arc_param(r.ox + t * r.dx, r.oz + t * r.dz, piece)
-    ok = (disc >= 0) & ahead & _facade_ok(r, t, param, piece, layer)
-    return jnp.where(ok, t, jnp.inf)
+    e2 = ex * ex + ez * ez
+    inv_a = _safe_inv(a_xz)
+    x0, dx0 = -sigma * (ex * fz - ez * fx), -sigma * (r.dx * fz - r.dz * fx)
+    y0, dy0 = ex * fx + ez * fz, r.dx * fx + r.dz * fz
+    best = (jnp.full(jnp.shape(b * x0), jnp.inf, jnp.float32), jnp.zeros((), jnp.int32))
+    for j in range(layers.shape[0]):
+        rho = radius - sigma * layers[j, 0]
+        c = e2 - rho * rho
+        disc = b * b - a_xz * c
+        t = (-b + jnp.where(c < 0, 1.0, -1.0) * jnp.sqrt(jnp.maximum(disc, 0.0))) * inv_a
+        x = x0 + t * dx0
+        param = (piece[4] / piece[12]) * (y0 + t * dy0) / jnp.where(x > 0, x, 1.0)
+        ok = (disc >= 0) & (x > 0) & _facade_ok(r, t, param, piece, layers[j])
+        best = _closer(best, jnp.where(ok, t, jnp.inf), j)
+    return best
 
 
 def _cylinder_t(r: Rays, a_xz: Array, cyl: Array) -> Array:
@@ -225,27 +263,29 @@ def _slab(oa: Array, ob: Array, oy: Array, ia: Array, ib: Array, iy: Array, box:
     return jnp.where((hi >= lo) & (lo > NEAR), lo, jnp.inf)
 
 
-def _nearest(table: Array, hit_t: callable) -> tuple[Array, Array]:
-    """Scan ``hit_t(row) -> t [pixels]`` over the rows of ``table``: nearest ``t`` and its row index."""
+def _nearest(table: Array, hit_t: callable, parts: int = 0) -> tuple[Array, Array]:
+    """Scan ``hit_t(row) -> t [pixels]`` over the rows of ``table``: nearest ``t`` and its row index.
+
+    With ``parts > 0``, ``hit_t`` returns ``(t, part)`` for a row made of that many surfaces, and
+    the index is ``row · parts + part``.
+    """
 
     def body(carry: tuple[Array, Array], row: tuple[Array, Array]) -> tuple[tuple[Array, Array], None]:
-        best, idx = carry
-        t = hit_t(row[1])
-        closer = t < best
-        return (jnp.where(closer, t, best), jnp.where(closer, row[0], idx)), None
+        if parts:
+            t, part = hit_t(row[1])
+            return _closer(carry, t, row[0] * parts + part), None
+        return _closer(carry, hit_t(row[1]), row[0]), None
 
-    shape = jax.eval_shape(hit_t, table[0]).shape
+    shape = jax.eval_shape(lambda row: hit_t(row)[0] if parts else hit_t(row), table[0]).shape
     init = (jnp.full(shape, jnp.inf, jnp.float32), jnp.zeros(shape, jnp.int32))
     rows = (jnp.arange(table.shape[0], dtype=jnp.int32), table)
-    (best, idx), _ = jax.lax.scan(body, init, rows, unroll=_UNROLL)
+    (best, idx), _ = jax.lax.scan(body, init, rows, unroll=1 if parts else _UNROLL)
     return best, idx
 
 
-def _pairs(pieces: Array, layers: Array) -> Array:
-    """All (piece, facade row) combinations as rows ``[piece (6), layer (6)]``."""
-    p = jnp.repeat(pieces, layers.shape[0], axis=0)
-    lay = jnp.tile(layers, (pieces.shape[0], 1))
-    return jnp.concatenate([p, lay], 1)
+def _rows(table: Array, index: Array) -> list[Array]:
+    """Columns of ``table[index]``: one 1-D gather per column (each a contiguous output)."""
+    return [jnp.take(table[:, j], index, mode="clip") for j in range(table.shape[1])]
 
 
 def _footprint(u: Array, v: Array) -> Array:
@@ -266,7 +306,7 @@ def _footprint(u: Array, v: Array) -> Array:
         return jnp.minimum(back, fwd)
 
     fp = jnp.maximum(jnp.maximum(axis_fp(u, -1), axis_fp(u, -2)), jnp.maximum(axis_fp(v, -1), axis_fp(v, -2)))
-    return jnp.where(jnp.isfinite(fp), fp, 1e3)
+    return jnp.clip(jnp.where(jnp.isfinite(fp), fp, 1e3), 1e-5, 1e3)
 
 
 def camera_rays(K: Array, height: int, width: int) -> Array:
@@ -310,7 +350,9 @@ def _rays(pose: Array, K: Array, baseline: Array, height: int, width: int) -> Ra
     f32 = jnp.float32
     pose = pose.astype(f32)
     rot = pose[:3, :3]
-    dirs = camera_rays(K.astype(f32), height, width) @ rot.T
+    cam = camera_rays(K.astype(f32), height, width)
+    # Written out: as a matrix product XLA hands this to a library call that is slower here.
+    dirs = cam[..., 0:1] * rot[:, 0] + cam[..., 1:2] * rot[:, 1] + cam[..., 2:3] * rot[:, 2]
     origins = jnp.stack([pose[:3, 3], pose[:3, 3] + baseline.astype(f32) * rot[:, 0]])
     o = origins[:, None, None, :]
     return Rays(o[..., 0], o[..., 1], o[..., 2], dirs[None, ..., 0], dirs[None, ..., 1], dirs[None, ..., 2])
@@ -339,9 +381,11 @@ def nearest_hits(scene: FrameScene, pose: Array, K: Array, baseline: Array, *, h
 
     t_ground = jnp.where(r.dy > 0, -r.oy * _safe_inv(r.dy), jnp.inf) + jnp.zeros_like(a_xz)
     t_ground = jnp.where(t_ground > NEAR, t_ground, jnp.inf)
-    straights, arcs = _pairs(scene.straights, scene.layers), _pairs(scene.arcs, scene.layers)
-    t_fs, i_fs = _nearest(straights, lambda p: _straight_facade_t(r, p[:6], p[6:]))
-    t_fa, i_fa = _nearest(arcs, lambda p: _arc_facade_t(r, a_xz, p[:6], p[6:]))
+    rows = scene.layers.shape[0]
+    t_fs, i_fs = _nearest(_extend_pieces(scene.straights), lambda p: _straight_facades_t(r, p, scene.layers),
+                          rows)
+    t_fa, i_fa = _nearest(_extend_pieces(scene.arcs), lambda p: _arc_facades_t(r, a_xz, p, scene.layers),
+                          rows)
     t_cyl, i_cyl = _nearest(scene.cylinders, lambda c: _cylinder_t(r, a_xz, c))
     t_sph, i_sph = _nearest(scene.spheres, lambda s: _sphere_t(r, a3, s))
     iy = _safe_inv(r.dy)
@@ -375,7 +419,7 @@ def surface_attributes(scene: FrameScene, hits: Hits, pose: Array, K: Array, bas
     zero = jnp.zeros_like(qx)
 
     # Ground: road coordinates relative to the piece that contains the point and is nearest laterally.
-    pieces = jnp.concatenate([scene.straights, scene.arcs], 0)
+    pieces = _extend_pieces(jnp.concatenate([scene.straights, scene.arcs], 0))
     g_s, g_l, g_score = zero, zero, jnp.full_like(qx, jnp.inf)
     for i in range(pieces.shape[0]):
         p = pieces[i]
@@ -392,27 +436,33 @@ def surface_attributes(scene: FrameScene, hits: Hits, pose: Array, K: Array, bas
         g_score = jnp.minimum(score, g_score)
 
     # Facades: recompute the local arc length at the hit for the winning (piece, row).
-    fpiece = pieces[i_fac // scene.layers.shape[0]]
-    flayer = scene.layers[i_fac % scene.layers.shape[0]]
-    fp6 = [fpiece[..., j] for j in range(6)]
+    fpiece = _rows(pieces, i_fac // scene.layers.shape[0])
+    flayer = _rows(scene.layers, i_fac % scene.layers.shape[0])
+    fp6 = fpiece
     s_str, _ = _straight_local(qx, qz, fp6)
     f_u = fp6[3] + jnp.where(fp6[5] != 0, _arc_param(qx, qz, fp6)[0], s_str)
-    f_building = jnp.floor(f_u / flayer[..., 1]).astype(jnp.int32)
-    f_seed = flayer[..., 5].astype(jnp.int32)
-    f_psi = fp6[2] + fp6[5] * jnp.where(fp6[5] != 0, _arc_s(qx, qz, fp6), s_str)
-    f_side = -jnp.sign(flayer[..., 0])
-    f_n = (f_side * jnp.cos(f_psi), zero, -f_side * jnp.sin(f_psi))
+    f_building = jnp.floor(f_u * jnp.take(1.0 / scene.layers[:, 1], i_fac % scene.layers.shape[0]))
+    f_building = f_building.astype(jnp.int32)
+    f_seed = flayer[5].astype(jnp.int32)
+    # Normal towards the road: −side · r(ψ), r(ψ) = (cos ψ, −sin ψ) constant along a straight,
+    # radial along an arc (r(ψ(s)) = −σ (q − c) / |q − c|).
+    vx, vz = qx - fp6[8], qz - fp6[9]
+    inv_len = jax.lax.rsqrt(jnp.maximum(vx * vx + vz * vz, 1e-12))
+    arc = fp6[5] != 0
+    rx = jnp.where(arc, -fp6[10] * vx * inv_len, fp6[7])
+    rz = jnp.where(arc, -fp6[10] * vz * inv_len, -fp6[6])
+    f_side = -jnp.sign(flayer[0])
+    f_n = (f_side * rx, zero, f_side * rz)
 
-    cyl = scene.cylinders[i_cyl]
-    c_nx, c_nz = (qx - cyl[..., 1]) / cyl[..., 3], (qz - cyl[..., 2]) / cyl[..., 3]
-    c_u = _atan2(c_nz, c_nx) * cyl[..., 3]
-    sph = scene.spheres[i_sph]
-    s_n = tuple((q - sph[..., j]) / sph[..., 4] for q, j in ((qx, 1), (qy, 2), (qz, 3)))
-    s_u = _atan2(s_n[2], s_n[0]) * sph[..., 4]
+    cyl = _rows(scene.cylinders, i_cyl)
+    c_nx, c_nz = (qx - cyl[1]) / cyl[3], (qz - cyl[2]) / cyl[3]
+    c_u = _atan2(c_nz, c_nx) * cyl[3]
+    sph = _rows(scene.spheres, i_sph)
+    s_n = tuple((q - sph[j]) / sph[4] for q, j in ((qx, 1), (qy, 2), (qz, 3)))
+    s_u = _atan2(s_n[2], s_n[0]) * sph[4]
 
-    car = scene.cars[i_car]
-    k8 = [car[..., j] for j in range(8)]
-    cf_x, cf_z = jnp.sin(k8[3]), jnp.cos(k8[3])
+    k8 = _rows(scene.cars, i_car)
+    cf_x, cf_z = jnp.take(jnp.sin(scene.cars[:, 3]), i_car), jnp.take(jnp.cos(scene.cars[:, 3]), i_car)
     ka = (qx - k8[1]) * cf_x + (qz - k8[2]) * cf_z
     kb = (qx - k8[1]) * cf_z - (qz - k8[2]) * cf_x
     kh = -qy
@@ -443,12 +493,12 @@ def surface_attributes(scene: FrameScene, hits: Hits, pose: Array, K: Array, bas
     return Surface(
         kind=kind, depth=hits.depth,
         u=select((sky_u, g_s, f_u, c_u, s_u, k_u)), v=select((sky_v, g_l, -qy, -qy, -qy, k_v)),
-        seed=select((ones, ones * 2, f_building * 7 + f_seed, cyl[..., 5].astype(jnp.int32) + 3,
-                     sph[..., 5].astype(jnp.int32), k8[6].astype(jnp.int32))),
+        seed=select((ones, ones * 2, f_building * 7 + f_seed, cyl[5].astype(jnp.int32) + 3,
+                     sph[5].astype(jnp.int32), k8[6].astype(jnp.int32))),
         normal=(normal[0], jnp.where(kind == GROUND, -1.0, normal[1]), normal[2]),
         moving=(kind == CAR) & (k8[7] > 0.5), up=up, height=-qy,
-        building=f_building, layer_seed=f_seed, cylinder_kind=cyl[..., 5],
-        sphere_seed=sph[..., 5].astype(jnp.int32),
+        building=f_building, layer_seed=f_seed, cylinder_kind=cyl[5],
+        sphere_seed=sph[5].astype(jnp.int32),
         car_a=ka, car_b=kb, car_face=face.astype(jnp.int32), car_cabin=in_cabin, car_half_len=k8[4],
         car_seed=k8[6].astype(jnp.int32),
     )
@@ -456,34 +506,53 @@ def surface_attributes(scene: FrameScene, hits: Hits, pose: Array, K: Array, bas
 
 @jax.jit
 def _noise(u: Array, v: Array, seed: Array) -> tuple[Array, tx.Noise]:
-    fp = _footprint(u, v)
-    return fp, tx.shared_noise(u, v, seed, fp)
+    """Pixels per metre of texture (the reciprocal footprint) and the shared noise."""
+    ppm = 1.0 / _footprint(u, v)
+    return ppm, tx.shared_noise(u, v, seed, ppm)
+
+
+def _facade_edges(layers: Array) -> tuple[Array, Array]:
+    facade_r = jnp.max(jnp.where(layers[:2, 0] > 0, layers[:2, 0], 0.0))
+    facade_l = -jnp.min(jnp.where(layers[:2, 0] < 0, layers[:2, 0], 0.0))
+    return facade_r, facade_l
+
+
+# One compilation per material: XLA fuses a single program's materials into one expression per
+# channel and recomputes their shared fields many times over (several times slower than this).
+_MATERIALS = (
+    jax.jit(lambda s, ppm, n, layers: tx.sky_colour(s.up, n)),
+    jax.jit(lambda s, ppm, n, layers: tx.ground_albedo(s.u, s.v, ppm, n, *_facade_edges(layers))),
+    jax.jit(lambda s, ppm, n, layers: tx.facade_albedo(s.u, s.height, s.building, s.layer_seed, ppm, n)),
+    jax.jit(lambda s, ppm, n, layers: tx.pole_albedo(s.height, s.cylinder_kind, ppm, n)),
+    jax.jit(lambda s, ppm, n, layers: tx.foliage_albedo(s.sphere_seed, n)),
+    jax.jit(lambda s, ppm, n, layers: tx.car_albedo(s.car_a, s.car_b, s.height, s.car_face, s.car_cabin,
+                                                    s.car_half_len, s.car_seed, ppm, n)),
+)
 
 
 @partial(jax.jit, static_argnames=("apply_gamma",))
-def _shade(surf: Surface, fp: Array, noise: tx.Noise, layers: Array, sun: Array, gain: Array,
-           gamma: Array, apply_gamma: bool) -> Array:
-    facade_r = jnp.max(jnp.where(layers[:2, 0] > 0, layers[:2, 0], 0.0))
-    facade_l = -jnp.min(jnp.where(layers[:2, 0] < 0, layers[:2, 0], 0.0))
-    albedos = (
-        tx.sky_colour(surf.up, noise),
-        tx.ground_albedo(surf.u, surf.v, fp, noise, facade_r, facade_l),
-        tx.facade_albedo(surf.u, surf.height, surf.building, surf.layer_seed, fp, noise),
-        tx.pole_albedo(surf.height, surf.cylinder_kind, fp, noise),
-        tx.foliage_albedo(surf.sphere_seed, noise),
-        tx.car_albedo(surf.car_a, surf.car_b, surf.height, surf.car_face, surf.car_cabin, surf.car_half_len,
-                      surf.car_seed, fp, noise),
-    )
-    albedo = albedos[0]
-    for k in range(1, len(albedos)):
-        albedo = jnp.where((surf.kind == k)[..., None], albedos[k], albedo)
+def _compose(surf: Surface, albedos: tuple[tx.Colour, ...], sun: Array, gain: Array, gamma: Array,
+             apply_gamma: bool) -> Array:
+    """Pick each pixel's material, shade (Lambert + ambient), apply the illumination, → [0, 255]."""
     n = surf.normal
     lambert = jnp.maximum(n[0] * sun[0] + n[1] * sun[1] + n[2] * sun[2], 0.0)
     shade = jnp.where(surf.kind == SKY, 1.0, 0.55 + 0.6 * lambert)
-    colour = jnp.clip(albedo * shade[..., None], 0.0, 1.0)
-    if apply_gamma:  # a power is costly on CPU; skipped when the illumination does not drift
-        colour = colour**gamma
-    return 255.0 * jnp.clip(gain * colour, 0.0, 1.0)
+    channels = []
+    for c in range(3):
+        value = jnp.broadcast_to(albedos[0][c], shade.shape)
+        for k in range(1, len(albedos)):
+            value = jnp.where(surf.kind == k, albedos[k][c], value)
+        colour = jnp.clip(value * shade, 0.0, 1.0)
+        if apply_gamma:  # a power is costly on CPU; skipped when the illumination does not drift
+            colour = colour**gamma
+        channels.append(255.0 * jnp.clip(gain * colour, 0.0, 1.0))
+    return jnp.stack(channels, -1)
+
+
+def _shade(surf: Surface, ppm: Array, noise: tx.Noise, layers: Array, sun: Array, gain: Array,
+           gamma: Array, apply_gamma: bool) -> Array:
+    albedos = tuple(material(surf, ppm, noise, layers) for material in _MATERIALS)
+    return _compose(surf, albedos, sun, gain, gamma, apply_gamma=apply_gamma)
 
 
 def render_stereo(scene: FrameScene, pose: Array, K: Array, baseline: Array, gain: float, gamma: float,
@@ -506,7 +575,7 @@ def render_stereo(scene: FrameScene, pose: Array, K: Array, baseline: Array, gai
     """
     hits = nearest_hits(scene, pose, K, baseline, height=height, width=width)
     surf = surface_attributes(scene, hits, pose, K, baseline, height=height, width=width)
-    fp, noise = _noise(surf.u, surf.v, surf.seed)
-    image = _shade(surf, fp, noise, scene.layers, scene.sun, jnp.float32(gain), jnp.float32(gamma),
+    ppm, noise = _noise(surf.u, surf.v, surf.seed)
+    image = _shade(surf, ppm, noise, scene.layers, scene.sun, jnp.float32(gain), jnp.float32(gamma),
                    apply_gamma=float(gamma) != 1.0)
     return image, surf.depth, surf.moving
