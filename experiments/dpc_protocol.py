@@ -255,50 +255,37 @@ def write_fake_odometry(
 ) -> Path:
     """A KITTI odometry tree rendered with ``dpc_jax.synth`` (one world per sequence) → ``root``.
 
-    Writes ``sequences/XX/{image_2,image_3}/NNNNNN.png``, ``calib.txt``, ``times.txt`` and
-    ``poses/XX.txt``. With ``prior_dir``: priors in the libviso2 release's ``.mat`` layout
-    (``stereo_XX.mat``: ``poses_est`` = ground truth with each step perturbed by Gaussian noise of
-    ``prior_noise`` = (m, rad) per axis, and ``poses_gt``), and ``mono_XX.mat`` with the steps'
-    translations also scaled by 0.3 (an arbitrary monocular scale).
+    ``dpc_jax.synth.write_sequence`` writes ``sequences/XX/`` (images, ``calib.txt``,
+    ``times.txt``) and ``poses/XX.txt``. With ``prior_dir``: priors in the libviso2 release's
+    ``.mat`` layout — ``stereo_XX.mat`` (``poses_est`` = ground truth with each step perturbed by
+    Gaussian noise of ``prior_noise`` = (m, rad) per axis; ``poses_gt``) and ``mono_XX.mat`` (the
+    same steps with their translations scaled by 0.3, an arbitrary monocular scale).
     """
-    import cv2
     import scipy.io
 
     from dpc_jax.lie import se3_exp
-    from dpc_jax.synth.sequence import SynthConfig, render_sequence
-    from dpc_jax.trajectory import compose, relative_poses, write_kitti_poses
+    from dpc_jax.synth import SynthConfig, sequence_poses, write_sequence
+    from dpc_jax.trajectory import compose, relative_poses
 
     rng = np.random.default_rng(seed)
     for k, name in enumerate(names):
-        s = render_sequence(SynthConfig(frames=frames, height=size[0], width=size[1], seed=seed + 101 * k))
-        seq = root / "sequences" / name
-        for camera, images in (("image_2", s.left), ("image_3", s.right)):
-            (seq / camera).mkdir(parents=True, exist_ok=True)
-            for i, image in enumerate(images):
-                cv2.imwrite(str(seq / camera / f"{i:06d}.png"), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
-        P = np.hstack([s.K, np.zeros((3, 1))])
-        P_right = P.copy()
-        P_right[0, 3] = -s.K[0, 0] * s.baseline
-        calib = "".join(f"P{i}: " + " ".join(f"{v:.12e}" for v in m.ravel()) + "\n"
-                        for i, m in enumerate((P, P, P, P_right)))
-        atomic_write(seq / "calib.txt", calib)
-        atomic_write(seq / "times.txt", "".join(f"{t:.6e}\n" for t in s.times))
-        (root / "poses").mkdir(parents=True, exist_ok=True)
-        write_kitti_poses(root / "poses" / f"{name}.txt", s.poses)
+        config = SynthConfig(frames=frames, height=size[0], width=size[1], seed=seed + 101 * k)
+        write_sequence(root, name, config, overwrite=True)
         if prior_dir is None:
             continue
+        poses = sequence_poses(config)[0]
         prior_dir.mkdir(parents=True, exist_ok=True)
-        steps = relative_poses(s.poses)
+        steps = relative_poses(poses)
         noise = np.concatenate([rng.normal(0, prior_noise[0], (len(steps), 3)),
                                 rng.normal(0, prior_noise[1], (len(steps), 3))], axis=1)
         noisy = np.asarray(se3_exp(noise), np.float64) @ steps
         for kind, scale in (("stereo", 1.0), ("mono", 0.3)):
             scaled = noisy.copy()
             scaled[:, :3, 3] *= scale
-            estimate = compose(scaled, s.poses[0])
+            estimate = compose(scaled, poses[0])
             buffer = io.BytesIO()
             scipy.io.savemat(buffer, {
-                "poses_est": np.moveaxis(estimate, 0, -1), "poses_gt": np.moveaxis(s.poses, 0, -1),
+                "poses_est": np.moveaxis(estimate, 0, -1), "poses_gt": np.moveaxis(poses, 0, -1),
                 "convention": "Twv",
             })
             atomic_write(prior_dir / f"{kind}_{name}.mat", buffer.getvalue())

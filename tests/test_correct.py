@@ -1,0 +1,275 @@
+"""``dpc_jax.correct`` and ``dpc-jax correct`` on a tiny stored run, against a float64 numpy reference."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "experiments"))
+
+import dpc_protocol  # noqa: E402
+
+SIZE = dpc_protocol.SMOKE["image_size"]
+FRAMES = 10
+
+
+def _so3_jacobian(phi: np.ndarray) -> np.ndarray:
+    """Left Jacobian of SO(3), closed form (float64)."""
+    theta = np.linalg.norm(phi)
+    hat = np.array([[0, -phi[2], phi[1]], [phi[2], 0, -phi[0]], [-phi[1], phi[0], 0]])
+    if theta < 1e-8:
+        return np.eye(3) + 0.5 * hat
+    return (np.eye(3) + (1 - np.cos(theta)) / theta**2 * hat
+            + (theta - np.sin(theta)) / theta**3 * hat @ hat)
+
+
+def _exp(xi: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(xi[3:]).as_matrix()
+    T[:3, 3] = _so3_jacobian(xi[3:]) @ xi[:3]
+    return T
+
+
+def _log(T: np.ndarray) -> np.ndarray:
+    phi = Rotation.from_matrix(T[:3, :3]).as_rotvec()
+    return np.concatenate([np.linalg.solve(_so3_jacobian(phi), T[:3, 3]), phi])
+
+
+SEEDS = {1: 7, 2: 8}  # epoch -> seed of the stored (untrained) weights; config.seed stays 0
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """A fake odometry tree (00, 05), its caches, and a run folder with two stored epochs.
+
+    The epochs hold differently initialised networks (seeds 7 and 8, not the config's seed 0), so a
+    restore that re-initialised instead of loading would be caught. Epoch 1 has the lower gradient
+    loss, epoch 2 the more loop closures and is the newest. Writing the run directly (instead of
+    training it) keeps the test free of the training step's compilation; training itself is
+    tested in test_train.py and end to end in test_experiments.py.
+    """
+    from dpc_jax import config as config_lib
+    from dpc_jax.checkpoints import Checkpoints
+    from dpc_jax.data.cache import prepare_sequence
+    from dpc_jax.data.kitti import open_odometry
+    from dpc_jax.models import create_model
+    from dpc_jax.train import TrainConfig, create_train_state, make_optimizer
+
+    tmp = tmp_path_factory.mktemp("correct")
+    kitti = dpc_protocol.write_fake_odometry(tmp / "kitti", ["00", "05"], frames=FRAMES,
+                                              prior_dir=tmp / "priors")
+    cache = tmp / "cache"
+    for name in ("00", "05"):
+        prepare_sequence(open_odometry(kitti, name), tmp / "priors" / f"stereo_{name}.mat", cache,
+                         size=SIZE, progress=False, workers=1)
+    config = TrainConfig(method="stereo_dpc", **dpc_protocol.SMOKE, cache_root=str(cache),
+                         train_sequences=("00",), validation_sequences=("05",))
+    config_lib.save_json(tmp / "run" / "checkpoints" / "config.json", config)
+    models = {}
+    with Checkpoints(tmp / "run") as checkpoints:
+        best = Checkpoints.best_records(None)
+        for epoch, (gradient_loss, loops) in {1: (0.5, 0), 2: (0.6, 3)}.items():
+            models[epoch] = create_model("stereo_dpc", config.model_config(), SEEDS[epoch])
+            _, state = create_train_state(models[epoch], make_optimizer(config, 1))
+            metrics = {"val_gradient_loss": gradient_loss, "val_loop_closures": loops}
+            best = checkpoints.save(epoch, state, {"step": epoch, "metrics": metrics}, best)
+    return {"tmp": tmp, "kitti": kitti, "cache": cache, "run": tmp / "run", "priors": tmp / "priors",
+            "models": models}
+
+
+@pytest.fixture(scope="module")
+def run(setup: dict):
+    from dpc_jax.correct import load_run
+
+    return load_run(setup["run"], "gradient")
+
+
+def test_selection_restores_the_chosen_epoch(setup: dict, run) -> None:
+    from dpc_jax.correct import load_run
+
+    assert (run.epoch, run.selection) == (1, "gradient")
+    assert load_run(setup["run"], "loop").epoch == 2
+    assert load_run(setup["run"], "last").epoch == 2
+    with pytest.raises(ValueError, match="gradient, loop, last"):
+        load_run(setup["run"], "best")
+
+
+def _reference_corrections(model, cache) -> np.ndarray:
+    """The stored network applied to one pair at a time (BatchNorm uses its running statistics)."""
+    from dpc_jax.batch import Batch
+
+    model.eval()
+    out = []
+    for k in range(len(cache) - 1):
+        step = np.linalg.inv(cache.prior[k + 1]) @ cache.prior[k]
+        batch = Batch(
+            left=np.asarray(cache.left[k:k + 2])[None], right=np.asarray(cache.right[k:k + 2])[None],
+            xi_vo=_log(step)[None].astype(np.float32), intrinsics=cache.K[None].astype(np.float32),
+            baseline=np.array([cache.baseline], np.float32), weight=np.ones(1, np.float32),
+            flow=None, xi_gt=None,
+        )
+        out.append(np.asarray(model(batch).xi_corr, np.float64)[0])
+    return np.stack(out)
+
+
+def _compose(xi: np.ndarray, prior: np.ndarray, first: np.ndarray, rotation_only: bool) -> np.ndarray:
+    poses = [first]
+    for k in range(len(xi)):
+        x = xi[k].copy()
+        if rotation_only:
+            x[:3] = 0.0
+        corrected = _exp(x) @ np.linalg.inv(prior[k + 1]) @ prior[k]
+        poses.append(poses[-1] @ np.linalg.inv(corrected))
+    return np.stack(poses)
+
+
+@pytest.mark.parametrize("rotation_only", [False, True])
+def test_corrected_trajectory_equals_float64_reference(setup: dict, run, rotation_only: bool) -> None:
+    from dpc_jax.correct import correct_cache
+    from dpc_jax.data.pipeline import load_cache
+
+    cache = load_cache(setup["cache"] / "05")
+    # 9 pairs in batches of 4: the last batch is padded; the padding must be dropped.
+    result = correct_cache(run, cache, rotation_only=rotation_only, batch_size=4)
+    xi = _reference_corrections(setup["models"][run.epoch], cache)
+    np.testing.assert_allclose(result.xi_corr, xi, atol=2e-6)
+    assert np.abs(xi).max() > 1e-5  # a network's output, not zeros
+    expected = _compose(result.xi_corr.astype(np.float64), cache.prior, cache.gt[0], rotation_only)
+    np.testing.assert_allclose(result.corrected, expected, atol=1e-9)
+    np.testing.assert_array_equal(result.corrected[0], cache.gt[0])  # composed from the first GT pose
+    assert result.rotation_only is rotation_only
+    summary = result.evaluation["estimates"]
+    assert summary["prior"]["m_ate_trans_m"] > 0 and summary["corrected"]["m_ate_trans_m"] > 0
+
+
+def test_rotation_only_keeps_the_prior_translation_steps(setup: dict, run) -> None:
+    """T* = Exp([0, φ]) T_vo = [R_c R_vo, R_c t_vo]: each step keeps its length and t* = R* R_voᵀ t_vo."""
+    from dpc_jax.correct import correct_cache
+
+    rot = correct_cache(run, setup["cache"] / "05", rotation_only=True)
+    full = correct_cache(run, setup["cache"] / "05", rotation_only=False)
+    step_rot = np.linalg.inv(rot.corrected[1:]) @ rot.corrected[:-1]
+    step_prior = np.linalg.inv(rot.prior[1:]) @ rot.prior[:-1]
+    step_full = np.linalg.inv(full.corrected[1:]) @ full.corrected[:-1]
+    t_rot, t_prior = step_rot[:, :3, 3], step_prior[:, :3, 3]
+    np.testing.assert_allclose(np.linalg.norm(t_rot, axis=1), np.linalg.norm(t_prior, axis=1), rtol=1e-10)
+    r_c = step_rot[:, :3, :3] @ np.swapaxes(step_prior[:, :3, :3], 1, 2)
+    np.testing.assert_allclose(t_rot, np.einsum("nij,nj->ni", r_c, t_prior), atol=1e-12)
+    # Same rotations as the full correction, different translations.
+    np.testing.assert_allclose(step_rot[:, :3, :3], step_full[:, :3, :3], atol=1e-12)
+    assert np.abs(step_full[:, :3, 3] - t_rot).max() > 1e-5
+
+
+def test_composes_from_the_first_prior_pose_without_ground_truth(setup: dict, run) -> None:
+    import dataclasses
+
+    from dpc_jax.correct import correct_cache
+    from dpc_jax.data.pipeline import load_cache
+
+    cache = load_cache(setup["cache"] / "05")
+    shifted = cache.prior.copy()
+    shifted[:, :3, 3] += np.array([5.0, -1.0, 2.0])  # the prior need not start at the GT pose
+    no_gt = dataclasses.replace(cache, gt=None, prior=shifted)
+    result = correct_cache(run, no_gt)
+    assert result.evaluation is None
+    np.testing.assert_array_equal(result.corrected[0], shifted[0])
+    expected = _compose(result.xi_corr.astype(np.float64), shifted, shifted[0], run.config.rotation_only)
+    np.testing.assert_allclose(result.corrected, expected, atol=1e-9)
+
+
+def test_cli_writes_trajectory_that_reads_back_and_a_report(setup: dict, tmp_path: Path, capsys) -> None:
+    from dpc_jax.cli import main
+    from dpc_jax.correct import correct_cache, load_run
+    from dpc_jax.trajectory import read_trajectory, read_tum
+
+    expected = correct_cache(load_run(setup["run"], "gradient"), setup["cache"] / "05").corrected
+    out = tmp_path / "corrected.txt"
+    argv = ["correct", "--checkpoint", str(setup["run"]), "--data", str(setup["cache"] / "05"),
+            "--out", str(out), "--report", str(tmp_path / "report"), "--no-progress"]
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "| corrected |" in printed and "| prior |" in printed
+    np.testing.assert_allclose(read_trajectory(out, "kitti"), expected, atol=1e-12)
+    assert not (tmp_path / "corrected.frames.txt").exists()  # every source frame is there
+    for name in ("report.md", "metrics.json", "trajectory.png"):
+        assert (tmp_path / "report" / name).is_file()
+
+    tum = tmp_path / "corrected.tum"
+    assert main([*argv[:5], "--out", str(tum), "--format", "tum", "--no-progress"]) == 0
+    stamps, poses = read_tum(tum)
+    np.testing.assert_allclose(poses, expected, atol=1e-9)
+    np.testing.assert_allclose(stamps, np.arange(FRAMES) * 0.1, atol=1e-9)
+
+
+def test_cli_prepares_raw_input_and_writes_kept_frames(setup: dict, tmp_path: Path) -> None:
+    """Odometry input with static-frame removal: the trajectory has the kept frames, listed beside it."""
+    from dpc_jax.cli import main
+    from dpc_jax.data.pipeline import load_cache
+    from dpc_jax.trajectory import read_trajectory
+
+    out = tmp_path / "corrected.txt"
+    argv = ["correct", "--checkpoint", str(setup["run"]), "--kitti-odometry", str(setup["kitti"]),
+            "--sequence", "05", "--prior", str(setup["priors"] / "stereo_05.mat"), "--remove-static",
+            "--cache", str(tmp_path / "cache"), "--out", str(out), "--no-progress"]
+    assert main(argv) == 0
+    cache = load_cache(tmp_path / "cache" / "05")
+    assert 2 <= len(cache) < FRAMES  # ~1 m steps: the static rule drops frames
+    assert cache.image_size == SIZE  # prepared at the run's image size
+    frames = np.loadtxt(tmp_path / "corrected.frames.txt", dtype=int)
+    np.testing.assert_array_equal(frames, cache.indices)
+    poses = read_trajectory(out, "kitti")
+    assert poses.shape == (len(cache), 4, 4)
+    np.testing.assert_allclose(poses[0], cache.gt[0], atol=1e-12)
+
+    # A full-length prior is accepted for a cache with fewer frames: the cached frames are taken.
+    from dpc_jax.correct import prior_for_cache
+    from dpc_jax.trajectory import read_mat
+
+    _, full = read_mat(setup["priors"] / "stereo_05.mat")
+    np.testing.assert_allclose(prior_for_cache(cache, full), full[cache.indices], atol=1e-12)
+
+
+def _error(capsys, argv: list[str]) -> str:
+    from dpc_jax.cli import main
+
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    return err
+
+
+def test_bad_input_errors_name_what_was_expected(setup: dict, tmp_path: Path, capsys) -> None:
+    from dpc_jax.data.cache import prepare_sequence
+    from dpc_jax.data.kitti import open_odometry
+    from dpc_jax.trajectory import read_trajectory, write_kitti_poses
+
+    base = ["correct", "--checkpoint", str(setup["run"]), "--out", str(tmp_path / "c.txt"), "--no-progress"]
+    data = ["--data", str(setup["cache"] / "05")]
+
+    err = _error(capsys, ["correct", "--checkpoint", str(tmp_path / "nowhere"), *data, "--out",
+                          str(tmp_path / "c.txt")])
+    assert "not a training run" in err and "config.json" in err
+
+    short = tmp_path / "short.txt"
+    write_kitti_poses(short, read_trajectory(setup["kitti"] / "poses" / "05.txt")[:5])
+    err = _error(capsys, [*base, *data, "--prior", str(short)])
+    assert "5 prior poses" in err and f"expected {FRAMES}" in err
+
+    other = tmp_path / "other_size"
+    prepare_sequence(open_odometry(setup["kitti"], "05"), setup["priors"] / "stereo_05.mat", other,
+                     size=(24, 40), progress=False, workers=1)
+    err = _error(capsys, [*base, "--data", str(other / "05")])
+    assert "24x40" in err and f"expects {SIZE[0]}x{SIZE[1]}" in err and f"--size {SIZE[0]}x{SIZE[1]}" in err
+
+    err = _error(capsys, [*base, "--kitti-odometry", str(setup["kitti"]), "--sequence", "05"])
+    assert "--prior FILE is required" in err
+    err = _error(capsys, [*base, *data, "--remove-static"])
+    assert "only apply to raw inputs" in err
+    err = _error(capsys, [*base, "--data", str(tmp_path)])
+    assert "not a prepared cache" in err
+    assert not (tmp_path / "c.txt").exists()

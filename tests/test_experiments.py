@@ -1,0 +1,154 @@
+"""The KITTI experiment entry points, end to end on a tiny fake KITTI odometry tree (dpc_jax.synth)."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+EXPERIMENTS = ROOT / "experiments"
+sys.path.insert(0, str(EXPERIMENTS))
+
+import dpc_protocol  # noqa: E402
+
+FRAMES = 10
+
+
+def _entry(name: str):
+    spec = importlib.util.spec_from_file_location(f"experiment_{name}", EXPERIMENTS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def kitti(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("fake_kitti")
+    return dpc_protocol.write_fake_odometry(
+        root, ["00", "02", "05"], frames=FRAMES, prior_dir=root / "priors"
+    )
+
+
+def _rows(workdir: Path) -> list[dict[str, str]]:
+    with (workdir / "results.csv").open() as f:
+        return list(csv.DictReader(f))
+
+
+def _split(workdir: Path, fold: str) -> dict:
+    return json.loads((workdir / "runs" / fold / "checkpoints" / "split.json").read_text())
+
+
+@pytest.mark.parametrize("name", ["kitti_stereo_dpc", "kitti_ss_dpc", "kitti_raw_excerpt"])
+def test_configs_are_train_configs_and_state_their_command(name: str) -> None:
+    config, protocol = dpc_protocol.load_protocol(EXPERIMENTS / "configs" / f"{name}.py")
+    doc = (EXPERIMENTS / "configs" / f"{name}.py").read_text().split('"""')[1]
+    assert f"python experiments/{name}.py" in doc and "Produces" in doc
+    assert protocol["select"] in ("gradient", "loop", "last")
+    if name == "kitti_stereo_dpc":
+        assert config.image_size == (240, 376) and config.epochs == 30 and config.learning_rate == 6e-3
+        assert config.lr_halving_epochs == 5 and config.loss["alpha"] == (1.0, 1.0, 1.0, 0.08)
+        assert not config.rotation_only and config.method == "stereo_dpc"
+    if name == "kitti_ss_dpc":
+        assert config.rotation_only and config.method == "ss_dpc"
+        assert config.loss == {"exp_weight": 0.23, "rot_weight": 4.0, "rot_threshold": 0.005}
+        folds = protocol["folds"]
+        assert (folds["stereo_val05"]["validation"], folds["stereo_val05"]["test"]) == ("05", ("00", "02"))
+        assert (folds["stereo_val00"]["validation"], folds["stereo_val00"]["test"]) == ("00", ("05",))
+        assert folds["mono"]["test"] == ("09", "10") and folds["mono"]["prior"] == "mono"
+        assert folds["mono"]["overrides"]["rotation_only"] is False
+
+
+def test_overrides_and_fold_config() -> None:
+    assert dpc_protocol.parse_overrides(["epochs=2", "image_size=[64,96]", "preset=small"]) == {
+        "epochs": 2, "image_size": [64, 96], "preset": "small"}
+    with pytest.raises(ValueError, match="KEY=VALUE"):
+        dpc_protocol.parse_overrides(["epochs"])
+    base, _ = dpc_protocol.load_protocol(EXPERIMENTS / "configs" / "kitti_stereo_dpc.py")
+    fold = dpc_protocol.Fold("f", ("02",), "05", ("00",))
+    config = dpc_protocol.fold_config(base, fold, Path("/c"), {"epochs": 2})
+    assert (config.train_sequences, config.validation_sequences, config.test_sequences) == (
+        ("02",), ("05",), ("00",))
+    assert config.epochs == 2 and config.cache_root == "/c"
+    with pytest.raises(ValueError, match="did you mean 'epochs'"):
+        dpc_protocol.fold_config(base, fold, Path("/c"), {"epoch": 2})
+
+
+def test_bad_protocol_input_errors_before_compute(kitti: Path, tmp_path: Path, capsys) -> None:
+    ss = _entry("kitti_ss_dpc")
+    base = ["--kitti-odometry", str(kitti), "--priors", str(kitti / "priors"),
+            "--sequences", "00", "02", "05",
+            "--workdir", str(tmp_path / "w"), "--no-progress"]
+    assert ss.main([*base, "--fold", "mono"]) == 2
+    assert "fold mono needs sequence(s) ['09', '10']" in capsys.readouterr().err
+    assert ss.main([*base, "--fold", "nope"]) == 2
+    assert "stereo_val05, stereo_val00, mono" in capsys.readouterr().err
+    stereo = _entry("kitti_stereo_dpc")
+    assert stereo.main([*base, "--test", "07"]) == 2
+    assert "--test 07 is not one of the sequences" in capsys.readouterr().err
+    assert stereo.main([*base[:3], str(tmp_path), *base[4:], "--test", "00"]) == 2
+    assert "no prior for sequence 00" in capsys.readouterr().err
+    assert not (tmp_path / "w" / "runs").exists()
+
+
+def _check_result_row(
+    row: dict[str, str], workdir: Path, fold: str, sequence: str, kitti: Path
+) -> np.ndarray:
+    """The row's prior figures equal an independent evaluation; returns the corrected trajectory."""
+    from dpc_jax.evaluation import evaluate
+    from dpc_jax.trajectory import read_mat, read_trajectory
+
+    gt, prior = read_mat(kitti / "priors" / f"stereo_{sequence}.mat")
+    expected = evaluate(gt, {"prior": prior})["estimates"]["prior"]
+    assert float(row["prior_m_ate_trans_m"]) == pytest.approx(expected["m_ate_trans_m"], rel=1e-9)
+    assert float(row["prior_ate_m"]) == pytest.approx(expected["ate_m"], rel=1e-9)
+    corrected = read_trajectory(workdir / "corrected" / fold / f"{sequence}.txt", "kitti")
+    assert corrected.shape == (FRAMES, 4, 4)
+    np.testing.assert_allclose(corrected[0], gt[0], atol=1e-12)
+    assert (workdir / "reports" / fold / sequence / "report.md").is_file()
+    return corrected
+
+
+@pytest.mark.slow
+def test_kitti_stereo_dpc_smoke(kitti: Path, tmp_path: Path, capsys) -> None:
+    stereo = _entry("kitti_stereo_dpc")
+    workdir = tmp_path / "stereo"
+    argv = ["--kitti-odometry", str(kitti), "--priors", str(kitti / "priors"),
+            "--sequences", "00", "02", "05",
+            "--test", "00", "--workdir", str(workdir), "--smoke", "--no-progress"]
+    assert stereo.main(argv) == 0
+    assert "| test_00 | 00 |" in capsys.readouterr().out
+    split = _split(workdir, "test_00")
+    assert (split["train"], split["validation"], split["test"]) == (["02"], ["05"], ["00"])
+    [row] = _rows(workdir)
+    assert (row["fold"], row["sequence"], row["epoch"]) == ("test_00", "00", "1")
+    _check_result_row(row, workdir, "test_00", "00", kitti)
+    assert "SMOKE RUN" in (workdir / "results.md").read_text()
+
+
+@pytest.mark.slow
+def test_kitti_ss_dpc_smoke_corrects_rotation_only(kitti: Path, tmp_path: Path) -> None:
+    from dpc_jax.trajectory import read_mat, relative_poses
+
+    ss = _entry("kitti_ss_dpc")
+    workdir = tmp_path / "ss"
+    argv = ["--kitti-odometry", str(kitti), "--priors", str(kitti / "priors"),
+            "--sequences", "00", "02", "05",
+            "--fold", "stereo_val00", "--workdir", str(workdir), "--smoke", "--no-progress"]
+    assert ss.main(argv) == 0
+    split = _split(workdir, "stereo_val00")
+    assert (split["train"], split["validation"], split["test"]) == (["02"], ["00"], ["05"])
+    [row] = _rows(workdir)
+    assert row["prior"] == "libviso2-s"
+    corrected = _check_result_row(row, workdir, "stereo_val00", "05", kitti)
+    # Rotation-only correction: every step keeps the prior's translation length, but rotations change.
+    _, prior = read_mat(kitti / "priors" / "stereo_05.mat")
+    steps, prior_steps = relative_poses(corrected), relative_poses(prior)
+    np.testing.assert_allclose(np.linalg.norm(steps[:, :3, 3], axis=1),
+                               np.linalg.norm(prior_steps[:, :3, 3], axis=1), rtol=1e-9)
+    assert np.abs(steps[:, :3, :3] - prior_steps[:, :3, :3]).max() > 1e-7
