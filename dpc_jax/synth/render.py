@@ -530,10 +530,11 @@ _MATERIALS = (
 )
 
 
-@partial(jax.jit, static_argnames=("apply_gamma",))
+@partial(jax.jit, static_argnames=("apply_gamma", "quantise"))
 def _compose(surf: Surface, albedos: tuple[tx.Colour, ...], sun: Array, gain: Array, gamma: Array,
-             apply_gamma: bool) -> Array:
-    """Pick each pixel's material, shade (Lambert + ambient), apply the illumination, → [0, 255]."""
+             apply_gamma: bool, quantise: bool) -> Array:
+    """Pick each pixel's material, shade (Lambert + ambient), apply the illumination, → [0, 255]
+    (rounded to uint8 when ``quantise``)."""
     n = surf.normal
     lambert = jnp.maximum(n[0] * sun[0] + n[1] * sun[1] + n[2] * sun[2], 0.0)
     shade = jnp.where(surf.kind == SKY, 1.0, 0.55 + 0.6 * lambert)
@@ -545,18 +546,19 @@ def _compose(surf: Surface, albedos: tuple[tx.Colour, ...], sun: Array, gain: Ar
         colour = jnp.clip(value * shade, 0.0, 1.0)
         if apply_gamma:  # a power is costly on CPU; skipped when the illumination does not drift
             colour = colour**gamma
-        channels.append(255.0 * jnp.clip(gain * colour, 0.0, 1.0))
+        value = 255.0 * jnp.clip(gain * colour, 0.0, 1.0)
+        channels.append(jnp.round(value).astype(jnp.uint8) if quantise else value)
     return jnp.stack(channels, -1)
 
 
 def _shade(surf: Surface, ppm: Array, noise: tx.Noise, layers: Array, sun: Array, gain: Array,
-           gamma: Array, apply_gamma: bool) -> Array:
+           gamma: Array, apply_gamma: bool, quantise: bool = False) -> Array:
     albedos = tuple(material(surf, ppm, noise, layers) for material in _MATERIALS)
-    return _compose(surf, albedos, sun, gain, gamma, apply_gamma=apply_gamma)
+    return _compose(surf, albedos, sun, gain, gamma, apply_gamma=apply_gamma, quantise=quantise)
 
 
 def render_stereo(scene: FrameScene, pose: Array, K: Array, baseline: Array, gain: float, gamma: float,
-                  *, height: int, width: int) -> tuple[Array, Array, Array]:
+                  *, height: int, width: int, quantise: bool = False) -> tuple[Array, Array, Array]:
     """Render the left and right views of one frame.
 
     Three jitted stages (geometry, noise, shading): separate compilations keep XLA from fusing a
@@ -569,7 +571,7 @@ def render_stereo(scene: FrameScene, pose: Array, K: Array, baseline: Array, gai
         ``+baseline`` along the left camera's x axis.
       gain, gamma: global illumination: ``I = gain · albedo_shaded ** gamma`` (before quantisation).
     Returns:
-      ``image [2, H, W, 3]`` float32 in [0, 255] (not quantised), ``depth [2, H, W]`` float32 z-depth
+      ``image [2, H, W, 3]`` float32 in [0, 255] (uint8 if ``quantise``), ``depth [2, H, W]`` float32 z-depth
       in metres (``inf`` for sky), ``moving [2, H, W]`` bool (pixel shows a moving car). Index 0 is
       the left camera, 1 the right.
     """
@@ -577,5 +579,5 @@ def render_stereo(scene: FrameScene, pose: Array, K: Array, baseline: Array, gai
     surf = surface_attributes(scene, hits, pose, K, baseline, height=height, width=width)
     ppm, noise = _noise(surf.u, surf.v, surf.seed)
     image = _shade(surf, ppm, noise, scene.layers, scene.sun, jnp.float32(gain), jnp.float32(gamma),
-                   apply_gamma=float(gamma) != 1.0)
+                   apply_gamma=float(gamma) != 1.0, quantise=quantise)
     return image, surf.depth, surf.moving

@@ -208,13 +208,14 @@ def iter_frames(config: SynthConfig) -> Iterator[SynthFrame]:
         scene = FrameScene(*(jnp.asarray(t) for t in frame_scene(plan, i, K, size, config.baseline)))
         image, depth, moving = render_stereo(
             scene, jnp.asarray(plan.world_poses[i], jnp.float32), jnp.asarray(K, jnp.float32), baseline,
-            jnp.float32(plan.gain[i]), jnp.float32(plan.gamma[i]), height=config.height, width=config.width,
+            float(plan.gain[i]), float(plan.gamma[i]), height=config.height, width=config.width,
+            quantise=config.noise == 0,
         )
-        image, depth, moving = np.asarray(image), np.asarray(depth), np.asarray(moving)
+        pixels, depth, moving = np.asarray(image), np.asarray(depth), np.asarray(moving)
         if config.noise > 0:
             rng = np.random.default_rng(np.random.SeedSequence([config.seed, 0x1015E, i]))
-            image = image + rng.standard_normal(image.shape, np.float32) * np.float32(config.noise)
-        pixels = np.clip(np.rint(image), 0, 255).astype(np.uint8)
+            noisy = pixels + rng.standard_normal(pixels.shape, np.float32) * np.float32(config.noise)
+            pixels = np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
         yield SynthFrame(i, pixels[0], pixels[1], depth[0], depth[1], moving[0], moving[1])
 
 
