@@ -38,7 +38,8 @@ updated BatchNorm statistics.
 
 Deviations from the reference (PyTorch, utiasSTARS/ss-dpc-net), none of which changes the
 parameter count: BatchNorm running variance uses the biased batch variance (PyTorch's is
-unbiased); the transposed-conv kernel is not spatially flipped (a re-parametrisation).
+unbiased); the transposed-conv kernel is not spatially flipped (a re-parametrisation; see
+``UpConv``).
 BatchNorm momentum 0.9 (Flax convention, weight of the old average) equals PyTorch's default
 momentum 0.1. ``create_model`` initialises the weights as PyTorch does by default.
 """
@@ -179,8 +180,11 @@ def upsample2x_bilinear(x: jax.Array) -> jax.Array:
 
     def along(a: jax.Array, axis: int) -> jax.Array:
         n = a.shape[axis]
-        prev = jnp.take(a, jnp.maximum(jnp.arange(n) - 1, 0), axis=axis)
-        nxt = jnp.take(a, jnp.minimum(jnp.arange(n) + 1, n - 1), axis=axis)
+        # Shifted copies by slicing (a gather would be slower on CPU), edges repeated.
+        first = jax.lax.slice_in_dim(a, 0, 1, axis=axis)
+        last = jax.lax.slice_in_dim(a, n - 1, n, axis=axis)
+        prev = jnp.concatenate([first, jax.lax.slice_in_dim(a, 0, n - 1, axis=axis)], axis=axis)
+        nxt = jnp.concatenate([jax.lax.slice_in_dim(a, 1, n, axis=axis), last], axis=axis)
         even = 0.75 * a + 0.25 * prev
         odd = 0.75 * a + 0.25 * nxt
         stacked = jnp.stack([even, odd], axis=axis + 1)
@@ -209,17 +213,53 @@ class _ConvBlock(nnx.Module):
         return self.norm(jax.nn.relu(self.conv(x)))
 
 
-class _UpConv(nnx.Module):
-    """Transposed conv 3×3 stride 2 → ReLU; the output is exactly twice the input size.
+_NHWC = ("NHWC", "HWIO", "NHWC")
 
-    The explicit padding (1, 2) of the dilated input is PyTorch's ``padding=1, output_padding=1``.
+
+def _phase_taps(k: jax.Array, axis: int) -> jax.Array:
+    """Split the 3 taps of ``k`` along ``axis`` into [phase, offset] (new leading axes 0, 1).
+
+    Output position 2m (phase 0) takes tap 1 at input m; 2m+1 (phase 1) takes tap 0 at m and tap 2
+    at m+1. Pure data movement (an einsum with a 0/1 matrix would cost a badly shaped matmul).
+    """
+    tap = [jax.lax.index_in_dim(k, t, axis, keepdims=False) for t in range(3)]
+    zero = jnp.zeros_like(tap[0])
+    return jnp.stack([jnp.stack([tap[1], zero]), jnp.stack([tap[0], tap[2]])])
+
+
+def _phase_kernel(kernel: jax.Array) -> jax.Array:
+    """``[3, 3, C_in, C_out]`` → ``[2, 2, C_in, 2, 2, C_out]`` = [row offset, col offset, C_in,
+    row phase, col phase, C_out]: the 2×2 stride-1 kernel of every output phase."""
+    rows = _phase_taps(kernel, 0)  # [a, q, 3 (col taps), C_in, C_out]
+    both = _phase_taps(rows, 2)  # [b, r, a, q, C_in, C_out]
+    return both.transpose(3, 1, 4, 2, 0, 5)
+
+
+class UpConv(nnx.Module):
+    """Transposed conv 3×3 stride 2 → ReLU, ``[B, h, w, C_in] -> [B, 2h, 2w, C_out]``.
+
+    Mathematically ``lax.conv_transpose(x, kernel, (2, 2), ((1, 2), (1, 2)))`` (Flax's
+    ``ConvTranspose`` with that padding, i.e. PyTorch's ``ConvTranspose2d(3, stride=2, padding=1,
+    output_padding=1)`` up to a kernel flip), with the same ``[3, 3, C_in, C_out]`` kernel.
+    It is evaluated as one stride-1 2×2 convolution producing the four output phases, then
+    interleaved (depth-to-space): XLA's CPU backend computes input-dilated convolutions, and
+    their gradients, several times slower than plain ones.
     """
 
     def __init__(self, cin: int, cout: int, rngs: nnx.Rngs):
-        self.conv = nnx.ConvTranspose(cin, cout, (3, 3), strides=2, padding=((1, 2), (1, 2)), rngs=rngs)
+        init = nnx.initializers.lecun_normal()
+        self.kernel = nnx.Param(init(rngs.params(), (3, 3, cin, cout), jnp.float32))
+        self.bias = nnx.Param(jnp.zeros((cout,), jnp.float32))
 
     def __call__(self, x: jax.Array) -> jax.Array:
-        return jax.nn.relu(self.conv(x))
+        dtype = jnp.result_type(x, self.kernel[...])
+        x, kernel, bias = x.astype(dtype), self.kernel[...].astype(dtype), self.bias[...].astype(dtype)
+        cin, cout = kernel.shape[2:]
+        phases = _phase_kernel(kernel).reshape(2, 2, cin, 4 * cout)
+        y = jax.lax.conv_general_dilated(x, phases, (1, 1), ((0, 1), (0, 1)), dimension_numbers=_NHWC)
+        b, h, w, _ = y.shape
+        y = y.reshape(b, h, w, 2, 2, cout).transpose(0, 1, 3, 2, 4, 5).reshape(b, 2 * h, 2 * w, cout)
+        return jax.nn.relu(y + bias)
 
 
 class _Head(nnx.Module):
@@ -255,7 +295,7 @@ class Branch(nnx.Module):
         upconvs, iconvs, heads = [], [], []
         for i, s in enumerate(range(depth, 0, -1)):
             cin = enc[-1] if i == 0 else dec[i - 1]
-            upconvs.append(_UpConv(cin, dec[i], rngs))
+            upconvs.append(UpConv(cin, dec[i], rngs))
             skip = enc[s - 2] if s >= 2 else 0
             previous_head = frames if s < c.depth_scales else 0
             iconvs.append(_ConvBlock(dec[i] + skip + previous_head, dec[i], 3, 1, c.bn_momentum, rngs))
@@ -268,7 +308,7 @@ class Branch(nnx.Module):
         mask_planes = dec[depth - c.mask_source_block :]
         mask_cins = [enc[c.mask_source_block - 1], *mask_planes[:-1]]
         mask_stages = zip(mask_cins, mask_planes, strict=True)
-        self.mask_upconvs = nnx.List([_UpConv(ci, co, rngs) for ci, co in mask_stages])
+        self.mask_upconvs = nnx.List([UpConv(ci, co, rngs) for ci, co in mask_stages])
         self.mask_head = _Head(mask_planes[-1], frames, rngs)
 
     def __call__(self, x: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
@@ -472,7 +512,7 @@ def _init_like_pytorch(model: nnx.Module, seed: int) -> None:
     """
     rng = np.random.default_rng(seed)
     for _, module in nnx.iter_modules(model):
-        if isinstance(module, nnx.ConvTranspose):
+        if isinstance(module, UpConv):
             *window, _, cout = module.kernel.shape
             fan_in = cout * math.prod(window)
         elif isinstance(module, nnx.Conv | nnx.Linear):

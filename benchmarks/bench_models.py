@@ -1,0 +1,209 @@
+"""Benchmark the networks: inference latency and a full training step (DESIGN §3, issue 7).
+
+Usage::
+
+    python benchmarks/bench_models.py [--preset reference] [--height 240 --width 376]
+        [--methods ss_dpc stereo_dpc] [--infer-batches 1 8] [--train-batches 4 8]
+        [--repeats 10] [--breakdown] [--profile DIR]
+
+* ``inference``: jitted eval-mode forward of ``(state, batch)``.
+* ``train step``: one jitted, buffer-donating step: train-mode forward, the loss assembly with
+  its warps (``ss_dpc_loss`` / ``stereo_dpc_loss``), backward, Adam with coupled L2 weight
+  decay 4e-6 (optax), new parameters and BatchNorm statistics.
+* ``--breakdown`` adds rows that split the training step: the forward alone, the loss alone on
+  fixed network outputs, and the loss's forward+backward.
+* ``--profile DIR`` writes a ``jax.profiler`` trace of a few training steps (TensorBoard /
+  Perfetto).
+
+Every function is compiled and called once more before timing; the table reports the median and
+min wall time of ``--repeats`` calls, each blocked until ready, and the median CPU time of the
+process per call. The load average is printed before and after, because wall times mean little
+on a busy machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import statistics
+import time
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import nnx
+
+from dpc_jax.batch import Batch
+from dpc_jax.losses import SSDPCLossConfig, StereoDPCLossConfig, ss_dpc_loss, stereo_dpc_loss
+from dpc_jax.models import PRESETS, create_model
+
+
+def timeit(fn: Callable[..., object], args: tuple, repeats: int) -> tuple[float, float, float]:
+    """Median and min wall time and median process CPU time (all threads), in milliseconds, of
+    ``fn(*args)`` after compilation and one warm-up call.
+
+    On a busy machine the wall time mostly measures the other processes; the CPU time is less
+    sensitive to them (on an idle machine with P cores, wall ≥ CPU / P).
+    """
+    jax.block_until_ready(fn(*args))
+    jax.block_until_ready(fn(*args))
+    wall, cpu = [], []
+    for _ in range(repeats):
+        start, start_cpu = time.perf_counter(), time.process_time()
+        jax.block_until_ready(fn(*args))
+        wall.append((time.perf_counter() - start) * 1e3)
+        cpu.append((time.process_time() - start_cpu) * 1e3)
+    return statistics.median(wall), min(wall), statistics.median(cpu)
+
+
+def make_batch(b: int, h: int, w: int, seed: int = 0) -> Batch:
+    """Random images and flow, a small prior, KITTI-like intrinsics at ``h × w``."""
+    r = np.random.default_rng(seed)
+    k = np.array([[0.58 * w, 0, w / 2], [0, 1.9 * h, h / 2], [0, 0, 1]], np.float32)
+    return Batch(
+        left=r.integers(0, 256, (b, 2, h, w, 3), dtype=np.uint8),
+        right=r.integers(0, 256, (b, 2, h, w, 3), dtype=np.uint8),
+        xi_vo=np.tile(np.array([0.0, 0.0, 1.0, 0.0, 0.01, 0.0], np.float32), (b, 1)),
+        intrinsics=np.tile(k, (b, 1, 1)),
+        baseline=np.full(b, 0.54, np.float32),
+        weight=np.ones(b, np.float32),
+        flow=r.normal(size=(b, 2, h, w, 2)).astype(np.float32),
+    )
+
+
+def loss_fn(method: str) -> Callable:
+    if method == "ss_dpc":
+        config = SSDPCLossConfig()
+        return lambda outputs, batch: ss_dpc_loss(outputs, batch, config)
+    config = StereoDPCLossConfig()
+    return lambda outputs, batch: stereo_dpc_loss(outputs, batch, config)
+
+
+def build(method: str, preset: str, hw: tuple[int, int]) -> dict[str, Callable]:
+    """Jitted inference, training step and breakdown functions for one model."""
+    config = dataclasses.replace(PRESETS[preset], image_size=hw)
+    model = create_model(method, config, seed=0)
+    graphdef, params, stats = nnx.split(model, nnx.Param, ...)
+    loss = loss_fn(method)
+    optimizer = optax.chain(optax.add_decayed_weights(4e-6), optax.adam(1e-4))
+    opt_state = optimizer.init(params)
+
+    @jax.jit
+    def infer(params: nnx.State, stats: nnx.State, batch: Batch):
+        m = nnx.merge(graphdef, params, stats)
+        m.eval()
+        return m(batch)
+
+    def train_loss(params: nnx.State, stats: nnx.State, batch: Batch, key: jax.Array):
+        # copy=True: fresh Variables at jax.grad's trace level, where BatchNorm writes its statistics.
+        m = nnx.merge(graphdef, params, stats, copy=True)
+        m.train()
+        outputs = m(batch, key=key)
+        value, _ = loss(outputs, batch)
+        return value, nnx.state(m, nnx.BatchStat)
+
+    @jax.jit
+    def forward_train(params: nnx.State, stats: nnx.State, batch: Batch, key: jax.Array):
+        m = nnx.merge(graphdef, params, stats)
+        m.train()
+        return m(batch, key=key)
+
+    @jax.jit
+    def loss_only(outputs, batch: Batch):
+        return loss(outputs, batch)[0]
+
+    @jax.jit
+    def loss_grad(outputs, batch: Batch):
+        return jax.grad(lambda o: loss(o, batch)[0])(outputs)
+
+    @jax.jit
+    def grad_only(params: nnx.State, stats: nnx.State, batch: Batch, key: jax.Array):
+        return jax.grad(train_loss, has_aux=True)(params, stats, batch, key)
+
+    @jax.jit
+    def train_step(params, stats, opt_state, batch: Batch, key: jax.Array):
+        (value, new_stats), grads = jax.value_and_grad(train_loss, has_aux=True)(params, stats, batch, key)
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), new_stats, opt_state, value
+
+    # Donation is a separate jit so the breakdown rows can reuse the undonated inputs.
+    train_step_donated = jax.jit(train_step.__wrapped__, donate_argnums=(0, 1, 2))
+    return {
+        "state": (params, stats, opt_state),
+        "infer": infer,
+        "forward_train": forward_train,
+        "loss_only": loss_only,
+        "loss_grad": loss_grad,
+        "grad_only": grad_only,
+        "train_step": train_step_donated,
+    }
+
+
+def donated_step(train_step: Callable, live: list, batch: Batch, key: jax.Array) -> jax.Array:
+    """Run a state-donating step on ``live = [params, stats, opt_state]``, replacing it in place."""
+    live[0], live[1], live[2], value = train_step(*live, batch, key)
+    return value
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--preset", default="reference", choices=sorted(PRESETS))
+    parser.add_argument("--height", type=int, default=240)
+    parser.add_argument("--width", type=int, default=376)
+    parser.add_argument("--methods", nargs="+", default=["ss_dpc", "stereo_dpc"])
+    parser.add_argument("--infer-batches", nargs="*", type=int, default=[1, 8])
+    parser.add_argument("--train-batches", nargs="*", type=int, default=[4, 8])
+    parser.add_argument("--repeats", type=int, default=10)
+    parser.add_argument("--breakdown", action="store_true", help="also time parts of the training step")
+    parser.add_argument("--profile", help="write a jax.profiler trace of training steps to this folder")
+    args = parser.parse_args()
+
+    hw = (args.height, args.width)
+    device = jax.devices()[0]
+    print(
+        f"device: {device.platform} ({device.device_kind}), {os.cpu_count()} CPUs, jax {jax.__version__}, "
+        f"float32, preset {args.preset}, {hw[0]}x{hw[1]}, {args.repeats} repeats"
+    )
+    print(f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}")
+    print("load average before: {:.2f} {:.2f} {:.2f}".format(*os.getloadavg()))
+    header = ("model", "what", "batch", "median ms", "min ms", "CPU ms")
+    print("| {:<10} | {:<30} | {:>5} | {:>9} | {:>9} | {:>9} |".format(*header))
+    print(f"|{'-' * 12}|{'-' * 32}|{'-' * 7}|{'-' * 11}|{'-' * 11}|{'-' * 11}|")
+
+    def row(method: str, what: str, b: int, fn: Callable[..., object], *fn_args: object) -> None:
+        median, best, cpu = timeit(fn, fn_args, args.repeats)
+        cells = f"| {method:<10} | {what:<30} | {b:>5} | {median:>9.1f} | {best:>9.1f} | {cpu:>9.1f} |"
+        print(cells, flush=True)
+
+    key = jax.random.key(0)
+    for method in args.methods:
+        fns = build(method, args.preset, hw)
+        params, stats, opt_state = fns["state"]
+        for b in args.infer_batches:
+            batch = jax.device_put(make_batch(b, *hw))
+            row(method, "inference (eval)", b, fns["infer"], params, stats, batch)
+        for b in args.train_batches:
+            batch = jax.device_put(make_batch(b, *hw))
+            if args.breakdown:
+                outputs = fns["forward_train"](params, stats, batch, key)
+                row(method, "forward (train mode)", b, fns["forward_train"], params, stats, batch, key)
+                row(method, "loss fwd (fixed outputs)", b, fns["loss_only"], outputs, batch)
+                row(method, "loss fwd+bwd (fixed outputs)", b, fns["loss_grad"], outputs, batch)
+                row(method, "forward+loss+backward", b, fns["grad_only"], params, stats, batch, key)
+            # The donated step consumes its inputs: the live state is kept in a mutable cell.
+            live = list(jax.tree.map(jnp.copy, (params, stats, opt_state)))
+            step = fns["train_step"]
+            row(method, "train step (fwd+loss+bwd+Adam)", b, donated_step, step, live, batch, key)
+            if args.profile:
+                with jax.profiler.trace(os.path.join(args.profile, f"{method}_b{b}")):
+                    for _ in range(3):
+                        jax.block_until_ready(donated_step(step, live, batch, key))
+    print("load average after: {:.2f} {:.2f} {:.2f}".format(*os.getloadavg()))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
