@@ -1,3 +1,62 @@
-"""dpc_jax: self-supervised deep pose correction of classical stereo visual odometry."""
+"""dpc_jax: self-supervised deep pose correction of classical stereo visual odometry.
+
+The public API is re-exported here lazily (PEP 562), so ``import dpc_jax`` and the command line
+start without importing JAX, Flax or OpenCV; ``from dpc_jax import se3_exp`` imports what it needs.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
 
 __version__ = "0.1.0"
+
+_EXPORTS: dict[str, tuple[str, ...]] = {
+    "dpc_jax.lie": (
+        "so3_hat", "so3_vee", "so3_exp", "so3_log", "so3_left_jacobian", "so3_left_jacobian_inv",
+        "se3_exp", "se3_log", "se3_inverse", "transform_points", "project_to_so3", "validate_poses",
+    ),
+    "dpc_jax.camera": ("scale_intrinsics", "pixel_grid", "backproject", "project"),
+    "dpc_jax.warp": ("bilinear_sample", "inverse_warp", "stereo_warp", "disparity_consistency"),
+    "dpc_jax.ssim": ("ssim", "ssim_loss"),
+    "dpc_jax.correction": ("apply_correction",),
+    "dpc_jax.losses": (
+        "SSDPCLossConfig", "StereoDPCLossConfig", "ss_dpc_loss", "stereo_dpc_loss", "gradient_loss",
+    ),
+    "dpc_jax.batch": ("Batch",),
+    "dpc_jax.outputs": ("BranchOutputs", "DPCOutputs"),
+    "dpc_jax.trajectory": (
+        "read_trajectory", "read_kitti_poses", "read_tum", "read_mat", "write_kitti_poses", "write_tum",
+        "relative_poses", "compose", "remove_static_frames",
+    ),
+    "dpc_jax.metrics": (
+        "m_ate", "c_ate", "segment_errors", "kitti_devkit_errors", "ate", "rpe", "count_loop_closures",
+        "trajectory_metrics",
+    ),
+    "dpc_jax.evaluation": ("evaluate", "Evaluation", "write_report", "export_trajectories"),
+    "dpc_jax.data": (
+        "StereoSequence", "open_odometry", "open_raw", "load_image", "prepare_sequence", "load_cache",
+        "TrainLoader", "iterate_sequence", "leave_one_out",
+    ),
+    "dpc_jax.synth": ("SynthConfig", "render_sequence", "write_sequences"),
+    "dpc_jax.vo": ("StereoVO", "VOConfig", "VOResult", "VOStatus", "run_vo", "run_vo_frames"),
+    "dpc_jax.models": ("ModelConfig", "PRESETS", "MonoDPC", "StereoDPC", "create_model"),
+    "dpc_jax.train": ("TrainConfig", "make_train_step", "make_eval_step", "train"),
+    "dpc_jax.correct": ("load_run", "correct_cache", "predict_corrections", "write_trajectory"),
+}
+_MODULE_OF = {name: module for module, names in _EXPORTS.items() for name in names}
+
+__all__ = ["__version__", *_MODULE_OF]
+
+
+def __getattr__(name: str) -> Any:
+    module = _MODULE_OF.get(name)
+    if module is None:
+        raise AttributeError(f"module 'dpc_jax' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)

@@ -1,0 +1,17 @@
+"""The package re-exports its public API lazily and every name resolves."""
+
+import subprocess
+import sys
+
+import dpc_jax
+
+
+def test_every_exported_name_resolves() -> None:
+    for name in dpc_jax.__all__:
+        assert getattr(dpc_jax, name) is not None, name
+
+
+def test_import_is_light() -> None:
+    code = "import sys, dpc_jax; print('jax' in sys.modules, 'flax' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["False", "False"]
