@@ -26,6 +26,7 @@ import dataclasses
 import functools
 import io
 import itertools
+import json
 import math
 import os
 import sys
@@ -591,6 +592,19 @@ def check_workdir(config: TrainConfig, workdir: str | os.PathLike, resume: bool)
     return True
 
 
+def _check_split(workdir: Path, split: dict[str, Any]) -> None:
+    """Refuse to resume on data that differ from the run's stored split (re-prepared cache, ...)."""
+    path = workdir / "checkpoints" / "split.json"
+    if not path.is_file():
+        return
+    stored = json.loads(path.read_text())
+    changes = [f"{k}: {stored.get(k)!r} → {split.get(k)!r}" for k in sorted(set(stored) | set(split))
+               if stored.get(k) != split.get(k)]
+    if changes:
+        message = "; ".join(changes)
+        raise ConfigError(f"{path}: the data changed since the run started, cannot resume: {message}")
+
+
 def _train_epoch(
     epoch: int,
     graphdef: nnx.GraphDef,
@@ -698,6 +712,8 @@ def train(
         parallel.initialize_distributed(**(distributed or {}))
     progress = sys.stderr.isatty() if progress is None else progress
     data = open_data(config, workers=workers)
+    if has_run:
+        _check_split(workdir, data.split)
     mesh = parallel.make_mesh()
     try:
         parallel.check_batch_size(config.batch_size, mesh)
@@ -714,12 +730,13 @@ def train(
     meta: dict[str, Any] | None = None
     if has_run and checkpoints.latest_epoch() is not None:
         abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, state)
-        state, meta = checkpoints.restore(abstract)
-        if meta["data"]["steps_per_epoch"] != data.steps_per_epoch:
+        try:
+            state, meta = checkpoints.restore(abstract)
+        except ValueError as error:
             raise ConfigError(
-                f"{workdir}: the checkpoint was made with {meta['data']['steps_per_epoch']} steps per epoch, "
-                f"the data now gives {data.steps_per_epoch}; the cache changed since the run started"
-            )
+                f"{checkpoints.root}: the stored state does not fit the model this code builds from the "
+                f"config (did the model code change since the run started?): {str(error)[:300]}"
+            ) from None
     elif is_main:
         config_lib.save_json(checkpoints.root / "config.json", config)
         config_lib.save_json(checkpoints.root / "split.json", data.split)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import importlib
 import itertools
 import json
 import os
@@ -22,7 +23,6 @@ import pytest
 
 from dpc_jax import config as config_lib
 from dpc_jax import models as models_lib
-from dpc_jax import train as train_lib
 from dpc_jax.batch import Batch
 from dpc_jax.checkpoints import Checkpoints
 from dpc_jax.config import ConfigError
@@ -39,6 +39,9 @@ from dpc_jax.train import (
     state_step,
     train,
 )
+
+# The module itself: ``from dpc_jax import train`` is the re-exported function of the same name.
+train_lib = importlib.import_module("dpc_jax.train")
 
 
 @pytest.mark.parametrize(("halving", "steps_per_epoch"), [(5, 7), (4, 3), (1, 1)])
@@ -233,6 +236,12 @@ def test_bad_input_fails_before_any_compute(
     config_lib.save_json(other / "config.json", tiny_config(cache_root, seed=5))
     with pytest.raises(ConfigError, match="seed: 5 → 0"):
         train(tiny_config(cache_root), tmp_path / "e", resume=True, progress=False)
+    stored = tmp_path / "f" / "checkpoints"
+    config_lib.save_json(stored / "config.json", tiny_config(cache_root))
+    split = train_lib.open_data(tiny_config(cache_root), workers=0).split
+    config_lib.save_json(stored / "split.json", {**split, "train_samples": 1})
+    with pytest.raises(ConfigError, match=r"cannot resume: train_samples: 1 → 42$"):
+        train(tiny_config(cache_root), tmp_path / "f", resume=True, progress=False)
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
 
 
