@@ -34,14 +34,17 @@ and applies dropout, for which ``model(batch, key=...)`` needs an explicit PRNG 
 ``model.eval()`` uses the running averages and no dropout (the key is ignored). The mode is a
 static attribute, so ``graphdef, state = nnx.split(model)`` captures it and a pure jitted function
 can ``nnx.merge(graphdef, state)``, call the model, and return ``nnx.state(merged)`` with the
-updated BatchNorm statistics.
+updated BatchNorm statistics. When the model runs inside ``jax.grad`` (or another transform)
+within that function while the BatchNorm statistics come in as a non-differentiated argument,
+merge with ``nnx.merge(graphdef, params, stats, copy=True)``: NNX refuses to write Variables
+created at an outer trace level.
 
 Deviations from the reference (PyTorch, utiasSTARS/ss-dpc-net), none of which changes the
 parameter count: BatchNorm running variance uses the biased batch variance (PyTorch's is
 unbiased); the transposed-conv kernel is not spatially flipped (a re-parametrisation; see
-``UpConv``).
-BatchNorm momentum 0.9 (Flax convention, weight of the old average) equals PyTorch's default
-momentum 0.1. ``create_model`` initialises the weights as PyTorch does by default.
+``UpConv``). BatchNorm momentum 0.9 (Flax convention, weight of the old average) equals
+PyTorch's default momentum 0.1. ``create_model`` initialises the weights as PyTorch does by
+default.
 """
 
 from __future__ import annotations
