@@ -1,0 +1,29 @@
+"""The synthetic demo (issue 9): what ``dpc-jax demo`` runs; this file spells out its defaults.
+
+Command (either; the second is the installed console script):
+
+    python experiments/synthetic_demo.py --out runs/synthetic_demo
+    dpc-jax demo --out runs/synthetic_demo
+
+What it produces in OUT (see ``dpc_jax.demo``): ``data/`` (rendered synthetic sequences in the
+KITTI odometry layout: train0, train1 for training, val for epoch selection, test held out),
+``vo/`` (priors from our classical stereo VO), ``cache/`` (prepared at the network's size),
+``run/`` (the Stereo DPC training run: checkpoints, metrics.csv, TensorBoard), ``report.md``
+(prior vs corrected on the test sequence, per-length segment errors, trajectory / segment-error /
+cumulative-error plots), ``corrected.txt``, ``summary.json``. The epoch is selected by the
+validation gradient loss (no ground truth); the test sequence is never read by training.
+"""
+
+CONFIG = {
+    "train_sequences": 2,
+    "train_frames": 300,
+    "validation_frames": 150,
+    "test_frames": 300,
+    "render_size": (240, 376),
+    "moving_objects": 6,
+    "illumination_drift": 0.3,
+    "noise": 1.0,
+    "seed": 0,
+    "training": {},
+    "select": "gradient",
+}
