@@ -18,7 +18,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     ),
     "dpc_jax.camera": ("scale_intrinsics", "pixel_grid", "backproject", "project"),
     "dpc_jax.warp": ("bilinear_sample", "inverse_warp", "stereo_warp", "disparity_consistency"),
-    "dpc_jax.ssim": ("ssim", "ssim_loss"),
+    "dpc_jax.ssim": ("ssim_loss",),
     "dpc_jax.correction": ("apply_correction",),
     "dpc_jax.losses": (
         "SSDPCLossConfig", "StereoDPCLossConfig", "ss_dpc_loss", "stereo_dpc_loss", "gradient_loss",
@@ -40,11 +40,19 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     ),
     "dpc_jax.synth": ("SynthConfig", "render_sequence", "write_sequences"),
     "dpc_jax.vo": ("StereoVO", "VOConfig", "VOResult", "VOStatus", "run_vo", "run_vo_frames"),
-    "dpc_jax.models": ("ModelConfig", "PRESETS", "MonoDPC", "StereoDPC", "create_model"),
-    "dpc_jax.train": ("TrainConfig", "make_train_step", "make_eval_step", "train"),
+    "dpc_jax.models": ("ModelConfig", "PRESETS", "MonoDPC", "StereoDPC", "create_model", "count_parameters"),
+    "dpc_jax.train": (
+        "TrainConfig", "make_train_step", "make_eval_step", "create_train_state", "make_optimizer",
+        "learning_rate_schedule", "NonFiniteLossError",
+    ),
+    "dpc_jax.checkpoints": ("Checkpoints",),
+    "dpc_jax.parallel": ("make_mesh", "shard_batch", "replicate"),
+    "dpc_jax.config": ("ConfigError", "load_file"),
     "dpc_jax.correct": ("load_run", "correct_cache", "predict_corrections", "write_trajectory"),
 }
 _MODULE_OF = {name: module for module, names in _EXPORTS.items() for name in names}
+# A re-exported name must never shadow a submodule (``dpc_jax.train`` the module vs a function).
+assert not {name for name in _MODULE_OF if f"dpc_jax.{name}" in _EXPORTS}
 
 __all__ = ["__version__", *_MODULE_OF]
 

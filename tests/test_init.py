@@ -15,3 +15,10 @@ def test_import_is_light() -> None:
     code = "import sys, dpc_jax; print('jax' in sys.modules, 'flax' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.split() == ["False", "False"]
+
+
+def test_no_export_shadows_a_submodule() -> None:
+    import pkgutil
+
+    submodules = {m.name for m in pkgutil.iter_modules(dpc_jax.__path__)}
+    assert submodules.isdisjoint(dpc_jax.__all__)
