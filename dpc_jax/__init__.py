@@ -51,8 +51,6 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "dpc_jax.correct": ("load_run", "correct_cache", "predict_corrections", "write_trajectory"),
 }
 _MODULE_OF = {name: module for module, names in _EXPORTS.items() for name in names}
-# A re-exported name must never shadow a submodule (``dpc_jax.train`` the module vs a function).
-assert not {name for name in _MODULE_OF if f"dpc_jax.{name}" in _EXPORTS}
 
 __all__ = ["__version__", *_MODULE_OF]
 
