@@ -9,6 +9,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from dpc_jax.cli._common import Formatter, frame_range
+
 HELP = "Correct a VO trajectory with a trained network (T* = Exp(xi_corr) T_vo); evaluate it against GT."
 
 EPILOG = """The sequence (--data, one of):
@@ -29,21 +31,11 @@ examples:
       --drive 1 --prior data/kitti-raw/libviso2/stereo_2011_09_26_drive_0001.mat --out corrected.txt"""
 
 
-def _frames(text: str) -> tuple[int, int]:
-    try:
-        start, stop = (int(v) for v in text.split(":"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected START:STOP such as 0:100, got {text!r}") from None
-    return start, stop
-
-
-class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
-    """Keeps the examples' line breaks and shows the defaults."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = EPILOG
-    parser.formatter_class = _Formatter
+    parser.formatter_class = Formatter
     parser.add_argument("--checkpoint", required=True, type=Path, metavar="WORKDIR",
                         help="training run folder (dpc-jax train --workdir)")
     parser.add_argument("--select", choices=("gradient", "loop", "last"), default="gradient",
@@ -61,7 +53,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--prior-format", choices=("kitti", "tum", "mat"), help="override the extension")
     parser.add_argument("--gt", metavar="FILE", help="raw inputs: ground-truth pose file (KITTI/TUM/.mat)")
     parser.add_argument("--cache", type=Path, metavar="DIR", help="raw inputs: keep the prepared cache here")
-    parser.add_argument("--frames", type=_frames, metavar="START:STOP", help="raw inputs: only these frames")
+    parser.add_argument("--frames", type=frame_range, metavar="START:STOP",
+                        help="raw inputs: only these frames")
     parser.add_argument("--remove-static", action="store_true",
                         help="raw inputs: drop static frames first (ss-DPC-Net rule, read on the prior)")
     parser.add_argument("--mono-rescale", action="store_true",

@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from dpc_jax.cli._common import Formatter, frame_range, image_size
+
 HELP = "Decode, resize and cache stereo sequences with their VO prior (and optical flow) for training."
 
 EPILOG = """examples:
@@ -16,29 +18,12 @@ The synthetic sequences use the odometry layout (--kitti-odometry). '{seq}' in -
 each sequence name. Ground truth: poses/XX.txt (odometry), else --gt, else the poses_gt of a .mat prior."""
 
 
-def _size(text: str) -> tuple[int, int]:
-    try:
-        h, w = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected HxW such as 240x376, got {text!r}") from None
-    return h, w
 
-
-def _frames(text: str) -> tuple[int, int]:
-    try:
-        start, stop = (int(v) for v in text.split(":"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected START:STOP such as 0:12, got {text!r}") from None
-    return start, stop
-
-
-class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
-    """Keeps the examples' line breaks and shows the defaults."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = EPILOG
-    parser.formatter_class = _Formatter
+    parser.formatter_class = Formatter
     layout = parser.add_mutually_exclusive_group(required=True)
     layout.add_argument("--kitti-odometry", type=Path, metavar="ROOT",
                         help="odometry layout root (holds sequences/ and poses/); also the synthetic layout")
@@ -53,8 +38,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--gt", metavar="FILE",
                         help="ground-truth pose file (KITTI/TUM/.mat); '{seq}' allowed")
     parser.add_argument("--out", required=True, type=Path, metavar="CACHE_DIR", help="cache root folder")
-    parser.add_argument("--size", type=_size, default=(240, 376), metavar="HxW", help="stored image size")
-    parser.add_argument("--frames", type=_frames, metavar="START:STOP", help="keep only these source frames")
+    parser.add_argument("--size", type=image_size, default=(240, 376), metavar="HxW",
+                        help="stored image size")
+    parser.add_argument("--frames", type=frame_range, metavar="START:STOP",
+                        help="keep only these source frames")
     parser.add_argument("--remove-static", action="store_true", help="drop static frames (ss-DPC-Net rule)")
     parser.add_argument("--flow", action="store_true", help="store Farnebäck flow of consecutive pairs")
     parser.add_argument("--flow-augment", action="store_true",

@@ -5,18 +5,10 @@ from __future__ import annotations
 import argparse
 import sys
 
+from dpc_jax.cli._common import image_size
+
 HELP = "Render synthetic stereo driving sequences (KITTI odometry layout, exact depth and poses)."
 
-
-def _size(text: str) -> tuple[int, int]:
-    try:
-        h, w = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        msg = f"--size must look like 240x376 (HEIGHTxWIDTH), got {text!r}"
-        raise argparse.ArgumentTypeError(msg) from None
-    if h < 8 or w < 8:
-        raise argparse.ArgumentTypeError(f"--size must be at least 8x8, got {text!r}")
-    return h, w
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -24,7 +16,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sequences", type=int, default=4, help="number of sequences (named 00, 01, ...)")
     parser.add_argument("--frames", type=int, default=200, help="frames per sequence (10 Hz)")
     parser.add_argument("--seed", type=int, default=0, help="seed of sequence 00; sequence i uses seed + i")
-    parser.add_argument("--size", type=_size, default=(240, 376), help="image size HEIGHTxWIDTH")
+    parser.add_argument("--size", type=image_size, default=(240, 376), help="image size HEIGHTxWIDTH")
     parser.add_argument("--moving-objects", type=int, default=0, help="moving cars per sequence")
     parser.add_argument("--illumination-drift", type=float, default=0.0,
                         help="amplitude X of the slow global gain (1±X) and gamma (1±X/2) drift")

@@ -7,6 +7,8 @@ import json
 import sys
 from pathlib import Path
 
+from dpc_jax.cli._common import Formatter
+
 HELP = "Train ss-DPC-Net or Stereo DPC on prepared sequences (checkpoints, metrics.csv, TensorBoard)."
 
 EPILOG = """examples:
@@ -18,13 +20,10 @@ checkpoints/split.json, metrics.csv, tensorboard/. Several hosts: set distribute
 pass --coordinator-address/--num-processes/--process-id on each host (or nothing on clusters JAX detects)."""
 
 
-class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
-    """Keeps the examples' line breaks and shows the defaults."""
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = EPILOG
-    parser.formatter_class = _Formatter
+    parser.formatter_class = Formatter
     parser.add_argument(
         "--config",
         required=True,

@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from dpc_jax.cli._common import Formatter, frame_range
+
 HELP = "Classical stereo visual odometry (libviso2-s-like): write the trajectory and a per-frame CSV."
 
 EPILOG = """examples:
@@ -19,21 +21,11 @@ frame, inliers, status (ok | constant_velocity), disparity_offset_px, time_s. Wi
 m-ATE and final-position error are printed."""
 
 
-def _frames(text: str) -> tuple[int, int]:
-    try:
-        start, stop = (int(v) for v in text.split(":"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected START:STOP such as 0:100, got {text!r}") from None
-    return start, stop
-
-
-class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
-    """Keeps the examples' line breaks and shows the defaults."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = EPILOG
-    parser.formatter_class = _Formatter
+    parser.formatter_class = Formatter
     layout = parser.add_mutually_exclusive_group(required=True)
     layout.add_argument("--kitti-odometry", type=Path, metavar="ROOT",
                         help="odometry layout root (holds sequences/ and poses/); also the synthetic layout")
@@ -50,7 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="per-frame CSV (default: OUT with suffix .csv)")
     parser.add_argument("--start", choices=("identity", "gt"), default="identity",
                         help="first pose of the written trajectory")
-    parser.add_argument("--frames", type=_frames, metavar="START:STOP", help="use only these frames")
+    parser.add_argument("--frames", type=frame_range, metavar="START:STOP", help="use only these frames")
     parser.add_argument("--disparity-offset", type=float, default=0.0, metavar="PX",
                         help="disparity offset (px added to measured disparities); the starting value "
                              "of the online estimate unless --fixed-offset")
