@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from pathlib import Path
 
@@ -28,6 +29,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"dpc-jax demo: error: {error}", file=sys.stderr)
         return 2
     progress = not args.no_progress and sys.stderr.isatty()
+    # orbax logs a warning for every read-only checkpoint directory it opens when restoring the run.
+    logging.getLogger("absl").setLevel(logging.ERROR)
     try:
         summary = run_demo(config, args.out, progress=progress, log=lambda line: print(line, flush=True))
     except (ConfigError, FileExistsError) as error:
