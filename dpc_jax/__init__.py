@@ -49,6 +49,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "dpc_jax.parallel": ("make_mesh", "shard_batch", "replicate"),
     "dpc_jax.config": ("ConfigError", "load_file"),
     "dpc_jax.correct": ("load_run", "correct_cache", "predict_corrections", "write_trajectory"),
+    "dpc_jax.demo": ("DemoConfig", "run_demo"),
 }
 _MODULE_OF = {name: module for module, names in _EXPORTS.items() for name in names}
 
