@@ -17,12 +17,13 @@ import difflib
 import json
 import os
 import runpy
-import tempfile
 import types
 import typing
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, TypeVar
+
+from dpc_jax.trajectory import atomic_write
 
 T = TypeVar("T")
 
@@ -159,11 +160,4 @@ def save_json(path: str | os.PathLike, data: Any) -> None:
         data = to_dict(data)
     text = json.dumps(data, indent=2, sort_keys=True) + "\n"
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write(path, text)
