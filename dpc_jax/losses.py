@@ -102,13 +102,14 @@ def photometric_error(
     given, invalid reconstructed pixels are replaced by the target before SSIM, so the zeros
     that the sampler puts outside the source image do not corrupt the 3×3 statistics of their
     valid neighbours (invalid pixels themselves are dropped later by :func:`masked_mean`).
+    The target is data: no gradient flows into it through the SSIM term.
     """
     l1 = jnp.mean(jnp.abs(target - reconstruction), axis=-1)
     if isinstance(ssim_weight, (int, float)) and ssim_weight == 0:
         return l1
     if valid is not None:
         reconstruction = jnp.where(valid[..., None], reconstruction, target)
-    structural = jnp.mean(ssim_loss(target, reconstruction), axis=-1)
+    structural = jnp.mean(ssim_loss(target, reconstruction, grad_x=False), axis=-1)
     return ssim_weight * structural + (1.0 - ssim_weight) * l1
 
 

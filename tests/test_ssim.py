@@ -90,6 +90,22 @@ def test_ssim_gradient_matches_finite_differences(shape: tuple[int, int, int]) -
         np.testing.assert_allclose(np.asarray(grad), numeric, rtol=1e-6, atol=1e-6)
 
 
+def test_ssim_constant_x_keeps_the_gradient_of_y() -> None:
+    # grad_x=False (a data target) drops x's cotangent only: y's equals the full backward pass.
+    rng = np.random.default_rng(4)
+    x, y, weights = rng.random((6, 7, 3)), rng.random((6, 7, 3)), rng.random((6, 7, 3))
+
+    def grads(grad_x: bool) -> tuple[jax.Array, jax.Array]:
+        loss = lambda a, b: jnp.sum(ssim(a, b, grad_x=grad_x) * weights)
+        return jax.jit(jax.grad(loss, argnums=(0, 1)))(x, y)
+
+    full_x, full_y = grads(True)
+    zero_x, only_y = grads(False)
+    np.testing.assert_allclose(np.asarray(only_y), np.asarray(full_y), rtol=1e-12, atol=1e-14)
+    assert not np.any(np.asarray(zero_x)) and np.any(np.asarray(full_x))
+    np.testing.assert_array_equal(np.asarray(ssim(x, y, grad_x=False)), np.asarray(ssim(x, y)))
+
+
 def test_ssim_gradient_finite_on_constant_images() -> None:
     x = jnp.full((4, 5, 3), 0.5)
     grad = jax.grad(lambda y: ssim_loss(x, y).sum())(jnp.full((4, 5, 3), 0.25))
