@@ -62,8 +62,10 @@ def _unreflect(g: Array, axis: int) -> Array:
 
 def _moments(x: Array, y: Array) -> Array:
     """3×3 reflect-padded means of ``x, y, x², y², xy``: ``[5, ..., H, W, C]``."""
-    stacked = jnp.stack([x, y, x * x, y * y, x * y])
-    return _window_sum(_spatial_pad(stacked, 1, "reflect"), (stacked.ndim - 3, stacked.ndim - 2)) / 9.0
+    # Pad the two images, not the five products: one pass less over five maps.
+    xp, yp = _spatial_pad(x, 1, "reflect"), _spatial_pad(y, 1, "reflect")
+    stacked = jnp.stack([xp, yp, xp * xp, yp * yp, xp * yp])
+    return _window_sum(stacked, (stacked.ndim - 3, stacked.ndim - 2)) / 9.0
 
 
 def _terms(moments: Array, c1: float, c2: float) -> tuple[Array, Array, Array, Array]:
