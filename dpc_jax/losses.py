@@ -50,8 +50,6 @@ class SSDPCLossConfig:
     * ``grad_threshold``: γ_grad of the gradient mask (epoch selection only).
     * ``mask_floor``: clamp of the mask inside ``−log W``.
     * ``depth_eps``: points closer than this (m) to the source camera plane are invalid.
-    * ``correction_weight``, ``correction_lever_arm``: optional :func:`correction_penalty`
-      (not in the papers; 0 = off).
     """
 
     exp_weight: float = 0.23
@@ -62,11 +60,6 @@ class SSDPCLossConfig:
     grad_threshold: float = 0.03
     mask_floor: float = 1e-6
     depth_eps: float = 1e-3
-    correction_weight: float = 0.0
-    correction_lever_arm: float = 10.0
-
-    def __post_init__(self) -> None:
-        _check_correction(self)
 
 
 @dataclass(frozen=True)
@@ -75,8 +68,8 @@ class StereoDPCLossConfig:
 
     * ``alpha``: (α1 spatial, α2 disparity consistency, α3 temporal, α4 mask regulariser).
     * ``ssim_weight``: fixed λ_s; a model that learns λ_s (``outputs.ssim_weight``) overrides it.
-    * ``rotation_only``, ``grad_threshold``, ``mask_floor``, ``depth_eps``,
-      ``correction_weight``, ``correction_lever_arm``: as in :class:`SSDPCLossConfig`.
+    * ``rotation_only``, ``grad_threshold``, ``mask_floor``, ``depth_eps``: as in
+      :class:`SSDPCLossConfig`.
     """
 
     alpha: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 0.08)
@@ -85,18 +78,6 @@ class StereoDPCLossConfig:
     grad_threshold: float = 0.03
     mask_floor: float = 1e-6
     depth_eps: float = 1e-3
-    correction_weight: float = 0.0
-    correction_lever_arm: float = 10.0
-
-    def __post_init__(self) -> None:
-        _check_correction(self)
-
-
-def _check_correction(config: SSDPCLossConfig | StereoDPCLossConfig) -> None:
-    if not config.correction_weight >= 0:
-        raise ValueError(f"correction_weight must be >= 0, got {config.correction_weight}")
-    if not config.correction_lever_arm > 0:
-        raise ValueError(f"correction_lever_arm must be > 0, got {config.correction_lever_arm}")
 
 
 # --- building blocks --------------------------------------------------------------------------
@@ -160,21 +141,6 @@ def explainability_loss(mask: Array, weight: Array, floor: float = 1e-6) -> Arra
     """
     nll = -jnp.log(jnp.clip(mask, floor, 1.0))
     return masked_mean(nll, jnp.ones(mask.shape, dtype=bool), weight)
-
-
-def correction_penalty(xi_corr: Array, weight: Array, lever_arm: float = 10.0) -> Array:
-    """Mean over real samples of ``‖ρ‖² + (ℓ ‖φ‖)²`` of the correction ``ξ_corr = [ρ, φ]``.
-
-    Not part of either paper: an optional Tikhonov term pulling ξ_corr towards zero (towards
-    the prior). Photometric losses barely constrain some directions of motion (a lateral
-    translation against a yaw over distant structure); left free, a small network settles on a
-    constant offset along them. The lever arm ``ℓ`` (m) turns a rotation (rad) into the
-    displacement it causes at that distance, so both parts are in metres.
-
-    ``xi_corr``: ``[B, 6]``; ``weight``: ``[B]`` (0 = padding). -> scalar (m²).
-    """
-    squared = jnp.sum(xi_corr[..., :3] ** 2, axis=-1) + lever_arm**2 * jnp.sum(xi_corr[..., 3:] ** 2, axis=-1)
-    return masked_mean(squared, jnp.ones(squared.shape, dtype=bool), weight)
 
 
 def rotation_weights(xi_vo: Array, threshold: float = 0.005, rot_weight: float = 4.0) -> Array:
@@ -253,11 +219,10 @@ def ss_dpc_loss(outputs: DPCOutputs, batch: Batch, config: SSDPCLossConfig) -> t
     Target = frame t+1 (``batch.left[:, 1]``), source = frame t (``batch.left[:, 0]``), target
     depth ``1 / outputs.left.inv_depth[:, 0]``, mask ``W = outputs.left.mask[:, 0]``.
     ``loss = masked_mean(W · e) · (1 + λ_rot)[large rotation] + λ_exp · mean(−log W)`` with
-    ``e`` the per-pixel photometric error (L1 unless ``ssim_weight`` says otherwise), plus
-    ``correction_weight ·`` :func:`correction_penalty` when that weight is set.
+    ``e`` the per-pixel photometric error (L1 unless ``ssim_weight`` says otherwise).
 
     Returns ``(loss, metrics)``; metrics: ``loss``, ``photometric`` (after rotation weighting),
-    ``explainability``, ``correction``, ``valid_fraction``, ``ssim_weight``.
+    ``explainability``, ``valid_fraction``, ``ssim_weight``.
     """
     target, recon, valid, weight = _ss_dpc_reconstruction(outputs, batch, config)
     mask = outputs.left.mask[:, 0]
@@ -267,14 +232,11 @@ def ss_dpc_loss(outputs: DPCOutputs, batch: Batch, config: SSDPCLossConfig) -> t
                              config.rot_weight)
     photometric = masked_mean(mask * error, valid, weight, scale)
     explainability = explainability_loss(mask, weight, config.mask_floor)
-    correction = correction_penalty(jnp.asarray(outputs.xi_corr).astype(error.dtype), weight,
-                                    config.correction_lever_arm)
-    loss = photometric + config.exp_weight * explainability + config.correction_weight * correction
+    loss = photometric + config.exp_weight * explainability
     metrics = {
         "loss": loss,
         "photometric": photometric,
         "explainability": explainability,
-        "correction": correction,
         "valid_fraction": masked_mean(valid.astype(error.dtype), jnp.ones_like(valid), weight),
         "ssim_weight": jnp.asarray(ssim_weight, dtype=error.dtype),
     }
@@ -341,10 +303,9 @@ def stereo_dpc_loss(
       extrinsic, a translation by ``−B`` along x), exact for a rigid rig.
     * ``L_exp``: the sum over the four masks (left/right × k/k+1) of ``mean(−log W)``, one
       regulariser per mask-weighted temporal term.
-    * plus ``correction_weight ·`` :func:`correction_penalty` when that weight is set.
 
-    Returns ``(loss, metrics)``; metrics hold every term separately (``correction`` the
-    penalty before its weight) plus ``loss`` and ``ssim_weight``.
+    Returns ``(loss, metrics)``; metrics hold every term separately plus ``loss`` and
+    ``ssim_weight``.
     """
     left, right, K, baseline, poses, weight = _stereo_setup(outputs, batch, config)
     ssim_weight = _ssim_weight(outputs, config.ssim_weight)
@@ -376,15 +337,12 @@ def stereo_dpc_loss(
             temporal_names.append(name)
             explainability = explainability + explainability_loss(mask, weight, config.mask_floor)
     metrics["explainability"] = explainability
-    metrics["correction"] = correction_penalty(jnp.asarray(outputs.xi_corr).astype(left.dtype), weight,
-                                               config.correction_lever_arm)
 
     loss = (
         a_spatial * (metrics["spatial_left"] + metrics["spatial_right"])
         + a_disp * (metrics["disparity_left"] + metrics["disparity_right"])
         + a_temporal * sum(metrics[name] for name in temporal_names)
         + a_exp * explainability
-        + config.correction_weight * metrics["correction"]
     )
     metrics["loss"] = loss
     metrics["ssim_weight"] = jnp.asarray(ssim_weight, dtype=left.dtype)

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import cv2
 import jax
 import jax.numpy as jnp
@@ -17,7 +15,6 @@ from dpc_jax.lie import se3_log
 from dpc_jax.losses import (
     SSDPCLossConfig,
     StereoDPCLossConfig,
-    correction_penalty,
     explainability_loss,
     gradient_loss,
     gradient_mask,
@@ -298,7 +295,7 @@ def test_stereo_zero_for_exact_reconstruction() -> None:
     _, metrics = stereo_dpc_loss(outputs, batch, StereoDPCLossConfig())
     expected_keys = {"spatial_left", "spatial_right", "disparity_left", "disparity_right", "explainability",
                      "temporal_left_k_to_k1", "temporal_left_k1_to_k", "temporal_right_k_to_k1",
-                     "temporal_right_k1_to_k", "correction", "loss", "ssim_weight"}
+                     "temporal_right_k1_to_k", "loss", "ssim_weight"}
     assert set(metrics) == expected_keys
     for key in expected_keys - {"ssim_weight"}:
         assert abs(float(metrics[key])) < 1e-10, key
@@ -334,26 +331,6 @@ def test_stereo_assembly_weights(analytic: tuple[DPCOutputs, Batch]) -> None:
                 + alpha[3] * m["explainability"])
     np.testing.assert_allclose(float(loss), float(expected), rtol=1e-12)
     np.testing.assert_allclose(float(m["explainability"]), 4 * np.log(2), rtol=1e-12)
-
-
-def test_correction_penalty_reference_padding_and_assemblies(analytic: tuple[DPCOutputs, Batch]) -> None:
-    rng = np.random.default_rng(11)
-    xi, weight = 0.02 * rng.normal(size=(5, 6)), np.array([1.0, 2.0, 0.0, 1.0, 0.5])
-    per_sample = [np.sum(x[:3] ** 2) + 7.0**2 * np.sum(x[3:] ** 2) for x in xi]
-    want = sum(w * p for w, p in zip(weight, per_sample, strict=True)) / weight.sum()
-    np.testing.assert_allclose(float(correction_penalty(xi, weight, 7.0)), want, rtol=1e-12)
-    # Off by default; when on, both assemblies add exactly weight × penalty.
-    outputs, batch = analytic
-    outputs = perturbed(outputs, DELTA)
-    expected = float(correction_penalty(outputs.xi_corr, np.ones(1)))
-    for view, loss_fn, config in ((mono_view(outputs), ss_dpc_loss, SSDPCLossConfig()),
-                                  (outputs, stereo_dpc_loss, StereoDPCLossConfig())):
-        base, metrics = loss_fn(view, batch, config)
-        penalised, _ = loss_fn(view, batch, dataclasses.replace(config, correction_weight=3.0))
-        np.testing.assert_allclose(float(metrics["correction"]), expected, rtol=1e-12)
-        np.testing.assert_allclose(float(penalised - base), 3.0 * expected, rtol=1e-9)
-    with pytest.raises(ValueError, match="correction_weight"):
-        StereoDPCLossConfig(correction_weight=-1.0)
 
 
 def test_stereo_gradients_and_jit_float32(analytic: tuple[DPCOutputs, Batch]) -> None:
