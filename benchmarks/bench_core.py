@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dpc_jax.hugepages import reexec_with_huge_pages
 from dpc_jax.lie import se3_exp, se3_log
 from dpc_jax.ssim import ssim_loss
 from dpc_jax.warp import inverse_warp
@@ -85,4 +86,5 @@ def main() -> int:
 
 
 if __name__ == "__main__":
+    reexec_with_huge_pages()
     raise SystemExit(main())

@@ -13,7 +13,10 @@ Usage::
 * ``--breakdown`` adds rows that split the training step: the forward alone, the loss alone on
   fixed network outputs, and the loss's forward+backward.
 * ``--profile DIR`` writes a ``jax.profiler`` trace of a few training steps (TensorBoard /
-  Perfetto).
+  Perfetto). Eigen convolutions run asynchronously: their trace events cover only the launch.
+
+The script restarts itself with glibc's huge-page malloc (``dpc_jax.hugepages``), as the
+``dpc-jax`` command does; ``DPC_JAX_HUGE_PAGES=0`` measures without it.
 
 Every function is compiled and called once more before timing; the table reports the median and
 min wall time of ``--repeats`` calls, each blocked until ready, and the median CPU time of the
@@ -37,6 +40,7 @@ import optax
 from flax import nnx
 
 from dpc_jax.batch import Batch
+from dpc_jax.hugepages import reexec_with_huge_pages
 from dpc_jax.losses import SSDPCLossConfig, StereoDPCLossConfig, ss_dpc_loss, stereo_dpc_loss
 from dpc_jax.models import PRESETS, create_model
 
@@ -167,7 +171,8 @@ def main() -> int:
         f"device: {device.platform} ({device.device_kind}), {os.cpu_count()} CPUs, jax {jax.__version__}, "
         f"float32, preset {args.preset}, {hw[0]}x{hw[1]}, {args.repeats} repeats"
     )
-    print(f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}")
+    env = {name: os.environ.get(name, "") for name in ("XLA_FLAGS", "GLIBC_TUNABLES")}
+    print(", ".join(f"{name}={value!r}" for name, value in env.items()))
     print("load average before: {:.2f} {:.2f} {:.2f}".format(*os.getloadavg()))
     header = ("model", "what", "batch", "median ms", "min ms", "CPU ms")
     print("| {:<10} | {:<30} | {:>5} | {:>9} | {:>9} | {:>9} |".format(*header))
@@ -206,4 +211,5 @@ def main() -> int:
 
 
 if __name__ == "__main__":
+    reexec_with_huge_pages()
     raise SystemExit(main())

@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dpc_jax.hugepages import reexec_with_huge_pages
 from dpc_jax.synth import SynthConfig, iter_frames, write_sequence
 from dpc_jax.synth import render as R
 from dpc_jax.synth.sequence import _plan, frame_scene, kitti_intrinsics
@@ -90,4 +91,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    reexec_with_huge_pages()
     main()

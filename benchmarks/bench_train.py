@@ -23,6 +23,7 @@ import numpy as np
 
 from dpc_jax import parallel
 from dpc_jax.batch import Batch
+from dpc_jax.hugepages import reexec_with_huge_pages
 from dpc_jax.models import PRESETS, create_model
 from dpc_jax.train import (
     TrainConfig,
@@ -110,4 +111,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    reexec_with_huge_pages()
     main()

@@ -59,6 +59,7 @@ import numpy as np
 from flax import nnx
 
 from dpc_jax.batch import Batch
+from dpc_jax.conv import conv3x3_few_outputs, conv_s2, upconv3x3_s2
 from dpc_jax.outputs import BranchOutputs, DPCOutputs
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -203,7 +204,7 @@ def _crop(x: jax.Array, size: tuple[int, int]) -> jax.Array:
 
 
 class _ConvBlock(nnx.Module):
-    """conv(k, stride s, padding (k−1)//2) → ReLU → BatchNorm."""
+    """conv(k, stride s, padding (k−1)//2) → ReLU → BatchNorm (stride 2 via ``conv_s2``)."""
 
     def __init__(self, cin: int, cout: int, kernel: int, stride: int, momentum: float, rngs: nnx.Rngs):
         pad = (kernel - 1) // 2
@@ -211,31 +212,15 @@ class _ConvBlock(nnx.Module):
             cin, cout, (kernel, kernel), strides=stride, padding=((pad, pad), (pad, pad)), rngs=rngs
         )
         self.norm = nnx.BatchNorm(cout, momentum=momentum, rngs=rngs)
+        self.stride = stride
 
     def __call__(self, x: jax.Array) -> jax.Array:
-        return self.norm(jax.nn.relu(self.conv(x)))
-
-
-_NHWC = ("NHWC", "HWIO", "NHWC")
-
-
-def _phase_taps(k: jax.Array, axis: int) -> jax.Array:
-    """Split the 3 taps of ``k`` along ``axis`` into [phase, offset] (new leading axes 0, 1).
-
-    Output position 2m (phase 0) takes tap 1 at input m; 2m+1 (phase 1) takes tap 0 at m and tap 2
-    at m+1. Pure data movement (an einsum with a 0/1 matrix would cost a badly shaped matmul).
-    """
-    tap = [jax.lax.index_in_dim(k, t, axis, keepdims=False) for t in range(3)]
-    zero = jnp.zeros_like(tap[0])
-    return jnp.stack([jnp.stack([tap[1], zero]), jnp.stack([tap[0], tap[2]])])
-
-
-def _phase_kernel(kernel: jax.Array) -> jax.Array:
-    """``[3, 3, C_in, C_out]`` → ``[2, 2, C_in, 2, 2, C_out]`` = [row offset, col offset, C_in,
-    row phase, col phase, C_out]: the 2×2 stride-1 kernel of every output phase."""
-    rows = _phase_taps(kernel, 0)  # [a, q, 3 (col taps), C_in, C_out]
-    both = _phase_taps(rows, 2)  # [b, r, a, q, C_in, C_out]
-    return both.transpose(3, 1, 4, 2, 0, 5)
+        if self.stride == 2:
+            y = conv_s2(x, self.conv.kernel[...])
+            y = y + self.conv.bias[...].astype(y.dtype)
+        else:
+            y = self.conv(x)
+        return self.norm(jax.nn.relu(y))
 
 
 class UpConv(nnx.Module):
@@ -243,10 +228,8 @@ class UpConv(nnx.Module):
 
     Mathematically ``lax.conv_transpose(x, kernel, (2, 2), ((1, 2), (1, 2)))`` (Flax's
     ``ConvTranspose`` with that padding, i.e. PyTorch's ``ConvTranspose2d(3, stride=2, padding=1,
-    output_padding=1)`` up to a kernel flip), with the same ``[3, 3, C_in, C_out]`` kernel.
-    It is evaluated as one stride-1 2×2 convolution producing the four output phases, then
-    interleaved (depth-to-space): XLA's CPU backend computes input-dilated convolutions, and
-    their gradients, several times slower than plain ones.
+    output_padding=1)`` up to a kernel flip), with the same ``[3, 3, C_in, C_out]`` kernel,
+    evaluated by ``dpc_jax.conv.upconv3x3_s2``.
     """
 
     def __init__(self, cin: int, cout: int, rngs: nnx.Rngs):
@@ -255,24 +238,19 @@ class UpConv(nnx.Module):
         self.bias = nnx.Param(jnp.zeros((cout,), jnp.float32))
 
     def __call__(self, x: jax.Array) -> jax.Array:
-        dtype = jnp.result_type(x, self.kernel[...])
-        x, kernel, bias = x.astype(dtype), self.kernel[...].astype(dtype), self.bias[...].astype(dtype)
-        cin, cout = kernel.shape[2:]
-        phases = _phase_kernel(kernel).reshape(2, 2, cin, 4 * cout)
-        y = jax.lax.conv_general_dilated(x, phases, (1, 1), ((0, 1), (0, 1)), dimension_numbers=_NHWC)
-        b, h, w, _ = y.shape
-        y = y.reshape(b, h, w, 2, 2, cout).transpose(0, 1, 3, 2, 4, 5).reshape(b, 2 * h, 2 * w, cout)
-        return jax.nn.relu(y + bias)
+        y = upconv3x3_s2(x, self.kernel[...])
+        return jax.nn.relu(y + self.bias[...].astype(y.dtype))
 
 
 class _Head(nnx.Module):
-    """conv 3×3 (stride 1, same size) without normalisation."""
+    """conv 3×3 (stride 1, same size) to ``frames`` channels, without normalisation."""
 
     def __init__(self, cin: int, cout: int, rngs: nnx.Rngs):
         self.conv = nnx.Conv(cin, cout, (3, 3), padding=((1, 1), (1, 1)), rngs=rngs)
 
     def __call__(self, x: jax.Array) -> jax.Array:
-        return self.conv(x)
+        y = conv3x3_few_outputs(x, self.conv.kernel[...])
+        return y + self.conv.bias[...].astype(y.dtype)
 
 
 class Branch(nnx.Module):

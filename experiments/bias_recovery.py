@@ -30,6 +30,7 @@ from scipy.spatial.transform import Rotation
 
 from dpc_jax import config as config_lib
 from dpc_jax import trajectory
+from dpc_jax.hugepages import reexec_with_huge_pages
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -171,4 +172,5 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    reexec_with_huge_pages()
     sys.exit(main())

@@ -15,6 +15,8 @@ sys.path.insert(0, str(HERE))
 
 import dpc_protocol as P  # noqa: E402
 
+from dpc_jax.hugepages import reexec_with_huge_pages  # noqa: E402
+
 CONFIG = HERE / "configs" / "kitti_ss_dpc.py"
 
 
@@ -95,4 +97,5 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    reexec_with_huge_pages()
     sys.exit(main())

@@ -10,6 +10,8 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from dpc_jax.hugepages import reexec_with_huge_pages
+
 CONFIG = Path(__file__).resolve().parent / "configs" / "synthetic_demo.py"
 
 
@@ -28,4 +30,5 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    reexec_with_huge_pages()
     sys.exit(main())

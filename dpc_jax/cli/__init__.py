@@ -14,6 +14,7 @@ import sys
 from collections.abc import Sequence
 
 import dpc_jax
+from dpc_jax.hugepages import reexec_with_huge_pages
 
 
 def _subcommands() -> list[str]:
@@ -47,5 +48,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     return int(args._run(args) or 0)
 
 
-if __name__ == "__main__":
+def console_main() -> None:
+    """The ``dpc-jax`` executable: restart with huge-page malloc if useful (see
+    ``dpc_jax.hugepages``), then ``main``."""
+    reexec_with_huge_pages()
     sys.exit(main())
+
+
+if __name__ == "__main__":
+    console_main()

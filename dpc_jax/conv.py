@@ -1,0 +1,183 @@
+"""Convolutions of the networks, written in the forms XLA's CPU backend runs fast.
+
+All functions are pure, NHWC images ``[B, H, W, C]`` and HWIO kernels ``[kh, kw, C_in, C_out]``,
+and equal (to float rounding) the ``lax.conv_general_dilated`` / ``lax.conv_transpose`` they
+replace, in value and in gradient. Why they exist: XLA's CPU backend hands a convolution to its
+fast library (YNNPACK) only when it has more than 16 input or output channels and no input
+dilation; the rest run on a generic Eigen path that is several times slower per FLOP. That hits
+exactly the layers of these networks that carry the most pixels:
+
+* the gradient of a stride-2 convolution with respect to its input is an input-dilated
+  convolution (``conv_s2`` computes both gradients through the equivalent stride-1 convolution
+  of the space-to-depth image instead: 4·C_in channels, no dilation);
+* a transposed convolution is an input-dilated convolution (``upconv3x3_s2`` evaluates it as one
+  stride-1 convolution producing the four output phases, then interleaves them);
+* the inverse-depth and mask heads map 8–32 channels to one or two (``conv3x3_few_outputs``
+  evaluates them as a matrix product with the nine taps followed by nine shifted adds).
+
+``benchmarks/bench_models.py`` measures the effect on the training step.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+NHWC = ("NHWC", "HWIO", "NHWC")
+
+
+def _promote(x: jax.Array, kernel: jax.Array) -> tuple[jax.Array, jax.Array]:
+    dtype = jnp.result_type(x, kernel)
+    return x.astype(dtype), kernel.astype(dtype)
+
+
+# --------------------------------------------------------------------------- stride-2 convolution
+
+
+def _conv_s2_direct(x: jax.Array, kernel: jax.Array) -> jax.Array:
+    pad = (kernel.shape[0] - 1) // 2
+    return jax.lax.conv_general_dilated(x, kernel, (2, 2), ((pad, pad), (pad, pad)), dimension_numbers=NHWC)
+
+
+def _space_to_depth_conv(x: jax.Array, kernel: jax.Array) -> jax.Array:
+    """The stride-2 convolution as a stride-1 one on the space-to-depth image.
+
+    With ``t = (k+1)/2`` and the kernel zero-padded to ``2t × 2t``, output ``m`` of a stride-2
+    convolution reads padded input rows ``2m … 2m+2t−1``, i.e. row-pairs ``m … m+t−1``: a
+    stride-1 ``t × t`` convolution over ``[B, H'/2, W'/2, 4·C_in]`` (H', W' padded to
+    ``2(out + t − 1)``) with the kernel regrouped the same way.
+    """
+    b, h, w, c = x.shape
+    k = kernel.shape[0]
+    t, pad = (k + 1) // 2, (k - 1) // 2
+    out_h, out_w = -(-h // 2), -(-w // 2)
+    hp, wp = 2 * (out_h + t - 1), 2 * (out_w + t - 1)
+    xp = jnp.pad(x, ((0, 0), (pad, hp - h - pad), (pad, wp - w - pad), (0, 0)))
+    xs = xp.reshape(b, hp // 2, 2, wp // 2, 2, c).transpose(0, 1, 3, 2, 4, 5)
+    xs = xs.reshape(b, hp // 2, wp // 2, 4 * c)
+    kp = jnp.pad(kernel, ((0, 2 * t - k), (0, 2 * t - k), (0, 0), (0, 0)))
+    ks = kp.reshape(t, 2, t, 2, c, -1).transpose(0, 2, 1, 3, 4, 5).reshape(t, t, 4 * c, -1)
+    return jax.lax.conv_general_dilated(xs, ks, (1, 1), "VALID", dimension_numbers=NHWC)
+
+
+@jax.custom_vjp
+def _conv_s2(x: jax.Array, kernel: jax.Array) -> jax.Array:
+    return _conv_s2_direct(x, kernel)
+
+
+def _conv_s2_fwd(x: jax.Array, kernel: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
+    return _conv_s2_direct(x, kernel), (x, kernel)
+
+
+def _conv_s2_bwd(residuals: tuple[jax.Array, jax.Array], g: jax.Array) -> tuple[jax.Array, jax.Array]:
+    _, vjp = jax.vjp(_space_to_depth_conv, *residuals)
+    return vjp(g)
+
+
+_conv_s2.defvjp(_conv_s2_fwd, _conv_s2_bwd)
+
+
+def conv_s2(x: jax.Array, kernel: jax.Array) -> jax.Array:
+    """Stride-2 convolution with padding ``(k−1)//2``: ``[B, H, W, C_in] -> [B, ⌈H/2⌉, ⌈W/2⌉, C_out]``.
+
+    ``kernel``: ``[k, k, C_in, C_out]``, ``k`` odd. The forward pass is XLA's strided convolution;
+    both gradients are those of the space-to-depth form (same values, no input dilation).
+    """
+    if kernel.shape[0] != kernel.shape[1] or kernel.shape[0] % 2 == 0:
+        raise ValueError(f"conv_s2 needs a square kernel of odd size, got {kernel.shape[:2]}")
+    return _conv_s2(*_promote(x, kernel))
+
+
+# ------------------------------------------------------------------ transposed convolution, ×2
+
+
+def _phase_taps(k: jax.Array, axis: int) -> jax.Array:
+    """Split the 3 taps of ``k`` along ``axis`` into [phase, offset] (new leading axes 0, 1).
+
+    Output position 2m (phase 0) takes tap 1 at input m; 2m+1 (phase 1) takes tap 0 at m and tap 2
+    at m+1. Pure data movement (an einsum with a 0/1 matrix would cost a badly shaped matmul).
+    """
+    tap = [jax.lax.index_in_dim(k, t, axis, keepdims=False) for t in range(3)]
+    zero = jnp.zeros_like(tap[0])
+    return jnp.stack([jnp.stack([tap[1], zero]), jnp.stack([tap[0], tap[2]])])
+
+
+def _phase_kernel(kernel: jax.Array) -> jax.Array:
+    """``[3, 3, C_in, C_out]`` → ``[2, 2, C_in, 2, 2, C_out]`` = [row offset, col offset, C_in,
+    row phase, col phase, C_out]: the 2×2 stride-1 kernel of every output phase."""
+    rows = _phase_taps(kernel, 0)  # [a, q, 3 (col taps), C_in, C_out]
+    both = _phase_taps(rows, 2)  # [b, r, a, q, C_in, C_out]
+    return both.transpose(3, 1, 4, 2, 0, 5)
+
+
+def upconv3x3_s2(x: jax.Array, kernel: jax.Array) -> jax.Array:
+    """Transposed convolution 3×3, stride 2: ``[B, h, w, C_in] -> [B, 2h, 2w, C_out]``.
+
+    Equals ``lax.conv_transpose(x, kernel, (2, 2), ((1, 2), (1, 2)))`` (Flax's ``ConvTranspose``
+    with that padding; PyTorch's ``ConvTranspose2d(3, stride=2, padding=1, output_padding=1)`` up
+    to a kernel flip), evaluated as one stride-1 2×2 convolution producing the four output phases,
+    then interleaved (depth-to-space).
+    """
+    x, kernel = _promote(x, kernel)
+    cin, cout = kernel.shape[2:]
+    phases = _phase_kernel(kernel).reshape(2, 2, cin, 4 * cout)
+    y = jax.lax.conv_general_dilated(x, phases, (1, 1), ((0, 1), (0, 1)), dimension_numbers=NHWC)
+    b, h, w, _ = y.shape
+    return y.reshape(b, h, w, 2, 2, cout).transpose(0, 1, 3, 2, 4, 5).reshape(b, 2 * h, 2 * w, cout)
+
+
+# ------------------------------------------------------ 3×3 convolution to a few output channels
+
+
+def _conv3x3_same(x: jax.Array, kernel: jax.Array) -> jax.Array:
+    return jax.lax.conv_general_dilated(x, kernel, (1, 1), ((1, 1), (1, 1)), dimension_numbers=NHWC)
+
+
+@jax.custom_vjp
+def _conv3x3_few(x: jax.Array, kernel: jax.Array) -> jax.Array:
+    h, w = x.shape[1:3]
+    cin = kernel.shape[2]
+    xp = jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)))
+    outputs = []
+    for j in range(kernel.shape[3]):
+        # Column t of z is tap t = 3a + b of output channel j at every padded pixel. The nine
+        # columns are padded to 16, which YNNPACK runs several times faster than 9; one product
+        # per output channel measured faster than one product with 9F columns.
+        taps = jnp.pad(kernel[..., j].transpose(2, 0, 1).reshape(cin, 9), ((0, 0), (0, 7)))
+        z = jnp.einsum("bhwc,cn->bhwn", xp, taps)
+        outputs.append(sum(z[:, a : a + h, b : b + w, 3 * a + b, None] for a in range(3) for b in range(3)))
+    return jnp.concatenate(outputs, axis=-1)
+
+
+def _conv3x3_few_fwd(x: jax.Array, kernel: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
+    return _conv3x3_few(x, kernel), (x, kernel)
+
+
+def _conv3x3_few_bwd(residuals: tuple[jax.Array, jax.Array], g: jax.Array) -> tuple[jax.Array, jax.Array]:
+    x, kernel = residuals
+    h, w = x.shape[1:3]
+    # dx[p] = Σ_{a,b,j} g[p − (a−1, b−1), j] · kernel[a, b, :, j]: nine shifted copies of each
+    # one-channel cotangent times a channel vector, one elementwise pass.
+    gp = jnp.pad(g, ((0, 0), (1, 1), (1, 1), (0, 0)))
+    dx = sum(
+        gp[:, 2 - a : 2 - a + h, 2 - b : 2 - b + w, j : j + 1] * kernel[a, b, :, j]
+        for a in range(3)
+        for b in range(3)
+        for j in range(kernel.shape[3])
+    )
+    _, kernel_vjp = jax.vjp(lambda k: _conv3x3_same(x, k), kernel)
+    return dx, kernel_vjp(g)[0]
+
+
+_conv3x3_few.defvjp(_conv3x3_few_fwd, _conv3x3_few_bwd)
+
+
+def conv3x3_few_outputs(x: jax.Array, kernel: jax.Array) -> jax.Array:
+    """3×3 convolution, stride 1, zero padding 1, to a few output channels.
+
+    ``x [B, H, W, C_in]``, ``kernel [3, 3, C_in, F]`` → ``[B, H, W, F]``. Meant for ``F`` of 1 or 2
+    (the heads); the forward pass costs F ``C_in × 16`` matrix products per pixel.
+    """
+    if kernel.shape[:2] != (3, 3):
+        raise ValueError(f"conv3x3_few_outputs needs a 3x3 kernel, got {kernel.shape[:2]}")
+    return _conv3x3_few(*_promote(x, kernel))

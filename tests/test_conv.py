@@ -1,0 +1,73 @@
+"""dpc_jax.conv against XLA's own convolutions (float64): values and both gradients, under jit."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from dpc_jax.conv import NHWC, conv3x3_few_outputs, conv_s2, upconv3x3_s2
+
+
+def _reference_s2(x: jax.Array, kernel: jax.Array) -> jax.Array:
+    pad = (kernel.shape[0] - 1) // 2
+    return jax.lax.conv_general_dilated(x, kernel, (2, 2), ((pad, pad), (pad, pad)), dimension_numbers=NHWC)
+
+
+def _reference_same3x3(x: jax.Array, kernel: jax.Array) -> jax.Array:
+    return jax.lax.conv_general_dilated(x, kernel, (1, 1), ((1, 1), (1, 1)), dimension_numbers=NHWC)
+
+
+def _reference_up(x: jax.Array, kernel: jax.Array) -> jax.Array:
+    return jax.lax.conv_transpose(x, kernel, (2, 2), ((1, 2), (1, 2)), dimension_numbers=NHWC)
+
+
+def _check(fn, reference, x_shape: tuple[int, ...], kernel_shape: tuple[int, ...], seed: int) -> None:
+    """Value and the VJP (both arguments, a random cotangent) of ``fn`` equal ``reference``'s."""
+    rng = np.random.default_rng(seed)
+    x = jnp.asarray(rng.normal(size=x_shape))
+    kernel = jnp.asarray(rng.normal(size=kernel_shape))
+    want, want_vjp = jax.vjp(reference, x, kernel)
+    got, got_vjp = jax.jit(lambda a, b: jax.vjp(fn, a, b))(x, kernel)
+    assert got.shape == want.shape and got.dtype == jnp.float64
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    g = jnp.asarray(rng.normal(size=want.shape))
+    for got_grad, want_grad in zip(got_vjp(g), want_vjp(g), strict=True):
+        np.testing.assert_allclose(got_grad, want_grad, rtol=1e-11, atol=1e-11)
+
+
+@pytest.mark.parametrize(
+    ("hw", "k", "cin", "cout"),
+    [((9, 11), 7, 3, 4), ((8, 6), 5, 2, 3), ((7, 4), 3, 4, 2), ((1, 1), 3, 2, 2), ((2, 3), 7, 1, 1)],
+)
+def test_conv_s2_matches_strided_conv(hw: tuple[int, int], k: int, cin: int, cout: int) -> None:
+    """Odd and even sizes, kernels larger than the image: ⌈n/2⌉ outputs and the same gradients."""
+    _check(conv_s2, _reference_s2, (2, *hw, cin), (k, k, cin, cout), seed=k + hw[0])
+
+
+@pytest.mark.parametrize(
+    ("hw", "cin", "f"), [((6, 7), 8, 1), ((5, 4), 3, 2), ((1, 2), 2, 1), ((4, 4), 17, 2)]
+)
+def test_conv3x3_few_outputs_matches_conv(hw: tuple[int, int], cin: int, f: int) -> None:
+    _check(conv3x3_few_outputs, _reference_same3x3, (2, *hw, cin), (3, 3, cin, f), seed=cin + f)
+
+
+@pytest.mark.parametrize("hw", [(5, 7), (4, 6), (1, 1)])
+def test_upconv3x3_s2_matches_conv_transpose(hw: tuple[int, int]) -> None:
+    _check(upconv3x3_s2, _reference_up, (2, *hw, 3), (3, 3, 3, 4), seed=hw[1])
+
+
+def test_float32_inputs_stay_float32() -> None:
+    x = jnp.ones((1, 4, 4, 2), jnp.float32)
+    assert conv_s2(x, jnp.ones((3, 3, 2, 3), jnp.float32)).dtype == jnp.float32
+    assert conv3x3_few_outputs(x, jnp.ones((3, 3, 2, 1), jnp.float32)).dtype == jnp.float32
+    assert upconv3x3_s2(x, jnp.ones((3, 3, 2, 3), jnp.float32)).dtype == jnp.float32
+
+
+def test_kernel_shape_errors() -> None:
+    x = jnp.ones((1, 4, 4, 2))
+    with pytest.raises(ValueError, match="odd size"):
+        conv_s2(x, jnp.ones((4, 4, 2, 3)))
+    with pytest.raises(ValueError, match="3x3 kernel"):
+        conv3x3_few_outputs(x, jnp.ones((5, 5, 2, 1)))
