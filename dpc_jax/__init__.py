@@ -40,6 +40,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     ),
     "dpc_jax.synth": ("SynthConfig", "render_sequence", "write_sequences"),
     "dpc_jax.vo": ("StereoVO", "VOConfig", "VOResult", "VOStatus", "run_vo", "run_vo_frames"),
+    "dpc_jax.conv": ("conv_s2", "upconv3x3_s2", "conv3x3_few_outputs"),
     "dpc_jax.models": ("ModelConfig", "PRESETS", "MonoDPC", "StereoDPC", "create_model", "count_parameters"),
     "dpc_jax.train": (
         "TrainConfig", "make_train_step", "make_eval_step", "create_train_state", "make_optimizer",
@@ -47,6 +48,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     ),
     "dpc_jax.checkpoints": ("Checkpoints",),
     "dpc_jax.parallel": ("make_mesh", "shard_batch", "replicate"),
+    "dpc_jax.hugepages": ("reexec_with_huge_pages", "huge_pages_requested"),
     "dpc_jax.config": ("ConfigError", "load_file"),
     "dpc_jax.correct": ("load_run", "correct_cache", "predict_corrections", "write_trajectory"),
     "dpc_jax.demo": ("DemoConfig", "run_demo"),
