@@ -20,13 +20,15 @@
 
 Why the cameras are 120×188 by default: the small network sees 64×96 images and trains for a few
 minutes on two CPU cores. Our VO on 240×376 images is more precise than that network can resolve
-(test segment errors 0.90 % / 0.57 °/100 m; corrected: 2.10 % / 1.23 °/100 m). On 120×188 images
-the VO's errors are large and the default run (seed 0) lowers both test segment errors, 11.96 % /
-9.61 °/100 m → 6.80 % / 7.79 °/100 m; training is deterministic on a given machine (two runs gave
-identical losses and a byte-identical corrected trajectory). The margin is thin: with seeds 1 and
-2 (other towns and routes) the same config does not beat the prior (7.55 % / 10.23 → 7.76 % /
-10.23; 4.28 % / 4.60 → 5.00 % / 6.05), and neither four training sequences nor added reversed
-copies made every seed pass. What the network learns in minutes is the VO's systematic error (its
+(test segment errors 0.90 % / 0.57 °/100 m; corrected, before the convolution rewrite of
+``dpc_jax.conv``: 2.10 % / 1.23 °/100 m). On 120×188 images the VO's errors are large and the
+default run (seed 0) lowers both test segment errors, 11.96 % / 9.61 °/100 m → 9.39 % / 9.59
+°/100 m; training is deterministic on a given machine (two runs gave a byte-identical corrected
+trajectory), but float rounding matters: before that rewrite (same mathematics) the same run gave
+6.80 % / 7.79 °/100 m. The margin is thin: with seeds 1 and 2 (other towns and routes) the same
+config does not beat the prior (7.55 % / 10.23 → 12.25 % / 9.04; 4.28 % / 4.60 → 7.48 % / 6.89),
+and, before the rewrite, neither four training sequences nor added reversed copies made every
+seed pass. What the network learns in minutes is the VO's systematic error (its
 z-scale bias, almost exactly); at 120×188 most of the VO's rotation error is per-frame noise
 (yaw error std 0.12–0.44 °/frame, at most a third of it explained by the prior's own yaw).
 

@@ -15,10 +15,11 @@ validation gradient loss (no ground truth); the test sequence is never read by t
 
 The cameras are 120×188 (see ``dpc_jax.demo``): at 240×376 our VO is more precise than the small
 network at 64×96 can resolve in this budget (test: 0.90 % / 0.57 °/100 m prior, 2.10 % / 1.23
-°/100 m corrected). Measured with this config on the idle 2-core machine: test segment errors
-11.96 % / 9.61 °/100 m (prior) → 6.80 % / 7.79 °/100 m (corrected, epoch 3 selected), 2.8 min;
-a second run gave identical results. With ``"seed": 1`` or ``2`` the corrected test errors are not
-both lower (7.55 % / 10.23 → 7.76 % / 10.23; 4.28 % / 4.60 → 5.00 % / 6.05).
+°/100 m corrected, measured before the convolution rewrite of ``dpc_jax/conv.py``). Measured
+with this config on the 2-core machine: test segment errors 11.96 % / 9.61 °/100 m (prior) →
+9.39 % / 9.59 °/100 m (corrected, epoch 4 selected), 2.1 min; a second run gave a byte-identical
+corrected trajectory. With ``"seed": 1`` or ``2`` the corrected test errors are not both lower
+(7.55 % / 10.23 → 12.25 % / 9.04; 4.28 % / 4.60 → 7.48 % / 6.89).
 """
 
 CONFIG = {
