@@ -216,6 +216,7 @@ class _ConvBlock(nnx.Module):
 
     def __call__(self, x: jax.Array) -> jax.Array:
         if self.stride == 2:
+            # nnx.Conv only holds the parameters here (names and initialisation as before).
             y = conv_s2(x, self.conv.kernel[...])
             y = y + self.conv.bias[...].astype(y.dtype)
         else:
@@ -249,6 +250,7 @@ class _Head(nnx.Module):
         self.conv = nnx.Conv(cin, cout, (3, 3), padding=((1, 1), (1, 1)), rngs=rngs)
 
     def __call__(self, x: jax.Array) -> jax.Array:
+        # nnx.Conv only holds the parameters (names and initialisation as before).
         y = conv3x3_few_outputs(x, self.conv.kernel[...])
         return y + self.conv.bias[...].astype(y.dtype)
 
