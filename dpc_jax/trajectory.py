@@ -10,51 +10,40 @@ Formats:
 
 * **KITTI** pose text: one pose per line, the 12 numbers of the 3×4 matrix ``[R | t]`` row-major.
 * **TUM** text: ``timestamp tx ty tz qx qy qz qw`` per line (Hamilton quaternion, scalar last);
-  lines starting with ``#`` are comments.
+  lines starting with ``#`` are comments. Timestamps must increase from line to line. Poses are
+  paired with frames and with other trajectories by their order, not by time, so a step more
+  than ``TUM_GAP_FACTOR`` times the median step (a stretch of missing poses) is reported with an
+  :class:`~dpc_jax._io.InputWarning` naming the line; the file is still read (the evaluation
+  exports of static-frame-free sequences have such steps on purpose).
 * **.mat** (ss-DPC-Net / pyslam release): ``poses_gt`` and ``poses_est`` as ``4 × 4 × N`` arrays
   and ``convention`` ``'Twv'`` (camera-to-world) or ``'Tvw'`` (world-to-camera, inverted on read).
   A file without ``convention`` is read as ``'Twv'``, the convention of every published file.
+  :func:`read_trajectory` returns the estimate unless asked for ``poses_gt``.
 """
 
 from __future__ import annotations
 
 import functools
 import os
-import tempfile
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
+# atomic_write lives in dpc_jax._io (the one writer of the package); it stays importable from here.
+from dpc_jax._io import InputWarning, atomic_write
 from dpc_jax.lie import validate_poses
 
 FORMATS = ("kitti", "tum", "mat")
+MAT_KEYS = ("poses_gt", "poses_est")
+TUM_GAP_FACTOR = 10.0
 
 # The ss-DPC-Net static-frame rule (DESIGN §6): a frame pair moving less than this much in both
 # translation (m, ‖ρ‖ of the se(3) log) and rotation (rad, ‖φ‖) counts as static.
 STATIC_TRANSLATION_M = 1.5
 STATIC_ROTATION_RAD = 0.007
 _CHUNK = 1024
-
-
-# ----------------------------------------------------------------------------- atomic writes
-
-
-def atomic_write(path: str | os.PathLike[str], data: str | bytes) -> None:
-    """Write ``data`` to ``path`` atomically (temporary file in the same directory, then ``os.replace``).
-
-    The parent directory must exist. Text is written as UTF-8.
-    """
-    path = Path(path)
-    payload = data.encode("utf-8") if isinstance(data, str) else data
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(payload)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 # ----------------------------------------------------------------------------- text parsing
@@ -177,11 +166,14 @@ def read_tum(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
     """Read a TUM trajectory -> ``(timestamps [N] float64, poses [N, 4, 4] float64)``.
 
     Quaternions must have unit norm within 1e-3 (rounding in text files); they are normalised.
+    Timestamps must increase; a step over ``TUM_GAP_FACTOR`` × the median step warns (see the
+    module docstring).
     """
     path = Path(path)
     values, lines = _parse_rows(
         path, _data_lines(path, comment="#"), 8, "timestamp tx ty tz qx qy qz qw"
     )
+    _check_timestamps(path, values[:, 0], lines)
     q = values[:, 4:8]
     norm = np.linalg.norm(q, axis=-1)
     bad = np.flatnonzero(np.abs(norm - 1.0) > 1e-3)
@@ -197,40 +189,75 @@ def read_tum(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
     return values[:, 0], _validate_lines(poses, path, lines)
 
 
+def _check_timestamps(path: Path, stamps: np.ndarray, lines: list[int]) -> None:
+    """Refuse timestamps that do not increase; warn about a step far above the median step."""
+    steps = np.diff(stamps)
+    back = np.flatnonzero(steps <= 0)
+    if back.size:
+        i = int(back[0]) + 1
+        raise ValueError(
+            f"{path}, line {lines[i]}: timestamp {stamps[i]:.17g} does not increase "
+            f"(line {lines[i - 1]} has {stamps[i - 1]:.17g}); expected one pose per time, in time order"
+        )
+    if steps.size < 2:
+        return
+    median = float(np.median(steps))
+    jumps = np.flatnonzero(steps > TUM_GAP_FACTOR * median)
+    if jumps.size:
+        i = int(jumps[0]) + 1
+        more = f" ({jumps.size} such steps)" if jumps.size > 1 else ""
+        warnings.warn(
+            f"{path}, line {lines[i]}: timestamps jump by {steps[i - 1]:.6g} s, {steps[i - 1] / median:.0f}× "
+            f"the median step of {median:.6g} s{more}; poses are paired by their order, not by time, "
+            "so check that the other trajectory skips the same frames",
+            InputWarning,
+            stacklevel=3,
+        )
+
+
+def _load_mat(path: Path) -> dict[str, object]:
+    import scipy.io
+
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    try:
+        return scipy.io.loadmat(str(path))
+    # scipy's parser raises whatever the damaged bytes lead it to (IndexError, struct.error,
+    # zlib.error, ...); any failure here means the file is not a readable .mat.
+    except Exception as error:
+        reason = str(error).splitlines()[0] if str(error) else type(error).__name__
+        raise ValueError(f"{path}: not a readable MATLAB .mat file ({reason})") from None
+
+
 def _mat_poses(path: Path, contents: dict[str, object], key: str) -> np.ndarray:
+    """The camera-to-world poses stored under ``key`` (inverted when ``convention`` is ``'Tvw'``)."""
     if key not in contents:
         present = sorted(k for k in contents if not k.startswith("__"))
         raise ValueError(f"{path}: no key {key!r} (expected 'poses_gt' and 'poses_est'; found {present})")
     raw = np.asarray(contents[key])
     if raw.ndim != 3 or raw.shape[:2] != (4, 4) or not np.issubdtype(raw.dtype, np.number):
         raise ValueError(f"{path}: {key!r} must be a numeric 4 × 4 × N array, got shape {raw.shape}")
-    return validate_poses(np.moveaxis(raw, -1, 0), source=f"{path} [{key!r}]")
+    poses = validate_poses(np.moveaxis(raw, -1, 0), source=f"{path} [{key!r}]")
+    convention = "Twv"
+    if "convention" in contents:
+        convention = str(np.asarray(contents["convention"]).ravel()[0]).strip()
+    if convention == "Tvw":
+        return invert_poses(poses)
+    if convention != "Twv":
+        raise ValueError(f"{path}: 'convention' must be 'Twv' or 'Tvw', got {convention!r}")
+    return poses
 
 
 def read_mat(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
     """Read an ss-DPC-Net ``.mat`` -> ``(ground truth, estimate)``, each ``[N, 4, 4]`` camera-to-world."""
-    import scipy.io
-
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such file")
-    try:
-        contents = scipy.io.loadmat(str(path))
-    except (scipy.io.matlab.MatReadError, ValueError, TypeError, OSError, NotImplementedError) as error:
-        raise ValueError(f"{path}: not a readable MATLAB .mat file ({error})") from None
+    contents = _load_mat(path)
     gt = _mat_poses(path, contents, "poses_gt")
     est = _mat_poses(path, contents, "poses_est")
     if gt.shape[0] != est.shape[0]:
         raise ValueError(
             f"{path}: 'poses_gt' has {gt.shape[0]} poses but 'poses_est' has {est.shape[0]}"
         )
-    convention = "Twv"
-    if "convention" in contents:
-        convention = str(np.asarray(contents["convention"]).ravel()[0]).strip()
-    if convention == "Tvw":
-        return invert_poses(gt), invert_poses(est)
-    if convention != "Twv":
-        raise ValueError(f"{path}: 'convention' must be 'Twv' or 'Tvw', got {convention!r}")
     return gt, est
 
 
@@ -253,13 +280,18 @@ def detect_format(path: str | os.PathLike[str]) -> str:
     )
 
 
-def read_trajectory(path: str | os.PathLike[str], format: str | None = None) -> np.ndarray:
+def read_trajectory(
+    path: str | os.PathLike[str], format: str | None = None, mat_key: str = "poses_est"
+) -> np.ndarray:
     """Read a trajectory file -> ``[N, 4, 4]`` float64 camera-to-world poses.
 
     ``format``: ``"kitti" | "tum" | "mat" | None`` (None: :func:`detect_format`). For ``.mat`` the
-    estimate (``poses_est``) is returned; use :func:`read_mat` for both trajectories.
+    poses under ``mat_key`` are returned: the estimate (``poses_est``, default) or the ground truth
+    (``poses_gt``); use :func:`read_mat` for both trajectories.
     """
     path = Path(path)
+    if mat_key not in MAT_KEYS:
+        raise ValueError(f"mat_key must be one of {', '.join(MAT_KEYS)}, got {mat_key!r}")
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file")
     fmt = detect_format(path) if format is None else format
@@ -268,7 +300,7 @@ def read_trajectory(path: str | os.PathLike[str], format: str | None = None) -> 
     if fmt == "tum":
         return read_tum(path)[1]
     if fmt == "mat":
-        return read_mat(path)[1]
+        return _mat_poses(path, _load_mat(path), mat_key)
     raise ValueError(f"{path}: unknown trajectory format {fmt!r}; expected one of {', '.join(FORMATS)}")
 
 
