@@ -154,8 +154,15 @@ def projection_matrix(entries: dict[str, tuple[int, str]], key: str, path: Path)
         flat = np.array([float(v) for v in values.split()], dtype=np.float64)
     except ValueError:
         raise ValueError(f"{path}, line {number}: {key} holds a non-numeric value") from None
-    if flat.size != 12 or not np.isfinite(flat).all():
-        raise ValueError(f"{path}, line {number}: {key} must hold 12 finite numbers, got {flat.size}")
+    if flat.size != 12:
+        raise ValueError(f"{path}, line {number}: {key} must hold 12 numbers, got {flat.size}")
+    bad = np.flatnonzero(~np.isfinite(flat))
+    if bad.size:
+        i = int(bad[0])
+        raise ValueError(
+            f"{path}, line {number}: {key} holds a value that is not finite ({flat[i]} at entry {i + 1} "
+            "of 12); expected 12 finite numbers"
+        )
     return flat.reshape(3, 4)
 
 
@@ -271,11 +278,7 @@ def open_odometry(root: str | Path, sequence: str | int, grey: bool = False) -> 
 
 def read_ground_truth(source: str | Path, format: str | None = None) -> np.ndarray:
     """Ground-truth trajectory ``[N, 4, 4]`` from a pose file; for ``.mat`` its ``poses_gt``."""
-    path = Path(source)
-    if (format or path.suffix.lstrip(".").lower()) == "mat":
-        gt, _ = trajectory.read_mat(path)
-        return gt
-    return trajectory.read_trajectory(path, format)
+    return trajectory.read_trajectory(source, format, mat_key="poses_gt")
 
 
 def open_raw(
