@@ -31,10 +31,12 @@ ground-truth arrays by content, and the image files by *path, size and modificat
 hashing gigabytes of PNGs on every run would cost more than the check saves; a replaced image
 changes its mtime. Re-running with the same hash finds the complete cache and does nothing.
 
-Atomicity: everything is written into a hidden temporary folder beside the target, the manifest
-last, and the folder is renamed into place; a failure removes the temporary folder, so an
-interrupted or failed prepare never leaves a folder that :func:`~dpc_jax.data.pipeline.load_cache`
-accepts (it requires ``manifest.json``).
+Atomicity: everything is written into a hidden temporary folder beside the target
+(``.NAME.tmp-<pid>-<random>``), the manifest last, and the folder is renamed into place; a failure
+removes the temporary folder, so an interrupted or failed prepare never leaves a folder that
+:func:`~dpc_jax.data.pipeline.load_cache` accepts (it requires ``manifest.json``). The temporary
+folders of a killed prepare (``kill -9``) are removed by the next prepare into the same root; those
+of a prepare still running are left alone (see :func:`dpc_jax._io.remove_stale`).
 """
 
 from __future__ import annotations
@@ -45,16 +47,16 @@ import json
 import logging
 import os
 import shutil
-import tempfile
 from collections.abc import Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
 import numpy as np
-from tqdm.auto import tqdm
 
 from dpc_jax import trajectory
+from dpc_jax._io import remove_stale, temp_name
+from dpc_jax._progress import Progress, progress_bar
 from dpc_jax.data.kitti import StereoSequence, load_image, read_ground_truth
 from dpc_jax.data.priors import load_prior, rescale_monocular
 from dpc_jax.lie import validate_poses
@@ -127,11 +129,15 @@ def input_hash(
 
 
 def read_manifest(cache_dir: str | Path) -> dict | None:
-    """The manifest of a complete cache folder, or None when there is none."""
+    """The manifest of a complete cache folder, or None when there is none (or it is unreadable)."""
     path = Path(cache_dir) / MANIFEST
     if not path.is_file():
         return None
-    return json.loads(path.read_text())
+    try:
+        manifest = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    return manifest if isinstance(manifest, dict) else None
 
 
 def _resized_frame(path: Path, expected: tuple[int, int], size: tuple[int, int]) -> np.ndarray:
@@ -163,7 +169,7 @@ def _grey(image: np.ndarray) -> np.ndarray:
 
 
 def _write_flows(
-    tmp: Path, left: np.ndarray, right: np.ndarray, augment: bool, workers: int, progress: bool
+    tmp: Path, left: np.ndarray, right: np.ndarray, augment: bool, workers: int, progress: Progress
 ) -> None:
     n = left.shape[0]
     kinds = {"forward": (1, False)}
@@ -184,8 +190,10 @@ def _write_flows(
             ])
 
         results = _ordered_map(pair_flow, list(range(count)), workers)
-        for k, flow in enumerate(tqdm(results, total=count, desc=f"flow ({kind})", disable=not progress)):
-            out[k] = flow
+        with progress_bar(count, f"flow ({kind})", progress, unit="pair") as bar:
+            for k, flow in enumerate(results):
+                out[k] = flow
+                bar.update(1)
         out.flush()
         del out
 
@@ -205,7 +213,7 @@ def prepare_sequence(
     ground_truth: str | Path | np.ndarray | None = None,
     name: str | None = None,
     force: bool = False,
-    progress: bool | None = None,
+    progress: Progress = None,
     workers: int | None = None,
 ) -> Path:
     """Build (or find up to date) the cache ``out_dir/name`` of one sequence; return its path.
@@ -224,8 +232,9 @@ def prepare_sequence(
     * ``flow``: Farnebäck flow per consecutive kept pair; ``flow_augment`` adds the flows of the
       reversed and frame-skip pairs (implies ``flow``).
     * ``name``: folder name, default ``sequence.name``; ``force`` rebuilds even when up to date.
-    * ``progress``: tqdm bars (default: when stderr is a terminal); ``workers``: decoding and
-      flow threads (default: CPU count).
+    * ``progress``: tqdm bars (default: when stderr is a terminal), or ``"lines"`` for plain
+      progress lines (see :mod:`dpc_jax._progress`); ``workers``: decoding and flow threads
+      (default: CPU count).
 
     Bad input (unreadable or differently sized images, prior or ground truth of the wrong length
     or not rigid) raises ``ValueError``/``FileNotFoundError`` naming the file and frame, and no
@@ -233,7 +242,6 @@ def prepare_sequence(
     """
     out_dir = Path(out_dir)
     name = name or sequence.name
-    progress = os.isatty(2) if progress is None else progress
     workers = workers or os.cpu_count() or 1
     flow = flow or flow_augment
     size = (int(size[0]), int(size[1]))
@@ -281,9 +289,11 @@ def prepare_sequence(
             raise ValueError(f"{sequence.name}: static-frame removal left {kept.size} frame(s); need 2")
 
     out_dir.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{name}.tmp-", dir=out_dir))
+    for kind in ("tmp", "old"):
+        remove_stale(out_dir, f".{name}.{kind}-")
+    tmp = out_dir / temp_name(f".{name}.tmp-")
+    tmp.mkdir()
     try:
-        tmp.chmod(0o755)  # mkdtemp makes it private; the cache is shared like any output folder
         n = kept.size
         shape = (n, *size, 3)
         arrays = {}
@@ -292,9 +302,10 @@ def prepare_sequence(
             frames_iter = _ordered_map(
                 lambda p: _resized_frame(p, sequence.image_size, size), [paths[i] for i in kept], workers
             )
-            bar = tqdm(frames_iter, total=n, desc=f"{name} {camera}", disable=not progress)
-            for k, image in enumerate(bar):
-                out[k] = image
+            with progress_bar(n, f"{name} {camera}", progress) as bar:
+                for k, image in enumerate(frames_iter):
+                    out[k] = image
+                    bar.update(1)
             out.flush()
             arrays[camera] = out
         if flow:
@@ -361,7 +372,8 @@ def _load_ground_truth(source: str | Path | np.ndarray, n: int) -> np.ndarray:
 def _install(tmp: Path, target: Path) -> None:
     """Move the finished folder ``tmp`` to ``target``, replacing an older cache there."""
     if target.exists():
-        old = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=target.parent))
+        old = target.parent / temp_name(f".{target.name}.old-")
+        old.mkdir()
         os.replace(target, old / target.name)
         os.replace(tmp, target)
         shutil.rmtree(old, ignore_errors=True)

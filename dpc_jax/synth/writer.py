@@ -17,8 +17,10 @@
 camera, ``P3[0, 3] = −fu·B``), so that ``baseline = (P2[0, 3] − P3[0, 3]) / fu`` as for KITTI; the
 grey pair is written identical (``P0 = P2``, ``P1 = P3``) because the images are the same cameras;
 ``Tr`` (velodyne → camera in KITTI) is the identity. Sequence ``XX`` (00, 01, ...) is rendered with
-seed ``seed + XX``. Every sequence is rendered into a temporary directory beside its final place and
-renamed when complete; ``poses/XX.txt`` is written to a temporary name and renamed too.
+seed ``seed + XX``. Every sequence is rendered into a temporary directory beside its final place
+(``sequences/.XX.tmp-<pid>-<random>``) and renamed when complete; ``poses/XX.txt`` is written
+atomically too. The temporary folders of a killed run are removed by the next run writing into
+the same ``OUT`` (those of a run still going are left alone).
 """
 
 from __future__ import annotations
@@ -27,13 +29,14 @@ import dataclasses
 import json
 import os
 import shutil
-import sys
 from collections.abc import Callable
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from dpc_jax._io import atomic_write, remove_stale, temp_name
+from dpc_jax._progress import Progress, progress_bar
 from dpc_jax.synth.sequence import SynthConfig, iter_frames, kitti_intrinsics, sequence_poses
 
 
@@ -48,12 +51,6 @@ def calib_text(K: np.ndarray, baseline: float) -> str:
     p_right[0, 3] = -K[0, 0] * baseline
     rows = {"P0": p_left, "P1": p_right, "P2": p_left, "P3": p_right, "Tr": np.eye(4)[:3]}
     return "".join(f"{name}: {_fmt(m)}\n" for name, m in rows.items())
-
-
-def _atomic_text(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 def _imwrite(path: Path, image: np.ndarray) -> None:
@@ -74,9 +71,9 @@ def write_sequence(out: Path | str, name: str, config: SynthConfig, overwrite: b
         raise FileExistsError(f"{seq_dir} already exists (use overwrite to replace it)")
     (out / "sequences").mkdir(parents=True, exist_ok=True)
     (out / "poses").mkdir(parents=True, exist_ok=True)
-    tmp = out / "sequences" / f".{name}.tmp-{os.getpid()}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
+    for kind in ("tmp", "old"):
+        remove_stale(out / "sequences", f".{name}.{kind}-")
+    tmp = out / "sequences" / temp_name(f".{name}.tmp-")
     dirs = {d: tmp / d for d in ("image_2", "image_3", "depth_2", "depth_3", "moving_2", "moving_3")}
     try:
         for d in dirs.values():
@@ -99,25 +96,24 @@ def write_sequence(out: Path | str, name: str, config: SynthConfig, overwrite: b
                 "depth": "float32 z-depth in metres, inf = sky", "poses": f"poses/{name}.txt"}
         (tmp / "synth.json").write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
         if seq_dir.exists():
-            old = out / "sequences" / f".{name}.old-{os.getpid()}"
+            old = out / "sequences" / temp_name(f".{name}.old-")
             os.replace(seq_dir, old)
             shutil.rmtree(old)
         os.replace(tmp, seq_dir)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    _atomic_text(out / "poses" / f"{name}.txt", "".join(_fmt(p[:3]) + "\n" for p in poses))
+    atomic_write(out / "poses" / f"{name}.txt", "".join(_fmt(p[:3]) + "\n" for p in poses))
     return seq_dir
 
 
 def write_sequences(out: Path | str, config: SynthConfig, sequences: int = 4, overwrite: bool = False,
-                    progress: bool | None = None) -> list[Path]:
+                    progress: Progress = None) -> list[Path]:
     """Write ``sequences`` sequences ``00, 01, ...`` (seeds ``config.seed + i``) under ``out``.
 
-    ``progress``: show a tqdm bar over all frames (default: only when stderr is a terminal).
+    ``progress``: a tqdm bar over all frames (default: only when stderr is a terminal), or
+    ``"lines"`` for plain progress lines (see :mod:`dpc_jax._progress`).
     """
-    from tqdm.auto import tqdm
-
     if sequences < 1:
         raise ValueError(f"sequences must be >= 1, got {sequences}")
     out = Path(out)
@@ -126,9 +122,8 @@ def write_sequences(out: Path | str, config: SynthConfig, sequences: int = 4, ov
         existing = [n for n in names if (out / "sequences" / n).exists()]
         if existing:
             raise FileExistsError(f"{out / 'sequences'} already holds sequence(s) {', '.join(existing)}")
-    show = sys.stderr.isatty() if progress is None else progress
     paths = []
-    with tqdm(total=sequences * config.frames, unit="frame", desc="synth", disable=not show) as bar:
+    with progress_bar(sequences * config.frames, "synth", progress) as bar:
         for i, name in enumerate(names):
             bar.set_postfix(sequence=name)
             cfg = dataclasses.replace(config, seed=config.seed + i)
