@@ -3,6 +3,10 @@
 Every module in this package except this one is a subcommand. It defines ``HELP`` (one line for
 ``dpc-jax --help``), ``add_arguments(parser)`` and ``run(args) -> int``. Heavy imports (JAX, the
 models) happen inside ``run`` so that ``--help`` and argument errors are instant.
+
+Around every subcommand: Ctrl-C ends it with one line, ``dpc-jax COMMAND: interrupted; nothing
+half-written``, and exit status 130 (every writer is atomic or all-or-nothing, so that is true), and
+an :class:`~dpc_jax._io.InputWarning` is printed as one ``dpc-jax COMMAND: warning: ...`` line.
 """
 
 from __future__ import annotations
@@ -11,9 +15,13 @@ import argparse
 import importlib
 import pkgutil
 import sys
+import warnings
 from collections.abc import Sequence
+from typing import Any
 
 import dpc_jax
+from dpc_jax._io import InputWarning
+from dpc_jax.cli._common import Formatter
 from dpc_jax.hugepages import reexec_with_huge_pages
 
 
@@ -30,10 +38,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in _subcommands():
         module = importlib.import_module(f"{__name__}.{name}")
-        command = sub.add_parser(
-            name, help=module.HELP, description=module.HELP,
-            formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-        )
+        command = sub.add_parser(name, help=module.HELP, description=module.HELP, formatter_class=Formatter)
         module.add_arguments(command)
         command.set_defaults(_run=module.run)
     return parser
@@ -45,7 +50,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 2
-    return int(args._run(args) or 0)
+    show_warning = warnings.showwarning
+
+    def one_line(message: Any, category: type[Warning], *rest: Any, **kw: Any) -> None:
+        if issubclass(category, InputWarning):
+            print(f"dpc-jax {args.command}: warning: {message}", file=sys.stderr)
+        else:
+            show_warning(message, category, *rest, **kw)
+
+    with warnings.catch_warnings():
+        warnings.showwarning = one_line
+        try:
+            return int(args._run(args) or 0)
+        except KeyboardInterrupt:
+            print(f"dpc-jax {args.command}: interrupted; nothing half-written", file=sys.stderr)
+            return 130
 
 
 def console_main() -> None:

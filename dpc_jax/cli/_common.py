@@ -1,12 +1,40 @@
-"""Argument types and the help formatter shared by the subcommands (not a subcommand itself)."""
+"""What the subcommands share (not a subcommand itself): the help formatter, argument types, the
+output-path checks, progress modes, and the one-line report of a checkpoint that cannot be read.
+
+Output paths follow one rule in every command (``dpc_jax._io``): missing parent folders are
+created when the outputs are written, the nearest existing folder must be writable, and this is
+checked before any work starts (:func:`output_problem`).
+"""
 
 from __future__ import annotations
 
 import argparse
+import logging
+import sys
+from pathlib import Path
+
+from dpc_jax._io import output_problem as _output_problem
+
+# Above this many pixels per image, --size needs --allow-large: 4 MP is 8.6 times a KITTI image
+# (375×1242); a synthetic stereo frame at 4 MP takes about 60 MB (two PNGs, two float32 depths).
+MAX_PIXELS = 4_000_000
 
 
 class Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
-    """Keeps the examples' line breaks and shows the defaults."""
+    """Keeps the examples' line breaks; shows a default only where it says something.
+
+    No "(default: None)" or "(default: False)", no second default where the help text already
+    states one, and readable placeholders for options declared without a metavar.
+    """
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = action.help or ""
+        if action.default in (None, False, [], argparse.SUPPRESS) or "default" in text.lower():
+            return text
+        return super()._get_help_string(action)
+
+    def _get_default_metavar_for_optional(self, action: argparse.Action) -> str:
+        return {int: "N", float: "X", Path: "PATH"}.get(action.type, "VALUE")
 
 
 def image_size(text: str) -> tuple[int, int]:
@@ -20,6 +48,15 @@ def image_size(text: str) -> tuple[int, int]:
     return h, w
 
 
+def size_problem(size: tuple[int, int], allow_large: bool) -> str | None:
+    """Why ``--size`` needs ``--allow-large`` (more than ``MAX_PIXELS`` per image), or None."""
+    pixels = size[0] * size[1]
+    if pixels <= MAX_PIXELS or allow_large:
+        return None
+    return (f"--size {size[0]}x{size[1]}: {pixels / 1e6:.1f} megapixels per image, more than "
+            f"{MAX_PIXELS / 1e6:.0f}; pass --allow-large if you mean it")
+
+
 def frame_range(text: str) -> tuple[int, int]:
     """``"0:100"`` → ``(0, 100)``: frames START (inclusive) to STOP (exclusive)."""
     try:
@@ -29,3 +66,37 @@ def frame_range(text: str) -> tuple[int, int]:
     if not 0 <= start < stop:
         raise argparse.ArgumentTypeError(f"expected 0 <= START < STOP, got {text!r}")
     return start, stop
+
+
+def output_problem(path: Path | str | None, option: str, *, folder: bool = False) -> str | None:
+    """What keeps ``path`` (an option's value; None = not given) from receiving an output, or None."""
+    if path is None:
+        return None
+    return _output_problem(path, option, folder=folder)
+
+
+def progress_mode(no_progress: bool) -> bool | str:
+    """The ``progress`` argument of the data writers: bars on a terminal, lines in a log."""
+    if no_progress:
+        return False
+    return True if sys.stderr.isatty() else "lines"
+
+
+def restore_problem(folder: Path, error: BaseException) -> str:
+    """One line for a checkpoint under ``folder`` that cannot be restored, naming the folder.
+
+    Orbax reads a checkpoint with many concurrent tensorstore tasks. When one fails, the others
+    finish after its event loop has closed and report "Event loop is closed" and "Task exception
+    was never retrieved" through ``sys.unraisablehook`` and the asyncio logger, in dozens of
+    tracebacks that can arrive until the process exits. The failure is reported here in one
+    line, so those reports are dropped for the rest of the process.
+    """
+    sys.unraisablehook = lambda _: None
+    logging.getLogger("asyncio").setLevel(logging.CRITICAL)
+    text = str(error).strip()
+    first = text.splitlines()[0] if text else ""
+    if len(first) > 200:
+        first = first[:200] + "…"
+    reason = f"{type(error).__name__}: {first}" if first else type(error).__name__
+    return (f"{folder}: cannot restore the checkpoint ({reason}); it is damaged or incomplete, "
+            "or was written by another version of the model code")

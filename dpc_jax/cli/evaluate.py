@@ -1,13 +1,8 @@
 """``dpc-jax evaluate``: metrics of estimated trajectories against ground truth, reports and exports.
 
-Examples::
-
-    dpc-jax evaluate --mat stereo_00.mat --remove-static --json -
-    dpc-jax evaluate --gt 00.txt --est prior.txt --est corrected.txt --label prior --label corrected \\
-        --report out/report --export out/trajectories
-
 Everything is read, checked and computed before anything is written; bad input ends with a
-message on stderr and exit status 2, and no file is written.
+message on stderr and exit status 2, and no file is written. The outputs (``--json``, ``--report``,
+``--export``) are written all or nothing.
 """
 
 from __future__ import annotations
@@ -16,19 +11,32 @@ import argparse
 import sys
 from pathlib import Path
 
+from dpc_jax.cli._common import Formatter, output_problem
+
 HELP = "Evaluate trajectories against ground truth (m-ATE, segment errors, ATE, RPE, loop closures)."
+
+EPILOG = """examples:
+  dpc-jax evaluate --mat stereo_00.mat --remove-static --json -
+  dpc-jax evaluate --gt 00.txt --est prior.txt --est corrected.txt --label prior --label corrected \\
+      --align se3 --report out/report --export out/trajectories
+Formats by extension (.mat, .tum) or column count (12 KITTI, 8 TUM), or --format. A .mat given to --gt
+is read for its poses_gt, given to --est for its poses_est (--mat reads both). Estimates are paired with
+the ground truth pose by pose, in order."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.epilog = EPILOG
+    parser.formatter_class = Formatter
     source = parser.add_mutually_exclusive_group(required=True)
-    source.add_argument("--gt", type=Path, metavar="FILE", help="ground-truth trajectory")
+    source.add_argument("--gt", type=Path, metavar="FILE",
+                        help="ground-truth trajectory (.mat: its poses_gt)")
     source.add_argument(
         "--mat", type=Path, metavar="FILE",
         help="ss-DPC-Net .mat holding poses_gt and poses_est (label 'est')",
     )
     parser.add_argument(
         "--est", type=Path, action="append", default=[], metavar="FILE",
-        help="estimated trajectory (repeatable; with --gt)",
+        help="estimated trajectory (repeatable; with --gt; .mat: its poses_est)",
     )
     parser.add_argument(
         "--label", action="append", default=[], metavar="NAME",
@@ -43,7 +51,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="drop static frames with the ss-DPC-Net rule read on the (first) estimate; the estimate "
         "is re-composed from its relative poses between kept frames",
     )
-    parser.add_argument("--align", choices=("none", "se3", "sim3"), default="none", help="alignment for ATE")
+    parser.add_argument("--align", choices=("none", "se3", "sim3"), default="none",
+                        help="alignment for ATE (the other metrics and the plots are not aligned)")
     parser.add_argument("--rpe-delta", type=int, default=1, metavar="N", help="frame offset of RPE")
     parser.add_argument("--json", metavar="PATH", help="write the metrics as JSON to PATH ('-': stdout)")
     parser.add_argument(
@@ -78,7 +87,7 @@ def _inputs(args: argparse.Namespace) -> tuple[object, dict[str, object]]:
         check_label(label)
     if len(set(labels)) != len(labels):
         raise ValueError(f"estimate labels must be unique, got {labels}; use --label")
-    gt = read_trajectory(args.gt, args.format)
+    gt = read_trajectory(args.gt, args.format, mat_key="poses_gt")
     estimates = {}
     for label, path in zip(labels, args.est, strict=True):
         est = read_trajectory(path, args.format)
@@ -94,14 +103,17 @@ def run(args: argparse.Namespace) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
+    from dpc_jax._io import OutputSet
     from dpc_jax.evaluation import evaluate, export_trajectories, format_table, write_report
     from dpc_jax.trajectory import atomic_write
 
-    if args.json not in (None, "-") and not Path(args.json).parent.is_dir():
-        return _error(f"--json {args.json}: directory {Path(args.json).parent} does not exist")
-    for option, path in (("--report", args.report), ("--export", args.export)):
-        if path is not None and path.exists() and not path.is_dir():
-            return _error(f"{option} {path}: exists and is not a directory")
+    problem = (
+        output_problem(None if args.json == "-" else args.json, "--json")
+        or output_problem(args.report, "--report", folder=True)
+        or output_problem(args.export, "--export", folder=True)
+    )
+    if problem is not None:
+        return _error(problem)
     try:
         gt, estimates = _inputs(args)
         result = evaluate(gt, estimates, remove_static=args.remove_static, align=args.align,
@@ -109,15 +121,17 @@ def run(args: argparse.Namespace) -> int:
     except (ValueError, OSError) as error:
         return _error(str(error))
 
+    with OutputSet() as outputs:
+        if args.json not in (None, "-"):
+            atomic_write(outputs.file(args.json), result.to_json())
+        if args.report is not None:
+            source = args.mat if args.mat is not None else args.gt
+            write_report(outputs.folder(args.report), result, title=f"Trajectory evaluation: {source.name}")
+        if args.export is not None:
+            export_trajectories(outputs.folder(args.export), result)
+        outputs.commit()
     if args.json == "-":
         sys.stdout.write(result.to_json())
-    elif args.json is not None:
-        atomic_write(args.json, result.to_json())
-    if args.report is not None:
-        source = args.mat if args.mat is not None else args.gt
-        write_report(args.report, result, title=f"Trajectory evaluation: {source.name}")
-    if args.export is not None:
-        export_trajectories(args.export, result)
-    if args.json != "-":
+    else:
         sys.stdout.write(format_table(result))
     return 0

@@ -6,7 +6,14 @@ import argparse
 import sys
 from pathlib import Path
 
-from dpc_jax.cli._common import Formatter, frame_range, image_size
+from dpc_jax.cli._common import (
+    Formatter,
+    frame_range,
+    image_size,
+    output_problem,
+    progress_mode,
+    size_problem,
+)
 
 HELP = "Decode, resize and cache stereo sequences with their VO prior (and optical flow) for training."
 
@@ -15,9 +22,9 @@ EPILOG = """examples:
   dpc-jax prepare --kitti-raw ROOT --date 2011_09_26 --drive 1 \\
       --prior libviso2/stereo_2011_09_26_drive_0001.mat --out cache --frames 0:12 --size 120x188
 The synthetic sequences use the odometry layout (--kitti-odometry). '{seq}' in --prior/--gt is replaced by
-each sequence name. Ground truth: poses/XX.txt (odometry), else --gt, else the poses_gt of a .mat prior."""
-
-
+each sequence name. Ground truth: poses/XX.txt (odometry), else --gt, else the poses_gt of a .mat prior.
+Prints each cache folder on stdout and whether it was built or reused (up to date) on stderr.
+Images above 4 megapixels need --allow-large."""
 
 
 
@@ -30,16 +37,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     layout.add_argument("--kitti-raw", type=Path, metavar="ROOT", help="raw layout root (holds DATE/)")
     parser.add_argument("--sequence", nargs="+", default=[], metavar="XX", help="odometry sequence(s)")
     parser.add_argument("--grey", action="store_true", help="odometry: use the grey pair image_0/image_1")
-    parser.add_argument("--date", help="raw: recording date, e.g. 2011_09_26")
+    parser.add_argument("--date", metavar="YYYY_MM_DD", help="raw: recording date, e.g. 2011_09_26")
     parser.add_argument("--drive", nargs="+", default=[], metavar="NNNN", help="raw: drive number(s)")
     parser.add_argument("--prior", required=True, metavar="FILE",
                         help="VO estimate per frame (KITTI/TUM text or .mat); '{seq}' = sequence name")
-    parser.add_argument("--prior-format", choices=("kitti", "tum", "mat"), help="override the extension")
+    parser.add_argument("--prior-format", choices=("kitti", "tum", "mat"),
+                        help="format of --prior (default: from the extension or the column count)")
     parser.add_argument("--gt", metavar="FILE",
                         help="ground-truth pose file (KITTI/TUM/.mat); '{seq}' allowed")
     parser.add_argument("--out", required=True, type=Path, metavar="CACHE_DIR", help="cache root folder")
     parser.add_argument("--size", type=image_size, default=(240, 376), metavar="HxW",
-                        help="stored image size")
+                        help="stored image size (default: 240x376)")
+    parser.add_argument("--allow-large", action="store_true",
+                        help="accept a --size above 4 megapixels per image")
     parser.add_argument("--frames", type=frame_range, metavar="START:STOP",
                         help="keep only these source frames")
     parser.add_argument("--remove-static", action="store_true", help="drop static frames (ss-DPC-Net rule)")
@@ -49,27 +59,47 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mono-rescale", action="store_true",
                         help="rescale each prior step to the ground-truth step length (monocular VO)")
     parser.add_argument("--force", action="store_true", help="rebuild even when the cache is up to date")
-    parser.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+    parser.add_argument("--no-progress", action="store_true",
+                        help="hide the progress bars (off a terminal: the progress lines)")
+
+
+def _error(message: str, status: int = 2) -> int:
+    print(f"dpc-jax prepare: error: {message}", file=sys.stderr)
+    return status
+
+
+def _manifest_identity(folder: Path) -> tuple[int, int] | None:
+    """Inode and mtime of a cache's manifest: a rebuild installs a new folder, hence a new manifest."""
+    try:
+        st = (folder / "manifest.json").stat()
+    except OSError:
+        return None
+    return st.st_ino, st.st_mtime_ns
 
 
 def run(args: argparse.Namespace) -> int:
+    import time
+
     from dpc_jax.data.cache import prepare_sequence
     from dpc_jax.data.kitti import open_odometry, open_raw
 
     if args.kitti_odometry is not None:
         if not args.sequence or args.date or args.drive:
-            print("error: --kitti-odometry needs --sequence (and no --date/--drive)", file=sys.stderr)
-            return 2
+            return _error("--kitti-odometry needs --sequence (and no --date/--drive)")
         jobs = [(s, lambda s=s: open_odometry(args.kitti_odometry, s, grey=args.grey)) for s in args.sequence]
     else:
         if not args.date or not args.drive or args.sequence:
-            print("error: --kitti-raw needs --date and --drive (and no --sequence)", file=sys.stderr)
-            return 2
+            return _error("--kitti-raw needs --date and --drive (and no --sequence)")
         jobs = [(d, lambda d=d: open_raw(args.kitti_raw, args.date, d)) for d in args.drive]
-    progress = None if not args.no_progress else False
+    problem = output_problem(args.out, "--out", folder=True) or size_problem(args.size, args.allow_large)
+    if problem is not None:
+        return _error(problem)
+    progress = progress_mode(args.no_progress)
     for key, opener in jobs:
         try:
             sequence = opener()
+            before = _manifest_identity(args.out / sequence.name)
+            began = time.monotonic()
             path = prepare_sequence(
                 sequence,
                 args.prior.replace("{seq}", sequence.name),
@@ -86,7 +116,11 @@ def run(args: argparse.Namespace) -> int:
                 progress=progress,
             )
         except (OSError, ValueError, KeyError) as error:
-            print(f"error: {key}: {error}", file=sys.stderr)
-            return 1
+            return _error(f"{key}: {error}", status=1)
+        after = _manifest_identity(path)
+        if after is not None and after == before:
+            print(f"{sequence.name}: up to date, reused {path}", file=sys.stderr)
+        else:
+            print(f"{sequence.name}: built {path} in {time.monotonic() - began:.1f} s", file=sys.stderr)
         print(path)
     return 0

@@ -4,39 +4,66 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
-from dpc_jax.cli._common import image_size
+from dpc_jax.cli._common import Formatter, image_size, output_problem, progress_mode, size_problem
 
 HELP = "Render synthetic stereo driving sequences (KITTI odometry layout, exact depth and poses)."
 
+EPILOG = """examples:
+  dpc-jax synth --out data/synth --sequences 4 --frames 200 --seed 0
+  dpc-jax synth --out data/hard --sequences 2 --frames 300 --size 120x188 --moving-objects 3 \\
+      --illumination-drift 0.3 --noise 2
+Writes OUT/sequences/XX/{image_2,image_3,depth_2,depth_3,moving_2,moving_3}/NNNNNN.*, calib.txt,
+times.txt, synth.json and OUT/poses/XX.txt; read them with --kitti-odometry OUT in the other commands.
+The same command gives byte-identical files. Images above 4 megapixels need --allow-large."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", required=True, help="output root (receives sequences/XX and poses/XX.txt)")
-    parser.add_argument("--sequences", type=int, default=4, help="number of sequences (named 00, 01, ...)")
-    parser.add_argument("--frames", type=int, default=200, help="frames per sequence (10 Hz)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of sequence 00; sequence i uses seed + i")
-    parser.add_argument("--size", type=image_size, default=(240, 376), help="image size HEIGHTxWIDTH")
-    parser.add_argument("--moving-objects", type=int, default=0, help="moving cars per sequence")
-    parser.add_argument("--illumination-drift", type=float, default=0.0,
+    parser.epilog = EPILOG
+    parser.formatter_class = Formatter
+    parser.add_argument("--out", required=True, type=Path, metavar="DIR",
+                        help="output root (receives sequences/XX and poses/XX.txt)")
+    parser.add_argument("--sequences", type=int, default=4, metavar="N",
+                        help="number of sequences (named 00, 01, ...)")
+    parser.add_argument("--frames", type=int, default=200, metavar="N", help="frames per sequence (10 Hz)")
+    parser.add_argument("--seed", type=int, default=0, metavar="N",
+                        help="seed of sequence 00; sequence i uses seed + i")
+    parser.add_argument("--size", type=image_size, default=(240, 376), metavar="HxW",
+                        help="image size HEIGHTxWIDTH (default: 240x376)")
+    parser.add_argument("--allow-large", action="store_true",
+                        help="accept a --size above 4 megapixels per image")
+    parser.add_argument("--moving-objects", type=int, default=0, metavar="N", help="moving cars per sequence")
+    parser.add_argument("--illumination-drift", type=float, default=0.0, metavar="X",
                         help="amplitude X of the slow global gain (1±X) and gamma (1±X/2) drift")
-    parser.add_argument("--noise", type=float, default=0.0, help="Gaussian image noise std, 0..255 units")
+    parser.add_argument("--noise", type=float, default=0.0, metavar="SIGMA",
+                        help="Gaussian image noise std, 0..255 units")
     parser.add_argument("--overwrite", action="store_true", help="replace existing sequences")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--no-progress", action="store_true",
+                        help="no progress bar (off a terminal: no progress lines)")
+
+
+def _error(message: str) -> int:
+    print(f"dpc-jax synth: error: {message}", file=sys.stderr)
+    return 2
 
 
 def run(args: argparse.Namespace) -> int:
     from dpc_jax.synth import SynthConfig, write_sequences
 
+    problem = output_problem(args.out, "--out", folder=True) or size_problem(args.size, args.allow_large)
+    if problem is not None:
+        return _error(problem)
     try:
         config = SynthConfig(frames=args.frames, height=args.size[0], width=args.size[1], seed=args.seed,
                              moving_objects=args.moving_objects, illumination_drift=args.illumination_drift,
                              noise=args.noise)
         paths = write_sequences(args.out, config, sequences=args.sequences, overwrite=args.overwrite,
-                                progress=False if args.no_progress else None)
-    except (ValueError, FileExistsError) as err:
-        print(f"dpc-jax synth: error: {err}", file=sys.stderr)
-        return 2
+                                progress=progress_mode(args.no_progress))
+    except FileExistsError as err:
+        return _error(f"{err}; pass --overwrite to replace them")
+    except ValueError as err:
+        return _error(str(err))
     for path in paths:
         print(path)
     return 0
