@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from dpc_jax.cli._common import Formatter, frame_range
+from dpc_jax.cli._common import Formatter, frame_range, output_problem
 
 HELP = "Classical stereo visual odometry (libviso2-s-like): write the trajectory and a per-frame CSV."
 
@@ -18,7 +18,7 @@ The synthetic sequences use the odometry layout (--kitti-odometry). The trajecto
 (camera-to-world of the left camera, one 3x4 row per frame) starting at the identity, or at the ground
 truth's first pose with --start gt. The CSV (default: OUT with suffix .csv) has one row per frame pair:
 frame, inliers, status (ok | constant_velocity), disparity_offset_px, time_s. With ground truth the
-m-ATE and final-position error are printed."""
+m-ATE and final-position error are printed. The trajectory and the CSV are written together or not at all."""
 
 
 
@@ -32,7 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     layout.add_argument("--kitti-raw", type=Path, metavar="ROOT", help="raw layout root (holds DATE/)")
     parser.add_argument("--sequence", metavar="XX", help="odometry: sequence")
     parser.add_argument("--grey", action="store_true", help="odometry: use the grey pair image_0/image_1")
-    parser.add_argument("--date", help="raw: recording date, e.g. 2011_09_26")
+    parser.add_argument("--date", metavar="YYYY_MM_DD", help="raw: recording date, e.g. 2011_09_26")
     parser.add_argument("--drive", metavar="NNNN", help="raw: drive number")
     parser.add_argument("--gt", type=Path, metavar="FILE",
                         help="raw: ground truth (KITTI/TUM text or .mat, its poses_gt)")
@@ -70,10 +70,18 @@ class _UsageError(Exception):
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from dpc_jax._io import OutputSet
     from dpc_jax.trajectory import atomic_write, write_kitti_poses
     from dpc_jax.vo import VOConfig, VOStatus, run_vo
     from dpc_jax.vo.odometry import per_frame_table
 
+    csv_path = args.csv if args.csv is not None else args.out.with_suffix(".csv")
+    problem = output_problem(args.out, "--out") or output_problem(csv_path, "--csv")
+    if csv_path.resolve() == args.out.resolve():
+        problem = f"--csv {csv_path}: the same file as --out; give the CSV another name"
+    if problem is not None:
+        print(f"error: {problem}", file=sys.stderr)
+        return 2
     try:
         sequence = _open(args)
         if args.frames is not None:
@@ -96,11 +104,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: {sequence.name}: {error}", file=sys.stderr)
         return 1
 
-    csv_path = args.csv if args.csv is not None else args.out.with_suffix(".csv")
-    for path in (args.out, csv_path):
-        path.parent.mkdir(parents=True, exist_ok=True)
-    write_kitti_poses(args.out, result.poses)
-    atomic_write(csv_path, per_frame_table(result))
+    with OutputSet() as outputs:
+        write_kitti_poses(outputs.file(args.out), result.poses)
+        atomic_write(outputs.file(csv_path), per_frame_table(result))
+        outputs.commit()
 
     fallbacks = int(np.sum(result.status != VOStatus.OK))
     rate = len(result.times) / result.times.sum()
