@@ -7,11 +7,22 @@ import logging
 import sys
 from pathlib import Path
 
+from dpc_jax.cli._common import Formatter, output_problem
+
 HELP = "Synthetic end-to-end demo: train Stereo DPC on rendered sequences, correct our VO, write a report."
+
+EPILOG = """examples:
+  dpc-jax demo --out demo
+  dpc-jax demo --out demo_hard --config my_demo.py     # CONFIG = DemoConfig(...) or a dict of its fields
+Writes OUT/report.md (table, trajectory, segment-error and c-ATE plots) and keeps the data, priors, caches
+and the training run under OUT; re-running reuses what is up to date."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.epilog = EPILOG
+    parser.formatter_class = Formatter
     parser.add_argument("--out", type=Path, default=Path("dpc_demo"),
+                        metavar="DIR",
                         help="output folder (data, priors, caches, run, report.md); re-running reuses it")
     parser.add_argument("--config", type=Path, metavar="FILE",
                         help="a Python file defining CONFIG = DemoConfig(...) or a dict of its fields "
@@ -23,6 +34,10 @@ def run(args: argparse.Namespace) -> int:
     from dpc_jax.config import ConfigError, load_file
     from dpc_jax.demo import DemoConfig, run_demo
 
+    problem = output_problem(args.out, "--out", folder=True)
+    if problem is not None:
+        print(f"dpc-jax demo: error: {problem}", file=sys.stderr)
+        return 2
     try:
         config = load_file(args.config, DemoConfig) if args.config is not None else DemoConfig()
     except ConfigError as error:
