@@ -3,9 +3,13 @@
 * :func:`plot_trajectories` — ground truth and estimates seen from above. KITTI's camera frame
   has y pointing down, so "above" is the x–z plane; trajectories in a z-up frame (the OXTS/IMU
   frame of some releases) would collapse there, so the plane is the one spanned by the two axes
-  along which the ground truth extends most, and the axes are labelled accordingly.
-* :func:`plot_segment_errors` — per-length translation (%) and rotation (°/100 m) errors.
-* :func:`plot_c_ate` — cumulative translation (m) and rotation (°) errors (c-ATE) per frame.
+  along which the ground truth extends most, and the axes are labelled accordingly. The subtitle
+  says how the estimates were placed (by default: started at the first ground-truth pose, not
+  aligned — the trajectories of :func:`dpc_jax.evaluation.evaluate`).
+* :func:`plot_segment_errors` — per-length translation (%) and rotation (°/100 m) errors; a
+  sequence too short for the shortest length gets a note instead of empty axes.
+* :func:`plot_c_ate` — cumulative translation (m) and rotation (°) errors (c-ATE) per frame; the
+  subtitle defines "cumulative".
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ if TYPE_CHECKING:
 
 _AXES = "xyz"
 _DPI = 120
+ANCHORED = "estimates start at the first ground-truth pose; not aligned"
 
 
 def _save(figure: Figure, path: str | Path) -> Path:
@@ -43,8 +48,13 @@ def horizontal_axes(positions: np.ndarray) -> tuple[int, int]:
     return int(first), int(second)
 
 
-def plot_trajectories(path: str | Path, gt: np.ndarray, estimates: Mapping[str, np.ndarray]) -> Path:
-    """Top view of the ground truth and every estimate (``[N, 4, 4]`` each), equal axis scales."""
+def plot_trajectories(
+    path: str | Path, gt: np.ndarray, estimates: Mapping[str, np.ndarray], placement: str = ANCHORED
+) -> Path:
+    """Top view of the ground truth and every estimate (``[N, 4, 4]`` each), equal axis scales.
+
+    ``placement`` (the subtitle) says how the estimates were placed relative to the ground truth.
+    """
     a, b = horizontal_axes(gt[:, :3, 3])
     figure = Figure(figsize=(7.5, 7.0))
     ax = figure.add_subplot()
@@ -57,7 +67,7 @@ def plot_trajectories(path: str | Path, gt: np.ndarray, estimates: Mapping[str, 
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(True, alpha=0.3)
     ax.legend(loc="best")
-    ax.set_title("Trajectories (top view)")
+    ax.set_title(f"Trajectories (top view)\n{placement}", fontsize=11)
     figure.tight_layout()
     return _save(figure, path)
 
@@ -66,15 +76,26 @@ def plot_segment_errors(path: str | Path, metrics: Mapping[str, EstimateMetrics]
     """Per-length segment errors of every estimate: translation (%) left, rotation (°/100 m) right."""
     figure = Figure(figsize=(11.0, 4.2))
     ax_t, ax_r = figure.subplots(1, 2)
+    lengths = next(iter(metrics.values())).seg_lengths_m if metrics else np.zeros(0)
+    empty = all(np.isnan(m.seg_per_length_trans_pct).all() for m in metrics.values())
     for label, m in metrics.items():
         ax_t.plot(m.seg_lengths_m, m.seg_per_length_trans_pct, "o-", label=label)
         ax_r.plot(m.seg_lengths_m, m.seg_per_length_rot_deg_per_100m, "o-", label=label)
     for ax, unit in ((ax_t, "translation error (%)"), (ax_r, "rotation error (°/100 m)")):
         ax.set_xlabel("segment length (m)")
         ax.set_ylabel(unit)
-        ax.set_ylim(bottom=0.0)
         ax.grid(True, alpha=0.3)
-        ax.legend(loc="best")
+        if lengths.size:
+            step = float(np.min(np.diff(lengths))) if lengths.size > 1 else 100.0
+            ax.set_xlim(lengths[0] - step / 2, lengths[-1] + step / 2)
+        if empty:
+            ax.set_ylim(0.0, 1.0)
+            ax.text(0.5, 0.5, f"the sequence is shorter than {lengths[0]:g} m:\nno segment to evaluate"
+                    if lengths.size else "no segment to evaluate",
+                    transform=ax.transAxes, ha="center", va="center", fontsize=12, color="0.3")
+        else:
+            ax.set_ylim(bottom=0.0)
+            ax.legend(loc="best")
     figure.suptitle("Segment errors per length")
     figure.tight_layout()
     return _save(figure, path)
@@ -93,6 +114,10 @@ def plot_c_ate(path: str | Path, metrics: Mapping[str, EstimateMetrics]) -> Path
         ax.set_ylabel(unit)
         ax.grid(True, alpha=0.3)
         ax.legend(loc="best")
-    figure.suptitle("Cumulative absolute trajectory error (c-ATE)")
+    figure.suptitle(
+        "Cumulative absolute trajectory error (c-ATE)\ncumulative: the value at frame k is the sum, over "
+        "frames 0…k, of each frame's absolute error (position in m, rotation angle in °)",
+        fontsize=11,
+    )
     figure.tight_layout()
     return _save(figure, path)
