@@ -93,6 +93,10 @@ def restore_problem(folder: Path, error: BaseException) -> str:
     """
     sys.unraisablehook = lambda _: None
     logging.getLogger("asyncio").setLevel(logging.CRITICAL)
+    # Orbax wraps tensorstore's error (which names the damaged array and file) in a message that
+    # ends in a dump of the tensorstore spec; the innermost cause is the informative one.
+    while error.__cause__ is not None:
+        error = error.__cause__
     text = str(error).strip()
     first = text.splitlines()[0] if text else ""
     if len(first) > 200:
