@@ -25,13 +25,9 @@ from dpc_jax import parallel
 from dpc_jax.batch import Batch
 from dpc_jax.hugepages import reexec_with_huge_pages
 from dpc_jax.models import PRESETS, create_model
-from dpc_jax.train import (
-    TrainConfig,
-    create_train_state,
-    make_loss_functions,
-    make_optimizer,
-    make_train_step,
-)
+from dpc_jax.optim import create_train_state, make_optimizer
+from dpc_jax.train import make_train_step
+from dpc_jax.train_config import TrainConfig
 
 
 def random_batch(batch: int, size: tuple[int, int], flow: bool, seed: int = 0) -> Batch:
@@ -56,7 +52,7 @@ def bench(method: str, preset: str, batch_size: int, warmup: int, repeats: int) 
     graphdef, state = create_train_state(
         create_model(method, model_config, 0), make_optimizer(config, 100), mesh
     )
-    step = make_train_step(make_loss_functions(config)[0], mesh)
+    step = make_train_step(config.loss_config(), 0, mesh)
     batch = parallel.shard_batch(random_batch(batch_size, model_config.image_size, method == "ss_dpc"), mesh)
     key = jax.random.key(0)
     began = time.perf_counter()

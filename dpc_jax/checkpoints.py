@@ -8,6 +8,9 @@ Layout under ``WORKDIR/checkpoints``::
     best_gradient_loss/E/  the epoch with the lowest validation gradient loss (ss-DPC-Net §IV-a)
     best_loop_closures/E/  the epoch with the most loop closures of the corrected validation
                            trajectory (ss-DPC-Net §IV-b); ties go to the lower gradient loss
+    best_delta/E/          the epoch with the most negative mean Δ on the validation sequence
+                           (the correction's paired photometric effect, ``dpc_jax.acceptance``);
+                           absent while no epoch has a negative Δ — none beats "no correction"
 
 Each checkpoint holds two items: ``state`` (the pytree of model parameters, BatchNorm statistics,
 optimizer state and step) and ``meta`` (JSON: epoch, global step, the position of the data
@@ -29,19 +32,23 @@ from typing import Any
 
 import orbax.checkpoint as ocp
 
-CRITERIA = ("gradient_loss", "loop_closures")
+CRITERIA = ("gradient_loss", "loop_closures", "delta")
 
 
 @dataclass(frozen=True)
 class Record:
-    """The best epoch so far by one criterion (``epoch`` 0 = none yet)."""
+    """The best epoch so far by one criterion (``epoch`` 0 = none yet; for ``delta``, "no correction",
+    whose Δ is 0)."""
 
     epoch: int = 0
     gradient_loss: float = math.inf
     loop_closures: int = -1
+    delta: float = 0.0
 
-    def beaten_by(self, criterion: str, gradient_loss: float, loop_closures: int) -> bool:
+    def beaten_by(self, criterion: str, gradient_loss: float, loop_closures: int, delta: float) -> bool:
         """Whether an epoch with these validation figures becomes the new best by ``criterion``."""
+        if criterion == "delta":
+            return delta < self.delta
         if self.epoch == 0:
             return True
         if criterion == "gradient_loss":
@@ -85,16 +92,16 @@ class Checkpoints:
     ) -> dict[str, Record]:
         """Save epoch ``epoch``; return the updated best records.
 
-        ``meta`` must hold ``metrics`` with ``val_gradient_loss`` and ``val_loop_closures``;
-        ``best`` is the record per criterion from the previous epoch's ``meta``.
+        ``meta`` must hold ``metrics`` with ``val_gradient_loss``, ``val_loop_closures`` and
+        ``val_delta``; ``best`` is the record per criterion from the previous epoch's ``meta``.
         """
         metrics = meta["metrics"]
-        gradient_loss = float(metrics["val_gradient_loss"])
-        loop_closures = int(metrics["val_loop_closures"])
+        figures = (float(metrics["val_gradient_loss"]), int(metrics["val_loop_closures"]),
+                   float(metrics["val_delta"]))
         best = dict(best)
         for criterion in CRITERIA:
-            if best[criterion].beaten_by(criterion, gradient_loss, loop_closures):
-                best[criterion] = Record(epoch, gradient_loss, loop_closures)
+            if best[criterion].beaten_by(criterion, *figures):
+                best[criterion] = Record(epoch, *figures)
         meta = {**meta, "epoch": epoch, "best": {c: vars(r) for c, r in best.items()}}
         for criterion in CRITERIA:
             if best[criterion].epoch == epoch:

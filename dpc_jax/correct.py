@@ -1,19 +1,18 @@
-"""Correct a VO trajectory with a trained DPC network (``dpc-jax correct``).
+"""Correct a VO trajectory with a trained DPC network, only where the images support it (``dpc-jax correct``).
 
 Pipeline (DESIGN §1, §7):
 
-1. :func:`load_run` restores a trained run from ``WORKDIR/checkpoints``: its ``TrainConfig``
-   and the model state of the selected epoch — ``gradient`` (best validation gradient loss),
-   ``loop`` (most loop closures of the corrected validation trajectory) or ``last`` (newest
-   epoch checkpoint). Only the model (parameters and BatchNorm statistics) is kept.
-2. :func:`predict_corrections` runs the network in evaluation mode over every consecutive frame
-   pair ``(k, k+1)`` of a prepared sequence cache, in fixed-shape batches (the last one padded,
-   its padding dropped), so the jitted function compiles once: ``ξ_corr [N-1, 6]``.
-3. :func:`correct_cache` applies ``T*_{k+1,k} = Exp(ξ_corr,k) · T_vo_{k+1,k}`` (only the rotation
-   part with ``rotation_only``, ss-DPC-Net's setting for a stereo prior) and composes the
-   corrected trajectory from the first ground-truth pose when the cache has ground truth, else
-   from the first prior pose; then evaluates prior and corrected against the ground truth with
-   :func:`dpc_jax.evaluation.evaluate` when it exists. Composition and evaluation run in float64.
+1. ``dpc_jax.inference.load_run`` restores a run at the epoch of a selection criterion and
+   ``dpc_jax.inference.run_prediction`` runs it over every consecutive pair ``(k, k+1)`` of a
+   prepared sequence: ξ_corr and the paired photometric effect Δ of the correction on the
+   sequence's own images (no ground truth).
+2. The acceptance test (``dpc_jax.acceptance``) decides on Δ: apply the full correction, only
+   its rotation, or nothing — then the corrected trajectory *is* the prior (re-composed from its
+   relative poses). ``force=True`` applies the network's correction whatever the test says.
+3. ``T*_{k+1,k} = Exp(ξ_corr,k) · T_vo_{k+1,k}`` is composed from the first ground-truth pose when
+   the cache has ground truth, else from the first prior pose
+   (``dpc_jax.correction.corrected_trajectory``, float64); the prior, the network's proposal and
+   the final trajectory are evaluated against the ground truth when it exists.
 
 Frames: a cache holds the frames it was prepared with (``indices``: their numbers in the source
 sequence). When static frames were removed or a frame range was selected at prepare time, the
@@ -24,153 +23,21 @@ trajectory.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import functools
+import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
-from tqdm.auto import tqdm
 
-from dpc_jax.batch import Batch
-from dpc_jax.data.pipeline import SequenceCache, iterate_sequence, load_cache
+from dpc_jax.acceptance import DEFAULT_ALPHA, Acceptance, acceptance_test, forced
+from dpc_jax.data.pipeline import SequenceCache, load_cache
 from dpc_jax.evaluation import Evaluation
+from dpc_jax.inference import SequencePrediction, TrainedRun, run_prediction
 from dpc_jax.trajectory import atomic_write, write_kitti_poses, write_tum
 
-SELECTIONS = {"gradient": "best_gradient_loss", "loop": "best_loop_closures", "last": "epochs"}
 FORMATS = ("kitti", "tum")
-
-
-@dataclass(frozen=True)
-class TrainedRun:
-    """A restored training run: its config, the chosen epoch and the model split for inference."""
-
-    workdir: Path
-    config: Any  # dpc_jax.train.TrainConfig
-    selection: str
-    epoch: int
-    graphdef: Any  # nnx.GraphDef of the model
-    state: Any  # nnx.State of the model (parameters, BatchNorm statistics)
-
-    @property
-    def image_size(self) -> tuple[int, int]:
-        """``(H, W)`` the network expects."""
-        return tuple(self.config.resolved_image_size)
-
-    @property
-    def use_flow(self) -> bool:
-        """Whether the network reads optical flow (the method's default unless the model says)."""
-        flow = self.config.model_config().flow
-        return flow if flow is not None else self.config.method == "ss_dpc"
-
-
-def load_run(workdir: str | os.PathLike, select: str = "gradient") -> TrainedRun:
-    """Restore the run in ``workdir`` (written by ``dpc-jax train``) at the epoch chosen by ``select``.
-
-    ``select``: ``gradient`` | ``loop`` | ``last`` (see the module docstring). Raises
-    ``FileNotFoundError`` when ``workdir`` holds no run or no checkpoint of that kind, and
-    ``ValueError`` for an unknown ``select``.
-    """
-    import jax
-    import orbax.checkpoint as ocp
-    from flax import nnx
-
-    from dpc_jax import config as config_lib
-    from dpc_jax.checkpoints import Checkpoints
-    from dpc_jax.models import create_model
-    from dpc_jax.train import TrainConfig, create_train_state, make_optimizer
-
-    if select not in SELECTIONS:
-        raise ValueError(f"select must be one of {', '.join(SELECTIONS)}, got {select!r}")
-    workdir = Path(workdir).absolute()
-    config_path = workdir / "checkpoints" / "config.json"
-    if not config_path.is_file():
-        raise FileNotFoundError(
-            f"{workdir}: not a training run (expected {config_path}, written by `dpc-jax train`)"
-        )
-    config = config_lib.load_file(config_path, TrainConfig)
-    which = SELECTIONS[select]
-    checkpoints = Checkpoints(workdir, keep_last=None, read_only=True)
-    try:
-        epoch = checkpoints.latest_epoch(which)
-        if epoch is None:
-            raise FileNotFoundError(
-                f"{checkpoints.root / which}: no checkpoint to restore (--select {select}); "
-                "has the run finished an epoch?"
-            )
-        # The stored state holds the optimizer too; its schedule does not change the state's layout.
-        model = create_model(config.method, config.model_config(), config.seed)
-        graphdef, initial = create_train_state(model, make_optimizer(config, 1))
-        del model
-        abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, initial)
-        state, _ = checkpoints.restore(abstract, which=which, epoch=epoch)
-    finally:
-        checkpoints.close()
-    model, _ = nnx.merge(graphdef, state)
-    model.eval()
-    model_graphdef, model_state = nnx.split(model)
-    return TrainedRun(workdir, config, select, int(epoch), model_graphdef, model_state)
-
-
-@functools.cache
-def _predict_function() -> Any:
-    """The jitted ``predict(graphdef, state, batch) -> ξ_corr [B, 6]`` (evaluation mode), built once."""
-    import jax
-    from flax import nnx
-
-    def predict(graphdef: Any, state: Any, batch: Batch) -> Any:
-        model = nnx.merge(graphdef, state)
-        model.eval()
-        return model(batch).xi_corr
-
-    return jax.jit(predict, static_argnums=0)
-
-
-def _check_image_size(run: TrainedRun, cache: SequenceCache) -> None:
-    if cache.image_size != run.image_size:
-        (h, w), (rh, rw) = cache.image_size, run.image_size
-        raise ValueError(
-            f"{cache.path}: images are {h}x{w}, but the run {run.workdir} expects {rh}x{rw}; "
-            f"prepare the sequence with --size {rh}x{rw}"
-        )
-
-
-def predict_corrections(
-    run: TrainedRun, cache: SequenceCache | str | os.PathLike, batch_size: int | None = None,
-    progress: bool = False,
-) -> np.ndarray:
-    """``ξ_corr [N-1, 6]`` (numpy, the model's dtype) of the consecutive pairs of a cached sequence.
-
-    The prior fed to the network is ``cache.prior``. Batches have ``min(batch_size, N-1)``
-    samples (default: the run's batch size), the last one padded, so one compilation serves the
-    whole sequence; batch k+1 is dispatched before the result of batch k is fetched.
-    """
-    cache = cache if isinstance(cache, SequenceCache) else load_cache(cache)
-    _check_image_size(run, cache)
-    pairs = len(cache) - 1
-    size = max(1, min(batch_size or run.config.batch_size, pairs))
-    predict = _predict_function()
-    results: list[np.ndarray] = []
-    pending: tuple[Any, np.ndarray] | None = None
-    with contextlib.closing(iterate_sequence(cache, size, flow=run.use_flow)) as batches, tqdm(
-        total=pairs, unit="pair", desc=f"correct {cache.name}", disable=not progress, leave=False
-    ) as bar:
-        for batch in batches:
-            xi = predict(run.graphdef, run.state, batch)
-            if pending is not None:
-                results.append(np.asarray(pending[0])[pending[1]])
-                bar.update(int(pending[1].sum()))
-            pending = (xi, np.asarray(batch.weight) > 0)
-        if pending is not None:
-            results.append(np.asarray(pending[0])[pending[1]])
-            bar.update(int(pending[1].sum()))
-    xi_corr = np.concatenate(results)
-    if xi_corr.shape[0] != pairs:
-        raise RuntimeError(f"{cache.path}: got {xi_corr.shape[0]} corrections for {pairs} pairs")
-    return xi_corr
 
 
 def prior_for_cache(
@@ -208,24 +75,75 @@ class Correction:
     """A corrected sequence (all trajectories ``[N, 4, 4]`` float64 camera-to-world, N cached frames).
 
     ``frames``: the cached frames' numbers in the source sequence; ``times`` their times (s);
-    ``xi_corr [N-1, 6]``: the network's corrections; ``evaluation``: prior (``prior``) and
-    corrected (``corrected``) against the ground truth, or None without ground truth.
+    ``xi_corr [N-1, 6]``: the network's corrections; ``proposed``: the trajectory with them
+    applied (only their rotation for a rotation-only run); ``corrected``: the final trajectory,
+    per ``acceptance.decision`` (``full``: the proposal, ``rotation``: only the rotations,
+    ``none``: the prior re-composed); ``evaluation``: ``prior``, ``network`` (the proposal) and
+    ``corrected`` against the ground truth, or None without ground truth.
     """
 
     name: str
     frames: np.ndarray
     times: np.ndarray
     prior: np.ndarray
+    proposed: np.ndarray
     corrected: np.ndarray
     ground_truth: np.ndarray | None
     xi_corr: np.ndarray
     rotation_only: bool
+    acceptance: Acceptance
+    epoch: int
     evaluation: Evaluation | None
+
+    @property
+    def applied(self) -> str:
+        """What went into :attr:`corrected`: ``full``, ``rotation`` or ``none``."""
+        return self.acceptance.decision
 
     @property
     def all_source_frames(self) -> bool:
         """Whether the trajectory has every frame ``0 … N-1`` of its source sequence."""
         return bool(np.array_equal(self.frames, np.arange(self.frames.size)))
+
+    def summary(self) -> dict[str, object]:
+        """JSON-ready: the decision with Δ's statistics, and the evaluation summary if any."""
+        out: dict[str, object] = {
+            "sequence": self.name,
+            "epoch": self.epoch,
+            "applied": self.applied,
+            "rotation_only": self.rotation_only,
+            "acceptance": self.acceptance.to_dict(),
+        }
+        if self.evaluation is not None:
+            out["evaluation"] = json.loads(self.evaluation.to_json())
+        return out
+
+
+def decide(
+    run: TrainedRun,
+    prediction: SequencePrediction,
+    *,
+    rotation_only: bool,
+    pairs: np.ndarray | None = None,
+    alpha: float = DEFAULT_ALPHA,
+    force: bool = False,
+) -> Acceptance:
+    """The acceptance decision for ``prediction`` (Δ over ``pairs``, default all).
+
+    A rotation-only correction is tested only as such. A run whose selection ``delta`` found no
+    epoch better than "no correction" is never applied unless ``force``.
+    """
+    components = ("rotation",) if rotation_only else ("full", "rotation")
+    chosen = slice(None) if pairs is None else np.asarray(pairs)
+    result = acceptance_test({c: prediction.delta[c][chosen] for c in components}, alpha, components)
+    if force:
+        return forced(result, components[0])
+    if not run.improves_on_prior:
+        return dataclasses.replace(
+            result, decision="none",
+            reason=f"no epoch of the run lowered the validation Δ (selection delta); {result.reason}",
+        )
+    return result
 
 
 def correct_cache(
@@ -236,40 +154,64 @@ def correct_cache(
     rotation_only: bool | None = None,
     prior_format: str | None = None,
     batch_size: int | None = None,
+    acceptance_depth: str | None = None,
+    alpha: float = DEFAULT_ALPHA,
+    force: bool = False,
     progress: bool = False,
 ) -> Correction:
-    """Correct the prior of a cached sequence with ``run`` and evaluate it when ground truth exists.
+    """Correct the prior of a cached sequence with ``run`` where the acceptance test allows it.
 
     ``prior``: None = the cache's own prior, else a replacement (see :func:`prior_for_cache`);
-    ``rotation_only``: None = the run's ``config.rotation_only``. The corrected trajectory starts
-    at the first ground-truth pose when the cache has ground truth, else at the first prior pose
-    (DESIGN §1).
+    ``rotation_only``: None = the run's ``config.rotation_only``; ``acceptance_depth``:
+    ``network`` or ``sgbm`` (None = the run's); ``alpha``: the test's level; ``force``: apply the
+    correction whatever the test says. The trajectories start at the first ground-truth pose when
+    the cache has ground truth, else at the first prior pose (DESIGN §1).
     """
-    import jax
-
-    from dpc_jax.evaluation import evaluate
-    from dpc_jax.train import corrected_trajectory
-
     cache = cache if isinstance(cache, SequenceCache) else load_cache(cache)
     if prior is not None:
         cache = dataclasses.replace(cache, prior=prior_for_cache(cache, prior, prior_format))
     rotation_only = run.config.rotation_only if rotation_only is None else bool(rotation_only)
-    xi_corr = predict_corrections(run, cache, batch_size, progress)
-    prior_poses = np.asarray(cache.prior, np.float64)
+    prediction = run_prediction(
+        run, cache, batch_size=batch_size, acceptance_depth=acceptance_depth, progress=progress
+    )
+    acceptance = decide(run, prediction, rotation_only=rotation_only, alpha=alpha, force=force)
+    return compose_correction(run, cache, prediction.xi_corr, acceptance, rotation_only)
+
+
+def compose_correction(
+    run: TrainedRun, cache: SequenceCache, xi_corr: np.ndarray, acceptance: Acceptance, rotation_only: bool
+) -> Correction:
+    """The trajectories of a decided correction of ``cache`` and their evaluation (module docstring)."""
+    from dpc_jax.correction import corrected_trajectory
+    from dpc_jax.evaluation import evaluate
+
+    prior = np.asarray(cache.prior, np.float64)
     gt = None if cache.gt is None else np.asarray(cache.gt, np.float64)
-    with jax.enable_x64(True):
-        first = gt[0] if gt is not None else prior_poses[0]
-        corrected = corrected_trajectory(xi_corr.astype(np.float64), prior_poses, first, rotation_only)
-        evaluation = None if gt is None else evaluate(gt, {"prior": prior_poses, "corrected": corrected})
+    first = gt[0] if gt is not None else prior[0]
+    proposed = corrected_trajectory(xi_corr, prior, first, rotation_only)
+    applied = {
+        "full": proposed,
+        "rotation": corrected_trajectory(xi_corr, prior, first, True),
+        "none": corrected_trajectory(np.zeros_like(xi_corr), prior, first),
+    }[acceptance.decision]
+    evaluation = None
+    if gt is not None:
+        import jax
+
+        with jax.enable_x64(True):
+            evaluation = evaluate(gt, {"prior": prior, "network": proposed, "corrected": applied})
     return Correction(
         name=cache.name,
         frames=np.asarray(cache.indices, np.int64),
         times=np.asarray(cache.times, np.float64),
-        prior=prior_poses,
-        corrected=corrected,
+        prior=prior,
+        proposed=proposed,
+        corrected=applied,
         ground_truth=gt,
         xi_corr=xi_corr,
         rotation_only=rotation_only,
+        acceptance=acceptance,
+        epoch=run.epoch,
         evaluation=evaluation,
     )
 
@@ -301,13 +243,49 @@ def write_trajectory(path: str | os.PathLike, correction: Correction, format: st
     return written
 
 
+def acceptance_markdown(acceptance: Acceptance) -> str:
+    """The acceptance test as Markdown: one row per component tested, then the decision."""
+    lines = [
+        "| component | pairs | mean Δ | median Δ | pairs improved | Wilcoxon W | p (one-sided) | passed |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for name, t in acceptance.tests.items():
+        lines.append(
+            f"| {name} | {t.pairs} | {t.mean_delta:.3e} | {t.median_delta:.3e} | "
+            f"{100 * t.improved_share:.1f} % | {t.statistic:.4g} | {t.p_value:.3g} | "
+            f"{'yes' if t.passed else 'no'} |"
+        )
+    applied = {"full": "the full correction", "rotation": "only the rotation of the correction",
+               "none": "nothing: the corrected trajectory is the prior"}[acceptance.decision]
+    return "\n".join([
+        *lines, "",
+        f"Δ = L(ξ_corr) − L(0) per frame pair: the gradient-masked photometric error of the temporal "
+        f"reconstructions with the correction minus without it, same depth (negative: the correction "
+        f"explains the images better). Test: one-sided Wilcoxon signed-rank at α = {acceptance.alpha:g}.",
+        "",
+        f"**Applied: {applied}** ({acceptance.reason}).",
+        "",
+    ])
+
+
 def write_correction_report(directory: str | os.PathLike, correction: Correction, title: str) -> list[Path]:
-    """``report.md``, CSV tables, plots and ``metrics.json`` of ``correction.evaluation`` in ``directory``."""
+    """``report.md`` (acceptance test; with ground truth also the metrics, CSV tables and plots),
+    ``summary.json`` and, with ground truth, ``metrics.json`` in ``directory``."""
     from dpc_jax.evaluation import write_report
 
-    if correction.evaluation is None:
-        raise ValueError(f"{correction.name}: no ground truth, nothing to report")
     directory = Path(directory)
-    written = write_report(directory, correction.evaluation, title)
-    atomic_write(directory / "metrics.json", correction.evaluation.to_json())
-    return [*written, directory / "metrics.json"]
+    directory.mkdir(parents=True, exist_ok=True)
+    section = "## Acceptance test (no ground truth used)\n\n" + acceptance_markdown(correction.acceptance)
+    written: list[Path] = []
+    if correction.evaluation is not None:
+        written = write_report(directory, correction.evaluation, title)
+        report = directory / "report.md"
+        atomic_write(report, report.read_text() + "\n" + section)
+        atomic_write(directory / "metrics.json", correction.evaluation.to_json())
+        written.append(directory / "metrics.json")
+    else:
+        text = f"# {title}\n\nNo ground truth: nothing to evaluate.\n\n{section}"
+        atomic_write(directory / "report.md", text)
+        written.append(directory / "report.md")
+    atomic_write(directory / "summary.json", json.dumps(correction.summary(), indent=2) + "\n")
+    return [*written, directory / "summary.json"]

@@ -1,11 +1,15 @@
-"""Applying the network's pose correction to the VO prior (DESIGN §1, both papers eq. 1–2)."""
+"""Applying the network's pose correction to the VO prior (DESIGN §1, both papers eq. 1–2): one relative
+pose (:func:`apply_correction`) or a whole trajectory (:func:`corrected_trajectory`)."""
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 
 from dpc_jax.lie import se3_exp
+from dpc_jax.trajectory import compose, relative_poses
 
 
 def apply_correction(xi_corr: Array, T_vo: Array, rotation_only: bool = False) -> Array:
@@ -26,3 +30,24 @@ def apply_correction(xi_corr: Array, T_vo: Array, rotation_only: bool = False) -
     if rotation_only:
         xi_corr = jnp.concatenate([jnp.zeros_like(xi_corr[..., :3]), xi_corr[..., 3:]], axis=-1)
     return se3_exp(xi_corr) @ T_vo
+
+
+def corrected_trajectory(
+    xi_corr: np.ndarray, prior: np.ndarray, first_pose: np.ndarray, rotation_only: bool = False
+) -> np.ndarray:
+    """Compose ``T*_{t+1,t} = Exp(ξ_corr,t) · T_vo_{t+1,t}`` from ``first_pose`` → ``[N, 4, 4]`` float64.
+
+    ``xi_corr``: ``[N-1, 6]`` corrections of the consecutive pairs; ``prior``: ``[N, 4, 4]``
+    camera-to-world VO trajectory; ``first_pose``: ``[4, 4]``. The exponential and the products
+    run in float64 (in a local ``enable_x64`` scope), so ξ_corr = 0 gives back the prior's steps
+    exactly and the composition drifts only by float64 rounding.
+    """
+    xi_corr = np.asarray(xi_corr, np.float64)
+    prior = np.asarray(prior, np.float64)
+    if prior.ndim != 3 or prior.shape[1:] != (4, 4) or xi_corr.shape != (prior.shape[0] - 1, 6):
+        raise ValueError(
+            f"need xi_corr [N-1, 6] for a prior [N, 4, 4], got {xi_corr.shape} and {prior.shape}"
+        )
+    with jax.enable_x64(True):
+        corrected = np.asarray(apply_correction(xi_corr, relative_poses(prior), rotation_only), np.float64)
+    return compose(corrected, first_pose)

@@ -145,7 +145,7 @@ class DemoConfig:
 
     def train_config(self, cache_root: str | os.PathLike) -> Any:
         """The ``TrainConfig`` of the demo's run on the caches under ``cache_root``."""
-        from dpc_jax.train import TrainConfig
+        from dpc_jax.train_config import TrainConfig
 
         roles = self.sequences
         values = {
@@ -304,9 +304,10 @@ def run_demo(config: DemoConfig, out: str | os.PathLike, progress: bool = False,
     """
     import jax
 
-    from dpc_jax.correct import correct_cache, load_run, write_trajectory
+    from dpc_jax.correct import correct_cache, write_trajectory
     from dpc_jax.data.cache import prepare_sequence
     from dpc_jax.data.kitti import open_odometry
+    from dpc_jax.inference import load_run
     from dpc_jax.train import train
 
     say = log or (lambda line: None)

@@ -349,33 +349,101 @@ def stereo_dpc_loss(
     return loss, metrics
 
 
-# --- epoch selection ----------------------------------------------------------------------------
+def dpc_loss(
+    outputs: DPCOutputs, batch: Batch, config: SSDPCLossConfig | StereoDPCLossConfig
+) -> tuple[Array, dict[str, Array]]:
+    """The training loss of the method the config belongs to: :func:`ss_dpc_loss` or
+    :func:`stereo_dpc_loss`."""
+    if isinstance(config, SSDPCLossConfig):
+        return ss_dpc_loss(outputs, batch, config)
+    if isinstance(config, StereoDPCLossConfig):
+        return stereo_dpc_loss(outputs, batch, config)
+    raise TypeError(f"config must be SSDPCLossConfig or StereoDPCLossConfig, got {type(config).__name__}")
+
+
+# --- epoch selection and the acceptance test -----------------------------------------------------
+
+
+def per_sample_mean(values: Array, valid: Array) -> Array:
+    """``Σ v e / Σ v`` over every axis but the first → ``[B]``; 0 for a sample with nothing valid."""
+    axes = tuple(range(1, values.ndim))
+    numerator = jnp.sum(jnp.where(valid, values, 0.0), axis=axes)
+    count = jnp.sum(valid, axis=axes).astype(values.dtype)
+    return jnp.where(count > 0, numerator / jnp.where(count > 0, count, 1.0), 0.0)
+
+
+def _valid_depth(depth_valid: Array | None, frame: int) -> Array | bool:
+    return True if depth_valid is None else jnp.asarray(depth_valid)[:, frame] > 0
+
+
+def temporal_pair_errors(
+    outputs: DPCOutputs,
+    batch: Batch,
+    config: SSDPCLossConfig | StereoDPCLossConfig,
+    depth_valid: tuple[Array | None, Array | None] | None = None,
+) -> Array:
+    """Per-sample photometric error of the temporal reconstructions on high-gradient pixels → ``[B]``.
+
+    The ss-DPC-Net selection criterion (§IV) per frame pair: the per-pixel photometric error of
+    the temporal reconstruction (λ_s as in the training loss) averaged over pixels that are valid
+    *and* in the :func:`gradient_mask` of the target image. No explainability mask and no
+    rotation weighting: it measures geometric agreement only, so a model cannot lower it by
+    masking pixels out. :class:`SSDPCLossConfig`: frame t+1 rebuilt from t (left camera);
+    :class:`StereoDPCLossConfig`: the mean of the four temporal terms (both cameras, both
+    directions). ``depth_valid`` (optional, ``(left, right)`` ``[B, F, H, W]``): pixels whose
+    depth is unknown (e.g. an external stereo depth's holes) are left out. Padding samples are
+    not special-cased here (weight them downstream).
+    """
+    left_valid, right_valid = depth_valid if depth_valid is not None else (None, None)
+    if isinstance(config, SSDPCLossConfig):
+        target, recon, valid, _ = _ss_dpc_reconstruction(outputs, batch, config)
+        error = photometric_error(target, recon, _ssim_weight(outputs, config.ssim_weight), valid)
+        keep = valid & _valid_depth(left_valid, 0) & gradient_mask(target, config.grad_threshold)
+        return per_sample_mean(error, keep)
+    if not isinstance(config, StereoDPCLossConfig):
+        raise TypeError(f"config must be SSDPCLossConfig or StereoDPCLossConfig, got {type(config).__name__}")
+    left, right, K, _, poses, _ = _stereo_setup(outputs, batch, config)
+    ssim_weight = _ssim_weight(outputs, config.ssim_weight)
+    terms = []
+    cameras = (("left", left, outputs.left, left_valid), ("right", right, outputs.right, right_valid))
+    for camera, images, branch, depth_ok in cameras:
+        forward, backward = _stereo_temporal(images, branch, poses[camera], K, config.depth_eps)
+        # The forward term uses the depth of frame k+1, the backward one that of frame k.
+        for (target, recon, valid), frame in ((forward, 1), (backward, 0)):
+            error = photometric_error(target, recon, ssim_weight, valid)
+            keep = valid & _valid_depth(depth_ok, frame) & gradient_mask(target, config.grad_threshold)
+            terms.append(per_sample_mean(error, keep))
+    return sum(terms) / len(terms)
 
 
 def gradient_loss(
     outputs: DPCOutputs, batch: Batch, config: SSDPCLossConfig | StereoDPCLossConfig
 ) -> Array:
-    """Photometric loss restricted to high-gradient target pixels (ss-DPC-Net §IV, epoch selection).
+    """The gradient loss of a batch (ss-DPC-Net §IV, epoch selection): the ``batch.weight``-weighted
+    mean over samples of :func:`temporal_pair_errors`. Returns a scalar; padding samples
+    (weight 0) contribute nothing."""
+    errors = temporal_pair_errors(outputs, batch, config)
+    weight = jnp.asarray(batch.weight).astype(errors.dtype)
+    total = jnp.sum(weight)
+    return jnp.where(total > 0, jnp.sum(weight * errors) / jnp.where(total > 0, total, 1.0), 0.0)
 
-    The per-pixel photometric error of the temporal reconstruction (λ_s as in the training loss)
-    is averaged over pixels that are valid *and* in the :func:`gradient_mask` of the target
-    image. No explainability mask and no rotation weighting: the criterion measures geometric
-    agreement only, so a model cannot lower it by masking pixels out. The config's type picks the
-    assembly: :class:`SSDPCLossConfig` uses frame t+1 rebuilt from t (left camera);
-    :class:`StereoDPCLossConfig` averages the four temporal terms (both cameras, both
-    directions). Returns a scalar; padding samples contribute nothing.
+
+def correction_deltas(
+    outputs: DPCOutputs,
+    batch: Batch,
+    config: SSDPCLossConfig | StereoDPCLossConfig,
+    depth_valid: tuple[Array | None, Array | None] | None = None,
+) -> dict[str, Array]:
+    """Paired effect of the correction per sample: ``Δ = L(ξ_corr) − L(0)`` → ``{name: [B]}``.
+
+    ``L`` is :func:`temporal_pair_errors` with the *same* depth and validity in every term, so Δ
+    isolates the pose: ``full`` applies ξ_corr as the loss config does (only its rotation with
+    ``rotation_only``), ``rotation`` only its rotation part ``[0, φ]``; ``none`` is ``L(0)``
+    itself (the prior). Δ < 0: the corrected pose explains the images better than the prior.
     """
-    if isinstance(config, SSDPCLossConfig):
-        target, recon, valid, weight = _ss_dpc_reconstruction(outputs, batch, config)
-        error = photometric_error(target, recon, _ssim_weight(outputs, config.ssim_weight), valid)
-        return masked_mean(error, valid & gradient_mask(target, config.grad_threshold), weight)
-    if not isinstance(config, StereoDPCLossConfig):
-        raise TypeError(f"config must be SSDPCLossConfig or StereoDPCLossConfig, got {type(config).__name__}")
-    left, right, K, _, poses, weight = _stereo_setup(outputs, batch, config)
-    ssim_weight = _ssim_weight(outputs, config.ssim_weight)
-    terms = []
-    for camera, images, branch in (("left", left, outputs.left), ("right", right, outputs.right)):
-        for target, recon, valid in _stereo_temporal(images, branch, poses[camera], K, config.depth_eps):
-            error = photometric_error(target, recon, ssim_weight, valid)
-            terms.append(masked_mean(error, valid & gradient_mask(target, config.grad_threshold), weight))
-    return sum(terms) / len(terms)
+    xi = jnp.asarray(outputs.xi_corr)
+    none = temporal_pair_errors(outputs._replace(xi_corr=jnp.zeros_like(xi)), batch, config, depth_valid)
+    full = temporal_pair_errors(outputs, batch, config, depth_valid)
+    rotation_xi = jnp.concatenate([jnp.zeros_like(xi[:, :3]), xi[:, 3:]], axis=-1)
+    rotation = temporal_pair_errors(outputs._replace(xi_corr=rotation_xi), batch, config, depth_valid)
+    return {"none": none, "full": full - none, "rotation": rotation - none}

@@ -14,9 +14,13 @@ Both are built from one encoder–decoder *branch* and a fully connected pose he
 * **Mask decoder**: transposed conv 3×3 stride 2 → ReLU from the output of encoder block
   ``mask_source_block`` up to full resolution (cropped to each encoder scale), conv 3×3 → sigmoid.
 * **Pose head**: flatten the bottleneck → dropout → FC → dropout → FC → dropout; prior branch
-  FC 6→· → dropout → FC → dropout; concatenate → FC 6, times 0.01, = ξ_corr ``[ρ, φ]``.
-  ``fc_activation="none"`` (no non-linearity between the FC layers) is what the reference code
-  does; ``"relu"`` puts a ReLU after each hidden FC.
+  FC 6→· → dropout → FC → dropout on the *normalised* prior ``(ξ_vo − μ) / σ``; concatenate →
+  FC 6, times 0.01, = ξ_corr ``[ρ, φ]``. ``fc_activation="none"`` (no non-linearity between the
+  FC layers) is what the reference code does; ``"relu"`` puts a ReLU after each hidden FC.
+  ``μ, σ`` are the model's :class:`PriorStatistics` variable (not trained, saved with the
+  checkpoints): 0 and 1 — the reference's unscaled prior — until the training loop sets them from
+  its training pairs. ``pose_init="zero"`` zero-initialises the output FC (weights and bias), so
+  an untrained network outputs ξ_corr = 0 exactly: the corrected trajectory starts at the prior.
 
 Because the pose head flattens the bottleneck, its first FC layer's input size depends on the
 image size; NNX creates every parameter at construction, so the image size is part of
@@ -68,6 +72,8 @@ POSE_SCALE = 0.01
 INV_DEPTH_OFFSET = 0.001
 
 Method = Literal["ss_dpc", "stereo_dpc"]
+# The modules that turn features and the prior into ξ_corr (the pose head), by attribute name.
+POSE_HEAD = ("reduce", "left_reduce", "right_reduce", "prior", "fc_out")
 
 
 @dataclass(frozen=True)
@@ -85,7 +91,10 @@ class ModelConfig:
     * ``depth_scales``: number of inverse-depth heads (the last stages of the decoder).
     * ``fc_planes``: ``(hidden, out)`` sizes of the two FC layers of each pose-head reduction.
     * ``fc_activation``: ``"none"`` (reference code) or ``"relu"`` between the FC layers.
-    * ``dropout``: dropout rate on the pose head (training mode only).
+    * ``dropout``: dropout rate on the FC reductions of the image features (training mode only).
+    * ``prior_dropout``: dropout rate on the prior branch; None = ``dropout`` (the reference).
+    * ``pose_init``: ``"pytorch"`` (the reference: PyTorch's default initialisation of every
+      layer) or ``"zero"`` (the output FC layer starts at zero weights and bias: ξ_corr = 0).
     * ``flow``: append Farnebäck flow (2 channels) to each branch's input; ``None`` = the
       method's default (ss-DPC-Net: True, Stereo DPC: False).
     * ``frames``: frames ``F`` with inverse depth and mask per branch; ``None`` = the method's
@@ -107,6 +116,8 @@ class ModelConfig:
     fc_planes: tuple[int, int] = (256, 128)
     fc_activation: Literal["none", "relu"] = "none"
     dropout: float = 0.5
+    prior_dropout: float | None = None
+    pose_init: Literal["pytorch", "zero"] = "pytorch"
     flow: bool | None = None
     frames: int | None = None
     learn_ssim_weight: bool = False
@@ -137,6 +148,10 @@ class ModelConfig:
             problems.append(f"fc_activation must be 'none' or 'relu', got {self.fc_activation!r}")
         if not 0.0 <= self.dropout < 1.0:
             problems.append(f"dropout must be in [0, 1), got {self.dropout}")
+        if self.prior_dropout is not None and not 0.0 <= self.prior_dropout < 1.0:
+            problems.append(f"prior_dropout must be None or in [0, 1), got {self.prior_dropout}")
+        if self.pose_init not in ("pytorch", "zero"):
+            problems.append(f"pose_init must be 'pytorch' or 'zero', got {self.pose_init!r}")
         if self.frames not in (None, 1, 2):
             problems.append(f"frames must be None, 1 or 2, got {self.frames}")
         if not 0.0 < self.ssim_weight_init < 1.0:
@@ -329,11 +344,11 @@ class Branch(nnx.Module):
 class FCReduction(nnx.Module):
     """[dropout →] FC → [ReLU] → dropout → FC → [ReLU] → dropout, ``[B, n_in] -> [B, fc_planes[1]]``."""
 
-    def __init__(self, n_in: int, config: ModelConfig, dropout_input: bool, rngs: nnx.Rngs):
+    def __init__(self, n_in: int, config: ModelConfig, rate: float, dropout_input: bool, rngs: nnx.Rngs):
         hidden, out = config.fc_planes
         self.fc1 = nnx.Linear(n_in, hidden, rngs=rngs)
         self.fc2 = nnx.Linear(hidden, out, rngs=rngs)
-        self.dropout = nnx.Dropout(config.dropout)
+        self.dropout = nnx.Dropout(rate)
         self.relu = config.fc_activation == "relu"
         self.dropout_input = dropout_input
 
@@ -347,6 +362,23 @@ class FCReduction(nnx.Module):
                 x = jax.nn.relu(x)
             x = self.dropout(x, rngs=k)
         return x
+
+
+class PriorStatistics(nnx.Variable):
+    """``[2, 6]`` float32: per-component mean (row 0) and scale (row 1) of ξ_vo ``[ρ (m), φ (rad)]``.
+
+    The prior branch sees ``(ξ_vo − mean) / scale``. Not a parameter (the optimizer never touches
+    it); saved and restored with the model's state. See :func:`set_prior_statistics`.
+    """
+
+
+def set_prior_statistics(model: nnx.Module, mean: np.ndarray, scale: np.ndarray) -> None:
+    """Normalise the prior input of ``model`` by ``mean`` and ``scale`` (``[6]`` each, scale > 0)."""
+    mean, scale = np.asarray(mean, np.float64), np.asarray(scale, np.float64)
+    ok = mean.shape == scale.shape == (6,) and np.all(np.isfinite(mean)) and np.all(scale > 0)
+    if not ok:
+        raise ValueError(f"prior statistics must be 6 finite means and 6 positive scales: {mean}, {scale}")
+    model.prior_statistics.set_value(jnp.asarray(np.stack([mean, scale]), jnp.float32))
 
 
 def _whiten(images: jax.Array) -> jax.Array:
@@ -385,7 +417,9 @@ class _DPCBase(nnx.Module):
         self.in_channels = 6 + (2 if self.use_flow else 0)
         h, w = config.scale_sizes()[-1]
         self.bottleneck_features = h * w * config.scaled(config.encoder_planes[-1])
-        self.prior = FCReduction(6, config, dropout_input=False, rngs=rngs)
+        prior_rate = config.dropout if config.prior_dropout is None else config.prior_dropout
+        self.prior = FCReduction(6, config, prior_rate, False, rngs)
+        self.prior_statistics = PriorStatistics(jnp.stack([jnp.zeros(6), jnp.ones(6)]).astype(jnp.float32))
         self.fc_out = nnx.Linear(n_pose_inputs * config.fc_planes[1], 6, rngs=rngs)
         if config.learn_ssim_weight:
             self.ssim_logit = nnx.Param(_ssim_logit(config))
@@ -412,7 +446,8 @@ class _DPCBase(nnx.Module):
                 )
         if tuple(batch.xi_vo.shape) != (batch.left.shape[0], 6):
             raise ValueError(f"{name}: batch.xi_vo must have shape [B, 6], got {tuple(batch.xi_vo.shape)}")
-        training_dropout = not self.prior.dropout.deterministic and self.config.dropout > 0
+        rates = (self.config.dropout, self.prior.dropout.rate)
+        training_dropout = not self.prior.dropout.deterministic and max(rates) > 0
         if training_dropout and key is None:
             raise ValueError(f"{name}: training mode applies dropout and needs key=jax.random.key(...)")
 
@@ -422,7 +457,9 @@ class _DPCBase(nnx.Module):
         return list(jax.random.split(key, n))
 
     def _pose(self, reduced: list[jax.Array], xi_vo: jax.Array, key: jax.Array | None) -> jax.Array:
-        features = jnp.concatenate([*reduced, self.prior(xi_vo.astype(jnp.float32), key)], axis=-1)
+        mean, std = self.prior_statistics[...]
+        prior = (xi_vo.astype(jnp.float32) - mean) / std
+        features = jnp.concatenate([*reduced, self.prior(prior, key)], axis=-1)
         return POSE_SCALE * self.fc_out(features)
 
     def _ssim_weight(self) -> jax.Array | None:
@@ -439,7 +476,7 @@ class MonoDPC(_DPCBase):
     def __init__(self, config: ModelConfig, rngs: nnx.Rngs):
         super().__init__(config, "ss_dpc", 2, rngs)
         self.branch = Branch(config, self.in_channels, self.frames, rngs)
-        self.reduce = FCReduction(self.bottleneck_features, config, dropout_input=True, rngs=rngs)
+        self.reduce = FCReduction(self.bottleneck_features, config, config.dropout, True, rngs)
 
     def __call__(self, batch: Batch, *, key: jax.Array | None = None) -> DPCOutputs:
         self._check(batch, key)
@@ -466,8 +503,8 @@ class StereoDPC(_DPCBase):
             raise ValueError(f"StereoDPC predicts frames k and k+1 (frames=2), got frames={config.frames}")
         self.left_branch = Branch(config, self.in_channels, self.frames, rngs)
         self.right_branch = Branch(config, self.in_channels, self.frames, rngs)
-        self.left_reduce = FCReduction(self.bottleneck_features, config, dropout_input=True, rngs=rngs)
-        self.right_reduce = FCReduction(self.bottleneck_features, config, dropout_input=True, rngs=rngs)
+        self.left_reduce = FCReduction(self.bottleneck_features, config, config.dropout, True, rngs)
+        self.right_reduce = FCReduction(self.bottleneck_features, config, config.dropout, True, rngs)
 
     def __call__(self, batch: Batch, *, key: jax.Array | None = None) -> DPCOutputs:
         self._check(batch, key)
@@ -521,13 +558,18 @@ def create_model(method: Method, config: ModelConfig, seed: int) -> MonoDPC | St
     """Build ``MonoDPC`` (``"ss_dpc"``) or ``StereoDPC`` (``"stereo_dpc"``) in training mode.
 
     Weights are drawn from ``seed`` with PyTorch's default initialisation (see
-    ``_init_like_pytorch``); call ``model.eval()`` for inference.
+    ``_init_like_pytorch``), the output FC layer zeroed with ``config.pose_init == "zero"``, the
+    prior statistics set to the identity normalisation; call ``model.eval()`` for inference.
     """
     classes = {"ss_dpc": MonoDPC, "stereo_dpc": StereoDPC}
     if method not in classes:
         raise ValueError(f"unknown method {method!r}; expected 'ss_dpc' or 'stereo_dpc'")
     model = nnx.eval_shape(lambda: classes[method](config, nnx.Rngs(params=seed)))
     _init_like_pytorch(model, seed)
+    model.prior_statistics.set_value(jnp.stack([jnp.zeros(6), jnp.ones(6)]).astype(jnp.float32))
+    if config.pose_init == "zero":
+        for var in (model.fc_out.kernel, model.fc_out.bias):
+            var.set_value(jnp.zeros(var.shape, jnp.float32))
     if config.learn_ssim_weight:
         model.ssim_logit.set_value(_ssim_logit(config))
     leftover = [x for x in jax.tree.leaves(nnx.state(model)) if isinstance(x, jax.ShapeDtypeStruct)]

@@ -1,19 +1,22 @@
-"""Training: configuration, learning-rate schedule, the jitted train and evaluation steps, the loop.
+"""Training: the jitted train step and the loop (checkpoints, logging, validation each epoch).
 
-Functional core (DESIGN §3, §5): the model and its optimizer are split once,
+Functional core (DESIGN §3, §5): the model and its optimizer (``dpc_jax.optim``) are split once,
 ``graphdef, state = nnx.split((model, optimizer))``; ``state`` holds the parameters, the
-BatchNorm statistics, the Adam moments and the step count. ``make_train_step`` returns ONE jitted
-pure function ``train_step(graphdef, state, batch, key) -> (state, metrics)`` that merges,
-differentiates the loss w.r.t. the ``nnx.Param`` variables only, applies the optimizer and splits
-again; ``state`` is donated. Given a mesh (``dpc_jax.parallel``), the batch is sharded on
-``data`` and the state replicated, so the same function runs on 1..N devices and hosts, with the
-gradient mean and the BatchNorm batch statistics over the global batch.
+BatchNorm statistics, the prior statistics, the Adam moments and the step count.
+``make_train_step`` returns ONE jitted pure function ``train_step(graphdef, state, batch, key) ->
+(state, metrics)`` that merges, differentiates the loss w.r.t. the ``nnx.Param`` variables only,
+applies the optimizer and splits again; ``state`` is donated. Given a mesh
+(``dpc_jax.parallel``), the batch is sharded on ``data`` and the state replicated, so the same
+function runs on 1..N devices and hosts, with the gradient mean and the BatchNorm batch
+statistics over the global batch.
 
-Optimizer: Adam with *coupled* L2 weight decay, as PyTorch's ``Adam(weight_decay=wd)``: ``wd·θ``
-is added to the gradient before the Adam moments (not AdamW's decoupled decay), on every
-parameter (biases and BatchNorm scales included, as PyTorch does). The learning rate is halved
-every ``lr_halving_epochs`` epochs, counted in optimizer steps from the epoch length: the update
-with (0-based) index ``s`` uses ``lr · 0.5 ** floor(s / (lr_halving_epochs · steps_per_epoch))``.
+Pose warm-up (``TrainConfig.pose_warmup_*``): while the optimizer's step count is below the
+warm-up length the loss sees ξ_corr = 0, so depth, masks and λ_s learn first; the pose head's
+updates are masked in the optimizer for the same steps.
+
+Validation (each epoch, ``dpc_jax.inference.predict_sequence``) gives the three selection
+criteria of ``dpc_jax.checkpoints``: the gradient loss, the loop-closure count of the corrected
+validation trajectory and the mean paired photometric effect Δ of the correction.
 
 The loop (``train``) and its files are described in its docstring.
 """
@@ -22,8 +25,6 @@ from __future__ import annotations
 
 import contextlib
 import csv
-import dataclasses
-import functools
 import io
 import itertools
 import json
@@ -32,7 +33,7 @@ import os
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -47,232 +48,28 @@ from tqdm.auto import tqdm
 
 from dpc_jax import config as config_lib
 from dpc_jax import metrics as metrics_lib
-from dpc_jax import parallel, trajectory
+from dpc_jax import parallel
 from dpc_jax.batch import Batch
 from dpc_jax.checkpoints import Checkpoints
-from dpc_jax.config import ConfigError, unknown_key_error
-from dpc_jax.outputs import DPCOutputs
+from dpc_jax.config import ConfigError
+from dpc_jax.correction import corrected_trajectory
+from dpc_jax.inference import predict_sequence, stereo_depth_of
+from dpc_jax.losses import dpc_loss
+from dpc_jax.optim import create_train_state, learning_rate_schedule, make_optimizer
+from dpc_jax.train_config import TrainConfig
 from dpc_jax.trajectory import atomic_write
 
-METHODS = ("ss_dpc", "stereo_dpc")
-
-LossFn = Callable[[DPCOutputs, Batch], tuple[jax.Array, dict[str, jax.Array]]]
-GradientLossFn = Callable[[DPCOutputs, Batch], jax.Array]
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    """One training run, as data (DESIGN §5 defaults are the Stereo DPC paper's).
-
-    Model
-        * ``method``: ``"ss_dpc"`` (ss-DPC-Net, mono + flow) or ``"stereo_dpc"`` (Zhang et al.).
-        * ``preset``: a key of ``dpc_jax.models.PRESETS`` (``"reference"``, ``"small"``).
-        * ``model``: overrides of ``ModelConfig`` fields on top of the preset.
-        * ``image_size``: ``(H, W)`` of the cached images and the network input; None = the
-          preset's.
-        * ``dropout``: dropout rate of the pose head's FC layers.
-        * ``learn_ssim_weight``: λ_s mode: True learns λ_s = sigmoid(s) (a model parameter),
-          False uses the loss config's fixed value.
-    Loss
-        * ``loss``: overrides of the method's loss config (``SSDPCLossConfig`` or
-          ``StereoDPCLossConfig``): term weights, fixed λ_s, rotation weighting γ and λ_rot, ...
-        * ``rotation_only``: apply only the rotation part of ξ_corr when composing corrected
-          trajectories (ss-DPC-Net with a stereo prior); passed to the loss config too when it
-          has such a field.
-    Optimisation
-        * ``batch_size`` (global, over all devices and hosts), ``epochs``.
-        * ``learning_rate``, ``lr_halving_epochs``: initial rate, halved every that many epochs.
-        * ``weight_decay``: coupled L2 (PyTorch ``Adam(weight_decay=...)``).
-        * ``steps_per_epoch``: cap on the optimizer steps per epoch; None = one full pass.
-        * ``seed``: parameter initialisation and dropout; ``data_seed``: shuffling.
-    Data (a preprocessing cache written by ``dpc-jax prepare``)
-        * ``cache_root``: directory of the cache.
-        * ``train_sequences``: empty = every cached sequence except validation and test ones.
-        * ``validation_sequences``: used for epoch selection (no ground truth needed).
-        * ``test_sequences``: held out, never loaded by training (recorded in the split).
-        * ``frame_skip``: add a copy of each training sequence with every second frame.
-        * ``reverse``: add reversed copies of the training sequences.
-    Run
-        * ``keep_checkpoints``: how many every-epoch checkpoints to keep (best ones are extra).
-        * ``log_every``: steps between TensorBoard training scalars.
-        * ``distributed``: call ``jax.distributed.initialize`` (several hosts; see
-          ``dpc_jax.parallel``).
-    """
-
-    method: str = "stereo_dpc"
-    preset: str = "reference"
-    model: dict[str, Any] = field(default_factory=dict)
-    image_size: tuple[int, int] | None = None
-    dropout: float = 0.5
-    learn_ssim_weight: bool = False
-    loss: dict[str, Any] = field(default_factory=dict)
-    rotation_only: bool = False
-    batch_size: int = 32
-    epochs: int = 30
-    learning_rate: float = 6e-3
-    lr_halving_epochs: int = 5
-    weight_decay: float = 4e-6
-    steps_per_epoch: int | None = None
-    seed: int = 0
-    data_seed: int = 0
-    cache_root: str = ""
-    train_sequences: tuple[str, ...] = ()
-    validation_sequences: tuple[str, ...] = ()
-    test_sequences: tuple[str, ...] = ()
-    frame_skip: bool = True
-    reverse: bool = False
-    keep_checkpoints: int = 3
-    log_every: int = 10
-    distributed: bool = False
-
-    def __post_init__(self) -> None:
-        problems = []
-        if self.method not in METHODS:
-            problems.append(f"method must be one of {METHODS}, got {self.method!r}")
-        for name in ("batch_size", "epochs", "lr_halving_epochs", "keep_checkpoints", "log_every"):
-            if getattr(self, name) < 1:
-                problems.append(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.steps_per_epoch is not None and self.steps_per_epoch < 1:
-            problems.append(f"steps_per_epoch must be >= 1 or None, got {self.steps_per_epoch}")
-        if not self.learning_rate > 0 or not math.isfinite(self.learning_rate):
-            problems.append(f"learning_rate must be > 0, got {self.learning_rate}")
-        if not self.weight_decay >= 0:
-            problems.append(f"weight_decay must be >= 0, got {self.weight_decay}")
-        if not 0.0 <= self.dropout < 1.0:
-            problems.append(f"dropout must be in [0, 1), got {self.dropout}")
-        if self.image_size is not None and min(self.image_size) < 1:
-            problems.append(f"image_size must be positive, got {self.image_size}")
-        for key in ("image_size", "dropout", "learn_ssim_weight"):
-            if key in self.model:
-                problems.append(f"model.{key} duplicates the top-level key {key!r}; set it there")
-        if not self.validation_sequences:
-            problems.append("validation_sequences is empty; epoch selection needs at least one")
-        for name in ("train_sequences", "validation_sequences", "test_sequences"):
-            seqs = getattr(self, name)
-            if len(set(seqs)) != len(seqs):
-                problems.append(f"{name} lists a sequence twice: {list(seqs)}")
-        for a, b in (("train", "validation"), ("train", "test"), ("validation", "test")):
-            common = sorted(set(getattr(self, f"{a}_sequences")) & set(getattr(self, f"{b}_sequences")))
-            if common:
-                problems.append(f"sequence(s) {common} are both in {a}_sequences and {b}_sequences")
-        if problems:
-            raise ConfigError("invalid TrainConfig: " + "; ".join(problems))
-        # Fail now, not after data loading, on bad model or loss overrides.
-        self.model_config()
-        self.loss_config()
-
-    def model_config(self) -> Any:
-        """The ``ModelConfig``: the preset, the ``model`` overrides and the top-level model keys."""
-        from dpc_jax.models import PRESETS
-
-        if self.preset not in PRESETS:
-            raise ConfigError(f"preset must be one of {sorted(PRESETS)}, got {self.preset!r}")
-        base = PRESETS[self.preset]
-        overrides = dict(self.model, dropout=self.dropout, learn_ssim_weight=self.learn_ssim_weight)
-        if self.image_size is not None:
-            overrides["image_size"] = tuple(self.image_size)
-        return _replace(base, overrides, "model")
-
-    def loss_config(self) -> Any:
-        """The method's loss config dataclass with the ``loss`` overrides (and ``rotation_only``)."""
-        from dpc_jax import losses
-
-        base = losses.SSDPCLossConfig() if self.method == "ss_dpc" else losses.StereoDPCLossConfig()
-        overrides = dict(self.loss)
-        if "rotation_only" in overrides:
-            raise ConfigError("loss.rotation_only duplicates the top-level key 'rotation_only'; set it there")
-        if any(f.name == "rotation_only" for f in dataclasses.fields(base)):
-            overrides["rotation_only"] = self.rotation_only
-        return _replace(base, overrides, "loss")
-
-    @property
-    def resolved_image_size(self) -> tuple[int, int]:
-        return tuple(self.model_config().image_size)
-
-
-def _replace(base: Any, overrides: dict[str, Any], where: str) -> Any:
-    """``dataclasses.replace`` with unknown keys and the dataclass's own checks as ``ConfigError``."""
-    names = [f.name for f in dataclasses.fields(base)]
-    for key in overrides:
-        if key not in names:
-            raise unknown_key_error(key, names, where)
-    values = {k: tuple(v) if isinstance(v, list) else v for k, v in overrides.items()}
-    try:
-        return dataclasses.replace(base, **values)
-    except (TypeError, ValueError) as error:
-        raise ConfigError(f"{where}: {error}") from None
-
-
-# --------------------------------------------------------------------------- optimizer
-
-
-def learning_rate_schedule(learning_rate: float, halving_epochs: int, steps_per_epoch: int) -> optax.Schedule:
-    """``lr · 0.5 ** floor(step / (halving_epochs · steps_per_epoch))`` (staircase)."""
-    return optax.exponential_decay(
-        init_value=learning_rate,
-        transition_steps=halving_epochs * steps_per_epoch,
-        decay_rate=0.5,
-        staircase=True,
-    )
-
-
-def make_optimizer(config: TrainConfig, steps_per_epoch: int) -> optax.GradientTransformation:
-    """Adam with coupled L2 weight decay (PyTorch ``Adam(weight_decay)``) and the halving schedule."""
-    schedule = learning_rate_schedule(config.learning_rate, config.lr_halving_epochs, steps_per_epoch)
-    return optax.chain(
-        optax.add_decayed_weights(config.weight_decay),
-        optax.scale_by_adam(),
-        optax.scale_by_learning_rate(schedule),
-    )
-
-
-def create_train_state(
-    model: nnx.Module, tx: optax.GradientTransformation, mesh: Mesh | None = None
-) -> tuple[nnx.GraphDef, nnx.State]:
-    """``nnx.split((model, optimizer))`` of ``model`` in training mode and its ``nnx.Optimizer``.
-
-    With ``mesh`` the state is placed replicated on it. Build the model eagerly
-    (``create_model``): every initializer compiles once per shape and process, which later runs
-    in the same process reuse (one jitted initialisation would recompile as a whole every run).
-    """
-    model.train()
-    graphdef, state = nnx.split((model, nnx.Optimizer(model, tx, wrt=nnx.Param)))
-    return graphdef, state if mesh is None else parallel.replicate(state, mesh)
-
-
-def state_step(state: nnx.State) -> int:
-    """The optimizer step count stored in a train state."""
-    return int(state[1]["step"][...])
+TrainStep = Callable[[nnx.GraphDef, nnx.State, Batch, jax.Array], tuple[nnx.State, dict[str, jax.Array]]]
 
 
 # --------------------------------------------------------------------------- steps
 
 
-def make_loss_functions(config: TrainConfig) -> tuple[LossFn, GradientLossFn]:
-    """The method's training loss and the gradient loss (epoch selection), bound to the config."""
-    from dpc_jax import losses
-
-    loss_config = config.loss_config()
-    loss = losses.ss_dpc_loss if config.method == "ss_dpc" else losses.stereo_dpc_loss
-
-    def loss_fn(outputs: DPCOutputs, batch: Batch) -> tuple[jax.Array, dict[str, jax.Array]]:
-        return loss(outputs, batch, loss_config)
-
-    def gradient_loss_fn(outputs: DPCOutputs, batch: Batch) -> jax.Array:
-        value = losses.gradient_loss(outputs, batch, loss_config)
-        return value[0] if isinstance(value, tuple) else value
-
-    return loss_fn, gradient_loss_fn
-
-
-@functools.lru_cache(maxsize=8)
-def make_train_step(
-    loss_fn: LossFn, mesh: Mesh | None = None
-) -> Callable[[nnx.GraphDef, nnx.State, Batch, jax.Array], tuple[nnx.State, dict[str, jax.Array]]]:
+def make_train_step(loss_config: Any, warmup_steps: int = 0, mesh: Mesh | None = None) -> TrainStep:
     """The jitted ``train_step(graphdef, state, batch, key) -> (state, metrics)``; ``state`` donated.
 
-    Cached per ``(loss_fn, mesh)``, so runs that share both share the compiled program.
-
+    ``loss_config``: the method's loss config (``TrainConfig.loss_config()``); the loss sees
+    ξ_corr = 0 while the optimizer's step count is below ``warmup_steps``.
     ``metrics``: ``loss``, the loss's named terms, ``grad_norm`` (global L2 norm of the gradient
     before weight decay) — scalars. ``key`` drives dropout. With ``mesh``, the outputs are
     replicated on it; put the state with ``parallel.replicate`` and the batch with
@@ -284,9 +81,12 @@ def make_train_step(
     ) -> tuple[nnx.State, dict[str, jax.Array]]:
         model, optimizer = nnx.merge(graphdef, state)
         model.train()
+        pose_on = optimizer.step[...] >= warmup_steps
 
         def objective(model: nnx.Module) -> tuple[jax.Array, dict[str, jax.Array]]:
-            return loss_fn(model(batch, key=key), batch)
+            outputs = model(batch, key=key)
+            outputs = outputs._replace(xi_corr=jnp.where(pose_on, outputs.xi_corr, 0.0))
+            return dpc_loss(outputs, batch, loss_config)
 
         (loss, terms), grads = nnx.value_and_grad(objective, has_aux=True)(model)
         optimizer.update(model, grads)
@@ -295,41 +95,8 @@ def make_train_step(
 
     kwargs: dict[str, Any] = {}
     if mesh is not None:
-        from dpc_jax.parallel import replicated
-
-        kwargs["out_shardings"] = replicated(mesh)
+        kwargs["out_shardings"] = parallel.replicated(mesh)
     return jax.jit(step, static_argnums=0, donate_argnums=1, **kwargs)
-
-
-@functools.lru_cache(maxsize=8)
-def make_eval_step(
-    loss_fn: LossFn, gradient_loss_fn: GradientLossFn, mesh: Mesh | None = None
-) -> Callable[[nnx.GraphDef, nnx.State, Batch], dict[str, jax.Array]]:
-    """The jitted ``eval_step(graphdef, state, batch) -> metrics`` in evaluation mode.
-
-    ``metrics``: ``loss`` (the training loss, photometric terms included), ``gradient_loss``,
-    ``samples`` (Σ batch.weight, the real samples) — scalars — and ``xi_corr [B, 6]`` per sample
-    (padding rows included; drop them with ``weight``). The state is not changed.
-    """
-
-    def step(graphdef: nnx.GraphDef, state: nnx.State, batch: Batch) -> dict[str, jax.Array]:
-        model, _ = nnx.merge(graphdef, state)
-        model.eval()
-        outputs = model(batch)
-        loss, _ = loss_fn(outputs, batch)
-        return {
-            "loss": loss,
-            "gradient_loss": gradient_loss_fn(outputs, batch),
-            "samples": jnp.sum(batch.weight),
-            "xi_corr": outputs.xi_corr,
-        }
-
-    kwargs: dict[str, Any] = {}
-    if mesh is not None:
-        from dpc_jax.parallel import replicated
-
-        kwargs["out_shardings"] = replicated(mesh)
-    return jax.jit(step, static_argnums=0, **kwargs)
 
 
 # --------------------------------------------------------------------------- data
@@ -337,23 +104,27 @@ def make_eval_step(
 
 @dataclass(frozen=True)
 class ValidationSequence:
-    """One validation sequence: its cache, prior trajectory and (optional) ground truth, in order."""
+    """One validation sequence: its cache, prior trajectory, (optional) ground truth and, with
+    ``acceptance_depth="sgbm"``, the stereo depth Δ is measured with."""
 
     name: str
     cache: Any
     prior: np.ndarray
     ground_truth: np.ndarray | None
+    stereo_depth: tuple[np.ndarray, np.ndarray] | None = None
 
 
 @dataclass(frozen=True)
 class TrainData:
-    """What the loop consumes: the training loader, the validation sequences, the split record."""
+    """What the loop consumes: the training loader, the validation sequences, the split record and
+    the per-component mean and scale of the training priors (``prior_statistics [2, 6]``)."""
 
     loader: Any
     steps_per_epoch: int
     validation: tuple[ValidationSequence, ...]
     use_flow: bool
     split: dict[str, Any]
+    prior_statistics: np.ndarray
 
 
 def cached_sequences(cache_root: str | os.PathLike) -> list[str]:
@@ -398,8 +169,7 @@ def open_data(config: TrainConfig, workers: int = 2) -> TrainData:
                 f"{root / name}: images are {cache.image_size[0]}x{cache.image_size[1]}, the model expects "
                 f"{size[0]}x{size[1]} (image_size); prepare the cache with --size {size[0]}x{size[1]}"
             )
-    model_config = config.model_config()
-    use_flow = model_config.flow if model_config.flow is not None else config.method == "ss_dpc"
+    use_flow = config.use_flow
     loader = TrainLoader(
         [caches[n] for n in train_names],
         config.batch_size,
@@ -411,9 +181,11 @@ def open_data(config: TrainConfig, workers: int = 2) -> TrainData:
     )
     steps = min(len(loader), config.steps_per_epoch or len(loader))
     validation = tuple(
-        ValidationSequence(n, caches[n], np.asarray(caches[n].prior), caches[n].gt)
+        ValidationSequence(n, caches[n], np.asarray(caches[n].prior), caches[n].gt,
+                           stereo_depth_of(caches[n], config.acceptance_depth))
         for n in config.validation_sequences
     )
+    statistics = prior_statistics(loader.table.xi_vo, config.prior_normalization)
     split = {
         "cache_root": str(Path(config.cache_root).absolute()),
         "train": train_names,
@@ -423,8 +195,20 @@ def open_data(config: TrainConfig, workers: int = 2) -> TrainData:
         "steps_per_epoch": steps,
         "validation_pairs": {v.name: len(v.cache) - 1 for v in validation},
         "input_hashes": {n: c.manifest.get("input_hash") for n, c in caches.items()},
+        "prior_statistics": statistics.tolist(),
     }
-    return TrainData(loader, steps, validation, use_flow, split)
+    return TrainData(loader, steps, validation, use_flow, split, statistics)
+
+
+def prior_statistics(xi_vo: np.ndarray, normalization: str) -> np.ndarray:
+    """``[2, 6]`` mean and scale of the prior input: those of ``xi_vo [S, 6]`` (the training pairs)
+    for ``"train_statistics"``, else 0 and 1. A component that (nearly) never varies — standard
+    deviation below 1e-6, float32 noise — keeps scale 1 rather than amplifying that noise."""
+    if normalization == "none":
+        return np.stack([np.zeros(6), np.ones(6)])
+    xi = np.asarray(xi_vo, np.float64)
+    scale = xi.std(axis=0)
+    return np.stack([xi.mean(axis=0), np.where(scale > 1e-6, scale, 1.0)])
 
 
 # --------------------------------------------------------------------------- logging
@@ -489,65 +273,45 @@ class MetricsLog:
 # --------------------------------------------------------------------------- validation
 
 
-def corrected_trajectory(
-    xi_corr: np.ndarray, prior: np.ndarray, first_pose: np.ndarray, rotation_only: bool = False
-) -> np.ndarray:
-    """Compose ``T*_{t+1,t} = Exp(ξ_corr,t) · T_vo_{t+1,t}`` from ``first_pose`` → ``[N, 4, 4]`` float64.
-
-    ``xi_corr``: ``[N-1, 6]`` corrections of the consecutive pairs; ``prior``: ``[N, 4, 4]``
-    camera-to-world VO trajectory.
-    """
-    from dpc_jax.correction import apply_correction
-
-    relative = trajectory.relative_poses(prior)
-    corrected = np.asarray(apply_correction(xi_corr, relative, rotation_only), np.float64)
-    return trajectory.compose(corrected, first_pose)
-
-
 def _segment_errors(ground_truth: np.ndarray, estimate: np.ndarray) -> tuple[float, float]:
     """Mean segment errors (t_err %, r_err °/100 m) over the lengths the sequence covers (NaN if none)."""
-    result = metrics_lib.segment_errors(ground_truth, estimate)
-    return float(result.trans_pct), float(result.rot_deg_per_100m)
+    with jax.enable_x64(True):
+        result = metrics_lib.segment_errors(ground_truth, estimate)
+        return float(result.trans_pct), float(result.rot_deg_per_100m)
 
 
 def validate(
-    graphdef: nnx.GraphDef,
-    state: nnx.State,
-    eval_step: Callable[[nnx.GraphDef, nnx.State, Batch], dict[str, jax.Array]],
-    data: TrainData,
-    config: TrainConfig,
-    mesh: Mesh,
+    model_graphdef: nnx.GraphDef, model_state: nnx.State, data: TrainData, config: TrainConfig, mesh: Mesh
 ) -> dict[str, float]:
-    """Validation figures of one epoch (DESIGN §5).
+    """Validation figures of one epoch (DESIGN §5), means over the validation pairs.
 
-    * ``val_loss``: the training loss in evaluation mode, mean over validation pairs;
-    * ``val_gradient_loss``: the photometric loss restricted to the gradient mask (selection a);
-    * ``val_loop_closures``: loop closures of the corrected validation trajectories (selection b),
-      summed over the validation sequences;
+    * ``val_loss``: the training loss in evaluation mode;
+    * ``val_gradient_loss``: the photometric loss on high-gradient pixels (selection a);
+    * ``val_loop_closures``: loop closures of the corrected validation trajectories, summed
+      (selection b);
+    * ``val_delta``, ``val_delta_rotation``: mean Δ of the full / rotation-only correction
+      (selection ``delta``; ``dpc_jax.acceptance``);
     * ``val_{prior,corrected}_{t,r}_err``: segment errors against ground truth, averaged over the
       sequences that have it (reporting only; NaN without ground truth).
     """
-    from dpc_jax.data.pipeline import iterate_sequence
-
-    share = parallel.process_slice(config.batch_size)
-    totals = {"loss": 0.0, "gradient_loss": 0.0, "samples": 0.0}
+    loss_config = config.loss_config()
+    weighted = {"loss": 0.0, "gradient_loss": 0.0, "delta": 0.0, "delta_rotation": 0.0}
+    pairs = 0
     closures = 0
     errors: list[tuple[float, float, float, float]] = []
     for seq in data.validation:
-        corrections = []
-        with contextlib.closing(
-            iterate_sequence(seq.cache, config.batch_size, flow=data.use_flow)
-        ) as batches:
-            for batch in batches:
-                local = jax.tree.map(lambda x: x[share], batch)
-                out = jax.device_get(eval_step(graphdef, state, parallel.shard_batch(local, mesh)))
-                n = float(out["samples"])
-                totals["loss"] += float(out["loss"]) * n
-                totals["gradient_loss"] += float(out["gradient_loss"]) * n
-                totals["samples"] += n
-                corrections.append(np.asarray(out["xi_corr"], np.float64)[np.asarray(batch.weight) > 0])
+        prediction = predict_sequence(
+            model_graphdef, model_state, seq.cache, loss_config, batch_size=config.batch_size,
+            use_flow=data.use_flow, stereo_depth=seq.stereo_depth, mesh=mesh,
+        )
+        n = prediction.xi_corr.shape[0]
+        weighted["loss"] += prediction.loss * n
+        weighted["gradient_loss"] += prediction.gradient_loss * n
+        weighted["delta"] += float(prediction.delta["full"].sum())
+        weighted["delta_rotation"] += float(prediction.delta["rotation"].sum())
+        pairs += n
         first = seq.ground_truth[0] if seq.ground_truth is not None else seq.prior[0]
-        corrected = corrected_trajectory(np.concatenate(corrections), seq.prior, first, config.rotation_only)
+        corrected = corrected_trajectory(prediction.xi_corr, seq.prior, first, config.rotation_only)
         closures += int(metrics_lib.count_loop_closures(corrected))
         if seq.ground_truth is not None:
             errors.append(
@@ -555,8 +319,7 @@ def validate(
             )
     mean_errors = np.mean(errors, axis=0) if errors else np.full(4, np.nan)
     return {
-        "val_loss": totals["loss"] / totals["samples"],
-        "val_gradient_loss": totals["gradient_loss"] / totals["samples"],
+        **{f"val_{k}": v / pairs for k, v in weighted.items()},
         "val_loop_closures": closures,
         "val_prior_t_err": float(mean_errors[0]),
         "val_prior_r_err": float(mean_errors[1]),
@@ -691,7 +454,7 @@ def train(
     """Train ``config`` in ``workdir``; return a summary (epochs, steps, best epochs, last metrics).
 
     Files: ``WORKDIR/checkpoints/`` (see ``dpc_jax.checkpoints``: every epoch, the best by
-    gradient loss and by loop closures, ``config.json``, ``split.json``),
+    gradient loss, by loop closures and by Δ, ``config.json``, ``split.json``),
     ``WORKDIR/metrics.csv`` (one row per epoch: step, learning rate, training means, samples/s,
     validation figures), ``WORKDIR/tensorboard/`` (the same, plus training scalars every
     ``log_every`` steps).
@@ -704,7 +467,7 @@ def train(
     Errors before any compute: ``ConfigError`` for a bad split, missing cache, wrong image size,
     or a workdir holding another run. ``NonFiniteLossError`` when a loss becomes NaN/inf.
     """
-    from dpc_jax.models import create_model
+    from dpc_jax.models import create_model, set_prior_statistics
 
     workdir = Path(workdir).absolute()
     has_run = check_workdir(config, workdir, resume)
@@ -721,11 +484,12 @@ def train(
         raise ConfigError(str(error)) from None
     is_main = jax.process_index() == 0
 
-    graphdef, state = create_train_state(
-        create_model(config.method, config.model_config(), config.seed),
-        make_optimizer(config, data.steps_per_epoch),
-        mesh,
-    )
+    model = create_model(config.method, config.model_config(), config.seed)
+    set_prior_statistics(model, *data.prior_statistics)
+    # state[0] of the train state is the model's; it merges with the model's own graphdef.
+    model_graphdef = nnx.graphdef(model)
+    graphdef, state = create_train_state(model, make_optimizer(config, data.steps_per_epoch), mesh)
+    del model
     checkpoints = Checkpoints(workdir, keep_last=config.keep_checkpoints)
     meta: dict[str, Any] | None = None
     if has_run and checkpoints.latest_epoch() is not None:
@@ -745,9 +509,7 @@ def train(
     best = Checkpoints.best_records(meta)
     schedule = learning_rate_schedule(config.learning_rate, config.lr_halving_epochs, data.steps_per_epoch)
 
-    loss_fn, gradient_loss_fn = make_loss_functions(config)
-    train_step = make_train_step(loss_fn, mesh)
-    eval_step = make_eval_step(loss_fn, gradient_loss_fn, mesh)
+    train_step = make_train_step(config.loss_config(), config.warmup_steps(data.steps_per_epoch), mesh)
     log = MetricsLog(workdir, start_epoch, step, enabled=is_main)
     row: dict[str, Any] = meta["metrics"] if meta else {}
     try:
@@ -758,8 +520,8 @@ def train(
                 epoch, graphdef, state, train_step, data, config, mesh, step, log, progress
             )
             step += data.steps_per_epoch
-            val = validate(graphdef, state, eval_step, data, config, mesh)
-            if not all(math.isfinite(val[k]) for k in ("val_loss", "val_gradient_loss")):
+            val = validate(model_graphdef, state[0], data, config, mesh)
+            if not all(math.isfinite(val[k]) for k in ("val_loss", "val_gradient_loss", "val_delta")):
                 raise NonFiniteLossError(
                     f"non-finite validation loss at epoch {epoch} ({val['val_loss']}, gradient loss "
                     f"{val['val_gradient_loss']}); stopping. "
@@ -806,7 +568,8 @@ def train(
 def _epoch_line(row: dict[str, Any]) -> str:
     text = (
         f"epoch {row['epoch']}: loss {row['train_loss']:.4f}, val loss {row['val_loss']:.4f}, "
-        f"gradient loss {row['val_gradient_loss']:.4f}, loop closures {row['val_loop_closures']}, "
+        f"gradient loss {row['val_gradient_loss']:.4f}, Δ {row['val_delta']:.2e}, "
+        f"loop closures {row['val_loop_closures']}, "
         f"{row['samples_per_s']:.1f} samples/s"
     )
     if math.isfinite(row["val_corrected_r_err"]):

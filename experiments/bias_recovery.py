@@ -20,7 +20,6 @@ training run) and ``OUT/result.json``; prints a table. Exit status 0 when the ch
 from __future__ import annotations
 
 import argparse
-import contextlib
 import sys
 import time
 from pathlib import Path
@@ -83,49 +82,25 @@ def trajectory_length(poses: np.ndarray) -> float:
 
 
 def evaluate_test(config: object, workdir: Path, selection: str) -> dict[str, float]:
-    """Correct the test sequence with the checkpoint chosen by ``selection``; prior vs corrected."""
-    import jax
-    import orbax.checkpoint as ocp
+    """Correct the test sequence with the epoch chosen by ``selection`` (acceptance test on its own
+    images); prior vs corrected."""
+    from dpc_jax import metrics
+    from dpc_jax.correct import correct_cache
+    from dpc_jax.inference import load_run
 
-    from dpc_jax import metrics, parallel
-    from dpc_jax.checkpoints import Checkpoints
-    from dpc_jax.data.pipeline import iterate_sequence, load_cache
-    from dpc_jax.models import create_model
-    from dpc_jax.train import (
-        corrected_trajectory,
-        create_train_state,
-        make_eval_step,
-        make_loss_functions,
-        make_optimizer,
-    )
-
-    mesh = parallel.make_mesh()
-    graphdef, fresh = create_train_state(
-        create_model(config.method, config.model_config(), config.seed), make_optimizer(config, 1), mesh
-    )
-    with Checkpoints(workdir, read_only=True) as checkpoints:
-        state, meta = checkpoints.restore(jax.tree.map(ocp.utils.to_shape_dtype_struct, fresh), selection)
-    eval_step = make_eval_step(*make_loss_functions(config), mesh)
+    run = load_run(workdir, selection)
     [name] = config.test_sequences
-    cache = load_cache(Path(config.cache_root) / name)
-    corrections = []
-    with contextlib.closing(iterate_sequence(cache, config.batch_size, flow=False)) as batches:
-        for batch in batches:
-            out = jax.device_get(eval_step(graphdef, state, parallel.shard_batch(batch, mesh)))
-            corrections.append(np.asarray(out["xi_corr"], np.float64)[np.asarray(batch.weight) > 0])
-    xi_corr = np.concatenate(corrections)
-    prior, gt = np.asarray(cache.prior), np.asarray(cache.gt)
-    corrected = corrected_trajectory(xi_corr, prior, gt[0], config.rotation_only)
-    label = "best gradient loss" if selection == "best_gradient_loss" else "last epoch"
-    result = {"selection": label, "epoch": int(meta["epoch"])}
-    for name, estimate in (("prior", prior), ("corrected", corrected)):
+    correction = correct_cache(run, Path(config.cache_root) / name)
+    prior, gt, corrected = correction.prior, correction.ground_truth, correction.corrected
+    result = {"selection": selection, "epoch": run.epoch, "applied": correction.applied}
+    for label, estimate in (("prior", prior), ("network", correction.proposed), ("corrected", corrected)):
         errors = metrics.segment_errors(gt, estimate)
-        result[f"{name}_r_err"] = float(errors.rot_deg_per_100m)
-        result[f"{name}_t_err"] = float(errors.trans_pct)
+        result[f"{label}_r_err"] = float(errors.rot_deg_per_100m)
+        result[f"{label}_t_err"] = float(errors.trans_pct)
     truth, vo = trajectory.relative_poses(gt), trajectory.relative_poses(prior)
     needed = Rotation.from_matrix(truth[:, :3, :3] @ np.swapaxes(vo[:, :3, :3], 1, 2))
     result["mean_yaw_needed_deg"] = float(np.degrees(needed.as_rotvec()[:, 1].mean()))
-    result["mean_yaw_correction_deg"] = float(np.degrees(xi_corr[:, 4].mean()))
+    result["mean_yaw_correction_deg"] = float(np.degrees(correction.xi_corr[:, 4].mean()))
     result["r_err_reduction_pct"] = 100.0 * (1.0 - result["corrected_r_err"] / result["prior_r_err"])
     return result
 
@@ -141,7 +116,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--resume", action="store_true", help="continue the training run in OUT/run")
     args = parser.parse_args(argv)
 
-    from dpc_jax.train import TrainConfig, train
+    from dpc_jax.train import train
+    from dpc_jax.train_config import TrainConfig
 
     config = config_lib.load_file(args.config, TrainConfig)
     cache_root = (ROOT / config.cache_root).resolve()
@@ -153,15 +129,16 @@ def main(argv: list[str] | None = None) -> int:
     began = time.perf_counter()
     summary = train(config, args.out / "run", resume=args.resume)
     minutes = (time.perf_counter() - began) / 60
-    results = [evaluate_test(config, args.out / "run", s) for s in ("best_gradient_loss", "epochs")]
+    results = [evaluate_test(config, args.out / "run", s) for s in ("delta", "last")]
     print(f"\ntraining: {config.epochs} epochs, {summary['step']} steps, {minutes:.1f} min")
-    print("| checkpoint | epoch | r_err prior (°/100m) | r_err corrected | reduction | "
-          "t_err prior (%) | t_err corrected | mean yaw needed (°) | mean yaw correction (°) |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("| selection | epoch | applied | r_err prior (°/100m) | r_err network | r_err corrected | "
+          "reduction | t_err prior (%) | t_err corrected | mean yaw needed (°) | mean yaw correction (°) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in results:
-        print(f"| {r['selection']} | {r['epoch']} | {r['prior_r_err']:.3f} | {r['corrected_r_err']:.3f} | "
-              f"{r['r_err_reduction_pct']:.1f} % | {r['prior_t_err']:.2f} | {r['corrected_t_err']:.2f} | "
-              f"{r['mean_yaw_needed_deg']:.4f} | {r['mean_yaw_correction_deg']:.4f} |")
+        print(f"| {r['selection']} | {r['epoch']} | {r['applied']} | {r['prior_r_err']:.3f} | "
+              f"{r['network_r_err']:.3f} | {r['corrected_r_err']:.3f} | {r['r_err_reduction_pct']:.1f} % | "
+              f"{r['prior_t_err']:.2f} | {r['corrected_t_err']:.2f} | {r['mean_yaw_needed_deg']:.4f} | "
+              f"{r['mean_yaw_correction_deg']:.4f} |")
     passed = results[0]["r_err_reduction_pct"] >= 50.0
     record = {"passed": passed, "training_minutes": minutes, "results": results,
               "args": {k: str(v) for k, v in vars(args).items()}, "config": config_lib.to_dict(config)}

@@ -71,12 +71,13 @@ class Result:
     selection: str
     frames: int
     metrics: dict[str, dict[str, Any]]  # {"prior": summary, "corrected": summary}
+    applied: str = "full"  # the acceptance decision: full, rotation or none (forced corrections: full)
 
 
 def load_protocol(path: str | Path) -> tuple[Any, dict[str, Any]]:
     """``(CONFIG, PROTOCOL)`` of an experiment config file (``CONFIG`` is a TrainConfig or its dict)."""
     from dpc_jax import config as config_lib
-    from dpc_jax.train import TrainConfig
+    from dpc_jax.train_config import TrainConfig
 
     namespace = runpy.run_path(str(path))
     config = config_lib.load_file(path, TrainConfig)
@@ -100,7 +101,7 @@ def parse_overrides(pairs: Sequence[str]) -> dict[str, Any]:
 def fold_config(base: Any, fold: Fold, cache_root: Path, overrides: dict[str, Any]) -> Any:
     """The fold's TrainConfig: ``base`` with its split, the cache root and the overrides."""
     from dpc_jax import config as config_lib
-    from dpc_jax.train import TrainConfig
+    from dpc_jax.train_config import TrainConfig
 
     data = config_lib.to_dict(base)
     unknown = [k for k in overrides if k not in data]
@@ -177,13 +178,17 @@ def train_fold(config: Any, workdir: Path, progress: bool) -> dict[str, Any]:
 
 def correct_and_evaluate(
     fold: str, run_dir: Path, cache: Path, out_root: Path, *, select: str = "gradient",
-    prior_label: str = "prior", rotation_only: bool | None = None, progress: bool = False,
+    prior_label: str = "prior", rotation_only: bool | None = None, acceptance: bool = True,
+    progress: bool = False,
 ) -> Result:
-    """Correct the prior of ``cache`` with the run's selected epoch; write trajectory and report."""
-    from dpc_jax.correct import correct_cache, load_run, write_correction_report, write_trajectory
+    """Correct the prior of ``cache`` with the run's selected epoch (only where the acceptance test
+    allows it, unless ``acceptance`` is False); write trajectory and report."""
+    from dpc_jax.correct import correct_cache, write_correction_report, write_trajectory
+    from dpc_jax.inference import load_run
 
     run = load_run(run_dir, select)
-    correction = correct_cache(run, cache, rotation_only=rotation_only, progress=progress)
+    correction = correct_cache(run, cache, rotation_only=rotation_only, force=not acceptance,
+                               progress=progress)
     if correction.evaluation is None:
         raise ValueError(f"{cache}: no ground truth; the experiment needs it to evaluate")
     name = Path(cache).name
@@ -195,7 +200,7 @@ def correct_and_evaluate(
     )
     estimates = correction.evaluation["estimates"]
     return Result(fold, name, prior_label, run.epoch, select, int(correction.corrected.shape[0]),
-                  {"prior": estimates["prior"], "corrected": estimates["corrected"]})
+                  {"prior": estimates["prior"], "corrected": estimates["corrected"]}, correction.applied)
 
 
 COLUMNS = (
@@ -210,17 +215,19 @@ def _cell(value: Any) -> str:
 
 def results_markdown(results: Sequence[Result], title: str, notes: Sequence[str] = ()) -> str:
     """The results table: one row per test sequence and prior, prior → corrected for each metric."""
-    header = ["fold", "sequence", "prior", "epoch", "frames", *(t for _, t in COLUMNS)]
+    header = ["fold", "sequence", "prior", "epoch", "applied", "frames", *(t for _, t in COLUMNS)]
     lines = [f"# {title}", "", *(f"{n}" for n in notes), "" if notes else None]
     lines = [x for x in lines if x is not None]
     lines += ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
     for r in results:
         cells = [f"{_cell(r.metrics['prior'][k])} → {_cell(r.metrics['corrected'][k])}" for k, _ in COLUMNS]
         lines.append("| " + " | ".join(
-            [r.fold, r.sequence, r.prior_label, f"{r.epoch} ({r.selection})", str(r.frames), *cells]
+            [r.fold, r.sequence, r.prior_label, f"{r.epoch} ({r.selection})", r.applied, str(r.frames),
+             *cells]
         ) + " |")
     lines += ["", "Each cell: prior → corrected. Segment errors are the mean of the per-length means over "
-              "100–800 m (n/a when the sequence is shorter than 100 m)."]
+              "100–800 m (n/a when the sequence is shorter than 100 m). applied: what the acceptance test "
+              "let through (full, rotation or none = the prior kept)."]
     return "\n".join(lines) + "\n"
 
 
@@ -229,11 +236,11 @@ def results_csv(results: Sequence[Result]) -> str:
     buffer = io.StringIO()
     keys = list(results[0].metrics["prior"]) if results else []
     writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(["fold", "sequence", "prior", "epoch", "selection", "frames",
+    writer.writerow(["fold", "sequence", "prior", "epoch", "selection", "applied", "frames",
                      *(f"{which}_{k}" for which in ("prior", "corrected") for k in keys)])
     for r in results:
         values = [r.metrics[which][k] for which in ("prior", "corrected") for k in keys]
-        writer.writerow([r.fold, r.sequence, r.prior_label, r.epoch, r.selection, r.frames,
+        writer.writerow([r.fold, r.sequence, r.prior_label, r.epoch, r.selection, r.applied, r.frames,
                          *("" if v is None else v for v in values)])
     return buffer.getvalue()
 
@@ -299,7 +306,7 @@ def add_common_arguments(parser: Any, config: Path) -> None:
     """Options every entry point has: work folder, config, epoch selection, overrides, smoke, progress."""
     parser.add_argument("--workdir", required=True, type=Path, metavar="DIR", help="everything goes here")
     parser.add_argument("--config", type=Path, default=config, metavar="FILE", help="experiment config")
-    parser.add_argument("--select", choices=("gradient", "loop", "last"),
+    parser.add_argument("--select", choices=("delta", "gradient", "loop", "last"),
                         help="epoch selection (default: the protocol's)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a TrainConfig field (JSON value), e.g. --set epochs=2")

@@ -58,7 +58,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         select = args.select or protocol["select"]
         results = [
             P.correct_and_evaluate(fold.name, run_dir, cache_root / name, args.workdir, select=select,
-                                   prior_label=name, progress=progress)
+                                   prior_label=name, acceptance=protocol.get("acceptance", True),
+                                   progress=progress)
             for name in ("vo", "libviso2")
         ]
     except (OSError, ValueError, KeyError) as error:

@@ -80,7 +80,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             for test in fold.test:
                 results.append(P.correct_and_evaluate(
                     fold.name, run_dir, cache_root / test, args.workdir, select=select,
-                    prior_label=Path(args.priors).name if args.priors != "vo" else "vo", progress=progress,
+                    prior_label=Path(args.priors).name if args.priors != "vo" else "vo",
+                    acceptance=protocol.get("acceptance", True), progress=progress,
                 ))
     except (OSError, ValueError, KeyError) as error:
         print(f"kitti_stereo_dpc: error: {error}", file=sys.stderr)

@@ -31,8 +31,9 @@ def _state(seed: int) -> nnx.State:
     return jax.tree.unflatten(tree, [np.asarray(rng.integers(0, 100, x.shape), x.dtype) for x in leaves])
 
 
-def _meta(gradient_loss: float, closures: int) -> dict:
-    return {"step": 10, "metrics": {"val_gradient_loss": gradient_loss, "val_loop_closures": closures}}
+def _meta(gradient_loss: float, closures: int, delta: float = 0.0) -> dict:
+    metrics = {"val_gradient_loss": gradient_loss, "val_loop_closures": closures, "val_delta": delta}
+    return {"step": 10, "metrics": metrics}
 
 
 def _equal(a: nnx.State, b: nnx.State) -> bool:
@@ -40,11 +41,31 @@ def _equal(a: nnx.State, b: nnx.State) -> bool:
 
 
 def test_best_record_rules() -> None:
-    assert Record().beaten_by("gradient_loss", 5.0, 0)
-    r = Record(epoch=2, gradient_loss=1.0, loop_closures=3)
-    assert r.beaten_by("gradient_loss", 0.9, 0) and not r.beaten_by("gradient_loss", 1.0, 9)
-    assert r.beaten_by("loop_closures", 5.0, 4) and not r.beaten_by("loop_closures", 0.1, 2)
-    assert r.beaten_by("loop_closures", 0.9, 3) and not r.beaten_by("loop_closures", 1.1, 3)
+    assert Record().beaten_by("gradient_loss", 5.0, 0, 0.0)
+    r = Record(epoch=2, gradient_loss=1.0, loop_closures=3, delta=-1e-4)
+    assert r.beaten_by("gradient_loss", 0.9, 0, 0.0) and not r.beaten_by("gradient_loss", 1.0, 9, -1.0)
+    assert r.beaten_by("loop_closures", 5.0, 4, 0.0) and not r.beaten_by("loop_closures", 0.1, 2, -1.0)
+    assert r.beaten_by("loop_closures", 0.9, 3, 0.0) and not r.beaten_by("loop_closures", 1.1, 3, -1.0)
+    assert r.beaten_by("delta", 5.0, 0, -2e-4) and not r.beaten_by("delta", 0.1, 9, -1e-4)
+    # "No correction" (Δ = 0) is the record to beat: an epoch whose Δ is not negative never is.
+    assert not Record().beaten_by("delta", 0.1, 9, 0.0) and not Record().beaten_by("delta", 0.1, 9, 1e-6)
+    assert Record().beaten_by("delta", 5.0, 0, -1e-9)
+
+
+def test_delta_selection_keeps_the_most_negative_epoch_and_none_without_one(tmp_path: Path) -> None:
+    states = [_state(e) for e in range(1, 5)]
+    with Checkpoints(tmp_path / "a") as ckpt:
+        best = Checkpoints.best_records(None)
+        for epoch, (delta, s) in enumerate(zip([2e-4, -1e-4, -3e-4, -2e-4], states, strict=True), start=1):
+            best = ckpt.save(epoch, s, _meta(1.0 / epoch, 0, delta), best)
+        assert ckpt.all_epochs("best_delta") == [3] and best["delta"].epoch == 3
+        restored, meta = ckpt.restore(jax.tree.map(ocp.utils.to_shape_dtype_struct, states[0]), "best_delta")
+        assert meta["epoch"] == 3 and _equal(restored, states[2])
+    with Checkpoints(tmp_path / "b") as ckpt:
+        best = Checkpoints.best_records(None)
+        for epoch, s in enumerate(states[:2], start=1):
+            best = ckpt.save(epoch, s, _meta(1.0, 0, 1e-5 * epoch), best)
+        assert ckpt.latest_epoch("best_delta") is None and best["delta"].epoch == 0
 
 
 def test_every_epoch_and_best_by_criterion(tmp_path: Path) -> None:
@@ -59,8 +80,8 @@ def test_every_epoch_and_best_by_criterion(tmp_path: Path) -> None:
         assert ckpt.all_epochs() == [4, 5]
         assert ckpt.all_epochs("best_gradient_loss") == [3]
         assert ckpt.all_epochs("best_loop_closures") == [5]
-        assert best["gradient_loss"] == Record(3, 0.5, 2)
-        assert best["loop_closures"] == Record(5, 0.6, 4)
+        assert best["gradient_loss"] == Record(3, 0.5, 2, 0.0)
+        assert best["loop_closures"] == Record(5, 0.6, 4, 0.0)
     # A new manager (as after a restart) restores the newest epoch, its meta and the records.
     with Checkpoints(tmp_path, keep_last=2) as ckpt:
         abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, states[0])

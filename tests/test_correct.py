@@ -41,24 +41,28 @@ def _log(T: np.ndarray) -> np.ndarray:
 
 
 SEEDS = {1: 7, 2: 8}  # epoch -> seed of the stored (untrained) weights; config.seed stays 0
+# epoch -> validation (gradient loss, loop closures, Δ): epoch 1 has the lower gradient loss and the only
+# negative Δ, epoch 2 the more loop closures and is the newest.
+FIGURES = {1: (0.5, 0, -1e-4), 2: (0.6, 3, 2e-4)}
 
 
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory: pytest.TempPathFactory) -> dict:
     """A fake odometry tree (00, 05), its caches, and a run folder with two stored epochs.
 
-    The epochs hold differently initialised networks (seeds 7 and 8, not the config's seed 0), so a
-    restore that re-initialised instead of loading would be caught. Epoch 1 has the lower gradient
-    loss, epoch 2 the more loop closures and is the newest. Writing the run directly (instead of
-    training it) keeps the test free of the training step's compilation; training itself is
-    tested in test_train.py and end to end in test_experiments.py.
+    The epochs hold differently initialised networks (seeds 7 and 8, not the config's seed 0; the
+    reference initialisation, so their corrections are not zero), so a restore that re-initialised
+    instead of loading would be caught. Writing the run directly (instead of training it) keeps the
+    test free of the training step's compilation; training itself is tested in test_train.py and
+    end to end in test_experiments.py. A second run ("flat") has no epoch with a negative Δ.
     """
     from dpc_jax import config as config_lib
     from dpc_jax.checkpoints import Checkpoints
     from dpc_jax.data.cache import prepare_sequence
     from dpc_jax.data.kitti import open_odometry
     from dpc_jax.models import create_model
-    from dpc_jax.train import TrainConfig, create_train_state, make_optimizer
+    from dpc_jax.optim import create_train_state, make_optimizer
+    from dpc_jax.train_config import REFERENCE, TrainConfig
 
     tmp = tmp_path_factory.mktemp("correct")
     kitti = dpc_protocol.write_fake_odometry(tmp / "kitti", ["00", "05"], frames=FRAMES,
@@ -67,35 +71,40 @@ def setup(tmp_path_factory: pytest.TempPathFactory) -> dict:
     for name in ("00", "05"):
         prepare_sequence(open_odometry(kitti, name), tmp / "priors" / f"stereo_{name}.mat", cache,
                          size=SIZE, progress=False, workers=1)
-    config = TrainConfig(method="stereo_dpc", **dpc_protocol.SMOKE, cache_root=str(cache),
+    config = TrainConfig(method="stereo_dpc", **dpc_protocol.SMOKE, **REFERENCE, cache_root=str(cache),
                          train_sequences=("00",), validation_sequences=("05",))
-    config_lib.save_json(tmp / "run" / "checkpoints" / "config.json", config)
     models = {}
-    with Checkpoints(tmp / "run") as checkpoints:
-        best = Checkpoints.best_records(None)
-        for epoch, (gradient_loss, loops) in {1: (0.5, 0), 2: (0.6, 3)}.items():
-            models[epoch] = create_model("stereo_dpc", config.model_config(), SEEDS[epoch])
-            _, state = create_train_state(models[epoch], make_optimizer(config, 1))
-            metrics = {"val_gradient_loss": gradient_loss, "val_loop_closures": loops}
-            best = checkpoints.save(epoch, state, {"step": epoch, "metrics": metrics}, best)
-    return {"tmp": tmp, "kitti": kitti, "cache": cache, "run": tmp / "run", "priors": tmp / "priors",
-            "models": models}
+    for run, figures in (("run", FIGURES), ("flat", {1: (0.5, 0, 0.0)})):
+        config_lib.save_json(tmp / run / "checkpoints" / "config.json", config)
+        with Checkpoints(tmp / run) as checkpoints:
+            best = Checkpoints.best_records(None)
+            for epoch, (gradient_loss, loops, delta) in figures.items():
+                models[epoch] = create_model("stereo_dpc", config.model_config(), SEEDS[epoch])
+                _, state = create_train_state(models[epoch], make_optimizer(config, 1))
+                metrics = {"val_gradient_loss": gradient_loss, "val_loop_closures": loops, "val_delta": delta}
+                best = checkpoints.save(epoch, state, {"step": epoch, "metrics": metrics}, best)
+    return {"tmp": tmp, "kitti": kitti, "cache": cache, "run": tmp / "run", "flat": tmp / "flat",
+            "priors": tmp / "priors", "models": models}
 
 
 @pytest.fixture(scope="module")
 def run(setup: dict):
-    from dpc_jax.correct import load_run
+    from dpc_jax.inference import load_run
 
     return load_run(setup["run"], "gradient")
 
 
 def test_selection_restores_the_chosen_epoch(setup: dict, run) -> None:
-    from dpc_jax.correct import load_run
+    from dpc_jax.inference import load_run
 
-    assert (run.epoch, run.selection) == (1, "gradient")
+    assert (run.epoch, run.selection, run.improves_on_prior) == (1, "gradient", True)
     assert load_run(setup["run"], "loop").epoch == 2
     assert load_run(setup["run"], "last").epoch == 2
-    with pytest.raises(ValueError, match="gradient, loop, last"):
+    assert load_run(setup["run"], "delta").epoch == 1 and load_run(setup["run"], "delta").improves_on_prior
+    # No epoch with a negative Δ: the newest epoch, flagged as not better than no correction.
+    flat = load_run(setup["flat"], "delta")
+    assert (flat.epoch, flat.improves_on_prior) == (1, False)
+    with pytest.raises(ValueError, match="delta, gradient, loop, last"):
         load_run(setup["run"], "best")
 
 
@@ -135,7 +144,7 @@ def test_corrected_trajectory_equals_float64_reference(setup: dict, run, rotatio
 
     cache = load_cache(setup["cache"] / "05")
     # 9 pairs in batches of 4: the last batch is padded; the padding must be dropped.
-    result = correct_cache(run, cache, rotation_only=rotation_only, batch_size=4)
+    result = correct_cache(run, cache, rotation_only=rotation_only, batch_size=4, force=True)
     xi = _reference_corrections(setup["models"][run.epoch], cache)
     np.testing.assert_allclose(result.xi_corr, xi, atol=2e-6)
     assert np.abs(xi).max() > 1e-5  # a network's output, not zeros
@@ -151,8 +160,8 @@ def test_rotation_only_keeps_the_prior_translation_steps(setup: dict, run) -> No
     """T* = Exp([0, φ]) T_vo = [R_c R_vo, R_c t_vo]: each step keeps its length and t* = R* R_voᵀ t_vo."""
     from dpc_jax.correct import correct_cache
 
-    rot = correct_cache(run, setup["cache"] / "05", rotation_only=True)
-    full = correct_cache(run, setup["cache"] / "05", rotation_only=False)
+    rot = correct_cache(run, setup["cache"] / "05", rotation_only=True, force=True)
+    full = correct_cache(run, setup["cache"] / "05", rotation_only=False, force=True)
     step_rot = np.linalg.inv(rot.corrected[1:]) @ rot.corrected[:-1]
     step_prior = np.linalg.inv(rot.prior[1:]) @ rot.prior[:-1]
     step_full = np.linalg.inv(full.corrected[1:]) @ full.corrected[:-1]
@@ -175,7 +184,7 @@ def test_composes_from_the_first_prior_pose_without_ground_truth(setup: dict, ru
     shifted = cache.prior.copy()
     shifted[:, :3, 3] += np.array([5.0, -1.0, 2.0])  # the prior need not start at the GT pose
     no_gt = dataclasses.replace(cache, gt=None, prior=shifted)
-    result = correct_cache(run, no_gt)
+    result = correct_cache(run, no_gt, force=True)
     assert result.evaluation is None
     np.testing.assert_array_equal(result.corrected[0], shifted[0])
     expected = _compose(result.xi_corr.astype(np.float64), shifted, shifted[0], run.config.rotation_only)
@@ -184,23 +193,26 @@ def test_composes_from_the_first_prior_pose_without_ground_truth(setup: dict, ru
 
 def test_cli_writes_trajectory_that_reads_back_and_a_report(setup: dict, tmp_path: Path, capsys) -> None:
     from dpc_jax.cli import main
-    from dpc_jax.correct import correct_cache, load_run
+    from dpc_jax.correct import correct_cache
+    from dpc_jax.inference import load_run
     from dpc_jax.trajectory import read_trajectory, read_tum
 
-    expected = correct_cache(load_run(setup["run"], "gradient"), setup["cache"] / "05").corrected
+    expected = correct_cache(load_run(setup["run"], "gradient"), setup["cache"] / "05", force=True).corrected
     out = tmp_path / "corrected.txt"
     argv = ["correct", "--checkpoint", str(setup["run"]), "--data", str(setup["cache"] / "05"),
-            "--out", str(out), "--report", str(tmp_path / "report"), "--no-progress"]
+            "--out", str(out), "--report", str(tmp_path / "report"), "--no-progress", "--select", "gradient",
+            "--force"]
     assert main(argv) == 0
     printed = capsys.readouterr().out
     assert "| corrected |" in printed and "| prior |" in printed
     np.testing.assert_allclose(read_trajectory(out, "kitti"), expected, atol=1e-12)
     assert not (tmp_path / "corrected.frames.txt").exists()  # every source frame is there
-    for name in ("report.md", "metrics.json", "trajectory.png"):
+    for name in ("report.md", "metrics.json", "trajectory.png", "summary.json"):
         assert (tmp_path / "report" / name).is_file()
 
     tum = tmp_path / "corrected.tum"
-    assert main([*argv[:5], "--out", str(tum), "--format", "tum", "--no-progress"]) == 0
+    assert main([*argv[:5], "--out", str(tum), "--format", "tum", "--no-progress", "--select", "gradient",
+                 "--force"]) == 0
     stamps, poses = read_tum(tum)
     np.testing.assert_allclose(poses, expected, atol=1e-9)
     np.testing.assert_allclose(stamps, np.arange(FRAMES) * 0.1, atol=1e-9)
@@ -273,3 +285,79 @@ def test_bad_input_errors_name_what_was_expected(setup: dict, tmp_path: Path, ca
     err = _error(capsys, [*base, "--data", str(tmp_path)])
     assert "not a prepared cache" in err
     assert not (tmp_path / "c.txt").exists()
+
+
+def test_an_untrained_network_leaves_the_prior_unchanged(setup: dict) -> None:
+    """Zero-initialised output layer (the default): ξ_corr = 0 exactly, corrected trajectory = prior."""
+    from flax import nnx
+
+    from dpc_jax.correction import corrected_trajectory
+    from dpc_jax.data.pipeline import load_cache
+    from dpc_jax.inference import predict_sequence
+    from dpc_jax.models import create_model, set_prior_statistics
+    from dpc_jax.train_config import TrainConfig
+
+    config = TrainConfig(method="stereo_dpc", **dpc_protocol.SMOKE, validation_sequences=("05",))
+    cache = load_cache(setup["cache"] / "05")
+    for seed in (0, 1, 2):
+        model = create_model("stereo_dpc", config.model_config(), seed)
+        set_prior_statistics(model, np.full(6, 0.1), np.full(6, 0.01))
+        graphdef, state = nnx.split(model)
+        prediction = predict_sequence(graphdef, state, cache, config.loss_config(), batch_size=4,
+                                      use_flow=False)
+        np.testing.assert_array_equal(prediction.xi_corr, 0.0)
+        np.testing.assert_array_equal(prediction.delta["full"], 0.0)
+        corrected = corrected_trajectory(prediction.xi_corr, cache.prior, cache.prior[0])
+        np.testing.assert_allclose(corrected, cache.prior, atol=1e-12)
+
+
+def test_cli_keeps_the_prior_when_no_epoch_beats_it_and_applies_with_force(
+    setup: dict, tmp_path: Path, capsys
+) -> None:
+    import json
+
+    from dpc_jax.cli import main
+    from dpc_jax.correct import correct_cache
+    from dpc_jax.data.pipeline import load_cache
+    from dpc_jax.inference import load_run
+    from dpc_jax.trajectory import read_trajectory
+
+    cache = load_cache(setup["cache"] / "05")
+    base = ["correct", "--checkpoint", str(setup["flat"]), "--data", str(setup["cache"] / "05"),
+            "--no-progress"]
+    kept = tmp_path / "kept.txt"
+    assert main([*base, "--out", str(kept), "--report", str(tmp_path / "kept")]) == 0
+    out = capsys.readouterr().out
+    assert "correction NOT applied, the prior is written unchanged" in out and "--force" in out
+    np.testing.assert_allclose(read_trajectory(kept, "kitti"), cache.prior, atol=1e-9)
+    summary = json.loads((tmp_path / "kept" / "summary.json").read_text())
+    assert summary["applied"] == "none" and "selection delta" in summary["acceptance"]["reason"]
+    assert set(summary["acceptance"]["tests"]) == {"full", "rotation"}
+    assert "Applied: nothing" in (tmp_path / "kept" / "report.md").read_text()
+
+    forced = tmp_path / "forced.txt"
+    assert main([*base, "--out", str(forced), "--force"]) == 0
+    expected = _compose(correct_cache(load_run(setup["flat"], "delta"), cache, force=True).xi_corr,
+                        cache.prior, cache.gt[0], False)
+    np.testing.assert_allclose(read_trajectory(forced, "kitti"), expected, atol=1e-9)
+    assert np.abs(expected - cache.prior).max() > 1e-6
+
+
+def test_the_decision_follows_the_test_on_the_sequence(setup: dict, run) -> None:
+    """Whatever the test decides, the final trajectory is the prior, the rotations or the full proposal."""
+    from dpc_jax.correct import correct_cache
+    from dpc_jax.data.pipeline import load_cache
+
+    cache = load_cache(setup["cache"] / "05")
+    for alpha in (1e-9, 0.999):
+        result = correct_cache(run, cache, alpha=alpha)
+        tests = result.acceptance.tests
+        passing = [c for c in ("full", "rotation") if tests[c].p_value < alpha and tests[c].mean_delta < 0]
+        assert result.applied == (passing[0] if passing else "none")
+        rotation_only = result.applied == "rotation"
+        xi = result.xi_corr if result.applied != "none" else np.zeros_like(result.xi_corr)
+        np.testing.assert_allclose(result.corrected, _compose(xi, cache.prior, cache.gt[0], rotation_only),
+                                   atol=1e-9)
+        np.testing.assert_allclose(result.proposed, _compose(result.xi_corr, cache.prior, cache.gt[0], False),
+                                   atol=1e-9)
+    assert correct_cache(run, cache, alpha=1e-9).applied == "none"  # 9 pairs cannot reach p < 1e-9

@@ -49,7 +49,7 @@ def test_configs_are_train_configs_and_state_their_command(name: str) -> None:
     config, protocol = dpc_protocol.load_protocol(EXPERIMENTS / "configs" / f"{name}.py")
     doc = (EXPERIMENTS / "configs" / f"{name}.py").read_text().split('"""')[1]
     assert f"python experiments/{name}.py" in doc and "Produces" in doc
-    assert protocol["select"] in ("gradient", "loop", "last")
+    assert protocol["select"] in ("delta", "gradient", "loop", "last")
     if name == "kitti_stereo_dpc":
         assert config.image_size == (240, 376) and config.epochs == 30 and config.learning_rate == 6e-3
         assert config.lr_halving_epochs == 5 and config.loss["alpha"] == (1.0, 1.0, 1.0, 0.08)

@@ -27,14 +27,15 @@ SCRIPT = textwrap.dedent(
     from dpc_jax import parallel
     from dpc_jax.batch import Batch
     from dpc_jax.models import create_model
-    from dpc_jax.train import (TrainConfig, create_train_state, make_loss_functions, make_optimizer,
-                               make_train_step)
+    from dpc_jax.optim import create_train_state, make_optimizer
+    from dpc_jax.train import make_train_step
+    from dpc_jax.train_config import TrainConfig
 
     assert len(jax.devices()) == 4, jax.devices()
     TINY = dict(encoder_planes=(8, 16, 32), encoder_kernels=(3, 3, 3), decoder_planes=(32, 16, 8),
                 mask_source_block=2, depth_scales=2, fc_planes=(16, 16))
     config = TrainConfig(method="ss_dpc", preset="small", model=TINY, image_size=(32, 48), batch_size=8,
-                         learning_rate=1e-3, validation_sequences=("v",))
+                         learning_rate=1e-3, validation_sequences=("v",), pose_warmup_epochs=0)
     rng = np.random.default_rng(0)
     B, H, W = 8, 32, 48
     K = np.array([[30.0, 0, 24], [0, 30, 16], [0, 0, 1]], np.float32)
@@ -47,7 +48,6 @@ SCRIPT = textwrap.dedent(
         weight=np.array([1, 1, 1, 1, 1, 1, 1, 0], np.float32),
         flow=rng.normal(size=(B, 2, H, W, 2)).astype(np.float32),
     )
-    loss_fn, _ = make_loss_functions(config)
     graphdef, initial = create_train_state(create_model("ss_dpc", config.model_config(), 0),
                                            make_optimizer(config, 10))
     initial = jax.device_get(initial)
@@ -58,7 +58,7 @@ SCRIPT = textwrap.dedent(
         assert sharded.left.sharding.spec == PartitionSpec("data")
         assert len({s.device for s in sharded.left.addressable_shards}) == n
         state = parallel.replicate(initial, mesh)
-        step = make_train_step(loss_fn, mesh)
+        step = make_train_step(config.loss_config(), 0, mesh)
         state, metrics = step(graphdef, state, sharded, jax.random.key(3))
         leaf = jax.tree.leaves(state)[0]
         assert leaf.sharding.is_fully_replicated and len(leaf.sharding.device_set) == n

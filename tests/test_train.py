@@ -29,16 +29,10 @@ from dpc_jax.config import ConfigError
 from dpc_jax.data.cache import prepare_sequence
 from dpc_jax.data.kitti import StereoSequence
 from dpc_jax.models import create_model
+from dpc_jax.optim import create_train_state, learning_rate_schedule, make_optimizer
 from dpc_jax.outputs import DPCOutputs
-from dpc_jax.train import (
-    NonFiniteLossError,
-    TrainConfig,
-    create_train_state,
-    learning_rate_schedule,
-    make_optimizer,
-    state_step,
-    train,
-)
+from dpc_jax.train import NonFiniteLossError, make_train_step, train
+from dpc_jax.train_config import TrainConfig
 
 # The module itself: ``from dpc_jax import train`` is the re-exported function of the same name.
 train_lib = importlib.import_module("dpc_jax.train")
@@ -71,7 +65,7 @@ def _torch_adam_reference(theta, grad_fn, lrs, wd, b1=0.9, b2=0.999, eps=1e-8):
 def test_optimizer_is_adam_with_coupled_weight_decay_and_the_schedule() -> None:
     """Steps across two halving boundaries match PyTorch's Adam(weight_decay) update rule."""
     config = TrainConfig(validation_sequences=("v",), preset="small", learning_rate=0.05,
-                         lr_halving_epochs=2, weight_decay=0.3)
+                         lr_halving_epochs=2, weight_decay=0.3, pose_warmup_epochs=0)
     steps_per_epoch, n_steps = 3, 14
     tx = make_optimizer(config, steps_per_epoch)
     target = np.array([1.0, -2.0, 0.5, 3.0])
@@ -89,6 +83,51 @@ def test_optimizer_is_adam_with_coupled_weight_decay_and_the_schedule() -> None:
     # Decoupled decay (AdamW) or a constant rate would land elsewhere.
     assert not np.allclose(_torch_adam_reference(theta, grad_fn, [0.05] * n_steps, 0.3), expected, atol=1e-6)
     assert not np.allclose(_torch_adam_reference(theta, grad_fn, lrs, 0.0), expected, atol=1e-6)
+
+
+def _adam_tree_run(config: TrainConfig, steps_per_epoch: int, n_steps: int) -> tuple[dict, dict]:
+    """``n_steps`` of ``make_optimizer`` on a pose-head leaf and another leaf (same quadratic)."""
+    tx = make_optimizer(config, steps_per_epoch)
+    theta = {"fc_out": jnp.asarray([0.3, -1.0]), "left_branch": jnp.asarray([0.3, -1.0])}
+    target = jnp.asarray([1.0, 2.0])
+    state = tx.init(theta)
+    history = []
+    for _ in range(n_steps):
+        grads = jax.tree.map(lambda x: 2.0 * (x - target), theta)
+        updates, state = tx.update(grads, state, theta)
+        theta = optax.apply_updates(theta, updates)
+        history.append(jax.tree.map(np.asarray, theta))
+    return history[-1], history
+
+
+def test_pose_warmup_masks_the_pose_head_and_then_starts_adam_afresh() -> None:
+    config = TrainConfig(validation_sequences=("v",), preset="small", learning_rate=0.05, lr_halving_epochs=1,
+                         weight_decay=0.0, pose_warmup_epochs=1, pose_warmup_steps=1)
+    warmup = config.warmup_steps(3)
+    assert warmup == 4
+    _, history = _adam_tree_run(config, 3, 6)
+    start = np.array([0.3, -1.0])
+    for k in range(warmup):  # no pose update while warming up, the rest trains
+        np.testing.assert_array_equal(history[k]["fc_out"], start)
+        assert not np.allclose(history[k]["left_branch"], start)
+    # The pose head's first two updates are a fresh Adam's (steps of lr·sign(g) first), at the rates of
+    # global steps 4 and 5 (halved every 3 steps: 0.025).
+    lrs = [0.05 * 0.5 ** (s // 3) for s in (4, 5)]
+    expected = _torch_adam_reference(start, lambda th: 2.0 * (th - np.array([1.0, 2.0])), lrs, 0.0)
+    np.testing.assert_allclose(history[-1]["fc_out"], expected, rtol=1e-6)
+    np.testing.assert_allclose(history[warmup]["fc_out"], start + lrs[0], rtol=1e-6)
+
+
+def test_pose_lr_multiplier_scales_only_the_pose_head() -> None:
+    base = dict(validation_sequences=("v",), preset="small", learning_rate=0.01, weight_decay=0.0,
+                pose_warmup_epochs=0)
+    plain, _ = _adam_tree_run(TrainConfig(**base), 10, 3)
+    scaled, _ = _adam_tree_run(TrainConfig(**base, pose_lr_multiplier=0.25), 10, 3)
+    start = np.array([0.3, -1.0])
+    np.testing.assert_allclose(scaled["left_branch"], plain["left_branch"], rtol=1e-7)
+    # Adam's step is invariant to the gradient's scale: a quarter of the rate is a quarter of the step
+    # (three nearly equal steps here, all towards the target).
+    np.testing.assert_allclose(scaled["fc_out"] - start, 0.25 * (plain["fc_out"] - start), rtol=2e-3)
 
 
 # --------------------------------------------------------------------------- the loop
@@ -137,19 +176,46 @@ def tiny_config(cache_root: Path, **overrides: object) -> TrainConfig:
     return config_lib.from_dict(TrainConfig, fields)
 
 
-def _cheap_loss(outputs: DPCOutputs, batch: Batch) -> tuple[jax.Array, dict[str, jax.Array]]:
-    value = jnp.mean(outputs.left.inv_depth) + jnp.mean(outputs.right.mask) + jnp.sum(outputs.xi_corr**2)
+def _cheap_loss(outputs: DPCOutputs, batch: Batch, config: object) -> tuple[jax.Array, dict[str, jax.Array]]:
+    pull = jnp.sum((outputs.xi_corr - 0.1) ** 2)  # a pose gradient that is not zero at ξ_corr = 0
+    value = jnp.mean(outputs.left.inv_depth) + jnp.mean(outputs.right.mask) + pull
     return value, {"xi_norm": jnp.sum(outputs.xi_corr**2)}
-
-
-def _cheap_gradient_loss(outputs: DPCOutputs, batch: Batch) -> jax.Array:
-    return jnp.mean(outputs.left.inv_depth)
 
 
 @pytest.fixture
 def cheap_losses(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The loop with a loss that compiles fast (the real losses run in the slow end-to-end test)."""
-    monkeypatch.setattr(train_lib, "make_loss_functions", lambda config: (_cheap_loss, _cheap_gradient_loss))
+    """The train step with a loss that compiles fast (validation keeps the real losses)."""
+    monkeypatch.setattr(train_lib, "dpc_loss", _cheap_loss)
+
+
+def _logs(poses: np.ndarray, step: int) -> np.ndarray:
+    """se(3) logs ``[ρ, φ]`` of ``inv(T_{k+step}) T_k`` by scipy's matrix logarithm (float64)."""
+    from scipy.linalg import logm
+
+    out = []
+    for a, b in zip(poses[:-step], poses[step:], strict=True):
+        m = np.real(logm(np.linalg.inv(b) @ a))
+        out.append([m[0, 3], m[1, 3], m[2, 3], m[2, 1], m[0, 2], m[1, 0]])
+    return np.asarray(out)
+
+
+def test_train_step_warmup_holds_the_correction_at_zero(cache_root: Path, cheap_losses: None) -> None:
+    from dpc_jax.data.pipeline import TrainLoader
+
+    config = tiny_config(cache_root, pose_warmup_epochs=0, pose_warmup_steps=2)
+    model = create_model(config.method, config.model_config(), 0)
+    graphdef, state = create_train_state(model, make_optimizer(config, 3))
+    step = make_train_step(config.loss_config(), config.warmup_steps(3))
+    batch = next(iter(TrainLoader([cache_root / "00"], 4, workers=0).epoch(0)))
+    pose = lambda s: np.asarray(s[0]["fc_out"]["kernel"][...]).copy()
+    depth = lambda s: np.asarray(s[0]["left_branch"]["heads"][0]["conv"]["kernel"][...]).copy()
+    before_pose, before_depth = pose(state), depth(state)
+    for k in range(3):
+        state, _ = step(graphdef, state, batch, jax.random.key(k))
+        if k < 2:  # warm-up: the loss saw ξ_corr = 0; the pose head stays at its zero start
+            np.testing.assert_array_equal(pose(state), before_pose)
+            assert not np.array_equal(depth(state), before_depth)
+    assert np.abs(pose(state)).max() > 0
 
 
 def _read_metrics(workdir: Path) -> list[dict[str, str]]:
@@ -166,8 +232,8 @@ def test_loop_writes_checkpoints_metrics_and_refuses_other_runs(
     rows = _read_metrics(tmp_path)
     assert [(r["epoch"], r["step"]) for r in rows] == [("1", "3"), ("2", "6")]
     for column in ("learning_rate", "train_loss", "train_xi_norm", "train_grad_norm", "samples_per_s",
-                   "val_loss", "val_gradient_loss", "val_loop_closures", "val_prior_r_err",
-                   "val_corrected_r_err"):
+                   "val_loss", "val_gradient_loss", "val_loop_closures", "val_delta", "val_delta_rotation",
+                   "val_prior_r_err", "val_corrected_r_err"):
         assert all(r[column] != "" for r in rows), column
     assert float(rows[0]["learning_rate"]) == pytest.approx(1e-3)
     assert list((tmp_path / "tensorboard").glob("events.out.tfevents.*"))
@@ -175,15 +241,25 @@ def test_loop_writes_checkpoints_metrics_and_refuses_other_runs(
     assert ckpt.all_epochs() == [1, 2]
     assert ckpt.latest_epoch("best_gradient_loss") in (1, 2)
     assert ckpt.latest_epoch("best_loop_closures") in (1, 2)
+    delta_epochs = [int(r["epoch"]) for r in rows if float(r["val_delta"]) < 0]
+    best_delta = min(delta_epochs, key=lambda e: float(rows[e - 1]["val_delta"])) if delta_epochs else None
+    assert ckpt.latest_epoch("best_delta") == best_delta
     stored = config_lib.load_file(tmp_path / "checkpoints" / "config.json", TrainConfig)
     assert stored == config
     split = json.loads((tmp_path / "checkpoints" / "split.json").read_text())
     assert split["train"] == ["00", "01"] and split["validation"] == ["02"] and split["steps_per_epoch"] == 3
+    # The prior statistics of the training pairs (forward and skip) are stored with the run and the model.
+    priors = [np.load(cache_root / n / "prior.npy") for n in ("00", "01")]
+    xi = np.concatenate([_logs(p, 1) for p in priors] + [_logs(p, 2) for p in priors])
+    scale = np.where(xi.std(0) > 1e-6, xi.std(0), 1.0)  # a component that never varies keeps scale 1
+    np.testing.assert_allclose(split["prior_statistics"], [xi.mean(0), scale], rtol=1e-5, atol=1e-7)
     # The optimizer step count in the checkpoint is the number of updates made.
     _, fresh = create_train_state(create_model(config.method, config.model_config(), 0),
                                   make_optimizer(config, 3))
     restored, meta = ckpt.restore(jax.tree.map(ocp.utils.to_shape_dtype_struct, fresh))
-    assert state_step(restored) == 6 and meta["step"] == 6 and meta["data"]["next_epoch"] == 3
+    assert int(restored[1]["step"][...]) == 6 and meta["step"] == 6 and meta["data"]["next_epoch"] == 3
+    np.testing.assert_allclose(np.asarray(restored[0]["prior_statistics"][...]), split["prior_statistics"],
+                               rtol=1e-6)
     ckpt.close()
 
     with pytest.raises(ConfigError, match=r"already holds a training run.*--resume"):
@@ -200,8 +276,8 @@ def test_non_finite_loss_stops_and_keeps_the_last_good_checkpoint(
 ) -> None:
     real = train_lib.make_train_step
 
-    def poisoned(loss_fn: object, mesh: object = None) -> object:
-        step = real(loss_fn, mesh)
+    def poisoned(loss_config: object, warmup_steps: int = 0, mesh: object = None) -> object:
+        step = real(loss_config, warmup_steps, mesh)
         calls = itertools.count()
 
         def wrapped(graphdef, state, batch, key):  # the 5th update (epoch 2) yields NaN

@@ -11,7 +11,9 @@ The mono network (left image pair + Farnebäck flow + prior), 240×376, batch 32
 L2 4e-6, dropout 0.5, λ_exp = 0.23, λ_rot = 4 for samples with prior rotation ≥ γ = 0.005 rad,
 frame-skip augmentation. Stereo priors: Adam 1e-3 halved every 4 epochs and only the rotation of
 the correction applied; mono priors: 5e-5 halved every 10 epochs, the full correction (DESIGN §5).
-The epoch is chosen by the validation gradient loss (``--select loop`` for the loop-closure count).
+The epoch is chosen by the validation gradient loss (``--select loop`` for the loop-closure count);
+the correction head has the published settings (``dpc_jax.train_config.REFERENCE``) and every
+correction is applied (no acceptance test).
 
 Command (every fold):
 
@@ -39,6 +41,8 @@ PROTOCOL = {
         },
     },
     "select": "gradient",
+    # The papers apply every correction; the acceptance test (dpc_jax.acceptance) is ours.
+    "acceptance": False,
 }
 
 CONFIG = {
@@ -50,7 +54,14 @@ CONFIG = {
     "learning_rate": 1e-3,
     "lr_halving_epochs": 4,
     "weight_decay": 4e-6,
+    # The published choices of the correction head (dpc_jax.train_config.REFERENCE).
+    "pose_init": "pytorch",
+    "pose_warmup_epochs": 0,
+    "pose_warmup_steps": 0,
+    "prior_normalization": "none",
     "dropout": 0.5,
+    "prior_dropout": None,
+    "pose_lr_multiplier": 1.0,
     "loss": {"exp_weight": 0.23, "rot_weight": 4.0, "rot_threshold": 0.005},
     "rotation_only": True,
     "frame_skip": True,

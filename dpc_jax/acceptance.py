@@ -1,0 +1,122 @@
+"""The ground-truth-free acceptance test: does the correction explain the images better than the prior?
+
+For a network and a sequence, every frame pair i gives a *paired* difference
+``Δ_i = L_i(ξ_corr) − L_i(0)``: the gradient-masked photometric error of the temporal
+reconstructions (``dpc_jax.losses.correction_deltas``) with the correction and without it, with
+the same depth and validity. Δ < 0 means the corrected relative pose reconstructs the pair better.
+The test is one-sided: the correction is accepted when the Δ are significantly below zero by the
+Wilcoxon signed-rank test (``scipy.stats.wilcoxon``, ``alternative="less"``) at level ``alpha``
+*and* their mean is negative. Consecutive pairs share images and motion, so the Δ are not
+independent and the p-value is optimistic; the default level 0.01 is chosen strict for that
+reason.
+
+The test runs per component: ``full`` (the correction as trained: 6-DoF, or only its rotation
+for a rotation-only run) and ``rotation`` (only its rotation part). The decision is the first
+that passes in that order, else ``none`` (the prior is kept).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+DEFAULT_ALPHA = 0.01
+COMPONENTS = ("full", "rotation")
+DECISIONS = (*COMPONENTS, "none")
+
+
+@dataclass(frozen=True)
+class ComponentTest:
+    """The test of one component over ``pairs`` frame pairs.
+
+    ``mean_delta``/``median_delta``: of Δ; ``improved_share``: fraction of pairs with Δ < 0;
+    ``statistic``, ``p_value``: Wilcoxon signed-rank (``nan``/1 when every Δ is 0);
+    ``passed``: ``p_value < alpha`` and ``mean_delta < 0``.
+    """
+
+    component: str
+    pairs: int
+    mean_delta: float
+    median_delta: float
+    improved_share: float
+    statistic: float
+    p_value: float
+    passed: bool
+
+
+@dataclass(frozen=True)
+class Acceptance:
+    """Outcome of the acceptance test: ``decision`` ∈ ``full | rotation | none`` and why."""
+
+    alpha: float
+    tests: dict[str, ComponentTest] = field(default_factory=dict)
+    decision: str = "none"
+    reason: str = ""
+    forced: bool = False
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "alpha": self.alpha,
+            "decision": self.decision,
+            "reason": self.reason,
+            "forced": self.forced,
+            "tests": {name: asdict(test) for name, test in self.tests.items()},
+        }
+
+
+def component_test(component: str, delta: np.ndarray, alpha: float = DEFAULT_ALPHA) -> ComponentTest:
+    """One-sided Wilcoxon signed-rank test of ``delta`` (``[M]``) < 0 (see the module docstring)."""
+    from scipy import stats
+
+    delta = np.asarray(delta, np.float64)
+    if delta.ndim != 1 or delta.size == 0 or not np.all(np.isfinite(delta)):
+        raise ValueError(f"{component}: Δ must be a non-empty vector of finite numbers, got {delta.shape}")
+    mean = float(delta.mean())
+    if np.count_nonzero(delta) == 0:
+        statistic, p_value = math.nan, 1.0
+    else:
+        result = stats.wilcoxon(delta, alternative="less", zero_method="wilcox")
+        statistic, p_value = float(result.statistic), float(result.pvalue)
+    return ComponentTest(
+        component=component,
+        pairs=int(delta.size),
+        mean_delta=mean,
+        median_delta=float(np.median(delta)),
+        improved_share=float(np.mean(delta < 0)),
+        statistic=statistic,
+        p_value=p_value,
+        passed=bool(p_value < alpha and mean < 0),
+    )
+
+
+def acceptance_test(
+    deltas: dict[str, np.ndarray], alpha: float = DEFAULT_ALPHA, components: tuple[str, ...] = COMPONENTS
+) -> Acceptance:
+    """Test each of ``components`` (in order of preference) on its Δ; decide (module docstring).
+
+    ``deltas``: ``{component: Δ [M]}`` as from ``dpc_jax.losses.correction_deltas`` (pairs
+    already selected, padding dropped).
+    """
+    if not 0.0 < alpha < 1.0:
+        raise ValueError(f"alpha must be in (0, 1), got {alpha}")
+    unknown = [c for c in components if c not in COMPONENTS]
+    if unknown or not components:
+        raise ValueError(f"components must be a non-empty subset of {COMPONENTS}, got {components}")
+    tests = {c: component_test(c, deltas[c], alpha) for c in components}
+    for c in components:
+        t = tests[c]
+        if t.passed:
+            return Acceptance(alpha, tests, c, f"{c}: mean Δ {t.mean_delta:.3g} < 0, p = {t.p_value:.3g}")
+    parts = [f"{c}: mean Δ {t.mean_delta:.3g}, p = {t.p_value:.3g}" for c, t in tests.items()]
+    return Acceptance(alpha, tests, "none", "no component significantly below 0 (" + "; ".join(parts) + ")")
+
+
+def forced(acceptance: Acceptance, component: str) -> Acceptance:
+    """``acceptance`` with the decision overridden to ``component`` (``--force``), statistics kept."""
+    if component not in COMPONENTS:
+        raise ValueError(f"component must be one of {COMPONENTS}, got {component!r}")
+    return Acceptance(acceptance.alpha, acceptance.tests, component,
+                      f"forced ({acceptance.decision} by the test: {acceptance.reason})", forced=True)

@@ -1,0 +1,77 @@
+"""Depth from a rectified stereo pair with OpenCV's semi-global matching, independent of any network.
+
+The acceptance test (``dpc_jax.acceptance``) can measure a correction's photometric effect with
+this depth instead of the network's own, so that the test does not lean on a depth that was
+trained together with the pose it judges. Metric through the baseline: ``1/Z = d / (fu · B)``
+(DESIGN §1). Numpy/OpenCV only.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+# Nearest depth (m) the disparity search covers; nearer pixels are left out (invalid).
+MIN_DEPTH = 1.5
+
+
+def _matcher(max_disparity: float, block: int) -> cv2.StereoSGBM:
+    channels = 1
+    return cv2.StereoSGBM_create(
+        minDisparity=0,
+        numDisparities=16 * max(1, math.ceil(max_disparity / 16)),
+        blockSize=block,
+        P1=8 * channels * block * block,
+        P2=32 * channels * block * block,
+        uniquenessRatio=5,
+        disp12MaxDiff=1,
+        mode=cv2.STEREO_SGBM_MODE_HH,
+    )
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    return cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
+
+
+def sgbm_inverse_depth(
+    left: np.ndarray, right: np.ndarray, fu: float, baseline: float, block: int = 5
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Inverse depth (1/m) of both cameras of one rectified pair by StereoSGBM.
+
+    ``left``, ``right``: uint8 ``[H, W, 3]`` RGB (or ``[H, W]`` grey); ``fu``: focal length (px)
+    of these images; ``baseline`` (m). Returns ``(inv_left, valid_left, inv_right, valid_right)``,
+    float32 / bool ``[H, W]``; invalid pixels (no match, occluded, nearer than
+    :data:`MIN_DEPTH`) hold 0. The right camera's disparity is computed by matching the mirrored
+    pair (the right image becomes the reference).
+    """
+    if left.shape != right.shape or left.dtype != np.uint8:
+        raise ValueError(f"need two uint8 images of one size, got {left.dtype} {left.shape}, {right.shape}")
+    if not (fu > 0 and baseline > 0):
+        raise ValueError(f"fu and baseline must be positive, got {fu}, {baseline}")
+    focal_baseline = float(fu) * float(baseline)
+    matcher = _matcher(focal_baseline / MIN_DEPTH, block)
+    grey_l, grey_r = _grey(left), _grey(right)
+    out = []
+    for reference, other, mirrored in ((grey_l, grey_r, False), (grey_r, grey_l, True)):
+        if mirrored:
+            reference, other = reference[:, ::-1].copy(), other[:, ::-1].copy()
+        disparity = matcher.compute(reference, other).astype(np.float32) / 16.0
+        if mirrored:
+            disparity = disparity[:, ::-1]
+        valid = disparity > 0.0
+        out += [np.where(valid, disparity / focal_baseline, 0.0).astype(np.float32), valid]
+    return out[0], out[1], out[2], out[3]
+
+
+def sequence_inverse_depth(
+    left: np.ndarray, right: np.ndarray, fu: float, baseline: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`sgbm_inverse_depth` of every frame: ``left``/``right`` uint8 ``[N, H, W, 3]`` →
+    ``(inverse depth float32 [N, 2, H, W], valid bool [N, 2, H, W])``, camera axis (left, right)."""
+    inv = np.zeros((left.shape[0], 2, *left.shape[1:3]), np.float32)
+    valid = np.zeros(inv.shape, bool)
+    for k in range(left.shape[0]):
+        inv[k, 0], valid[k, 0], inv[k, 1], valid[k, 1] = sgbm_inverse_depth(left[k], right[k], fu, baseline)
+    return inv, valid

@@ -1,0 +1,123 @@
+"""The acceptance test: statistics against closed forms, decisions, Δ on rendered pairs with true depth."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from dpc_jax.acceptance import acceptance_test, component_test, forced
+from dpc_jax.batch import Batch
+from dpc_jax.data.priors import log_poses
+from dpc_jax.lie import se3_exp
+from dpc_jax.losses import SSDPCLossConfig, StereoDPCLossConfig, correction_deltas, temporal_pair_errors
+from dpc_jax.outputs import BranchOutputs, DPCOutputs
+from dpc_jax.synth import SynthConfig, render_sequence
+from dpc_jax.trajectory import relative_poses
+
+
+def test_wilcoxon_exact_p_values_in_closed_form() -> None:
+    # All n differences negative: W+ = 0, exact one-sided p = 1 / 2^n.
+    t = component_test("full", -np.arange(1.0, 9.0))
+    assert t.p_value == pytest.approx(2.0**-8) and t.statistic == 0 and t.passed
+    assert t.improved_share == 1.0 and t.mean_delta == -4.5 and t.median_delta == -4.5
+    # One positive difference with the smallest rank: W+ = 1, p = P(W+ <= 1) = 2 / 2^n.
+    t = component_test("full", np.array([0.5, -1, -2, -3, -4, -5, -6, -7]))
+    assert t.p_value == pytest.approx(2 * 2.0**-8) and t.passed
+    # Seven pairs cannot reach the 1 % level (1/128 < 0.01 < 2/128 with one positive).
+    assert not component_test("full", np.array([0.5, -1, -2, -3, -4, -5, -6])).passed
+
+
+def test_decision_order_and_rejections() -> None:
+    bad, good = np.linspace(1, 8, 8) * 1e-4, -np.linspace(1, 8, 8) * 1e-4
+    assert acceptance_test({"full": good, "rotation": bad}).decision == "full"
+    only_rotation = acceptance_test({"full": bad, "rotation": good})
+    assert only_rotation.decision == "rotation" and "rotation" in only_rotation.reason
+    rejected = acceptance_test({"full": bad, "rotation": np.zeros(8)})
+    assert rejected.decision == "none" and rejected.tests["rotation"].p_value == 1.0
+    assert math.isnan(rejected.tests["rotation"].statistic)
+    assert acceptance_test({"rotation": good}, components=("rotation",)).decision == "rotation"
+    # Significant but with a positive mean (a few large losses): not accepted.
+    skewed = np.array([-1e-5] * 15 + [1e-3])
+    assert component_test("full", skewed).p_value < 0.01 and not component_test("full", skewed).passed
+    kept = forced(rejected, "full")
+    assert kept.decision == "full" and kept.forced and kept.tests == rejected.tests
+    with pytest.raises(ValueError, match="finite"):
+        component_test("full", np.array([np.nan, -1.0]))
+    with pytest.raises(ValueError, match="alpha"):
+        acceptance_test({"full": good}, alpha=1.5)
+
+
+YAW = 2e-3
+
+
+@pytest.fixture(scope="module")
+def rendered() -> tuple[Batch, DPCOutputs, tuple[np.ndarray, np.ndarray], np.ndarray]:
+    """Nine rendered stereo frames as eight pairs, with the renderer's exact depth as the 'network' depth."""
+    seq = render_sequence(SynthConfig(frames=9, height=64, width=160, seed=3))
+    steps = relative_poses(seq.poses)
+    n = len(steps)
+
+    def pairs(a: np.ndarray) -> np.ndarray:
+        return np.stack([a[:-1], a[1:]], axis=1)
+
+    valid = (pairs(np.isfinite(seq.depth_left)), pairs(np.isfinite(seq.depth_right)))
+    inverse = [np.where(v, 1.0 / np.where(v, pairs(d), 1.0), 1.0)
+               for v, d in zip(valid, (seq.depth_left, seq.depth_right), strict=True)]
+    batch = Batch(left=pairs(seq.left), right=pairs(seq.right), xi_vo=np.asarray(log_poses(steps)),
+                  intrinsics=np.tile(seq.K, (n, 1, 1)), baseline=np.full(n, seq.baseline), weight=np.ones(n))
+    outputs = DPCOutputs(np.zeros((n, 6)), BranchOutputs(inverse[0], np.ones_like(inverse[0])),
+                         BranchOutputs(inverse[1], np.ones_like(inverse[1])))
+    return batch, outputs, valid, steps
+
+
+def _yaw(n: int) -> np.ndarray:
+    xi = np.zeros((n, 6))
+    xi[:, 4] = YAW
+    return xi
+
+
+def test_true_depth_rejects_a_spurious_yaw_and_accepts_the_true_correction(rendered) -> None:
+    batch, outputs, valid, steps = rendered
+    n = len(steps)
+    config = StereoDPCLossConfig()
+    # Exact prior: a constant 2 mrad yaw "correction" makes every pair worse.
+    deltas = {k: np.asarray(v) for k, v in
+              correction_deltas(outputs._replace(xi_corr=_yaw(n)), batch, config, valid).items()}
+    assert np.all(deltas["full"] > 0)
+    assert acceptance_test(deltas).decision == "none"
+    # A prior with a known −2 mrad yaw error per step: the true correction (+2 mrad) is accepted, in full.
+    biased = np.asarray(se3_exp(-_yaw(n))) @ steps
+    batch = batch._replace(xi_vo=np.asarray(log_poses(biased)))
+    deltas = {k: np.asarray(v) for k, v in
+              correction_deltas(outputs._replace(xi_corr=_yaw(n)), batch, config, valid).items()}
+    result = acceptance_test(deltas)
+    assert np.all(deltas["full"] < 0) and result.decision == "full"
+    assert result.tests["full"].p_value == pytest.approx(2.0**-8)
+    # Δ is a paired difference: L(0) of the biased prior is what "none" reports.
+    baseline = temporal_pair_errors(outputs, batch, config, valid)
+    np.testing.assert_allclose(deltas["none"], np.asarray(baseline), rtol=1e-12)
+
+
+def test_deltas_per_component_and_rotation_only(rendered) -> None:
+    batch, outputs, valid, steps = rendered
+    n = len(steps)
+    xi = np.zeros((n, 6))
+    xi[:, 2] = 0.05  # a translation-only correction: its rotation part is zero
+    deltas = correction_deltas(outputs._replace(xi_corr=xi), batch, StereoDPCLossConfig(), valid)
+    np.testing.assert_array_equal(np.asarray(deltas["rotation"]), 0.0)
+    assert np.all(np.asarray(deltas["full"]) > 0)
+    # A rotation-only loss config applies only φ in "full" too.
+    rotation_config = StereoDPCLossConfig(rotation_only=True)
+    only = correction_deltas(outputs._replace(xi_corr=xi), batch, rotation_config, valid)
+    np.testing.assert_array_equal(np.asarray(only["full"]), 0.0)
+    with pytest.raises(TypeError, match="SSDPCLossConfig or StereoDPCLossConfig"):
+        temporal_pair_errors(outputs, batch, object())
+    # ss-DPC-Net's assembly (frame t+1 from t, left camera, depth of t+1). Its one-directional L1 error
+    # at this size is not monotonic below a pixel (bilinear resampling blurs less at some sub-pixel
+    # offsets), so the spurious yaw here is 1 cm-rad ≈ 0.9 px.
+    mono = outputs._replace(left=BranchOutputs(outputs.left.inv_depth[:, 1:], outputs.left.mask[:, 1:]),
+                            right=None, xi_corr=5 * _yaw(n))
+    mono_deltas = correction_deltas(mono, batch, SSDPCLossConfig(), (valid[0][:, 1:], None))
+    assert np.all(np.asarray(mono_deltas["full"]) > 0)
