@@ -7,6 +7,11 @@ models) happen inside ``run`` so that ``--help`` and argument errors are instant
 Around every subcommand: Ctrl-C ends it with one line, ``dpc-jax COMMAND: interrupted; nothing
 half-written``, and exit status 130 (every writer is atomic or all-or-nothing, so that is true), and
 an :class:`~dpc_jax._io.InputWarning` is printed as one ``dpc-jax COMMAND: warning: ...`` line.
+Two places where Python cannot deliver Ctrl-C are covered: JAX is imported (by every subcommand)
+with the interrupt held back until the import is complete, because a KeyboardInterrupt inside
+jaxlib's initialisation crashes the interpreter (SIGSEGV or SIGABRT); and an interrupt that lands
+in a garbage-collection callback, where Python would print "Exception ignored" and drop it, is
+raised again in the main thread (``console_main``).
 """
 
 from __future__ import annotations
@@ -14,7 +19,9 @@ from __future__ import annotations
 import argparse
 import importlib
 import pkgutil
+import signal
 import sys
+import threading
 import warnings
 from collections.abc import Sequence
 from typing import Any
@@ -44,6 +51,21 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _import_jax_uninterrupted() -> None:
+    """``import jax`` with Ctrl-C held back until it is complete (see the module docstring)."""
+    if threading.current_thread() is not threading.main_thread():
+        importlib.import_module("jax")
+        return
+    pending: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda number, frame: pending.append(number))
+    try:
+        importlib.import_module("jax")
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if pending:
+        raise KeyboardInterrupt
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -61,6 +83,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     with warnings.catch_warnings():
         warnings.showwarning = one_line
         try:
+            _import_jax_uninterrupted()
             return int(args._run(args) or 0)
         except KeyboardInterrupt:
             print(f"dpc-jax {args.command}: interrupted; nothing half-written", file=sys.stderr)
@@ -71,7 +94,23 @@ def console_main() -> None:
     """The ``dpc-jax`` executable: restart with huge-page malloc if useful (see
     ``dpc_jax.hugepages``), then ``main``."""
     reexec_with_huge_pages()
-    sys.exit(main())
+    ignored = sys.unraisablehook
+
+    def redeliver_interrupt(unraisable: Any) -> None:
+        if isinstance(unraisable.exc_value, KeyboardInterrupt):
+            # Raised from here it would be dropped again; a moment later the main thread is back in
+            # ordinary code, where the signal becomes a KeyboardInterrupt that main() reports.
+            threading.Timer(0.05, signal.raise_signal, (signal.SIGINT,)).start()
+        else:
+            ignored(unraisable)
+
+    sys.unraisablehook = redeliver_interrupt
+    try:
+        status = main()
+    except KeyboardInterrupt:  # before a subcommand was chosen (while the parser is built)
+        print("dpc-jax: interrupted; nothing half-written", file=sys.stderr)
+        status = 130
+    sys.exit(status)
 
 
 if __name__ == "__main__":
