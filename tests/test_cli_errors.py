@@ -1,0 +1,610 @@
+"""What a new user runs into (issue 16): every bad input or output ends in one line on stderr naming
+the file and what was expected, a non-zero exit status, no traceback and nothing half-written.
+
+The commands run in-process through ``dpc_jax.cli.main`` on tiny inputs (a 6-frame odometry
+sequence of random 40×64 images, a 10×16 cache, a 30-pose trajectory); Ctrl-C runs in a subprocess.
+Nothing here trains or renders a world: the checks under test all happen before that work.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import re
+import shutil
+import signal
+import stat
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.io
+from test_kitti import fixture_poses, write_odometry
+
+from dpc_jax import _io
+from dpc_jax._io import OutputSet, atomic_write, remove_stale
+from dpc_jax._progress import LineProgress
+from dpc_jax.cli import build_parser, main
+from dpc_jax.cli._common import Formatter, progress_mode, restore_problem
+from dpc_jax.data.cache import prepare_sequence
+from dpc_jax.data.kitti import open_odometry
+from dpc_jax.data.pipeline import CacheError, load_cache
+from dpc_jax.trajectory import read_trajectory, write_kitti_poses, write_tum
+
+ROOT = Path(__file__).resolve().parents[1]
+N_POSES = 30
+CACHE_SIZE = (10, 16)
+
+
+def _dead_pid() -> int:
+    """The pid of a process that has exited."""
+    process = subprocess.Popen([sys.executable, "-c", ""])
+    process.wait()
+    return process.pid
+
+
+def _one_line(err: str, needle: str) -> str:
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and needle in lines[0] and "Traceback" not in err, err
+    return lines[0]
+
+
+def _files(folder: Path) -> list[str]:
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*"))
+
+
+# ----------------------------------------------------------------------------- fixtures
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """A 6-frame odometry sequence, its poses as a KITTI prior, a 10×16 cache, a trajectory pair and
+    a fake run folder (a config.json is all ``correct`` looks at before it restores the network)."""
+    root = tmp_path_factory.mktemp("inputs")
+    written = write_odometry(root / "kitti", n=6, size=(40, 64))
+    prior = root / "prior.txt"
+    write_kitti_poses(prior, written["poses"])
+    prepare_sequence(open_odometry(root / "kitti", "00"), prior, root / "cache", size=CACHE_SIZE,
+                     progress=False, workers=1)
+    gt = fixture_poses(N_POSES, seed=1, step=2.0)
+    est = gt.copy()
+    est[:, 0, 3] += np.linspace(0.0, 1.5, N_POSES)
+    write_kitti_poses(root / "gt.txt", gt)
+    write_kitti_poses(root / "est.txt", est)
+    scipy.io.savemat(root / "pair.mat",
+                     {"poses_gt": np.moveaxis(gt, 0, -1), "poses_est": np.moveaxis(est, 0, -1)})
+    (root / "run" / "checkpoints").mkdir(parents=True)
+    (root / "run" / "checkpoints" / "config.json").write_text("{}\n")
+    return {"root": root, "kitti": root / "kitti", "prior": prior, "cache": root / "cache" / "00",
+            "gt": root / "gt.txt", "est": root / "est.txt", "mat": root / "pair.mat", "run": root / "run"}
+
+
+@pytest.fixture
+def readonly(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """A folder this process may not write into.
+
+    root ignores permission bits, so under root the check's view of the folder is emulated; a
+    command that skipped the check would then write into it, which the tests catch.
+    """
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    folder.chmod(0o555)
+    if os.access(folder, os.W_OK):
+        real = _io.writable
+        monkeypatch.setattr(_io, "writable", lambda path: Path(path) != folder and real(path))
+    yield folder
+    folder.chmod(0o755)
+
+
+# ----------------------------------------------------------------------------- output paths
+
+
+def _outputs_cases(d: dict[str, Path], ro: Path, ok: Path) -> dict[str, list[object]]:
+    evaluate = ["evaluate", "--gt", d["gt"], "--est", d["est"]]
+    vo = ["vo", "--kitti-odometry", d["kitti"], "--sequence", "00", "--no-progress"]
+    correct = ["correct", "--checkpoint", d["run"], "--data", d["cache"], "--no-progress"]
+    return {
+        "evaluate --json": [*evaluate, "--json", ro / "m.json"],
+        "evaluate --report": [*evaluate, "--json", ok, "--report", ro / "r"],
+        "evaluate --export": [*evaluate, "--export", ro / "e"],
+        "vo --out": [*vo, "--out", ro / "t.txt"],
+        "vo --csv": [*vo, "--out", ok, "--csv", ro / "t.csv"],
+        "correct --out": [*correct, "--out", ro / "c.txt"],
+        "correct --report": [*correct, "--out", ok, "--report", ro / "r"],
+        "synth --out": ["synth", "--out", ro / "s", "--sequences", "1", "--frames", "2", "--size", "16x24"],
+        "prepare --out": ["prepare", "--kitti-odometry", d["kitti"], "--sequence", "00",
+                          "--prior", d["prior"], "--out", ro / "cache", "--size", "10x16"],
+        # A missing config: were the workdir checked after loading it, the error would be another.
+        "train --workdir": ["train", "--config", d["root"] / "missing.py", "--workdir", ro / "run"],
+        "demo --out": ["demo", "--out", ro / "demo", "--config", d["root"] / "missing.py"],
+    }
+
+
+CASES = ["evaluate --json", "evaluate --report", "evaluate --export", "vo --out", "vo --csv", "correct --out",
+         "correct --report", "synth --out", "prepare --out", "train --workdir", "demo --out"]
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_unwritable_output_is_refused_before_any_work(
+    case: str, data: dict[str, Path], readonly: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    ok = tmp_path / "ok.txt"
+    args = _outputs_cases(data, readonly, ok)[case]
+    assert main([str(a) for a in args]) == 2
+    _one_line(capsys.readouterr().err, f"folder {readonly} is not writable")
+    assert _files(readonly) == [] and not ok.exists()
+
+
+@pytest.mark.parametrize("case, existing, needle", [
+    ("vo --out", "folder", "is a folder; expected a file name"),
+    ("correct --out", "folder", "is a folder; expected a file name"),
+    ("evaluate --json", "folder", "is a folder; expected a file name"),
+    ("evaluate --report", "file", "exists and is not a folder"),
+    ("correct --report", "file", "exists and is not a folder"),
+    ("synth --out", "file", "exists and is not a folder"),
+    ("prepare --out", "file", "exists and is not a folder"),
+])
+def test_output_of_the_wrong_kind_is_refused(
+    case: str, existing: str, needle: str, data: dict[str, Path], tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    target = tmp_path / f"a_{existing}"
+    if existing == "folder":
+        target.mkdir()
+    else:
+        target.write_text("keep me")
+    ok = tmp_path / "ok.txt"
+    args = _outputs_cases(data, tmp_path / "unused", ok)[case]
+    option = case.split()[1]
+    args[args.index(option) + 1] = target
+    assert main([str(a) for a in args]) == 2
+    _one_line(capsys.readouterr().err, f"{option} {target}: {needle}")
+    assert _files(tmp_path) == [target.name] and (existing == "folder" or target.read_text() == "keep me")
+
+
+def test_missing_parent_folders_are_created_only_when_writing(
+    data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "new" / "deeper"
+    assert main(["evaluate", "--gt", str(data["gt"]), "--est", str(tmp_path / "missing.txt"),
+                 "--json", str(out / "m.json")]) == 2
+    assert "missing.txt" in capsys.readouterr().err and _files(tmp_path) == []
+
+    assert main(["evaluate", "--gt", str(data["gt"]), "--est", str(data["est"]),
+                 "--json", str(out / "m.json"), "--export", str(tmp_path / "new" / "export")]) == 0
+    assert json.loads((out / "m.json").read_text())["num_poses"] == N_POSES
+    assert (tmp_path / "new" / "export" / "gt.kitti.txt").is_file()
+    assert main(["vo", "--kitti-odometry", str(data["kitti"]), "--sequence", "00", "--no-progress",
+                 "--out", str(tmp_path / "vo" / "a" / "t.txt")]) == 0
+    assert _files(tmp_path / "vo") == ["a", "a/t.csv", "a/t.txt"]
+
+
+def test_vo_writes_trajectory_and_csv_all_or_nothing(
+    data: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import dpc_jax.vo.odometry
+
+    out = tmp_path / "t.txt"
+    out.write_text("previous trajectory\n")
+
+    def broken_table(result: object) -> str:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(dpc_jax.vo.odometry, "per_frame_table", broken_table)
+    with pytest.raises(OSError, match="No space left"):
+        main(["vo", "--kitti-odometry", str(data["kitti"]), "--sequence", "00", "--no-progress",
+              "--out", str(out)])
+    assert out.read_text() == "previous trajectory\n" and _files(tmp_path) == ["t.txt"]
+
+
+def test_output_set_commit_is_undone_when_a_move_fails(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    first, second = tmp_path / "a.txt", tmp_path / "sub" / "b.txt"
+    first.write_text("old a")
+    real_replace = os.replace
+
+    def replace(src: object, dst: object) -> None:
+        if Path(dst) == second:
+            raise OSError(28, "No space left on device")
+        real_replace(src, dst)
+
+    monkeypatch.setattr(_io.os, "replace", replace)
+    with pytest.raises(OSError, match="No space left"), OutputSet() as outputs:
+        atomic_write(outputs.file(first), "new a")
+        atomic_write(outputs.file(second), "new b")
+        outputs.commit()
+    assert first.read_text() == "old a" and _files(tmp_path) == ["a.txt"]
+
+    monkeypatch.setattr(_io.os, "replace", real_replace)
+    with OutputSet() as outputs:
+        atomic_write(outputs.file(first), "new a")
+        atomic_write(outputs.folder(tmp_path / "sub") / "b.txt", "new b")
+        assert outputs.commit() == [first, second]
+    assert (first.read_text(), second.read_text()) == ("new a", "new b")
+    assert _files(tmp_path) == ["a.txt", "sub", "sub/b.txt"]
+
+
+@pytest.mark.parametrize("umask, mode", [(0o022, 0o644), (0o077, 0o600)])
+def test_written_files_get_the_mode_the_umask_allows(
+    umask: int, mode: int, data: dict[str, Path], tmp_path: Path
+) -> None:
+    old = os.umask(umask)
+    try:
+        atomic_write(tmp_path / "plain.txt", "x")
+        with OutputSet() as outputs:
+            write_kitti_poses(outputs.file(tmp_path / "set" / "poses.txt"), np.eye(4)[None])
+            outputs.commit()
+        if umask == 0o022:
+            assert main(["evaluate", "--gt", str(data["gt"]), "--est", str(data["est"]),
+                         "--export", str(tmp_path / "export")]) == 0
+    finally:
+        os.umask(old)
+    files = [p for p in tmp_path.rglob("*") if p.is_file()]
+    assert len(files) >= 2 and {stat.S_IMODE(p.stat().st_mode) for p in files} == {mode}
+
+
+# ----------------------------------------------------------------------------- inputs
+
+
+def test_mat_given_to_gt_and_est_reads_poses_gt_and_poses_est(
+    data: dict[str, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    def m_ate(args: list[str]) -> float:
+        assert main(["evaluate", *args, "--json", "-"]) == 0
+        return next(iter(json.loads(capsys.readouterr().out)["estimates"].values()))["m_ate_trans_m"]
+
+    mat, gt, est = str(data["mat"]), str(data["gt"]), str(data["est"])
+    reference = m_ate(["--gt", gt, "--est", est])
+    # est drifts sideways linearly up to 1.5 m: the mean position error is 0.75 m.
+    assert reference == pytest.approx(0.75, rel=1e-6)
+    assert m_ate(["--gt", mat, "--est", mat]) == pytest.approx(reference, rel=1e-9)
+    assert m_ate(["--gt", mat, "--est", est]) == pytest.approx(reference, rel=1e-9)
+    assert m_ate(["--gt", gt, "--est", mat]) == pytest.approx(reference, rel=1e-9)
+    assert m_ate(["--mat", mat]) == pytest.approx(reference, rel=1e-9)
+    np.testing.assert_allclose(read_trajectory(mat, mat_key="poses_gt"), read_trajectory(gt), atol=1e-12)
+
+
+@pytest.mark.parametrize("command", ["evaluate --mat", "evaluate --gt", "evaluate --est", "prepare --prior"])
+def test_random_bytes_named_mat_are_refused_in_one_line(
+    command: str, data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bad = tmp_path / "random.mat"
+    bad.write_bytes(np.random.default_rng(0).integers(0, 256, 100, dtype=np.uint8).tobytes())
+    args = {
+        "evaluate --mat": ["evaluate", "--mat", bad],
+        "evaluate --gt": ["evaluate", "--gt", bad, "--est", data["est"]],
+        "evaluate --est": ["evaluate", "--gt", data["gt"], "--est", bad],
+        "prepare --prior": ["prepare", "--kitti-odometry", data["kitti"], "--sequence", "00", "--prior", bad,
+                            "--out", tmp_path / "cache", "--size", "10x16", "--no-progress"],
+    }[command]
+    assert main([str(a) for a in args]) != 0
+    _one_line(capsys.readouterr().err, f"{bad}: not a readable MATLAB .mat file")
+    assert _files(tmp_path) == ["random.mat"]
+
+
+def _damage(cache: Path, how: str) -> str:
+    """Damage a copy of a cache; return the file the error must name."""
+    def rewrite(file: str, change) -> None:
+        np.save(cache / file, change(np.load(cache / file)))
+
+    if how == "NaN prior":
+        rewrite("prior.npy", lambda a: np.where(np.arange(a.shape[0])[:, None, None] == 2, np.nan, a))
+        return "prior.npy: pose 2 is not finite"
+    if how == "prior 3 poses short":
+        rewrite("prior.npy", lambda a: a[:-3])
+        return "prior.npy: float64 (3, 4, 4), but"
+    if how == "non-rigid ground truth":
+        rewrite("gt.npy", lambda a: np.concatenate([a[:, :, :3] * 1.5, a[:, :, 3:]], axis=2))
+        return "gt.npy: pose 0 is not rigid"
+    if how == "NaN in K":
+        rewrite("K.npy", lambda a: np.full_like(a, np.nan))
+        return "K.npy: holds a value that is not finite"
+    if how == "broken manifest":
+        text = (cache / "manifest.json").read_text()
+        (cache / "manifest.json").write_text(text[:40])
+        return "manifest.json: not valid JSON"
+    if how == "manifest without n_frames":
+        manifest = json.loads((cache / "manifest.json").read_text())
+        del manifest["n_frames"]
+        (cache / "manifest.json").write_text(json.dumps(manifest))
+        return "manifest.json: field 'n_frames' is missing"
+    if how == "truncated left.npy":
+        raw = (cache / "left.npy").read_bytes()
+        (cache / "left.npy").write_bytes(raw[: len(raw) // 2])
+        return "left.npy: unreadable or truncated .npy file"
+    if how == "missing right.npy":
+        (cache / "right.npy").unlink()
+        return "right.npy: missing from the cache"
+    raise AssertionError(how)
+
+
+DAMAGES = ["NaN prior", "prior 3 poses short", "non-rigid ground truth", "NaN in K", "broken manifest",
+           "manifest without n_frames", "truncated left.npy", "missing right.npy"]
+
+
+@pytest.mark.parametrize("how", DAMAGES)
+def test_damaged_cache_is_named_before_the_network_runs(
+    how: str, data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cache = tmp_path / "cache"
+    shutil.copytree(data["cache"], cache)
+    needle = _damage(cache, how)
+    with pytest.raises(CacheError, match=re.escape(needle)):
+        load_cache(cache)
+    out = tmp_path / "c.txt"
+    # The run folder holds no network: the cache must be refused before one is restored.
+    assert main(["correct", "--checkpoint", str(data["run"]), "--data", str(cache), "--out", str(out),
+                 "--no-progress"]) == 2
+    _one_line(capsys.readouterr().err, f"{cache}/{needle}")
+    assert not out.exists()
+
+
+def test_train_on_a_truncated_cache_is_one_line(
+    data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    root = tmp_path / "cache"
+    for name in ("00", "05"):
+        shutil.copytree(data["cache"], root / name)
+    _damage(root / "00", "truncated left.npy")
+    config = tmp_path / "config.py"
+    config.write_text(
+        f"CONFIG = {{'method': 'stereo_dpc', 'preset': 'small', 'image_size': (32, 48), 'batch_size': 2, "
+        f"'epochs': 1, 'cache_root': {str(root)!r}, 'train_sequences': ('00',), "
+        f"'validation_sequences': ('05',)}}\n"
+    )
+    assert main(["train", "--config", str(config), "--workdir", str(tmp_path / "run"), "--no-progress"]) == 2
+    _one_line(capsys.readouterr().err, f"{root / '00' / 'left.npy'}: unreadable or truncated .npy file")
+    assert not (tmp_path / "run" / "checkpoints").exists()
+
+
+def test_damaged_checkpoint_is_one_line_naming_its_folder(
+    data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "checkpoints" / "config.json").write_bytes(b"\x00\x01 not a config")
+    out = tmp_path / "c.txt"
+    assert main(["correct", "--checkpoint", str(run), "--data", str(data["cache"]), "--out", str(out),
+                 "--no-progress"]) == 2
+    line = _one_line(capsys.readouterr().err, f"{run / 'checkpoints'}: cannot restore the checkpoint")
+    assert "config.json" in line and not out.exists()
+
+
+def test_restore_failure_silences_the_event_loop_noise(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setattr(sys, "unraisablehook", sys.unraisablehook)
+    monkeypatch.setattr(logging.getLogger("asyncio"), "level", logging.getLogger("asyncio").level)
+    cause = ValueError('OUT_OF_RANGE: Error reading "w/0" in OCDBT database at local file "/run/state/"')
+    try:
+        raise Exception("Encountered error while reading array index. See TensorStore details") from cause
+    except Exception as error:  # the shape of orbax's error: a bare Exception around tensorstore's
+        message = restore_problem(Path("/run/checkpoints"), error)
+    assert message.startswith("/run/checkpoints: cannot restore the checkpoint (ValueError: OUT_OF_RANGE")
+
+    class Closed:
+        def __del__(self) -> None:
+            raise RuntimeError("Event loop is closed")
+
+    Closed()  # an exception in __del__ goes to sys.unraisablehook
+    logging.getLogger("asyncio").error("Task exception was never retrieved")
+    captured = capsys.readouterr()
+    assert "Event loop is closed" not in captured.err and "never retrieved" not in captured.err
+
+
+def test_calibration_nan_says_not_finite(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    written = write_odometry(tmp_path / "kitti", n=3, size=(16, 24))
+    calib = tmp_path / "kitti" / "sequences" / "00" / "calib.txt"
+    rows = calib.read_text().splitlines()
+    fields = rows[2].split()
+    rows[2] = " ".join([fields[0], fields[1], "nan", *fields[3:]])
+    calib.write_text("\n".join(rows) + "\n")
+    prior = tmp_path / "prior.txt"
+    write_kitti_poses(prior, written["poses"])
+    assert main(["prepare", "--kitti-odometry", str(tmp_path / "kitti"), "--sequence", "00", "--prior",
+                 str(prior), "--out", str(tmp_path / "cache"), "--size", "8x8", "--no-progress"]) == 1
+    _one_line(capsys.readouterr().err,
+              f"{calib}, line 3: P2 holds a value that is not finite (nan at entry 2")
+
+
+@pytest.mark.parametrize("command", ["synth", "prepare"])
+def test_oversized_images_need_allow_large(
+    command: str, data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "out"
+    args = {
+        # --frames 1 is refused by the synthesiser: reaching that error proves the size was accepted.
+        "synth": ["synth", "--out", out, "--sequences", "1", "--frames", "1"],
+        "prepare": ["prepare", "--kitti-odometry", data["kitti"], "--sequence", "00", "--prior",
+                    tmp_path / "missing.txt", "--out", out, "--no-progress"],
+    }[command]
+    args = [str(a) for a in args]
+    assert main([*args, "--size", "5000x8000"]) == 2
+    _one_line(capsys.readouterr().err,
+              "--size 5000x8000: 40.0 megapixels per image, more than 4; pass --allow-large")
+    assert main([*args, "--size", "2000x2000"]) != 0  # 4.0 MP: allowed, fails on the input
+    assert "megapixels" not in capsys.readouterr().err
+    assert main([*args, "--size", "5000x8000", "--allow-large"]) != 0
+    err = capsys.readouterr().err
+    assert "megapixels" not in err and ("frames must be" in err or "missing.txt" in err)
+    assert not out.exists()
+
+
+def test_tum_timestamps_going_back_are_refused_and_a_jump_warns(
+    data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    poses = read_trajectory(data["gt"])
+    stamps = np.arange(N_POSES) * 0.1
+    back, gap = stamps.copy(), stamps.copy()
+    back[5] = 0.05
+    gap[10:] += 3.0
+    write_tum(tmp_path / "back.tum", poses, back)
+    write_tum(tmp_path / "gap.tum", poses, gap)
+    assert main(["evaluate", "--gt", str(data["gt"]), "--est", str(tmp_path / "back.tum")]) == 2
+    _one_line(capsys.readouterr().err, f"{tmp_path / 'back.tum'}, line 6: timestamp 0.05")
+    assert main(["evaluate", "--gt", str(data["gt"]), "--est", str(tmp_path / "gap.tum"), "--json", "-"]) == 0
+    captured = capsys.readouterr()
+    _one_line(captured.err,
+              f"dpc-jax evaluate: warning: {tmp_path / 'gap.tum'}, line 11: timestamps jump by 3.1 s")
+    assert json.loads(captured.out)["estimates"]["gap"]["m_ate_trans_m"] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_rerunning_synth_suggests_overwrite(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "sequences" / "00").mkdir(parents=True)
+    args = ["synth", "--out", str(tmp_path), "--sequences", "1", "--frames", "2", "--size", "16x24"]
+    assert main(args) == 2
+    _one_line(capsys.readouterr().err, "already holds sequence(s) 00; pass --overwrite to replace them")
+
+
+# ----------------------------------------------------------------------------- interruption, temporaries
+
+
+def _stale_and_live(folder: Path, prefix: str) -> tuple[Path, Path]:
+    folder.mkdir(parents=True, exist_ok=True)
+    stale = folder / f"{prefix}{_dead_pid()}-dead"
+    live = folder / f"{prefix}{os.getpid()}-live"
+    for path in (stale, live):
+        path.mkdir()
+        (path / "left.npy").write_bytes(b"x" * 1000)
+    return stale, live
+
+
+def test_remove_stale_keeps_live_runs_and_drops_dead_or_reused_pids(tmp_path: Path) -> None:
+    stale, live = _stale_and_live(tmp_path, ".x.tmp-")
+    reused = tmp_path / f".x.tmp-{os.getpid()}-old"
+    reused.mkdir()
+    other = tmp_path / "x.tmp-1-unrelated"
+    other.mkdir()
+    if Path("/proc/self/stat").exists():
+        # Last written long before this process started: the pid was reused, the owner is gone.
+        os.utime(reused, (time.time() - 10 * 86400,) * 2)
+    removed = remove_stale(tmp_path, ".x.tmp-")
+    expected = {stale, reused} if Path("/proc/self/stat").exists() else {stale}
+    assert set(removed) == expected and live.is_dir() and other.is_dir()
+    assert all(not p.exists() for p in expected)
+
+
+def test_prepare_removes_the_temporaries_of_killed_runs_and_reports_rebuild_or_reuse(
+    data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "cache"
+    stale, live = _stale_and_live(out, ".00.tmp-")
+    old_stale, _ = _stale_and_live(out, ".00.old-")
+    args = ["prepare", "--kitti-odometry", str(data["kitti"]), "--sequence", "00",
+            "--prior", str(data["prior"]), "--out", str(out), "--size", "10x16"]
+    assert main(args) == 0
+    captured = capsys.readouterr()
+    assert captured.out.strip() == str(out / "00")
+    assert re.search(r"^00 left: 6/6 frames \(", captured.err, re.M)  # progress lines off a terminal
+    assert re.search(rf"^00: built {re.escape(str(out / '00'))} in [0-9.]+ s$", captured.err, re.M)
+    assert not stale.exists() and not old_stale.exists() and live.is_dir()
+    assert main([*args, "--no-progress"]) == 0
+    _one_line(capsys.readouterr().err, f"00: up to date, reused {out / '00'}")
+
+
+def test_ctrl_c_in_prepare_is_one_line_and_leaves_no_temporary(
+    data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import dpc_jax.data.cache as cache_module
+
+    real = cache_module._resized_frame
+    calls: list[Path] = []
+
+    def interrupted(path: Path, expected: tuple[int, int], size: tuple[int, int]) -> np.ndarray:
+        calls.append(path)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(path, expected, size)
+
+    monkeypatch.setattr(cache_module, "_resized_frame", interrupted)
+    out = tmp_path / "cache"
+    assert main(["prepare", "--kitti-odometry", str(data["kitti"]), "--sequence", "00", "--prior",
+                 str(data["prior"]), "--out", str(out), "--size", "10x16"]) == 130
+    assert capsys.readouterr().err == "dpc-jax prepare: interrupted; nothing half-written\n"
+    assert _files(out) == []
+
+
+def test_ctrl_c_in_synth_subprocess(tmp_path: Path) -> None:
+    """A real SIGINT: exit status 130, one line, no sequence and no temporary folder left behind
+    (and the temporary folder of an earlier killed run is gone too)."""
+    out = tmp_path / "synth"
+    _stale_and_live(out / "sequences", ".00.tmp-")
+    shutil.rmtree(out / "sequences" / f".00.tmp-{os.getpid()}-live")
+    process = subprocess.Popen(
+        [sys.executable, "-m", "dpc_jax", "synth", "--out", str(out), "--sequences", "1", "--frames", "500",
+         "--size", "48x72"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        env={**os.environ, "DPC_JAX_HUGE_PAGES": "0"}, cwd=ROOT,
+    )
+    deadline = time.monotonic() + 120
+    while process.poll() is None and time.monotonic() < deadline:
+        if list((out / "sequences").glob(".00.tmp-*/image_2/000001.png")):  # rendering
+            break
+        time.sleep(0.01)
+    process.send_signal(signal.SIGINT)
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == 130, err
+    assert err.splitlines()[-1] == "dpc-jax synth: interrupted; nothing half-written"
+    assert "Traceback" not in err
+    assert _files(out) == ["poses", "sequences"]
+
+
+# ----------------------------------------------------------------------------- help, progress, config
+
+
+def _subparsers() -> dict[str, argparse.ArgumentParser]:
+    parser = build_parser()
+    action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return dict(action.choices)
+
+
+def test_help_has_no_noise_and_examples() -> None:
+    for name, parser in _subparsers().items():
+        text = parser.format_help()
+        assert "(default: None)" not in text and "(default: False)" not in text, name
+        assert "examples:" in text and f"dpc-jax {name} " in text.split("examples:")[1], name
+        formatter = parser._get_formatter()
+        assert isinstance(formatter, Formatter), name
+        for action in parser._actions:
+            if action.help:
+                assert formatter._expand_help(action).lower().count("default") <= 1, (name, action.dest)
+            if action.option_strings and action.nargs != 0 and "_" in action.dest:
+                default = formatter._get_default_metavar_for_optional(action)
+                assert formatter._metavar_formatter(action, default)(1)[0] != action.dest.upper(), name
+
+
+def test_train_help_cites_configs_that_exist() -> None:
+    text = _subparsers()["train"].format_help()
+    cited = set(re.findall(r"experiments/configs/[a-z0-9_]+\.py", text))  # not the NAME.py placeholder
+    assert "experiments/configs/own_data.py" in cited
+    assert all((ROOT / path).is_file() for path in cited), cited
+
+
+def test_own_data_config_is_a_train_config_and_states_its_command() -> None:
+    from dpc_jax import TrainConfig
+    from dpc_jax.config import load_file
+
+    path = ROOT / "experiments" / "configs" / "own_data.py"
+    config = load_file(path, TrainConfig)
+    doc = path.read_text().split('"""')[1]
+    assert "dpc-jax prepare" in doc and "dpc-jax train --config experiments/configs/own_data.py" in doc
+    assert config.cache_root and config.validation_sequences
+
+
+def test_progress_lines_off_a_terminal(capsys: pytest.CaptureFixture[str]) -> None:
+    assert progress_mode(True) is False and progress_mode(False) == "lines"  # pytest's stderr is no terminal
+    with LineProgress(total=4, desc="work", unit="frame", interval=0.0) as bar:
+        for _ in range(4):
+            bar.update(1)
+    lines = capsys.readouterr().err.splitlines()
+    assert [line.split(" (")[0] for line in lines] == [f"work: {k}/4 frames" for k in range(1, 5)]
+    with pytest.raises(KeyboardInterrupt), LineProgress(4, "work", "frame", interval=60.0) as bar:
+        bar.update(1)
+        raise KeyboardInterrupt
+    assert capsys.readouterr().err == ""  # an interrupted loop adds no line to the one Ctrl-C prints
