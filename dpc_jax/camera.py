@@ -1,6 +1,6 @@
 """Pinhole camera: intrinsics scaling, pixel grids, back-projection and projection.
 
-Pure ``jnp`` functions, batched over leading axes and dtype-preserving. Conventions (DESIGN §1):
+Pure ``jnp`` functions, batched over leading axes and dtype-preserving. Conventions (docs/method.md §1):
 ``K = [[fu, 0, cu], [0, fv, cv], [0, 0, 1]]`` in pixels; pixel coordinates are ``(x, y) =
 (column, row)`` with pixel centres at integers; camera frame x right, y down, z forward (metres).
 """
@@ -24,7 +24,7 @@ def _check_intrinsics(K: Array) -> None:
 def scale_intrinsics(K: Array, sx: float | Array, sy: float | Array) -> Array:
     """Intrinsics of an image resized by ``(sx, sy)`` (new width = sx · old width).
 
-    Row 0 (fu, skew, cu) is multiplied by ``sx`` and row 1 (fv, cv) by ``sy`` (DESIGN §1).
+    Row 0 (fu, skew, cu) is multiplied by ``sx`` and row 1 (fv, cv) by ``sy`` (docs/method.md §1).
     ``K``: ``[..., 3, 3]`` -> ``[..., 3, 3]``; ``sx``, ``sy`` scalars or arrays broadcasting
     against the leading axes.
     """

@@ -4,9 +4,9 @@
 ``train``, ``correct``, ``demo``). It prepares the trajectories as the papers do, then computes every
 metric of :mod:`dpc_jax.metrics` in one compiled call per estimate:
 
-* **Re-anchoring** (DESIGN §7): each estimate is moved rigidly onto the first ground-truth pose,
+* **Re-anchoring** (docs/method.md §7): each estimate is moved rigidly onto the first ground-truth pose,
   ``E_i ← G_0 · inv(E_0) · E_i``.
-* **Static frames** (``remove_static=True``, DESIGN §6): the ss-DPC-Net rule, read on the prior
+* **Static frames** (``remove_static=True``, docs/method.md §6): the ss-DPC-Net rule, read on the prior
   (the estimate named ``static_prior``, by default the first one), selects the kept frames; the
   ground truth and every estimate lose the same frames, and each estimate is re-composed from its
   relative poses between consecutive kept frames, starting at the first kept ground-truth pose.

@@ -1,7 +1,7 @@
 """SO(3) and SE(3): exponential and logarithm maps, Jacobians, inverses.
 
 Pure ``jnp`` functions, batched over any leading axes and dtype-preserving (float32 in,
-float32 out; float64 in, float64 out). Conventions (DESIGN §1):
+float32 out; float64 in, float64 out). Conventions (docs/method.md §1):
 
 * ``φ`` (phi) is an axis-angle vector in radians, shape ``[..., 3]``.
 * ``ξ`` (xi) is an se(3) vector ``[ρ, φ]``: translation part first (metres), rotation second,

@@ -1,4 +1,4 @@
-"""Trajectory error metrics (DESIGN §5, §7): pure, vectorised, jit-compiled ``jnp``.
+"""Trajectory error metrics (docs/method.md §5, §7): pure, vectorised, jit-compiled ``jnp``.
 
 Inputs are trajectories ``[N, 4, 4]`` of camera-to-world poses ``T_w_c`` — ground truth ``G`` and
 estimate ``E`` of the same frames, the estimate already re-anchored to the first ground-truth pose
@@ -27,7 +27,7 @@ Definitions:
   scale), as ``evo_ape -a`` / ``-as``.
 * **RPE** (Zhang eq. 18–19): RMSE over i of the translation (m) and rotation angle (°) of
   ``inv(inv(G_i) G_{i+Δ}) · inv(E_i) E_{i+Δ}``.
-* **Loop closures** (ss-DPC-Net §IV epoch selection, DESIGN §5): see :func:`count_loop_closures`.
+* **Loop closures** (ss-DPC-Net §IV epoch selection, docs/method.md §5): see :func:`count_loop_closures`.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Structural similarity (SSIM) per pixel, as used by the photometric losses (DESIGN §2).
+"""Structural similarity (SSIM) per pixel, as used by the photometric losses (docs/method.md §2).
 
 Pure ``jnp``, batched over leading axes, dtype-preserving, differentiable.
 

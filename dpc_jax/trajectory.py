@@ -1,6 +1,6 @@
 """Trajectories: file formats, relative poses, composition and static-frame removal.
 
-A trajectory is a numpy array ``[N, 4, 4]`` of camera-to-world poses ``T_w_c`` ("Twv", DESIGN §1).
+A trajectory is a numpy array ``[N, 4, 4]`` of camera-to-world poses ``T_w_c`` ("Twv", docs/method.md §1).
 Readers return float64 poses whose rotations are projected onto SO(3); they reject malformed
 rows, non-finite values and far-from-rigid matrices with a ``ValueError`` naming the file and the
 line (text formats) or the key (``.mat``). Writers are atomic: the text goes to a temporary file in
@@ -39,7 +39,7 @@ FORMATS = ("kitti", "tum", "mat")
 MAT_KEYS = ("poses_gt", "poses_est")
 TUM_GAP_FACTOR = 10.0
 
-# The ss-DPC-Net static-frame rule (DESIGN §6): a frame pair moving less than this much in both
+# The ss-DPC-Net static-frame rule (docs/method.md §6): a frame pair moving less than this much in both
 # translation (m, ‖ρ‖ of the se(3) log) and rotation (rad, ‖φ‖) counts as static.
 STATIC_TRANSLATION_M = 1.5
 STATIC_ROTATION_RAD = 0.007
@@ -352,7 +352,7 @@ def invert_poses(poses: np.ndarray) -> np.ndarray:
 
 
 def relative_poses(trajectory: np.ndarray) -> np.ndarray:
-    """``[N, 4, 4]`` -> ``[N-1, 4, 4]`` with ``T_{t+1,t} = inv(T_w_{t+1}) @ T_w_t`` (DESIGN §1).
+    """``[N, 4, 4]`` -> ``[N-1, 4, 4]`` with ``T_{t+1,t} = inv(T_w_{t+1}) @ T_w_t`` (docs/method.md §1).
 
     ``T_{t+1,t}`` maps a point expressed in frame t into frame t+1. Dtype-preserving numpy.
     """
@@ -418,7 +418,7 @@ def remove_static_frames(
     translation_m: float = STATIC_TRANSLATION_M,
     rotation_rad: float = STATIC_ROTATION_RAD,
 ) -> np.ndarray:
-    """Indices of the frames kept by the ss-DPC-Net static-frame rule (DESIGN §6).
+    """Indices of the frames kept by the ss-DPC-Net static-frame rule (docs/method.md §6).
 
     ``reference``: ``[N, 4, 4]``, the trajectory whose frames are kept or dropped (typically the
     ground truth); ``prior``: ``[N, 4, 4]``, the trajectory the rule reads (the VO prior, as in

@@ -1,7 +1,7 @@
 """Differentiable image warping: bilinear sampling, temporal (rigid) and stereo warps.
 
 Pure ``jnp`` functions, batched over leading axes, dtype-preserving, jit/vmap/grad-safe
-(DESIGN §2). Images are ``[..., H, W, C]``; pixel coordinates are ``(x, y) = (column, row)``
+(docs/method.md §2). Images are ``[..., H, W, C]``; pixel coordinates are ``(x, y) = (column, row)``
 with pixel centres at integers. Every warp returns the reconstruction and a bool validity mask;
 reconstructed values at invalid pixels are meaningless (zero or a partial border blend) and must
 be excluded by the caller.
@@ -140,7 +140,7 @@ def inverse_warp(
     Every target pixel is back-projected with the target depth, moved into the source frame
     with ``T_source_target`` (the exact 4×4 transform mapping target-frame points to
     source-frame points, e.g. ``inv(T*_{t+1,t})`` to rebuild frame t+1 from frame t), projected
-    with ``K`` and looked up in ``source`` (DESIGN §2).
+    with ``K`` and looked up in ``source`` (docs/method.md §2).
 
     ``source``: ``[..., H, W, C]``; ``target_depth``: ``[..., H, W]`` (m);
     ``T_source_target``: ``[..., 4, 4]``; ``K``: ``[..., 3, 3]``, all leading axes broadcasting.
@@ -185,7 +185,7 @@ StereoDirection = Literal["right_to_left", "left_to_right"]
 
 
 def stereo_warp(source: Array, disparity_px: Array, direction: StereoDirection) -> tuple[Array, Array]:
-    """Reconstruct one image of a rectified stereo pair from the other (DESIGN §1–2).
+    """Reconstruct one image of a rectified stereo pair from the other (docs/method.md §1–2).
 
     ``right_to_left``: ``source`` is the right image and ``disparity_px`` the left disparity,
     ``I_l*(u, v) = I_r(u − d_l(u, v), v)``. ``left_to_right``: ``source`` is the left image and

@@ -1,6 +1,6 @@
 """Plain float64 numpy reference implementations (loops) of the trajectory metrics.
 
-Written straight from the definitions of DESIGN §5–§7 and the published code they describe
+Written straight from the definitions of docs/method.md §5–§7 and the published code they describe
 (pyslam ``TrajectoryMetrics.segment_errors``, the KITTI devkit ``evaluate_odometry.cpp``,
 ss-DPC-Net's static-frame loop), one pose or one segment at a time, with scipy's rotation
 vector as an independent SO(3) log. Shared by the tests and ``benchmarks/bench_metrics.py``.

@@ -173,7 +173,7 @@ def test_image_of_wrong_size_is_named(tmp_path: Path) -> None:
 
 
 def test_static_frames_removed_from_images_prior_and_ground_truth(tmp_path: Path) -> None:
-    # Forward positions (m); frames 2, 3, 4 are at one place. By hand (DESIGN §6): pass 1 reads
+    # Forward positions (m); frames 2, 3, 4 are at one place. By hand (docs/method.md §6): pass 1 reads
     # pairs (0,1) 2 m, (2,3) 0 m → drop 2, (4,5) 2 m; pass 2 on [0,1,3,4,5,6] reads (0,1),
     # (3,4) 0 m → drop 3, (5,6); pass 3 on [0,1,4,5,6] drops nothing.
     z = [0.0, 2.0, 4.0, 4.0, 4.0, 6.0, 8.0]

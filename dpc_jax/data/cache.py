@@ -23,7 +23,7 @@ file                  array                meaning
 
 The three augmentation flows exist only with ``flow_augment`` (needed when training with flow
 and frame-skip or reversed pairs). Flow channels are ``[Δx column, Δy row]`` in pixels of the
-resized images, computed on their grey versions with the Farnebäck parameters of DESIGN §3.
+resized images, computed on their grey versions with the Farnebäck parameters of docs/method.md §6.
 
 Identity of the inputs (``manifest["input_hash"]``): SHA-256 over the cache format version, the
 parameters, the calibration/time/pose/prior files by *content* (small), in-memory prior or
@@ -72,14 +72,14 @@ FLOW_FILES = {
     "skip": "flow_skip.npy",
     "skip_reverse": "flow_skip_reverse.npy",
 }
-# DESIGN §3: pyr_scale 0.5, 3 levels, window 15, 3 iterations, poly_n 5, poly_sigma 1.2.
+# docs/method.md §6: pyr_scale 0.5, 3 levels, window 15, 3 iterations, poly_n 5, poly_sigma 1.2.
 FARNEBACK = {"pyr_scale": 0.5, "levels": 3, "winsize": 15, "iterations": 3, "poly_n": 5, "poly_sigma": 1.2}
 
 
 def scale_intrinsics(K: np.ndarray, old_size: tuple[int, int], new_size: tuple[int, int]) -> np.ndarray:
-    """K of an image resized from ``(H, W)`` to ``(H', W')``: row 0 × W'/W, row 1 × H'/H (DESIGN §1).
+    """K of an image resized from ``(H, W)`` to ``(H', W')``: row 0 × W'/W, row 1 × H'/H (docs/method.md §1).
 
-    As in DESIGN §1 and the reference code the half-pixel shift of the pixel-centre convention
+    As in the reference code (docs/method.md §9, item 12) the half-pixel shift of the pixel-centre convention
     (``c' = (c + ½) s − ½``, at most 0.35 px for KITTI → 240×376) is not applied.
     """
     out = np.array(K, dtype=np.float64)
@@ -89,7 +89,7 @@ def scale_intrinsics(K: np.ndarray, old_size: tuple[int, int], new_size: tuple[i
 
 
 def farneback_flow(source_grey: np.ndarray, target_grey: np.ndarray) -> np.ndarray:
-    """Dense flow source → target, float32 ``[H, W, 2]`` (Δx, Δy) px, DESIGN §3 parameters.
+    """Dense flow source → target, float32 ``[H, W, 2]`` (Δx, Δy) px, docs/method.md §6 parameters.
 
     ``target(y + Δy, x + Δx) ≈ source(y, x)``.
     """
@@ -226,7 +226,7 @@ def prepare_sequence(
     * ``size``: ``(H, W)`` of the stored images (INTER_AREA), K scaled accordingly.
     * ``mono_rescale``: rescale each prior step to the ground-truth step length (monocular VO);
       needs ground truth.
-    * ``remove_static``: drop static frames by the ss-DPC-Net rule (DESIGN §6) read on the
+    * ``remove_static``: drop static frames by the ss-DPC-Net rule (docs/method.md §6) read on the
       *prior*, which exists at test time too (after ``mono_rescale`` when both are asked, so
       the 1.5 m threshold sees metric steps); the ground truth loses the same frames.
     * ``flow``: Farnebäck flow per consecutive kept pair; ``flow_augment`` adds the flows of the

@@ -5,7 +5,7 @@ intrinsics of its left camera, the baseline, the frame times and, when known, th
 poses. Nothing is decoded here except the first left image (for the image size); images are
 read with :func:`load_image` when they are needed.
 
-Layouts (DESIGN §6):
+Layouts (docs/method.md §6):
 
 * odometry: ``ROOT/sequences/XX/{image_2,image_3}/NNNNNN.png`` (grey: ``image_0``, ``image_1``),
   ``ROOT/sequences/XX/calib.txt`` (rows ``P0:`` … ``P3:``, 12 numbers each), ``times.txt`` (one
@@ -14,7 +14,7 @@ Layouts (DESIGN §6):
   ``ROOT/DATE/calib_cam_to_cam.txt`` (``P_rect_02``, ``P_rect_03``) and
   ``image_02/timestamps.txt``; ground truth from a pose file or a ``.mat`` file given by the caller.
 
-Poses are used as the files give them (camera-to-world, DESIGN §1). The odometry ground truth
+Poses are used as the files give them (camera-to-world, docs/method.md §1). The odometry ground truth
 and the ss-DPC-Net ``.mat`` files describe camera 0 (grey left); the colour pair's left camera
 sits 6 cm to its side with the same orientation, which changes inter-frame translations by
 ``|(I − R) t|`` (millimetres at KITTI's rotation rates), so the offset is not applied, as in the
@@ -171,7 +171,7 @@ def stereo_calibration(
 ) -> tuple[np.ndarray, float]:
     """``(K [3, 3], baseline m)`` of a rectified pair from its projection matrices.
 
-    ``K`` is the left 3×3 block; ``baseline = (P_left[0, 3] − P_right[0, 3]) / fu`` (DESIGN §6).
+    ``K`` is the left 3×3 block; ``baseline = (P_left[0, 3] − P_right[0, 3]) / fu`` (docs/method.md §6).
     """
     entries = read_calibration(path)
     p_left = projection_matrix(entries, left_key, path)

@@ -1,6 +1,6 @@
 """Visual-odometry priors: loading estimates, checking them against the frames, ξ_vo, rescaling.
 
-A prior is the VO estimate of the whole sequence, camera-to-world ``[N, 4, 4]`` (DESIGN §1),
+A prior is the VO estimate of the whole sequence, camera-to-world ``[N, 4, 4]`` (docs/method.md §1),
 one pose per camera frame. The network sees the relative poses ``T_vo_{t+1,t}`` as
 ``ξ_vo = Log(T_vo_{t+1,t})``.
 """
