@@ -63,14 +63,15 @@ def main() -> None:
     K = kitti_intrinsics(h, w)
     scene = R.FrameScene(*(jnp.asarray(t) for t in frame_scene(plan, args.frames // 2, K, (h, w), 0.54)))
     pose = jnp.asarray(plan.world_poses[args.frames // 2], jnp.float32)
-    K32, b = jnp.asarray(K, jnp.float32), jnp.float32(0.54)
-    hits = R.nearest_hits(scene, pose, K32, b, height=h, width=w)
-    surf = R.surface_attributes(scene, hits, pose, K32, b, height=h, width=w)
+    K32, b, zero = jnp.asarray(K, jnp.float32), jnp.float32(0.54), jnp.float32(0.0)
+    hits = R.nearest_hits(scene, pose, K32, b, zero, height=h, width=w)
+    surf = R.surface_attributes(scene, hits, pose, K32, b, zero, height=h, width=w)
     ppm, noise = R._noise(surf.u, surf.v, surf.seed)
     stages = {
-        "  visibility": lambda: jax.block_until_ready(R.nearest_hits(scene, pose, K32, b, height=h, width=w)),
+        "  visibility": lambda: jax.block_until_ready(
+            R.nearest_hits(scene, pose, K32, b, zero, height=h, width=w)),
         "  attributes": lambda: jax.block_until_ready(
-            R.surface_attributes(scene, hits, pose, K32, b, height=h, width=w)),
+            R.surface_attributes(scene, hits, pose, K32, b, zero, height=h, width=w)),
         "  noise": lambda: jax.block_until_ready(R._noise(surf.u, surf.v, surf.seed)),
         "  shading": lambda: jax.block_until_ready(
             R._shade(surf, ppm, noise, scene.layers, scene.sun, jnp.float32(1), jnp.float32(1),

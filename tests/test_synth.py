@@ -121,6 +121,23 @@ def test_stereo_warp_with_rendered_disparity_reconstructs_left(static):
         assert np.abs(np.asarray(shifted) - static.left[k]).mean(-1)[ok].mean() > 2 * error[ok].mean()
 
 
+def test_disparity_offset_shifts_the_right_image_by_that_many_pixels(static):
+    """A calibration residual of δ px: the left view is rebuilt from the right one at fu·B/Z + δ."""
+    offset = 1.5
+    shifted = render_sequence(dataclasses.replace(BASE, disparity_offset=offset))
+    np.testing.assert_array_equal(shifted.left, static.left)
+    fu = static.K[0, 0]
+    for k in range(BASE.frames):
+        disparity = np.nan_to_num(fu * static.baseline / static.depth_left[k])
+        errors = []
+        for d in (disparity, disparity + offset):
+            rec, valid = stereo_warp(jnp.asarray(shifted.right[k].astype(np.float64)), jnp.asarray(d),
+                                     "right_to_left")
+            valid = np.asarray(valid) & np.isfinite(static.depth_left[k])
+            errors.append(np.abs(np.asarray(rec) - static.left[k]).mean(-1)[valid].mean())
+        assert errors[1] < 0.5 * errors[0]
+
+
 def test_depth_is_exact_on_ground_and_facades():
     """Back-project rendered depth in float64 and check the points lie on the analytic surfaces."""
     plan = _plan(BASE)
@@ -128,7 +145,8 @@ def test_depth_is_exact_on_ground_and_facades():
     tables = frame_scene(plan, 1, K, (H, W), BASE.baseline)
     pose = plan.world_poses[1]
     hits = nearest_hits(FrameScene(*(jnp.asarray(t) for t in tables)), jnp.asarray(pose, jnp.float32),
-                        jnp.asarray(K, jnp.float32), jnp.float32(BASE.baseline), height=H, width=W)
+                        jnp.asarray(K, jnp.float32), jnp.float32(BASE.baseline), jnp.float32(0.0),
+                        height=H, width=W)
     kind, depth = np.asarray(hits.kind[0]), np.asarray(hits.depth[0]).astype(np.float64)
     v, u = np.mgrid[0:H, 0:W]
     rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones((H, W))], -1)

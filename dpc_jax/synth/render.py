@@ -346,16 +346,20 @@ class Surface(NamedTuple):
     car_seed: Array
 
 
-def _rays(pose: Array, K: Array, baseline: Array, height: int, width: int) -> Rays:
+def _rays(pose: Array, K: Array, baseline: Array, height: int, width: int, right_shift: Array) -> Rays:
+    """World rays of both cameras; the right camera's principal point is ``right_shift`` px left of
+    ``K``'s (a calibration residual: measured disparities are ``right_shift`` px larger)."""
     f32 = jnp.float32
     pose = pose.astype(f32)
     rot = pose[:3, :3]
-    cam = camera_rays(K.astype(f32), height, width)
+    K = K.astype(f32)
+    cam = camera_rays(K, height, width)
+    cam = jnp.stack([cam, cam.at[..., 0].add(right_shift.astype(f32) / K[0, 0])])
     # Written out: as a matrix product XLA hands this to a library call that is slower here.
     dirs = cam[..., 0:1] * rot[:, 0] + cam[..., 1:2] * rot[:, 1] + cam[..., 2:3] * rot[:, 2]
     origins = jnp.stack([pose[:3, 3], pose[:3, 3] + baseline.astype(f32) * rot[:, 0]])
     o = origins[:, None, None, :]
-    return Rays(o[..., 0], o[..., 1], o[..., 2], dirs[None, ..., 0], dirs[None, ..., 1], dirs[None, ..., 2])
+    return Rays(o[..., 0], o[..., 1], o[..., 2], dirs[..., 0], dirs[..., 1], dirs[..., 2])
 
 
 class Hits(NamedTuple):
@@ -371,10 +375,10 @@ class Hits(NamedTuple):
 
 
 @partial(jax.jit, static_argnames=("height", "width"))
-def nearest_hits(scene: FrameScene, pose: Array, K: Array, baseline: Array, *, height: int,
-                 width: int) -> Hits:
+def nearest_hits(scene: FrameScene, pose: Array, K: Array, baseline: Array, right_shift: Array, *,
+                 height: int, width: int) -> Hits:
     """Visibility: the nearest surface along every ray of both cameras."""
-    r = _rays(pose, K, baseline, height, width)
+    r = _rays(pose, K, baseline, height, width, right_shift)
     a_xz = r.dx * r.dx + r.dz * r.dz
     a3 = a_xz + r.dy * r.dy
     n_straight = scene.straights.shape[0] * scene.layers.shape[0]
@@ -408,10 +412,10 @@ def nearest_hits(scene: FrameScene, pose: Array, K: Array, baseline: Array, *, h
 
 
 @partial(jax.jit, static_argnames=("height", "width"))
-def surface_attributes(scene: FrameScene, hits: Hits, pose: Array, K: Array, baseline: Array, *, height: int,
-                       width: int) -> Surface:
+def surface_attributes(scene: FrameScene, hits: Hits, pose: Array, K: Array, baseline: Array,
+                       right_shift: Array, *, height: int, width: int) -> Surface:
     """Surface coordinates, normals and material inputs at every pixel's nearest hit."""
-    r = _rays(pose, K, baseline, height, width)
+    r = _rays(pose, K, baseline, height, width, right_shift)
     kind = hits.kind
     i_fac, i_cyl, i_sph, i_car = hits.facade, hits.cylinder, hits.sphere, hits.car
     t = jnp.where(kind == SKY, 0.0, hits.depth)
@@ -558,7 +562,8 @@ def _shade(surf: Surface, ppm: Array, noise: tx.Noise, layers: Array, sun: Array
 
 
 def render_stereo(scene: FrameScene, pose: Array, K: Array, baseline: Array, gain: float, gamma: float,
-                  *, height: int, width: int, quantise: bool = False) -> tuple[Array, Array, Array]:
+                  *, height: int, width: int, quantise: bool = False,
+                  disparity_offset: float = 0.0) -> tuple[Array, Array, Array]:
     """Render the left and right views of one frame.
 
     Three jitted stages (geometry, noise, shading): separate compilations keep XLA from fusing a
@@ -570,13 +575,16 @@ def render_stereo(scene: FrameScene, pose: Array, K: Array, baseline: Array, gai
       K: ``[3, 3]`` intrinsics of both (rectified) cameras; baseline: metres, right camera at
         ``+baseline`` along the left camera's x axis.
       gain, gamma: global illumination: ``I = gain · albedo_shaded ** gamma`` (before quantisation).
+      disparity_offset: px; the right camera's principal point lies this far left of ``K``'s, so a
+        disparity measured with ``K`` is this much larger than ``fu·B/Z`` (a calibration residual).
     Returns:
       ``image [2, H, W, 3]`` float32 in [0, 255] (uint8 if ``quantise``), ``depth [2, H, W]`` float32 z-depth
       in metres (``inf`` for sky), ``moving [2, H, W]`` bool (pixel shows a moving car). Index 0 is
       the left camera, 1 the right.
     """
-    hits = nearest_hits(scene, pose, K, baseline, height=height, width=width)
-    surf = surface_attributes(scene, hits, pose, K, baseline, height=height, width=width)
+    shift = jnp.float32(disparity_offset)
+    hits = nearest_hits(scene, pose, K, baseline, shift, height=height, width=width)
+    surf = surface_attributes(scene, hits, pose, K, baseline, shift, height=height, width=width)
     ppm, noise = _noise(surf.u, surf.v, surf.seed)
     image = _shade(surf, ppm, noise, scene.layers, scene.sun, jnp.float32(gain), jnp.float32(gamma),
                    apply_gamma=float(gamma) != 1.0, quantise=quantise)

@@ -37,7 +37,11 @@ _PIECES_BEHIND, _PIECES_AHEAD = 30.0, 320.0
 class SynthConfig:
     """What to render. ``noise`` is the standard deviation of Gaussian image noise in [0, 255]
     units; ``illumination_drift`` the amplitude of the slow global gain (``1 ± X``) and gamma
-    (``1 ± X/2``) variation; ``moving_objects`` the number of independently moving cars."""
+    (``1 ± X/2``) variation; ``moving_objects`` the number of independently moving cars;
+    ``disparity_offset`` (px at the rendered size) a stereo calibration residual: the right
+    camera's principal point lies that far left of the written calibration's, so every disparity
+    measured with ``calib.txt`` is that much larger than ``fu·B/Z`` (KITTI's colour pair needs a
+    correction of about +1.2 px at 1242 px width, i.e. a residual of about −1.2 px)."""
 
     frames: int = 200
     height: int = 240
@@ -48,6 +52,7 @@ class SynthConfig:
     noise: float = 0.0
     baseline: float = 0.54
     fps: float = 10.0
+    disparity_offset: float = 0.0
 
     def __post_init__(self) -> None:
         if self.frames < 2:
@@ -60,6 +65,8 @@ class SynthConfig:
             raise ValueError(f"illumination_drift must be in [0, 1), got {self.illumination_drift}")
         if self.noise < 0 or self.baseline <= 0 or self.fps <= 0:
             raise ValueError("noise must be >= 0, baseline and fps > 0")
+        if not abs(self.disparity_offset) < 0.05 * self.width:
+            raise ValueError(f"disparity_offset must be a few pixels at most, got {self.disparity_offset}")
 
 
 @dataclass(frozen=True)
@@ -209,7 +216,7 @@ def iter_frames(config: SynthConfig) -> Iterator[SynthFrame]:
         image, depth, moving = render_stereo(
             scene, jnp.asarray(plan.world_poses[i], jnp.float32), jnp.asarray(K, jnp.float32), baseline,
             float(plan.gain[i]), float(plan.gamma[i]), height=config.height, width=config.width,
-            quantise=config.noise == 0,
+            quantise=config.noise == 0, disparity_offset=config.disparity_offset,
         )
         pixels, depth, moving = np.asarray(image), np.asarray(depth), np.asarray(moving)
         if config.noise > 0:
