@@ -116,6 +116,8 @@ def _outputs_cases(d: dict[str, Path], ro: Path, ok: Path) -> dict[str, list[obj
         "vo --csv": [*vo, "--out", ok, "--csv", ro / "t.csv"],
         "correct --out": [*correct, "--out", ro / "c.txt"],
         "correct --report": [*correct, "--out", ok, "--report", ro / "r"],
+        "correct --cache": ["correct", "--checkpoint", d["run"], "--kitti-odometry", d["kitti"],
+                            "--sequence", "00", "--prior", d["prior"], "--cache", ro / "cache", "--out", ok],
         "synth --out": ["synth", "--out", ro / "s", "--sequences", "1", "--frames", "2", "--size", "16x24"],
         "prepare --out": ["prepare", "--kitti-odometry", d["kitti"], "--sequence", "00",
                           "--prior", d["prior"], "--out", ro / "cache", "--size", "10x16"],
@@ -126,7 +128,8 @@ def _outputs_cases(d: dict[str, Path], ro: Path, ok: Path) -> dict[str, list[obj
 
 
 CASES = ["evaluate --json", "evaluate --report", "evaluate --export", "vo --out", "vo --csv", "correct --out",
-         "correct --report", "synth --out", "prepare --out", "train --workdir", "demo --out"]
+         "correct --report", "correct --cache", "synth --out", "prepare --out", "train --workdir",
+         "demo --out"]
 
 
 @pytest.mark.parametrize("case", CASES)
