@@ -519,11 +519,11 @@ def test_ctrl_c_in_prepare_is_one_line_and_leaves_no_temporary(
     real = cache_module._resized_frame
     calls: list[Path] = []
 
-    def interrupted(path: Path, expected: tuple[int, int], size: tuple[int, int]) -> np.ndarray:
+    def interrupted(path: Path, *args: object) -> np.ndarray:
         calls.append(path)
         if len(calls) == 3:
             raise KeyboardInterrupt
-        return real(path, expected, size)
+        return real(path, *args)
 
     monkeypatch.setattr(cache_module, "_resized_frame", interrupted)
     out = tmp_path / "cache"
