@@ -196,8 +196,8 @@ def _check_timestamps(path: Path, stamps: np.ndarray, lines: list[int]) -> None:
     if back.size:
         i = int(back[0]) + 1
         raise ValueError(
-            f"{path}, line {lines[i]}: timestamp {stamps[i]:.17g} does not increase "
-            f"(line {lines[i - 1]} has {stamps[i - 1]:.17g}); expected one pose per time, in time order"
+            f"{path}, line {lines[i]}: timestamp {stamps[i]:.15g} does not increase "
+            f"(line {lines[i - 1]} has {stamps[i - 1]:.15g}); expected one pose per time, in time order"
         )
     if steps.size < 2:
         return
