@@ -5,11 +5,12 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
+import os
 import sys
 import tempfile
 from pathlib import Path
 
-from dpc_jax.cli._common import Formatter, frame_range
+from dpc_jax.cli._common import Formatter, frame_range, output_problem, restore_problem
 
 HELP = "Correct a VO trajectory with a trained network (T* = Exp(xi_corr) T_vo); evaluate it against GT."
 
@@ -38,15 +39,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = Formatter
     parser.add_argument("--checkpoint", required=True, type=Path, metavar="WORKDIR",
                         help="training run folder (dpc-jax train --workdir)")
-    parser.add_argument("--select", choices=("gradient", "loop", "last"), default="gradient",
-                        help="epoch: best validation gradient loss, most loop closures, or the newest")
+    parser.add_argument("--select", choices=("delta", "gradient", "loop", "last"), default="delta",
+                        help="epoch: most negative validation Δ (none if no epoch beats no correction), best "
+                        "validation gradient loss, most loop closures, or the newest")
     data = parser.add_mutually_exclusive_group(required=True)
     data.add_argument("--data", type=Path, metavar="CACHE", help="a prepared sequence cache folder")
     data.add_argument("--kitti-odometry", type=Path, metavar="ROOT",
                       help="odometry (or synthetic) layout root")
     data.add_argument("--kitti-raw", type=Path, metavar="ROOT", help="raw layout root (holds DATE/)")
     parser.add_argument("--sequence", metavar="XX", help="odometry sequence")
-    parser.add_argument("--date", help="raw: recording date, e.g. 2011_09_26")
+    parser.add_argument("--date", metavar="YYYY_MM_DD", help="raw: recording date, e.g. 2011_09_26")
     parser.add_argument("--drive", metavar="NNNN", help="raw: drive number")
     parser.add_argument("--prior", metavar="FILE",
                         help="VO estimate to correct (KITTI/TUM text or .mat); required with raw inputs")
@@ -64,8 +66,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rotation-only", action=argparse.BooleanOptionalAction, default=None,
                         help="apply only the rotation of the correction (default: the run's rotation_only)")
     parser.add_argument("--batch-size", type=int, metavar="N", help="inference batch (default: the run's)")
+    parser.add_argument("--force", action="store_true",
+                        help="apply the correction even when the acceptance test rejects it")
+    parser.add_argument("--alpha", type=float, default=0.01, metavar="P",
+                        help="level of the one-sided acceptance test on Δ")
+    parser.add_argument("--acceptance-depth", choices=("network", "sgbm"),
+                        help="depth Δ is measured with (default: the run's acceptance_depth)")
     parser.add_argument("--report", type=Path, metavar="DIR",
-                        help="write report.md, CSV tables, plots and metrics.json (needs ground truth)")
+                        help="write report.md (the acceptance test; with ground truth also the metrics, "
+                        "CSV tables, plots, metrics.json) and summary.json")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -95,10 +104,12 @@ def _check_arguments(args: argparse.Namespace) -> str | None:
         return "--prior FILE is required with raw inputs (the VO estimate to correct)"
     if args.batch_size is not None and args.batch_size < 1:
         return f"--batch-size must be >= 1, got {args.batch_size}"
-    if not args.out.parent.is_dir():
-        return f"--out {args.out}: directory {args.out.parent} does not exist"
-    if args.report is not None and args.report.exists() and not args.report.is_dir():
-        return f"--report {args.report}: exists and is not a directory"
+    if not 0.0 < args.alpha < 1.0:
+        return f"--alpha must be in (0, 1), got {args.alpha}"
+    problem = (output_problem(args.out, "--out") or output_problem(args.report, "--report", folder=True)
+               or output_problem(args.cache, "--cache", folder=True))
+    if problem is not None:
+        return problem
     if not (args.checkpoint / "checkpoints" / "config.json").is_file():
         return (f"--checkpoint {args.checkpoint}: not a training run (expected "
                 f"{args.checkpoint / 'checkpoints' / 'config.json'}, written by `dpc-jax train`)")
@@ -111,25 +122,37 @@ def run(args: argparse.Namespace) -> int:
         return _error(problem)
     # Orbax logs a warning per read-only checkpoint manager; they say nothing useful here.
     logging.getLogger("absl").setLevel(logging.ERROR)
-    from dpc_jax.correct import correct_cache, load_run, write_correction_report, write_trajectory
+    from dpc_jax._io import OutputSet, remove_stale
+    from dpc_jax.correct import correct_cache, write_correction_report, write_trajectory
     from dpc_jax.data.cache import prepare_sequence
     from dpc_jax.data.kitti import open_odometry, open_raw
+    from dpc_jax.data.pipeline import load_cache
     from dpc_jax.evaluation import format_table
+    from dpc_jax.inference import load_run
 
     progress = False if args.no_progress else None
     show = sys.stderr.isatty() and not args.no_progress
     with contextlib.ExitStack() as stack:
         try:
-            run_ = load_run(args.checkpoint, args.select)
+            # The cache is checked before the network is restored and run.
+            checked = load_cache(args.data) if args.data is not None else None
+            try:
+                run_ = load_run(args.checkpoint, args.select)
+            except FileNotFoundError:
+                raise
+            except Exception as error:  # orbax and tensorstore raise bare Exceptions for damaged data
+                return _error(restore_problem(args.checkpoint / "checkpoints", error))
             if args.data is not None:
-                cache, prior = args.data, args.prior
+                cache, prior = checked, args.prior
             else:
                 if args.kitti_odometry is not None:
                     sequence = open_odometry(args.kitti_odometry, args.sequence)
                 else:
                     sequence = open_raw(args.kitti_raw, args.date, args.drive)
+                # The pid in the name lets a later run remove the folder of a killed one.
+                remove_stale(tempfile.gettempdir(), "dpc-correct-")
                 cache_root = args.cache or Path(
-                    stack.enter_context(tempfile.TemporaryDirectory(prefix="dpc-correct-"))
+                    stack.enter_context(tempfile.TemporaryDirectory(prefix=f"dpc-correct-{os.getpid()}-"))
                 )
                 cache = prepare_sequence(
                     sequence, args.prior, cache_root, size=run_.image_size, flow=run_.use_flow,
@@ -139,26 +162,35 @@ def run(args: argparse.Namespace) -> int:
                 prior = None
             correction = correct_cache(
                 run_, cache, prior, rotation_only=args.rotation_only, prior_format=args.prior_format,
-                batch_size=args.batch_size, progress=show,
+                batch_size=args.batch_size, acceptance_depth=args.acceptance_depth, alpha=args.alpha,
+                force=args.force, progress=show,
             )
         except (OSError, ValueError, KeyError) as error:
             return _error(str(error))
-    if correction.evaluation is None and args.report is not None:
-        return _error(f"--report {args.report}: {correction.name} has no ground truth to evaluate against")
-    written = write_trajectory(args.out, correction, args.format)
-    how = "rotation only" if correction.rotation_only else "full 6-DoF"
-    criterion = {"gradient": "best gradient loss", "loop": "most loop closures", "last": "newest"}
-    criterion = criterion[args.select]
-    print(f"{correction.name}: corrected {correction.corrected.shape[0]} poses ({how}) with epoch "
-          f"{run_.epoch} of {args.checkpoint} ({criterion}) -> {', '.join(map(str, written))}")
+    # The corrected trajectory (with its frame list) and the report are written all or nothing.
+    with OutputSet() as outputs:
+        staged = write_trajectory(outputs.file(args.out), correction, args.format)
+        if args.report is not None:
+            title = f"DPC correction: {correction.name}"
+            write_correction_report(outputs.folder(args.report), correction, title)
+        outputs.commit()
+    written = [args.out.parent / path.name for path in staged]
+    criterion = {"delta": "most negative validation Δ", "gradient": "best gradient loss",
+                 "loop": "most loop closures", "last": "newest"}[args.select]
+    if correction.applied == "none":
+        print(f"{correction.name}: correction NOT applied, the prior is written unchanged "
+              f"({correction.acceptance.reason}); --force applies it anyway")
+    how = {"full": "rotation only" if correction.rotation_only else "full 6-DoF", "rotation": "rotation only",
+           "none": "none"}[correction.applied]
+    print(f"{correction.name}: {correction.corrected.shape[0]} poses, correction applied: {how} (network: "
+          f"epoch {run_.epoch} of {args.checkpoint}, {criterion}) -> {', '.join(map(str, written))}")
     if not correction.all_source_frames:
         print(f"note: the trajectory holds {correction.frames.size} cached frames, not every source frame "
               f"(frame numbers in {written[-1]})")
     if correction.evaluation is None:
         print("no ground truth: nothing to evaluate")
-        return 0
-    sys.stdout.write(format_table(correction.evaluation))
+    else:
+        sys.stdout.write(format_table(correction.evaluation))
     if args.report is not None:
-        write_correction_report(args.report, correction, f"DPC correction: {correction.name}")
         print(f"report: {args.report / 'report.md'}")
     return 0

@@ -7,14 +7,15 @@ import json
 import sys
 from pathlib import Path
 
-from dpc_jax.cli._common import Formatter
+from dpc_jax.cli._common import Formatter, output_problem
 
 HELP = "Train ss-DPC-Net or Stereo DPC on prepared sequences (checkpoints, metrics.csv, TensorBoard)."
 
 EPILOG = """examples:
-  dpc-jax train --config experiments/configs/synthetic_small.py --workdir runs/synthetic_small
-  dpc-jax train --config experiments/configs/synthetic_small.py --workdir runs/synthetic_small --resume
-The config file defines CONFIG = TrainConfig(...) or a dict of its fields (see dpc_jax.train.TrainConfig).
+  dpc-jax train --config experiments/configs/own_data.py --workdir runs/own_data
+  dpc-jax train --config experiments/configs/own_data.py --workdir runs/own_data --resume
+experiments/configs/own_data.py is the minimal config for a cache of your own (from `dpc-jax prepare`).
+The config file defines CONFIG = TrainConfig(...) or a dict of its fields (see dpc_jax.train_config).
 Outputs in WORKDIR: checkpoints/{epochs,best_gradient_loss,best_loop_closures}/EPOCH, checkpoints/config.json,
 checkpoints/split.json, metrics.csv, tensorboard/. Several hosts: set distributed=True in the config and
 pass --coordinator-address/--num-processes/--process-id on each host (or nothing on clusters JAX detects)."""
@@ -38,7 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="continue the run in WORKDIR from its newest epoch (same config required)",
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    parser.add_argument("--workers", type=int, default=2, help="data-loading threads")
+    parser.add_argument("--workers", type=int, default=2, metavar="N", help="data-loading threads")
     parser.add_argument("--coordinator-address", metavar="HOST:PORT", help="multi-host: process 0's address")
     parser.add_argument("--num-processes", type=int, help="multi-host: number of processes")
     parser.add_argument("--process-id", type=int, help="multi-host: this process's index")
@@ -47,8 +48,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from dpc_jax import config as config_lib
     from dpc_jax.config import ConfigError
-    from dpc_jax.train import NonFiniteLossError, TrainConfig, train
+    from dpc_jax.data.pipeline import CacheError
+    from dpc_jax.train import NonFiniteLossError, train
+    from dpc_jax.train_config import TrainConfig
 
+    problem = output_problem(args.workdir, "--workdir", folder=True)
+    if problem is not None:
+        print(f"dpc-jax train: error: {problem}", file=sys.stderr)
+        return 2
     distributed = {
         "coordinator_address": args.coordinator_address,
         "num_processes": args.num_processes,
@@ -64,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
             distributed=distributed,
             workers=args.workers,
         )
-    except ConfigError as error:
+    except (ConfigError, CacheError, FileNotFoundError) as error:
         print(f"dpc-jax train: error: {error}", file=sys.stderr)
         return 2
     except NonFiniteLossError as error:
