@@ -79,7 +79,8 @@ class Correction:
     applied (only their rotation for a rotation-only run); ``corrected``: the final trajectory,
     per ``acceptance.decision`` (``full``: the proposal, ``rotation``: only the rotations,
     ``none``: the prior re-composed); ``evaluation``: ``prior``, ``network`` (the proposal) and
-    ``corrected`` against the ground truth, or None without ground truth.
+    ``corrected`` against the ground truth, or None without ground truth; ``adaptation``: what
+    ``dpc_jax.adapt`` did first (steps, seconds, held-out pairs), if anything.
     """
 
     name: str
@@ -94,6 +95,7 @@ class Correction:
     acceptance: Acceptance
     epoch: int
     evaluation: Evaluation | None
+    adaptation: dict[str, object] | None = None
 
     @property
     def applied(self) -> str:
@@ -114,6 +116,8 @@ class Correction:
             "rotation_only": self.rotation_only,
             "acceptance": self.acceptance.to_dict(),
         }
+        if self.adaptation is not None:
+            out["adaptation"] = self.adaptation
         if self.evaluation is not None:
             out["evaluation"] = json.loads(self.evaluation.to_json())
         return out
@@ -157,6 +161,7 @@ def correct_cache(
     acceptance_depth: str | None = None,
     alpha: float = DEFAULT_ALPHA,
     force: bool = False,
+    held_out: np.ndarray | None = None,
     progress: bool = False,
 ) -> Correction:
     """Correct the prior of a cached sequence with ``run`` where the acceptance test allows it.
@@ -164,8 +169,9 @@ def correct_cache(
     ``prior``: None = the cache's own prior, else a replacement (see :func:`prior_for_cache`);
     ``rotation_only``: None = the run's ``config.rotation_only``; ``acceptance_depth``:
     ``network`` or ``sgbm`` (None = the run's); ``alpha``: the test's level; ``force``: apply the
-    correction whatever the test says. The trajectories start at the first ground-truth pose when
-    the cache has ground truth, else at the first prior pose (DESIGN §1).
+    correction whatever the test says; ``held_out``: the pairs ``k`` the test uses (default all;
+    after adaptation, the pairs it never saw). The trajectories start at the first ground-truth
+    pose when the cache has ground truth, else at the first prior pose (DESIGN §1).
     """
     cache = cache if isinstance(cache, SequenceCache) else load_cache(cache)
     if prior is not None:
@@ -174,7 +180,8 @@ def correct_cache(
     prediction = run_prediction(
         run, cache, batch_size=batch_size, acceptance_depth=acceptance_depth, progress=progress
     )
-    acceptance = decide(run, prediction, rotation_only=rotation_only, alpha=alpha, force=force)
+    acceptance = decide(run, prediction, rotation_only=rotation_only, pairs=held_out, alpha=alpha,
+                        force=force)
     return compose_correction(run, cache, prediction.xi_corr, acceptance, rotation_only)
 
 
@@ -276,6 +283,11 @@ def write_correction_report(directory: str | os.PathLike, correction: Correction
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     section = "## Acceptance test (no ground truth used)\n\n" + acceptance_markdown(correction.acceptance)
+    if correction.adaptation is not None:
+        a = correction.adaptation
+        section = (f"## Adaptation (no ground truth used)\n\n{a['steps']} steps on this sequence's own "
+                   f"pairs in {a['seconds'] / 60:.1f} min; {a['held_out']} pairs kept out for the acceptance "
+                   f"test (every {a['holdout_every']}th).\n\n" + section)
     written: list[Path] = []
     if correction.evaluation is not None:
         written = write_report(directory, correction.evaluation, title)

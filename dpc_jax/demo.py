@@ -67,7 +67,7 @@ TRAINING: dict[str, Any] = {
 }
 # The demo sets these itself (paths and split).
 _MANAGED = ("cache_root", "train_sequences", "validation_sequences", "test_sequences")
-SELECTIONS = ("gradient", "loop", "last")
+SELECTIONS = ("delta", "gradient", "loop", "last")
 
 
 @dataclass(frozen=True)
@@ -99,6 +99,9 @@ class DemoConfig:
     moving_objects: int = 6
     illumination_drift: float = 0.3
     noise: float = 1.0
+    disparity_offset: float = 0.0
+    vo_estimate_offset: bool = True
+    rectify_offset: bool = False
     seed: int = 0
     training: dict[str, Any] = field(default_factory=dict)
     select: str = "gradient"
@@ -141,6 +144,7 @@ class DemoConfig:
         return SynthConfig(
             frames=frames, height=self.render_size[0], width=self.render_size[1], seed=seed,
             moving_objects=self.moving_objects, illumination_drift=self.illumination_drift, noise=self.noise,
+            disparity_offset=self.disparity_offset,
         )
 
     def train_config(self, cache_root: str | os.PathLike) -> Any:
@@ -180,26 +184,35 @@ def _render(config: DemoConfig, data_root: Path, name: str, progress: bool) -> b
     return True
 
 
-def _vo_prior(sequence: Any, vo_dir: Path, progress: bool) -> Path:
-    """Our stereo VO on ``sequence`` (from its first GT pose) → ``vo_dir/NAME.txt``, reused when current.
-
-    The record ``NAME.json`` holds the VO config and the rendering record it was computed from.
-    """
+def _vo_run(sequence: Any, vo_dir: Path, progress: bool, estimate_offset: bool, suffix: str = "") -> dict:
+    """Our stereo VO on ``sequence`` (from its first GT pose) → ``vo_dir/NAME{suffix}.txt`` and a record
+    ``NAME{suffix}.json`` (the VO config, the rendering record it was computed from, the fallback
+    count and the disparity offset the VO ended with); reused when current. Returns the record
+    with ``path``."""
     from dpc_jax.trajectory import write_kitti_poses
     from dpc_jax.vo import VOConfig, run_vo
 
-    vo_config = VOConfig()
+    vo_config = VOConfig(estimate_offset=estimate_offset)
     source = (sequence.left_paths[0].parent.parent / "synth.json").read_text()
-    record = {"vo_config": dataclasses.asdict(vo_config), "synth": json.loads(source)}
-    record = json.loads(json.dumps(record))
-    path, record_path = vo_dir / f"{sequence.name}.txt", vo_dir / f"{sequence.name}.json"
-    if path.is_file() and record_path.is_file() and json.loads(record_path.read_text()) == record:
-        return path
+    inputs = json.loads(json.dumps({"vo_config": dataclasses.asdict(vo_config), "synth": json.loads(source)}))
+    path, record_path = vo_dir / f"{sequence.name}{suffix}.txt", vo_dir / f"{sequence.name}{suffix}.json"
+    if path.is_file() and record_path.is_file():
+        record = json.loads(record_path.read_text())
+        if record.get("inputs") == inputs:
+            return {**record, "path": str(path)}
     vo_dir.mkdir(parents=True, exist_ok=True)
     result = run_vo(sequence, vo_config, first_pose=sequence.poses[0], progress=progress)
+    offsets = np.asarray(result.disparity_offset)
+    record = {
+        "inputs": inputs,
+        "fallbacks": int(np.count_nonzero(result.status)),
+        "pairs": int(result.status.size),
+        # The online estimate settles within tens of pairs: the median of the second half.
+        "disparity_offset": float(np.median(offsets[offsets.size // 2:])),
+    }
     write_kitti_poses(path, result.poses)
     atomic_write(record_path, json.dumps(record, indent=2, sort_keys=True) + "\n")
-    return path
+    return {**record, "path": str(path)}
 
 
 def _fmt(value: float | None, digits: int = 3) -> str:
@@ -328,10 +341,14 @@ def run_demo(config: DemoConfig, out: str | os.PathLike, progress: bool = False,
         seconds["render"] += time.perf_counter() - t
         sequence = open_odometry(data_root, name)
         t = time.perf_counter()
-        prior_path = _vo_prior(sequence, vo_dir, progress)
+        prior = _vo_run(sequence, vo_dir, progress, config.vo_estimate_offset)
+        offset = 0.0
+        if config.rectify_offset:
+            offset = _vo_run(sequence, vo_dir, progress, True, ".calibration")["disparity_offset"]
         seconds["vo"] += time.perf_counter() - t
         t = time.perf_counter()
-        prepare_sequence(sequence, prior_path, cache_root, size=size, progress=progress)
+        prepare_sequence(sequence, prior["path"], cache_root, size=size, disparity_offset=offset,
+                         progress=progress)
         seconds["prepare"] += time.perf_counter() - t
         lengths[name] = float(np.linalg.norm(np.diff(sequence.poses[:, :3, 3], axis=0), axis=1).sum())
         say(f"{name}: {len(sequence)} frames, {lengths[name]:.0f} m"

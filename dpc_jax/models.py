@@ -15,7 +15,8 @@ Both are built from one encoder–decoder *branch* and a fully connected pose he
   ``mask_source_block`` up to full resolution (cropped to each encoder scale), conv 3×3 → sigmoid.
 * **Pose head**: flatten the bottleneck → dropout → FC → dropout → FC → dropout; prior branch
   FC 6→· → dropout → FC → dropout on the *normalised* prior ``(ξ_vo − μ) / σ``; concatenate →
-  FC 6, times 0.01, = ξ_corr ``[ρ, φ]``. ``fc_activation="none"`` (no non-linearity between the
+  FC 6, times ``pose_scale`` (translation, rotation; the reference multiplies all six by 0.01), =
+  ξ_corr ``[ρ, φ]``. ``fc_activation="none"`` (no non-linearity between the
   FC layers) is what the reference code does; ``"relu"`` puts a ReLU after each hidden FC.
   ``μ, σ`` are the model's :class:`PriorStatistics` variable (not trained, saved with the
   checkpoints): 0 and 1 — the reference's unscaled prior — until the training loop sets them from
@@ -68,7 +69,6 @@ from dpc_jax.outputs import BranchOutputs, DPCOutputs
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
-POSE_SCALE = 0.01
 INV_DEPTH_OFFSET = 0.001
 
 Method = Literal["ss_dpc", "stereo_dpc"]
@@ -95,6 +95,9 @@ class ModelConfig:
     * ``prior_dropout``: dropout rate on the prior branch; None = ``dropout`` (the reference).
     * ``pose_init``: ``"pytorch"`` (the reference: PyTorch's default initialisation of every
       layer) or ``"zero"`` (the output FC layer starts at zero weights and bias: ξ_corr = 0).
+    * ``pose_scale``: ``(translation m, rotation rad)`` per unit of the output layer; the
+      reference's 0.01 for both. Adam moves every output weight by about the learning rate
+      whatever its gradient, so this sets the jitter of each component's correction.
     * ``flow``: append Farnebäck flow (2 channels) to each branch's input; ``None`` = the
       method's default (ss-DPC-Net: True, Stereo DPC: False).
     * ``frames``: frames ``F`` with inverse depth and mask per branch; ``None`` = the method's
@@ -118,6 +121,7 @@ class ModelConfig:
     dropout: float = 0.5
     prior_dropout: float | None = None
     pose_init: Literal["pytorch", "zero"] = "pytorch"
+    pose_scale: tuple[float, float] = (0.01, 0.01)
     flow: bool | None = None
     frames: int | None = None
     learn_ssim_weight: bool = False
@@ -150,6 +154,8 @@ class ModelConfig:
             problems.append(f"dropout must be in [0, 1), got {self.dropout}")
         if self.prior_dropout is not None and not 0.0 <= self.prior_dropout < 1.0:
             problems.append(f"prior_dropout must be None or in [0, 1), got {self.prior_dropout}")
+        if len(self.pose_scale) != 2 or not all(x > 0 for x in self.pose_scale):
+            problems.append(f"pose_scale must be two positive numbers, got {self.pose_scale}")
         if self.pose_init not in ("pytorch", "zero"):
             problems.append(f"pose_init must be 'pytorch' or 'zero', got {self.pose_init!r}")
         if self.frames not in (None, 1, 2):
@@ -460,7 +466,9 @@ class _DPCBase(nnx.Module):
         mean, std = self.prior_statistics[...]
         prior = (xi_vo.astype(jnp.float32) - mean) / std
         features = jnp.concatenate([*reduced, self.prior(prior, key)], axis=-1)
-        return POSE_SCALE * self.fc_out(features)
+        translation, rotation = self.config.pose_scale
+        scale = jnp.asarray([translation] * 3 + [rotation] * 3, jnp.float32)
+        return scale * self.fc_out(features)
 
     def _ssim_weight(self) -> jax.Array | None:
         return None if self.ssim_logit is None else jax.nn.sigmoid(self.ssim_logit[...])

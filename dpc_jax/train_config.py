@@ -24,6 +24,10 @@ one; its table in ``docs/ablation.md`` is the measurement behind them):
   apart; both off by default (training-mode dropout 0.5 moves the correction by mrad between
   keys, far more than the precision a correction needs).
 * ``pose_lr_multiplier``: the pose head's learning rate relative to the rest.
+* ``pose_scale``: the correction per unit of the output layer, ``(translation m, rotation rad)``.
+  The reference's 0.01 for both makes a rotation unit a hundred times larger than a good VO's
+  rotation error per frame; Adam moves every output weight by about the learning rate, so the
+  rotation part then jitters by more than the bias it should learn.
 """
 
 from __future__ import annotations
@@ -48,6 +52,7 @@ REFERENCE: dict[str, Any] = {
     "dropout": 0.5,
     "prior_dropout": None,
     "pose_lr_multiplier": 1.0,
+    "pose_scale": (0.01, 0.01),
 }
 
 
@@ -72,6 +77,7 @@ class TrainConfig:
         * ``prior_dropout``: dropout rate on the prior branch; None = ``dropout``.
         * ``pose_lr_multiplier``: learning-rate factor of the pose head (FC reductions, prior
           branch, output layer).
+        * ``pose_scale``: ``(translation m, rotation rad)`` per unit of the output layer.
     Loss
         * ``loss``: overrides of the method's loss config (``SSDPCLossConfig`` or
           ``StereoDPCLossConfig``): term weights, fixed λ_s, rotation weighting γ and λ_rot, ...
@@ -115,6 +121,7 @@ class TrainConfig:
     dropout: float = 0.0
     prior_dropout: float | None = 0.0
     pose_lr_multiplier: float = 1.0
+    pose_scale: tuple[float, float] = (0.01, 1e-4)
     loss: dict[str, Any] = field(default_factory=dict)
     rotation_only: bool = False
     batch_size: int = 32
@@ -166,7 +173,7 @@ class TrainConfig:
             problems.append("acceptance_depth 'sgbm' needs the stereo method (stereo_dpc)")
         if self.image_size is not None and min(self.image_size) < 1:
             problems.append(f"image_size must be positive, got {self.image_size}")
-        for key in ("image_size", "dropout", "prior_dropout", "pose_init", "learn_ssim_weight"):
+        for key in ("image_size", "dropout", "prior_dropout", "pose_init", "pose_scale", "learn_ssim_weight"):
             if key in self.model:
                 problems.append(f"model.{key} duplicates the top-level key {key!r}; set it there")
         if not self.validation_sequences:
@@ -194,7 +201,7 @@ class TrainConfig:
         base = PRESETS[self.preset]
         overrides = dict(
             self.model, dropout=self.dropout, prior_dropout=self.prior_dropout, pose_init=self.pose_init,
-            learn_ssim_weight=self.learn_ssim_weight,
+            pose_scale=tuple(self.pose_scale), learn_ssim_weight=self.learn_ssim_weight,
         )
         if self.image_size is not None:
             overrides["image_size"] = tuple(self.image_size)

@@ -101,6 +101,18 @@ def test_augmented_priors_compose_and_invert(caches: tuple[Path, Path]) -> None:
         np.testing.assert_allclose(by_pair[(k + 2, k)], -by_pair[(k, k + 2)], atol=1e-6)
 
 
+def test_held_out_pairs_are_left_out_in_both_directions(caches: tuple[Path, Path]) -> None:
+    excerpt, _ = caches
+    cache = load_cache(excerpt)
+    held = np.array([1, 4])
+    loader = TrainLoader([excerpt], batch_size=1, reverse=True, shuffle=False, held_out=[held], workers=0)
+    seen = {(frame_of(cache.left, b.left[0, 0]), frame_of(cache.left, b.left[0, 1])) for b in loader.epoch(0)}
+    forward = {(k, k + 1) for k in range(N - 1) if k not in held}
+    skip = {(k, k + 2) for k in range(N - 2)}  # other motions: they stay
+    assert seen == forward | skip | {(j, i) for i, j in forward | skip}
+    assert loader.num_samples == 2 * (len(forward) + len(skip))
+
+
 def test_shuffling_is_deterministic_per_seed_and_epoch(caches: tuple[Path, Path]) -> None:
     excerpt, fixture = caches
     loader = TrainLoader([excerpt, fixture], batch_size=3, seed=7, workers=2)

@@ -138,6 +138,26 @@ def test_disparity_offset_shifts_the_right_image_by_that_many_pixels(static):
         assert errors[1] < 0.5 * errors[0]
 
 
+def test_prepare_removes_a_disparity_offset(tmp_path: Path, static):
+    """``prepare_sequence(disparity_offset=o)`` resamples the right images at u + o: with o = −δ the
+    residual δ of the rendering is gone, the right images match a perfectly calibrated rig's."""
+    from dpc_jax.data.cache import prepare_sequence
+    from dpc_jax.data.pipeline import load_cache
+
+    offset = 1.0
+    write_sequences(tmp_path / "kitti", dataclasses.replace(BASE, disparity_offset=offset), 1)
+    sequence = open_odometry(tmp_path / "kitti", "00")
+    inner = np.s_[:, :, 4:-4]  # away from the replicated border column
+    errors = []
+    for correction in (0.0, -offset):
+        path = prepare_sequence(sequence, static.poses, tmp_path / f"cache{correction}", size=(H, W),
+                                disparity_offset=correction, progress=False, workers=1)
+        cache = load_cache(path)
+        np.testing.assert_array_equal(cache.left, static.left)
+        errors.append(np.abs(cache.right.astype(float) - static.right)[inner].mean())
+    assert errors[1] < 0.3 * errors[0]
+
+
 def test_depth_is_exact_on_ground_and_facades():
     """Back-project rendered depth in float64 and check the points lie on the analytic surfaces."""
     plan = _plan(BASE)

@@ -140,13 +140,21 @@ def read_manifest(cache_dir: str | Path) -> dict | None:
     return manifest if isinstance(manifest, dict) else None
 
 
-def _resized_frame(path: Path, expected: tuple[int, int], size: tuple[int, int]) -> np.ndarray:
+def _resized_frame(
+    path: Path, expected: tuple[int, int], size: tuple[int, int], shift: float = 0.0
+) -> np.ndarray:
+    """The image at ``path`` resized to ``size``; first, with ``shift``, resampled at ``u + shift``
+    (bilinear, at the source resolution) so that its content moves ``shift`` px to the left."""
     image = load_image(path)
     if image.shape[:2] != expected:
         raise ValueError(
             f"{path}: image is {image.shape[0]}×{image.shape[1]}, expected {expected[0]}×{expected[1]} "
             "like the sequence's first frame"
         )
+    if shift:
+        move = np.array([[1.0, 0.0, shift], [0.0, 1.0, 0.0]])
+        image = cv2.warpAffine(image, move, (image.shape[1], image.shape[0]),
+                               flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
     if image.shape[:2] == size:
         return image
     return cv2.resize(image, (size[1], size[0]), interpolation=cv2.INTER_AREA)
@@ -212,6 +220,7 @@ def prepare_sequence(
     prior_format: str | None = None,
     ground_truth: str | Path | np.ndarray | None = None,
     name: str | None = None,
+    disparity_offset: float = 0.0,
     force: bool = False,
     progress: Progress = None,
     workers: int | None = None,
@@ -231,6 +240,10 @@ def prepare_sequence(
       the 1.5 m threshold sees metric steps); the ground truth loses the same frames.
     * ``flow``: Farnebäck flow per consecutive kept pair; ``flow_augment`` adds the flows of the
       reversed and frame-skip pairs (implies ``flow``).
+    * ``disparity_offset``: px at the source resolution, the rig's disparity calibration residual
+      in the VO's convention (``d_true = d_measured + offset``, e.g. ``dpc-jax vo``'s online
+      estimate): the right images are resampled at ``u + offset`` before resizing, so the stored
+      pairs are rectified with the residual removed and their disparity is ``fu·B/Z``.
     * ``name``: folder name, default ``sequence.name``; ``force`` rebuilds even when up to date.
     * ``progress``: tqdm bars (default: when stderr is a terminal), or ``"lines"`` for plain
       progress lines (see :mod:`dpc_jax._progress`); ``workers``: decoding and flow threads
@@ -271,6 +284,7 @@ def prepare_sequence(
         "size": list(size), "remove_static": remove_static, "flow": flow, "flow_augment": flow_augment,
         "mono_rescale": mono_rescale, "frames": [start, stop], "prior_format": prior_format,
         "farneback": FARNEBACK if flow else None, "interpolation": "INTER_AREA",
+        "disparity_offset": float(disparity_offset),
     }
     extra = [gt_source] if isinstance(gt_source, np.ndarray) else []
     if gt_source is not None and not isinstance(gt_source, np.ndarray):
@@ -297,10 +311,13 @@ def prepare_sequence(
         n = kept.size
         shape = (n, *size, 3)
         arrays = {}
+        shifts = {"left": 0.0, "right": float(disparity_offset)}
         for camera, paths in (("left", sequence.left_paths), ("right", sequence.right_paths)):
+            shift = shifts[camera]
             out = np.lib.format.open_memmap(tmp / f"{camera}.npy", mode="w+", dtype=np.uint8, shape=shape)
             frames_iter = _ordered_map(
-                lambda p: _resized_frame(p, sequence.image_size, size), [paths[i] for i in kept], workers
+                lambda p, s=shift: _resized_frame(p, sequence.image_size, size, s), [paths[i] for i in kept],
+                workers,
             )
             with progress_bar(n, f"{name} {camera}", progress) as bar:
                 for k, image in enumerate(frames_iter):

@@ -234,7 +234,12 @@ class _SampleTable:
 _KIND_NAMES = tuple(PAIR_KINDS)
 
 
-def _build_table(caches: list[SequenceCache], kinds: Sequence[str], use_flow: bool) -> _SampleTable:
+def _build_table(
+    caches: list[SequenceCache], kinds: Sequence[str], use_flow: bool,
+    held_out: Sequence[np.ndarray] | None = None,
+) -> _SampleTable:
+    """The samples of ``kinds`` of every cache; ``held_out[c]``: consecutive pairs ``(k, k+1)`` of
+    cache ``c`` (by ``k``) left out, in both directions."""
     keys = ("cache", "source", "target", "kind", "slot", "vo", "gt")
     parts: dict[str, list[np.ndarray]] = {k: [] for k in keys}
     with_gt = all(c.gt is not None for c in caches)
@@ -247,6 +252,9 @@ def _build_table(caches: list[SequenceCache], kinds: Sequence[str], use_flow: bo
                     f"or use the pairs without flow"
                 )
             i, j = pair_indices(len(cache), kind)
+            if held_out is not None and PAIR_KINDS[kind][0] == 1:
+                keep = ~np.isin(np.minimum(i, j), held_out[c_id])
+                i, j = i[keep], j[keep]
             if i.size == 0:
                 continue
             parts["cache"].append(np.full(i.size, c_id))
@@ -343,6 +351,9 @@ class TrainLoader:
     use; True → an error names a cache that lacks one). Batches hold ``xi_gt`` only
     when every sequence has ground truth, so the batch structure is the same for every batch.
 
+    ``held_out``: per cache, the consecutive pairs ``(k, k+1)`` (by ``k``) to leave out, both
+    directions (frame-skip pairs stay: they are other motions).
+
     ``len(loader)`` is the number of batches per epoch, ``floor(samples / batch_size)``: the
     last partial batch is dropped. ``epoch(e)`` shuffles with ``numpy.random.default_rng((seed,
     e))`` and yields batches prepared by ``workers`` background threads (``workers=0``:
@@ -361,6 +372,7 @@ class TrainLoader:
         reverse: bool = False,
         flow: bool | None = None,
         shuffle: bool = True,
+        held_out: Sequence[np.ndarray] | None = None,
         workers: int = 1,
         depth: int = 3,
     ) -> None:
@@ -377,7 +389,7 @@ class TrainLoader:
         if flow is None:
             flow = all(kind in c.flows for c in self.caches for kind in self.kinds)
         self.use_flow = flow
-        self.table = _build_table(self.caches, self.kinds, self.use_flow)
+        self.table = _build_table(self.caches, self.kinds, self.use_flow, held_out)
         self.batch_size = batch_size
         self.seed = seed
         self.shuffle = shuffle

@@ -1,0 +1,193 @@
+"""Self-supervised adaptation of a trained network to the very sequence it corrects (``correct --adapt N``).
+
+The training loss needs no ground truth, so a network can keep learning on the log being
+corrected. :func:`adapt` fine-tunes a restored run for ``steps`` optimizer steps on the pairs of
+one prepared sequence — its ground truth is dropped before anything reads the cache — with the
+run's loss, a fresh Adam at a constant rate, and BatchNorm statistics updated. Every
+``holdout_every``-th consecutive pair ``(k, k+1)`` is kept out of adaptation (both directions;
+frame-skip pairs are other motions and stay), so the acceptance test (``dpc_jax.acceptance``)
+can judge the adapted network on motions it has not fitted.
+
+:func:`save_adapted` writes the adapted network as a run folder (``checkpoints/config.json``,
+``checkpoints/epochs/1``; usable with ``dpc-jax correct --checkpoint DIR --select last``) with its
+log ``adapt.csv`` and record ``adapt.json``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import dataclasses
+import io
+import itertools
+import json
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+from tqdm.auto import tqdm
+
+from dpc_jax.data.pipeline import SequenceCache, TrainLoader
+from dpc_jax.inference import TrainedRun
+from dpc_jax.optim import create_train_state, make_optimizer
+from dpc_jax.train import NonFiniteLossError, make_train_step
+from dpc_jax.trajectory import atomic_write
+
+
+@dataclass(frozen=True)
+class AdaptConfig:
+    """How to adapt (see the module docstring).
+
+    * ``steps``: optimizer steps.
+    * ``holdout_every``: every this-many-th consecutive pair is kept out (for the acceptance test).
+    * ``batch_size``, ``learning_rate``: None = the run's.
+    * ``pose_warmup_steps``: first steps with ξ_corr = 0 in the loss (depth adapts first).
+    * ``seed``: shuffling and dropout.
+    """
+
+    steps: int
+    holdout_every: int = 5
+    batch_size: int | None = None
+    learning_rate: float | None = None
+    pose_warmup_steps: int = 0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        problems = []
+        if self.steps < 1:
+            problems.append(f"steps must be >= 1, got {self.steps}")
+        if self.holdout_every < 2:
+            problems.append(f"holdout_every must be >= 2, got {self.holdout_every}")
+        if self.batch_size is not None and self.batch_size < 1:
+            problems.append(f"batch_size must be >= 1, got {self.batch_size}")
+        rate = self.learning_rate
+        if rate is not None and not (rate > 0 and math.isfinite(rate)):
+            problems.append(f"learning_rate must be > 0, got {self.learning_rate}")
+        if not 0 <= self.pose_warmup_steps < self.steps:
+            problems.append(f"pose_warmup_steps must be in [0, steps), got {self.pose_warmup_steps}")
+        if problems:
+            raise ValueError("invalid AdaptConfig: " + "; ".join(problems))
+
+
+def held_out_pairs(n_pairs: int, every: int) -> np.ndarray:
+    """The consecutive pairs ``k`` kept out of adaptation: ``every//2, every//2 + every, …``."""
+    return np.arange(every // 2, n_pairs, every, dtype=np.int64)
+
+
+@dataclass(frozen=True)
+class Adaptation:
+    """An adapted network (``run``: same config, the adapted model state), the pairs it never saw
+    (``held_out``), the per-step log and the seconds it took."""
+
+    run: TrainedRun
+    source: TrainedRun
+    config: AdaptConfig
+    held_out: np.ndarray
+    log: list[dict[str, float]] = field(default_factory=list)
+    seconds: float = 0.0
+
+    def summary(self) -> dict[str, object]:
+        """What a report says of it (``dpc_jax.correct.Correction.adaptation``)."""
+        return {"steps": self.config.steps, "seconds": self.seconds, "held_out": int(self.held_out.size),
+                "holdout_every": self.config.holdout_every, "source_epoch": self.source.epoch}
+
+
+def adapt(
+    run: TrainedRun, cache: SequenceCache, config: AdaptConfig, *, progress: bool = False
+) -> Adaptation:
+    """Fine-tune ``run``'s network on ``cache`` without its ground truth (module docstring)."""
+    began = time.perf_counter()
+    if cache.image_size != run.image_size:
+        (h, w), (rh, rw) = cache.image_size, run.image_size
+        raise ValueError(f"{cache.path}: images are {h}x{w}, but the run {run.workdir} expects {rh}x{rw}")
+    blind = dataclasses.replace(cache, gt=None)  # adaptation never sees the ground truth
+    held_out = held_out_pairs(len(blind) - 1, config.holdout_every)
+    train_config = run.config
+    batch_size = config.batch_size or train_config.batch_size
+    loader = TrainLoader(
+        [blind], batch_size, seed=config.seed, frame_skip=train_config.frame_skip,
+        reverse=train_config.reverse, flow=train_config.use_flow, held_out=[held_out], workers=1,
+    )
+    # A constant rate: one "epoch" as long as the adaptation, so the schedule never halves.
+    optimizer_config = dataclasses.replace(
+        train_config, learning_rate=config.learning_rate or train_config.learning_rate, lr_halving_epochs=1,
+        pose_warmup_epochs=0, pose_warmup_steps=config.pose_warmup_steps,
+    )
+    # A copy: the train step donates its state, and the source run stays usable.
+    model = nnx.merge(run.graphdef, jax.tree.map(jnp.copy, run.state))
+    graphdef, state = create_train_state(model, make_optimizer(optimizer_config, config.steps))
+    step_fn = make_train_step(train_config.loss_config(), config.pose_warmup_steps)
+    base_key = jax.random.key(config.seed)
+    log: list[dict[str, float]] = []
+    with tqdm(total=config.steps, unit="step", desc=f"adapt {cache.name}", disable=not progress,
+              leave=False) as bar:
+        for epoch in itertools.count():
+            with contextlib.closing(loader.epoch(epoch)) as batches:
+                for batch in batches:
+                    if len(log) == config.steps:
+                        break
+                    step = len(log)
+                    state, metrics = step_fn(graphdef, state, batch, jax.random.fold_in(base_key, step))
+                    values = {k: float(v) for k, v in jax.device_get(metrics).items()}
+                    if not math.isfinite(values["loss"]):
+                        raise NonFiniteLossError(f"{cache.name}: non-finite loss, adaptation step {step + 1}")
+                    log.append({"step": step + 1, **values})
+                    bar.update(1)
+                    bar.set_postfix(loss=f"{values['loss']:.4f}")
+            if len(log) == config.steps:
+                break
+    adapted, _ = nnx.merge(graphdef, state)
+    adapted.eval()
+    model_graphdef, model_state = nnx.split(adapted)
+    adapted_run = dataclasses.replace(run, selection=f"{run.selection}+adapted", graphdef=model_graphdef,
+                                      state=model_state, improves_on_prior=True)
+    return Adaptation(adapted_run, run, config, held_out, log, time.perf_counter() - began)
+
+
+def _log_csv(log: list[dict[str, float]]) -> str:
+    buffer = io.StringIO()
+    fields = list(dict.fromkeys(k for row in log for k in row))
+    writer = csv.DictWriter(buffer, fieldnames=fields, lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(log)
+    return buffer.getvalue()
+
+
+def save_adapted(directory: str | os.PathLike, adaptation: Adaptation, metrics: dict[str, Any]) -> Path:
+    """Write the adapted network as a run folder in ``directory`` (module docstring); ``metrics``
+    (e.g. the held-out Δ) go into the checkpoint's record and ``adapt.json``. Returns the folder."""
+    from dpc_jax import config as config_lib
+    from dpc_jax.checkpoints import Checkpoints
+
+    directory = Path(directory).absolute()
+    run = adaptation.run
+    model = nnx.merge(run.graphdef, run.state)
+    # The optimizer part is a fresh one of the run's config: what ``load_run`` expects to find.
+    _, state = create_train_state(model, make_optimizer(run.config, 1))
+    config_lib.save_json(directory / "checkpoints" / "config.json", run.config)
+    record = {
+        "val_gradient_loss": float(metrics.get("gradient_loss", math.nan)),
+        "val_loop_closures": 0,
+        "val_delta": float(metrics.get("delta", 0.0)),
+    }
+    with Checkpoints(directory, keep_last=1) as checkpoints:
+        checkpoints.save(1, state, {"step": adaptation.config.steps, "metrics": record},
+                         Checkpoints.best_records(None))
+    atomic_write(directory / "adapt.csv", _log_csv(adaptation.log))
+    summary = {
+        "source": {"workdir": str(adaptation.source.workdir), "selection": adaptation.source.selection,
+                   "epoch": adaptation.source.epoch},
+        "config": dataclasses.asdict(adaptation.config),
+        "held_out_pairs": adaptation.held_out.tolist(),
+        "seconds": adaptation.seconds,
+        "metrics": metrics,
+    }
+    atomic_write(directory / "adapt.json", json.dumps(summary, indent=2) + "\n")
+    return directory
