@@ -51,9 +51,9 @@ def test_excerpt_images_poses_and_intrinsics(excerpt: Path) -> None:
     np.testing.assert_allclose(cache.prior, mat("poses_est")[FRAMES[0]:FRAMES[1]], atol=1e-6)
     np.testing.assert_allclose(cache.gt, mat("poses_gt")[FRAMES[0]:FRAMES[1]], atol=1e-6)
     sx, sy = 376 / 1242, 240 / 375
-    np.testing.assert_allclose(
-        cache.K, [[721.5377 * sx, 0, 609.5593 * sx], [0, 721.5377 * sy, 172.854 * sy], [0, 0, 1]]
-    )
+    # Pixel centres at integers, as cv2.resize: c' = (c + ½) s − ½.
+    cu, cv = (609.5593 + 0.5) * sx - 0.5, (172.854 + 0.5) * sy - 0.5
+    np.testing.assert_allclose(cache.K, [[721.5377 * sx, 0, cu], [0, 721.5377 * sy, cv], [0, 0, 1]])
     assert cache.baseline == pytest.approx(0.5327, abs=1e-4)
     assert cache.manifest["parameters"]["size"] == list(SIZE)
     assert cache.manifest["flows"] == ["forward"]

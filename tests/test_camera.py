@@ -1,5 +1,6 @@
 """Camera model against float64 numpy loops and known geometry."""
 
+import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -10,12 +11,36 @@ from dpc_jax.camera import backproject, pixel_grid, project, scale_intrinsics
 K_NP = np.array([[40.0, 0.0, 31.5], [0.0, 38.0, 23.5], [0.0, 0.0, 1.0]])
 
 
-def test_scale_intrinsics_rows() -> None:
-    scaled = np.asarray(scale_intrinsics(K_NP, 0.5, 0.25))
+def test_scale_intrinsics_rows_reference_rule() -> None:
+    scaled = np.asarray(scale_intrinsics(K_NP, 0.5, 0.25, half_pixel=False))
     expected = K_NP.copy()
     expected[0] *= 0.5
     expected[1] *= 0.25
     np.testing.assert_array_equal(scaled, expected)
+
+
+SIZES = [((48, 64), (12, 16)), ((375, 1242), (64, 96)), ((40, 60), (50, 99))]
+
+
+@pytest.mark.parametrize(("old", "new"), SIZES, ids=["shrink", "kitti", "grow"])
+def test_scale_intrinsics_follows_opencv_resize(old: tuple[int, int], new: tuple[int, int]) -> None:
+    """A ray's pixel in the resized image is where cv2.resize puts that image content.
+
+    The old image holds its own column coordinate u (and row v), a linear ramp that bilinear
+    resizing reproduces exactly: resized[v', u'] is the old coordinate that new pixel (u', v')
+    shows. Projecting that old pixel's ray with the scaled K must land on (u', v')."""
+    (h0, w0), (h1, w1) = old, new
+    K = np.array([[0.9 * w0, 0.0, 0.47 * w0], [0.0, 0.9 * w0, 0.52 * h0], [0.0, 0.0, 1.0]])
+    v0, u0 = np.mgrid[0:h0, 0:w0].astype(np.float32)
+    shown_u = cv2.resize(u0, (w1, h1), interpolation=cv2.INTER_LINEAR)[1:-1, 1:-1]
+    shown_v = cv2.resize(v0, (w1, h1), interpolation=cv2.INTER_LINEAR)[1:-1, 1:-1]
+    Ks = np.asarray(scale_intrinsics(K, w1 / w0, h1 / h0))
+    ray_x, ray_y = (shown_u - K[0, 2]) / K[0, 0], (shown_v - K[1, 2]) / K[1, 1]
+    v1, u1 = np.mgrid[1:h1 - 1, 1:w1 - 1]
+    np.testing.assert_allclose(Ks[0, 0] * ray_x + Ks[0, 2], u1, atol=2e-3)
+    np.testing.assert_allclose(Ks[1, 1] * ray_y + Ks[1, 2], v1, atol=2e-3)
+    wrong = np.asarray(scale_intrinsics(K, w1 / w0, h1 / h0, half_pixel=False))
+    assert np.abs(wrong[0, 0] * ray_x + wrong[0, 2] - u1).max() > 0.1
 
 
 def test_scale_intrinsics_batched_and_dtype() -> None:
@@ -23,9 +48,11 @@ def test_scale_intrinsics_batched_and_dtype() -> None:
     K[:, 2, 2] = 1.0
     scaled = scale_intrinsics(K, jnp.array([1.0, 2.0]), 3.0)
     assert scaled.dtype == jnp.float32 and scaled.shape == (2, 3, 3)
-    np.testing.assert_allclose(np.asarray(scaled[1, 0]), 2.0 * K[1, 0], rtol=1e-6)
-    np.testing.assert_allclose(np.asarray(scaled[1, 1]), 3.0 * K[1, 1], rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(scaled[1, 0, :2]), 2.0 * K[1, 0, :2], rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(scaled[1, 1, :2]), 3.0 * K[1, 1, :2], rtol=1e-6)
     np.testing.assert_array_equal(np.asarray(scaled[:, 2]), K[:, 2])
+    np.testing.assert_allclose(np.asarray(scaled[1, :2, 2]), [2.0 * K[1, 0, 2] + 0.5, 3.0 * K[1, 1, 2] + 1.0],
+                               rtol=1e-6)
 
 
 def test_pixel_grid_is_column_row() -> None:

@@ -52,11 +52,13 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
+import jax
 import numpy as np
 
 from dpc_jax import trajectory
 from dpc_jax._io import remove_stale, temp_name
 from dpc_jax._progress import Progress, progress_bar
+from dpc_jax.camera import scale_intrinsics
 from dpc_jax.data.kitti import StereoSequence, load_image, read_ground_truth
 from dpc_jax.data.priors import load_prior, rescale_monocular
 from dpc_jax.lie import validate_poses
@@ -74,18 +76,6 @@ FLOW_FILES = {
 }
 # docs/method.md §6: pyr_scale 0.5, 3 levels, window 15, 3 iterations, poly_n 5, poly_sigma 1.2.
 FARNEBACK = {"pyr_scale": 0.5, "levels": 3, "winsize": 15, "iterations": 3, "poly_n": 5, "poly_sigma": 1.2}
-
-
-def scale_intrinsics(K: np.ndarray, old_size: tuple[int, int], new_size: tuple[int, int]) -> np.ndarray:
-    """K of an image resized from ``(H, W)`` to ``(H', W')``: row 0 × W'/W, row 1 × H'/H (docs/method.md §1).
-
-    As in the reference code (docs/method.md §9, item 12) the half-pixel shift of the pixel-centre convention
-    (``c' = (c + ½) s − ½``, at most 0.35 px for KITTI → 240×376) is not applied.
-    """
-    out = np.array(K, dtype=np.float64)
-    out[0] *= new_size[1] / old_size[1]
-    out[1] *= new_size[0] / old_size[0]
-    return out
 
 
 def farneback_flow(source_grey: np.ndarray, target_grey: np.ndarray) -> np.ndarray:
@@ -221,6 +211,7 @@ def prepare_sequence(
     ground_truth: str | Path | np.ndarray | None = None,
     name: str | None = None,
     disparity_offset: float = 0.0,
+    half_pixel_intrinsics: bool = True,
     force: bool = False,
     progress: Progress = None,
     workers: int | None = None,
@@ -232,7 +223,9 @@ def prepare_sequence(
     * ``ground_truth``: replaces ``sequence.poses`` (array or pose file; ``.mat`` → ``poses_gt``).
       When the sequence has none and the prior is a ``.mat`` file, its ``poses_gt`` is used.
     * ``frames``: ``(start, stop)`` keeps only those source frames (before anything else).
-    * ``size``: ``(H, W)`` of the stored images (INTER_AREA), K scaled accordingly.
+    * ``size``: ``(H, W)`` of the stored images (INTER_AREA), K scaled accordingly
+      (``dpc_jax.camera.scale_intrinsics``; ``half_pixel_intrinsics=False``: the reference code's
+      rule, which leaves the principal point off by up to half a pixel).
     * ``mono_rescale``: rescale each prior step to the ground-truth step length (monocular VO);
       needs ground truth.
     * ``remove_static``: drop static frames by the ss-DPC-Net rule (docs/method.md §6) read on the
@@ -285,6 +278,7 @@ def prepare_sequence(
         "mono_rescale": mono_rescale, "frames": [start, stop], "prior_format": prior_format,
         "farneback": FARNEBACK if flow else None, "interpolation": "INTER_AREA",
         "disparity_offset": float(disparity_offset),
+        "half_pixel_intrinsics": bool(half_pixel_intrinsics),
     }
     extra = [gt_source] if isinstance(gt_source, np.ndarray) else []
     if gt_source is not None and not isinstance(gt_source, np.ndarray):
@@ -328,7 +322,10 @@ def prepare_sequence(
         if flow:
             _write_flows(tmp, arrays["left"], arrays["right"], flow_augment, workers, progress)
         del arrays
-        K = scale_intrinsics(sequence.K, sequence.image_size, size)
+        (h0, w0), (h1, w1) = sequence.image_size, size
+        with jax.enable_x64(True):
+            K = np.asarray(scale_intrinsics(np.asarray(sequence.K, np.float64), w1 / w0, h1 / h0,
+                                            half_pixel=half_pixel_intrinsics), np.float64)
         np.save(tmp / "prior.npy", prior_poses[kept])
         if gt is not None:
             np.save(tmp / "gt.npy", gt[kept])
