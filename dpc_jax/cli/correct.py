@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import logging
 import os
 import sys
@@ -72,6 +73,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="level of the one-sided acceptance test on Δ")
     parser.add_argument("--acceptance-depth", choices=("network", "sgbm"),
                         help="depth Δ is measured with (default: the run's acceptance_depth)")
+    parser.add_argument("--adapt", type=int, default=0, metavar="STEPS",
+                        help="first fine-tune the network for STEPS steps on this sequence's own images (no "
+                        "ground truth); the adapted network and its log go to OUT's stem + '.adapted/'")
+    parser.add_argument("--holdout-every", type=int, default=5, metavar="K",
+                        help="with --adapt: every K-th frame pair is kept out of adaptation, for the test")
+    parser.add_argument("--adapt-lr", type=float, metavar="LR",
+                        help="with --adapt: learning rate (default: the run's)")
     parser.add_argument("--report", type=Path, metavar="DIR",
                         help="write report.md (the acceptance test; with ground truth also the metrics, "
                         "CSV tables, plots, metrics.json) and summary.json")
@@ -106,14 +114,24 @@ def _check_arguments(args: argparse.Namespace) -> str | None:
         return f"--batch-size must be >= 1, got {args.batch_size}"
     if not 0.0 < args.alpha < 1.0:
         return f"--alpha must be in (0, 1), got {args.alpha}"
+    if args.adapt < 0 or args.holdout_every < 2:
+        return f"--adapt must be >= 0 and --holdout-every >= 2, got {args.adapt} and {args.holdout_every}"
+    if args.adapt_lr is not None and not args.adapt_lr > 0:
+        return f"--adapt-lr must be > 0, got {args.adapt_lr}"
     problem = (output_problem(args.out, "--out") or output_problem(args.report, "--report", folder=True)
-               or output_problem(args.cache, "--cache", folder=True))
+               or output_problem(args.cache, "--cache", folder=True)
+               or (output_problem(adapted_path(args.out), "--adapt", folder=True) if args.adapt else None))
     if problem is not None:
         return problem
     if not (args.checkpoint / "checkpoints" / "config.json").is_file():
         return (f"--checkpoint {args.checkpoint}: not a training run (expected "
                 f"{args.checkpoint / 'checkpoints' / 'config.json'}, written by `dpc-jax train`)")
     return None
+
+
+def adapted_path(out: Path) -> Path:
+    """Where ``--adapt`` puts the adapted network: ``corrected.txt`` → ``corrected.adapted/``."""
+    return out.with_name(f"{out.stem}.adapted")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -123,10 +141,10 @@ def run(args: argparse.Namespace) -> int:
     # Orbax logs a warning per read-only checkpoint manager; they say nothing useful here.
     logging.getLogger("absl").setLevel(logging.ERROR)
     from dpc_jax._io import OutputSet, remove_stale
-    from dpc_jax.correct import correct_cache, write_correction_report, write_trajectory
+    from dpc_jax.correct import correct_cache, prior_for_cache, write_correction_report, write_trajectory
     from dpc_jax.data.cache import prepare_sequence
     from dpc_jax.data.kitti import open_odometry, open_raw
-    from dpc_jax.data.pipeline import load_cache
+    from dpc_jax.data.pipeline import SequenceCache, load_cache
     from dpc_jax.evaluation import format_table
     from dpc_jax.inference import load_run
 
@@ -160,11 +178,24 @@ def run(args: argparse.Namespace) -> int:
                     prior_format=args.prior_format, ground_truth=args.gt, progress=progress,
                 )
                 prior = None
+            adaptation = None
+            if args.adapt:
+                from dpc_jax.adapt import AdaptConfig, adapt
+
+                cache = load_cache(cache) if not isinstance(cache, SequenceCache) else cache
+                if prior is not None:
+                    replaced = prior_for_cache(cache, prior, args.prior_format)
+                    cache, prior = dataclasses.replace(cache, prior=replaced), None
+                how = AdaptConfig(args.adapt, holdout_every=args.holdout_every, learning_rate=args.adapt_lr)
+                adaptation = adapt(run_, cache, how, progress=show)
             correction = correct_cache(
-                run_, cache, prior, rotation_only=args.rotation_only, prior_format=args.prior_format,
-                batch_size=args.batch_size, acceptance_depth=args.acceptance_depth, alpha=args.alpha,
-                force=args.force, progress=show,
+                adaptation.run if adaptation else run_, cache, prior, rotation_only=args.rotation_only,
+                prior_format=args.prior_format, batch_size=args.batch_size,
+                acceptance_depth=args.acceptance_depth, alpha=args.alpha, force=args.force,
+                held_out=adaptation.held_out if adaptation else None, progress=show,
             )
+            if adaptation is not None:
+                correction = dataclasses.replace(correction, adaptation=adaptation.summary())
         except (OSError, ValueError, KeyError) as error:
             return _error(str(error))
     # The corrected trajectory (with its frame list) and the report are written all or nothing.
@@ -173,6 +204,11 @@ def run(args: argparse.Namespace) -> int:
         if args.report is not None:
             title = f"DPC correction: {correction.name}"
             write_correction_report(outputs.folder(args.report), correction, title)
+        if adaptation is not None:
+            from dpc_jax.adapt import save_adapted
+
+            test = correction.acceptance.tests[next(iter(correction.acceptance.tests))]
+            save_adapted(outputs.folder(adapted_path(args.out)), adaptation, {"delta": test.mean_delta})
         outputs.commit()
     written = [args.out.parent / path.name for path in staged]
     criterion = {"delta": "most negative validation Δ", "gradient": "best gradient loss",
@@ -191,6 +227,9 @@ def run(args: argparse.Namespace) -> int:
         print("no ground truth: nothing to evaluate")
     else:
         sys.stdout.write(format_table(correction.evaluation))
+    if adaptation is not None:
+        print(f"adapted: {args.adapt} steps in {adaptation.seconds / 60:.1f} min on {correction.name}'s own "
+              f"pairs, {adaptation.held_out.size} kept out for the test -> {adapted_path(args.out)}")
     if args.report is not None:
         print(f"report: {args.report / 'report.md'}")
     return 0
