@@ -100,6 +100,20 @@ def pose_errors(gt: Array, est: Array) -> tuple[Array, Array]:
 
 
 @jax.jit
+def step_corrections(gt: Array, est: Array) -> Array:
+    """The correction each step of ``est`` needs: ``Log(G_{k+1,k} · inv(E_{k+1,k}))`` → ``[N-1, 6]``.
+
+    ``[ρ (m), φ (rad)]`` with ``X_{k+1,k} = inv(X_{k+1}) X_k``, so that ``Exp(ξ_k) · E_{k+1,k} =
+    G_{k+1,k}`` — the ξ_corr a perfect network would output (docs/method.md §1). Its mean over a
+    sequence is the estimate's systematic error per step, its spread the random part.
+    """
+    gt, est = _check_pair(gt, est)
+    g = se3_inverse(gt[1:]) @ gt[:-1]
+    e = se3_inverse(est[1:]) @ est[:-1]
+    return se3_log(g @ se3_inverse(e))
+
+
+@jax.jit
 def m_ate(gt: Array, est: Array) -> tuple[Array, Array]:
     """Mean absolute trajectory error (ss-DPC-Net): ``(translation m, rotation °)``."""
     trans, rot = pose_errors(gt, est)

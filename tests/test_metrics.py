@@ -183,6 +183,23 @@ def test_rpe_of_a_constant_yaw_bias() -> None:
     np.testing.assert_allclose(metrics.rpe(gt, est, 4)[1], 0.4, rtol=1e-9)
 
 
+def test_step_corrections_recover_a_known_perturbation() -> None:
+    """E's steps are G's steps with a known left perturbation: step_corrections gives it back."""
+    from scipy.linalg import expm
+
+    gt = drive(40, seed=1)
+    rng = np.random.default_rng(2)
+    xi = np.concatenate([rng.normal(0, 0.02, (39, 3)), rng.normal(0, 0.003, (39, 3))], axis=1)
+    hat = np.zeros((39, 4, 4))
+    hat[:, :3, 3] = xi[:, :3]
+    hat[:, [2, 0, 1], [1, 2, 0]] = xi[:, 3:]
+    hat[:, [1, 2, 0], [2, 0, 1]] = -xi[:, 3:]
+    steps = np.linalg.inv(gt[1:]) @ gt[:-1]
+    est_steps = np.stack([np.linalg.inv(expm(h)) @ s for h, s in zip(hat, steps, strict=True)])
+    est = compose(est_steps, gt[0])
+    np.testing.assert_allclose(np.asarray(metrics.step_corrections(gt, est)), xi, atol=1e-10)
+
+
 def circle(n: int, radius: float, laps: float, drift: float = 0.0) -> np.ndarray:
     """Camera driving a circle in the x–z plane; ``drift`` (m per lap) shifts it sideways as it goes."""
     angle = np.linspace(0.0, 2 * np.pi * laps, n)

@@ -372,3 +372,33 @@ def test_cli_writes_trajectory_and_csv(
     assert main(["vo", "--kitti-odometry", root, "--out", str(out)]) == 2
     assert main(["vo", "--kitti-odometry", root, "--sequence", "07", "--out", str(out)]) == 1
     assert "07" in capsys.readouterr().err
+
+
+def test_cli_warns_when_the_vo_falls_back_too_often(
+    tmp_path: Path, scene: tuple[np.ndarray, list], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Two featureless pairs of five: 40 % constant-velocity fallbacks; a warning on stderr and in JSON."""
+    import json
+
+    from dpc_jax.cli import main
+
+    poses, frames = scene
+    blank = np.full_like(frames[0][0], 128)
+    broken = [*frames[:3], (blank, blank), (blank, blank), frames[5]]
+    _odometry_layout(tmp_path / "kitti", broken, poses[:6])
+    out = tmp_path / "00.txt"
+    assert main(["vo", "--kitti-odometry", str(tmp_path / "kitti"), "--sequence", "00", "--out", str(out),
+                 "--no-progress"]) == 0
+    err = capsys.readouterr().err
+    assert "warning: 00:" in err and "fell back to constant velocity, more than 5 %" in err
+    record = json.loads(out.with_suffix(".json").read_text())
+    assert record["pairs"] == 5 and record["fallbacks"] >= 2 and record["fallback_share"] >= 0.4
+    assert "extrapolated" in record["warning"]
+    statuses = [line.split(",")[2] for line in out.with_suffix(".csv").read_text().splitlines()[1:]]
+    assert statuses.count("constant_velocity") == record["fallbacks"]
+    # A clean run: no warning.
+    _odometry_layout(tmp_path / "clean", frames[:4], poses[:4])
+    assert main(["vo", "--kitti-odometry", str(tmp_path / "clean"), "--sequence", "00", "--out",
+                 str(tmp_path / "clean.txt"), "--no-progress"]) == 0
+    assert "warning" not in capsys.readouterr().err
+    assert json.loads((tmp_path / "clean.json").read_text())["warning"] is None

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -18,7 +19,9 @@ The synthetic sequences use the odometry layout (--kitti-odometry). The trajecto
 (camera-to-world of the left camera, one 3x4 row per frame) starting at the identity, or at the ground
 truth's first pose with --start gt. The CSV (default: OUT with suffix .csv) has one row per frame pair:
 frame, inliers, status (ok | constant_velocity), disparity_offset_px, time_s. With ground truth the
-m-ATE and final-position error are printed. The trajectory and the CSV are written together or not at all."""
+m-ATE and final-position error are printed. OUT with suffix .json summarises the run (frames, fallbacks and
+their share, median inliers, final offset, and a warning when more than 5 % of the pairs fell back to constant
+velocity, which is also printed on stderr). The three files are written together or not at all."""
 
 
 
@@ -72,11 +75,13 @@ def run(args: argparse.Namespace) -> int:
 
     from dpc_jax._io import OutputSet
     from dpc_jax.trajectory import atomic_write, write_kitti_poses
-    from dpc_jax.vo import VOConfig, VOStatus, run_vo
-    from dpc_jax.vo.odometry import per_frame_table
+    from dpc_jax.vo import VOConfig, run_vo
+    from dpc_jax.vo.odometry import per_frame_table, summary
 
     csv_path = args.csv if args.csv is not None else args.out.with_suffix(".csv")
-    problem = output_problem(args.out, "--out") or output_problem(csv_path, "--csv")
+    json_path = args.out.with_suffix(".json")
+    problem = (output_problem(args.out, "--out") or output_problem(csv_path, "--csv")
+               or output_problem(json_path, "--out"))
     if csv_path.resolve() == args.out.resolve():
         problem = f"--csv {csv_path}: the same file as --out; give the CSV another name"
     if problem is not None:
@@ -104,18 +109,23 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: {sequence.name}: {error}", file=sys.stderr)
         return 1
 
+    counts = summary(result)
     with OutputSet() as outputs:
         write_kitti_poses(outputs.file(args.out), result.poses)
         atomic_write(outputs.file(csv_path), per_frame_table(result))
+        record = json.dumps({"sequence": sequence.name, **counts}, indent=2) + "\n"
+        atomic_write(outputs.file(json_path), record)
         outputs.commit()
 
-    fallbacks = int(np.sum(result.status != VOStatus.OK))
     rate = len(result.times) / result.times.sum()
     print(
         f"{sequence.name}: {len(result.poses)} frames, {rate:.1f} frames/s (VO only), "
-        f"median inliers {int(np.median(result.inliers))}, constant-velocity fallbacks {fallbacks}, "
+        f"median inliers {int(np.median(result.inliers))}, constant-velocity fallbacks {counts['fallbacks']}"
+        f" ({100 * counts['fallback_share']:.1f} %), "
         f"disparity offset {result.disparity_offset[-1]:+.2f} px"
     )
+    if counts["warning"] is not None:
+        print(f"dpc-jax vo: warning: {sequence.name}: {counts['warning']}", file=sys.stderr)
     if sequence.poses is not None:
         from dpc_jax.metrics import m_ate
 
@@ -127,5 +137,5 @@ def run(args: argparse.Namespace) -> int:
             f"vs ground truth: m-ATE {float(trans):.3f} m / {float(rot):.3f} deg, "
             f"final-position error {final:.3f} m"
         )
-    print(f"wrote {args.out} and {csv_path}")
+    print(f"wrote {args.out}, {csv_path} and {json_path}")
     return 0

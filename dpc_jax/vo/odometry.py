@@ -35,6 +35,9 @@ from dpc_jax.vo.motion import estimate_motion, project
 from dpc_jax.vo.stereo import match_stereo, triangulate
 
 STAGES = ("track", "detect", "stereo", "motion")
+# A VO result that falls back to constant velocity on more than this share of its pairs is mostly
+# extrapolated, not measured: ``dpc-jax vo`` warns, the demo refuses to train on it.
+FALLBACK_WARNING_SHARE = 0.05
 
 
 class VOStatus(enum.IntEnum):
@@ -324,6 +327,29 @@ def run_vo(
         _sequence_frames(sequence), sequence.K, sequence.baseline, config,
         first_pose=first_pose, total=n_left, progress=progress,
     )
+
+
+def summary(result: VOResult) -> dict[str, object]:
+    """Counts of a VO run: frames, fallbacks and their share, median inliers, final disparity offset,
+    and ``warning`` (a sentence, or None) when the fallback share exceeds
+    :data:`FALLBACK_WARNING_SHARE`."""
+    pairs = int(result.status.size)
+    fallbacks = int(np.count_nonzero(result.status != VOStatus.OK))
+    share = fallbacks / pairs
+    warning = None
+    if share > FALLBACK_WARNING_SHARE:
+        warning = (f"{fallbacks} of {pairs} pairs ({100 * share:.0f} %) fell back to constant velocity, more "
+                   f"than {100 * FALLBACK_WARNING_SHARE:.0f} %: the trajectory is largely extrapolated, not "
+                   "measured (images too small, too noisy or too dark for the tracker?)")
+    return {
+        "frames": int(result.poses.shape[0]),
+        "pairs": pairs,
+        "fallbacks": fallbacks,
+        "fallback_share": share,
+        "median_inliers": float(np.median(result.inliers)),
+        "disparity_offset_px": float(result.disparity_offset[-1]),
+        "warning": warning,
+    }
 
 
 def per_frame_table(result: VOResult) -> str:
