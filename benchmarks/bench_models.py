@@ -1,4 +1,4 @@
-"""Benchmark the networks: inference latency and a full training step (DESIGN §3, issue 7).
+"""Benchmark the networks: inference latency and a full training step (docs/method.md §3, issue 7).
 
 Usage::
 

@@ -35,6 +35,15 @@ import orbax.checkpoint as ocp
 CRITERIA = ("gradient_loss", "loop_closures", "delta")
 
 
+class CheckpointError(RuntimeError):
+    """A stored checkpoint under ``folder`` cannot be restored (damaged, incomplete, or written for
+    another model); the restore's own exception is the ``__cause__``."""
+
+    def __init__(self, folder: Path, error: BaseException):
+        super().__init__(f"{folder}: cannot restore the checkpoint ({type(error).__name__})")
+        self.folder = folder
+
+
 @dataclass(frozen=True)
 class Record:
     """The best epoch so far by one criterion (``epoch`` 0 = none yet; for ``delta``, "no correction",
@@ -125,17 +134,22 @@ class Checkpoints:
 
         ``abstract_state`` gives the structure, shapes, dtypes and shardings to restore into
         (e.g. ``jax.tree.map(ocp.utils.to_shape_dtype_struct, state)``).
+        Raises ``FileNotFoundError`` when there is none and :class:`CheckpointError` when it cannot
+        be read into ``abstract_state``.
         """
         manager = self.managers[which]
         epoch = manager.latest_step() if epoch is None else epoch
         if epoch is None:
             raise FileNotFoundError(f"{manager.directory}: no checkpoint to restore")
-        restored = manager.restore(
-            epoch,
-            args=ocp.args.Composite(
-                state=ocp.args.StandardRestore(abstract_state), meta=ocp.args.JsonRestore()
-            ),
-        )
+        try:
+            restored = manager.restore(
+                epoch,
+                args=ocp.args.Composite(
+                    state=ocp.args.StandardRestore(abstract_state), meta=ocp.args.JsonRestore()
+                ),
+            )
+        except Exception as error:  # orbax and tensorstore raise bare Exceptions for damaged data
+            raise CheckpointError(self.root, error) from error
         return restored["state"], restored["meta"]
 
     @staticmethod

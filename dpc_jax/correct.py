@@ -1,6 +1,6 @@
 """Correct a VO trajectory with a trained DPC network, only where the images support it (``dpc-jax correct``).
 
-Pipeline (DESIGN §1, §7):
+Pipeline (docs/method.md §1, §7):
 
 1. ``dpc_jax.inference.load_run`` restores a run at the epoch of a selection criterion and
    ``dpc_jax.inference.run_prediction`` runs it over every consecutive pair ``(k, k+1)`` of a
@@ -171,7 +171,7 @@ def correct_cache(
     ``network`` or ``sgbm`` (None = the run's); ``alpha``: the test's level; ``force``: apply the
     correction whatever the test says; ``held_out``: the pairs ``k`` the test uses (default all;
     after adaptation, the pairs it never saw). The trajectories start at the first ground-truth
-    pose when the cache has ground truth, else at the first prior pose (DESIGN §1).
+    pose when the cache has ground truth, else at the first prior pose (docs/method.md §1).
     """
     cache = cache if isinstance(cache, SequenceCache) else load_cache(cache)
     if prior is not None:

@@ -1,5 +1,5 @@
-"""Applying the network's pose correction to the VO prior (DESIGN §1, both papers eq. 1–2): one relative
-pose (:func:`apply_correction`) or a whole trajectory (:func:`corrected_trajectory`)."""
+"""Applying the network's pose correction to the VO prior (docs/method.md §1, both papers eq. 1–2): one
+relative pose (:func:`apply_correction`) or a whole trajectory (:func:`corrected_trajectory`)."""
 
 from __future__ import annotations
 

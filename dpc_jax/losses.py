@@ -1,4 +1,4 @@
-"""Self-supervised losses of ss-DPC-Net and Stereo DPC (DESIGN §2 and §4).
+"""Self-supervised losses of ss-DPC-Net and Stereo DPC (docs/method.md §2 and §4).
 
 Pure ``jnp`` functions of a :class:`~dpc_jax.outputs.DPCOutputs` and a
 :class:`~dpc_jax.batch.Batch`; they never import the models. They work under ``jax.jit`` (pass
@@ -214,7 +214,7 @@ def _ss_dpc_reconstruction(
 
 
 def ss_dpc_loss(outputs: DPCOutputs, batch: Batch, config: SSDPCLossConfig) -> tuple[Array, dict[str, Array]]:
-    """ss-DPC-Net loss (DESIGN §4, Wagstaff et al. eq. 7–10). Single scale, left camera only.
+    """ss-DPC-Net loss (docs/method.md §4, Wagstaff et al. eq. 7–10). Single scale, left camera only.
 
     Target = frame t+1 (``batch.left[:, 1]``), source = frame t (``batch.left[:, 0]``), target
     depth ``1 / outputs.left.inv_depth[:, 0]``, mask ``W = outputs.left.mask[:, 0]``.
@@ -289,7 +289,7 @@ def _stereo_setup(
 def stereo_dpc_loss(
     outputs: DPCOutputs, batch: Batch, config: StereoDPCLossConfig
 ) -> tuple[Array, dict[str, Array]]:
-    """Stereo DPC loss (DESIGN §4, Zhang et al. eq. 14).
+    """Stereo DPC loss (docs/method.md §4, Zhang et al. eq. 14).
 
     ``α1 (L^l + L^r) + α2 (L_disp^l + L_disp^r) + α3 Σ temporal + α4 L_exp``:
 

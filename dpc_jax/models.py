@@ -1,4 +1,4 @@
-"""Flax NNX networks: ss-DPC-Net (``MonoDPC``) and Stereo DPC (``StereoDPC``), DESIGN §3.
+"""Flax NNX networks: ss-DPC-Net (``MonoDPC``) and Stereo DPC (``StereoDPC``), docs/method.md §3.
 
 Both are built from one encoder–decoder *branch* and a fully connected pose head:
 
@@ -95,6 +95,10 @@ class ModelConfig:
     * ``prior_dropout``: dropout rate on the prior branch; None = ``dropout`` (the reference).
     * ``pose_init``: ``"pytorch"`` (the reference: PyTorch's default initialisation of every
       layer) or ``"zero"`` (the output FC layer starts at zero weights and bias: ξ_corr = 0).
+    * ``pose_features``: what the output layer sees: ``"images_and_prior"`` (the papers: the reduced
+      image bottlenecks and the prior branch) or ``"prior"`` (the prior branch only: the
+      correction is a learned function of the VO step, fitted to the images by the loss; the
+      image branches still give depth and masks).
     * ``pose_scale``: ``(translation m, rotation rad)`` per unit of the output layer; the
       reference's 0.01 for both. Adam moves every output weight by about the learning rate
       whatever its gradient, so this sets the jitter of each component's correction.
@@ -122,6 +126,7 @@ class ModelConfig:
     prior_dropout: float | None = None
     pose_init: Literal["pytorch", "zero"] = "pytorch"
     pose_scale: tuple[float, float] = (0.01, 0.01)
+    pose_features: Literal["images_and_prior", "prior"] = "images_and_prior"
     flow: bool | None = None
     frames: int | None = None
     learn_ssim_weight: bool = False
@@ -156,6 +161,8 @@ class ModelConfig:
             problems.append(f"prior_dropout must be None or in [0, 1), got {self.prior_dropout}")
         if len(self.pose_scale) != 2 or not all(x > 0 for x in self.pose_scale):
             problems.append(f"pose_scale must be two positive numbers, got {self.pose_scale}")
+        if self.pose_features not in ("images_and_prior", "prior"):
+            problems.append(f"pose_features must be 'images_and_prior' or 'prior': {self.pose_features!r}")
         if self.pose_init not in ("pytorch", "zero"):
             problems.append(f"pose_init must be 'pytorch' or 'zero', got {self.pose_init!r}")
         if self.frames not in (None, 1, 2):
@@ -277,7 +284,7 @@ class _Head(nnx.Module):
 
 
 class Branch(nnx.Module):
-    """One encoder with its depth and mask decoders (DESIGN §3, shared building blocks).
+    """One encoder with its depth and mask decoders (docs/method.md §3, shared building blocks).
 
     ``__call__(x [B, H, W, C_in]) -> (bottleneck [B, h, w, C], inv_depth [B, H, W, F],
     mask [B, H, W, F])``; ``H, W`` may be any size.
@@ -415,8 +422,10 @@ def _ssim_logit(config: ModelConfig) -> jax.Array:
 class _DPCBase(nnx.Module):
     """Shared checks, the prior branch, the output layer and the optional λ_s parameter."""
 
-    def __init__(self, config: ModelConfig, method: Method, n_pose_inputs: int, rngs: nnx.Rngs):
+    def __init__(self, config: ModelConfig, method: Method, n_branches: int, rngs: nnx.Rngs):
         self.config = config
+        self.uses_images = config.pose_features == "images_and_prior"
+        n_pose_inputs = (n_branches if self.uses_images else 0) + 1
         self.method = method
         self.use_flow = config.flow if config.flow is not None else method == "ss_dpc"
         self.frames = config.frames if config.frames is not None else (1 if method == "ss_dpc" else 2)
@@ -462,6 +471,12 @@ class _DPCBase(nnx.Module):
             return [None] * n
         return list(jax.random.split(key, n))
 
+    def _reduction(self, rngs: nnx.Rngs) -> FCReduction | None:
+        """The FC reduction of one branch's bottleneck, or None when the pose head ignores images."""
+        if not self.uses_images:
+            return nnx.data(None)
+        return FCReduction(self.bottleneck_features, self.config, self.config.dropout, True, rngs)
+
     def _pose(self, reduced: list[jax.Array], xi_vo: jax.Array, key: jax.Array | None) -> jax.Array:
         mean, std = self.prior_statistics[...]
         prior = (xi_vo.astype(jnp.float32) - mean) / std
@@ -482,17 +497,18 @@ class MonoDPC(_DPCBase):
     """
 
     def __init__(self, config: ModelConfig, rngs: nnx.Rngs):
-        super().__init__(config, "ss_dpc", 2, rngs)
+        super().__init__(config, "ss_dpc", 1, rngs)
         self.branch = Branch(config, self.in_channels, self.frames, rngs)
-        self.reduce = FCReduction(self.bottleneck_features, config, config.dropout, True, rngs)
+        self.reduce = self._reduction(rngs)
 
     def __call__(self, batch: Batch, *, key: jax.Array | None = None) -> DPCOutputs:
         self._check(batch, key)
         flow = batch.flow[:, 0] if self.use_flow else None
         bottleneck, inv_depth, mask = self.branch(_branch_input(batch.left, flow))
         k_reduce, k_prior = self._keys(key, 2)
-        reduced = self.reduce(bottleneck.reshape(bottleneck.shape[0], -1), k_reduce)
-        xi_corr = self._pose([reduced], batch.xi_vo, k_prior)
+        flat = bottleneck.reshape(bottleneck.shape[0], -1)
+        reduced = [] if self.reduce is None else [self.reduce(flat, k_reduce)]
+        xi_corr = self._pose(reduced, batch.xi_vo, k_prior)
         return DPCOutputs(xi_corr, _dense_outputs(inv_depth, mask), None, self._ssim_weight())
 
 
@@ -506,13 +522,13 @@ class StereoDPC(_DPCBase):
     """
 
     def __init__(self, config: ModelConfig, rngs: nnx.Rngs):
-        super().__init__(config, "stereo_dpc", 3, rngs)
+        super().__init__(config, "stereo_dpc", 2, rngs)
         if self.frames != 2:
             raise ValueError(f"StereoDPC predicts frames k and k+1 (frames=2), got frames={config.frames}")
         self.left_branch = Branch(config, self.in_channels, self.frames, rngs)
         self.right_branch = Branch(config, self.in_channels, self.frames, rngs)
-        self.left_reduce = FCReduction(self.bottleneck_features, config, config.dropout, True, rngs)
-        self.right_reduce = FCReduction(self.bottleneck_features, config, config.dropout, True, rngs)
+        self.left_reduce = self._reduction(rngs)
+        self.right_reduce = self._reduction(rngs)
 
     def __call__(self, batch: Batch, *, key: jax.Array | None = None) -> DPCOutputs:
         self._check(batch, key)
@@ -521,7 +537,7 @@ class StereoDPC(_DPCBase):
         bl, dl, ml = self.left_branch(_branch_input(batch.left, left_flow))
         br, dr, mr = self.right_branch(_branch_input(batch.right, right_flow))
         k_left, k_right, k_prior = self._keys(key, 3)
-        reduced = [
+        reduced = [] if self.left_reduce is None else [
             self.left_reduce(bl.reshape(bl.shape[0], -1), k_left),
             self.right_reduce(br.reshape(br.shape[0], -1), k_right),
         ]

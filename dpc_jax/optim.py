@@ -1,4 +1,4 @@
-"""The optimizer of a run and its train state (DESIGN §5), shared by training, adaptation and restore.
+"""The optimizer of a run and its train state (docs/method.md §5), shared by training, adaptation and restore.
 
 Adam with *coupled* L2 weight decay, as PyTorch's ``Adam(weight_decay=wd)``: ``wd·θ`` is added to
 the gradient before the Adam moments (not AdamW's decoupled decay), on every parameter (biases

@@ -3,7 +3,7 @@
 The acceptance test (``dpc_jax.acceptance``) can measure a correction's photometric effect with
 this depth instead of the network's own, so that the test does not lean on a depth that was
 trained together with the pose it judges. Metric through the baseline: ``1/Z = d / (fu · B)``
-(DESIGN §1). Numpy/OpenCV only.
+(docs/method.md §1). Numpy/OpenCV only.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Training: the jitted train step and the loop (checkpoints, logging, validation each epoch).
 
-Functional core (DESIGN §3, §5): the model and its optimizer (``dpc_jax.optim``) are split once,
+Functional core (docs/method.md §3, §5): the model and its optimizer (``dpc_jax.optim``) are split once,
 ``graphdef, state = nnx.split((model, optimizer))``; ``state`` holds the parameters, the
 BatchNorm statistics, the prior statistics, the Adam moments and the step count.
 ``make_train_step`` returns ONE jitted pure function ``train_step(graphdef, state, batch, key) ->
@@ -283,7 +283,7 @@ def _segment_errors(ground_truth: np.ndarray, estimate: np.ndarray) -> tuple[flo
 def validate(
     model_graphdef: nnx.GraphDef, model_state: nnx.State, data: TrainData, config: TrainConfig, mesh: Mesh
 ) -> dict[str, float]:
-    """Validation figures of one epoch (DESIGN §5), means over the validation pairs.
+    """Validation figures of one epoch (docs/method.md §5), means over the validation pairs.
 
     * ``val_loss``: the training loss in evaluation mode;
     * ``val_gradient_loss``: the photometric loss on high-gradient pixels (selection a);
@@ -494,13 +494,7 @@ def train(
     meta: dict[str, Any] | None = None
     if has_run and checkpoints.latest_epoch() is not None:
         abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, state)
-        try:
-            state, meta = checkpoints.restore(abstract)
-        except ValueError as error:
-            raise ConfigError(
-                f"{checkpoints.root}: the stored state does not fit the model this code builds from the "
-                f"config (did the model code change since the run started?): {str(error)[:300]}"
-            ) from None
+        state, meta = checkpoints.restore(abstract)
     elif is_main:
         config_lib.save_json(checkpoints.root / "config.json", config)
         config_lib.save_json(checkpoints.root / "split.json", data.split)

@@ -53,12 +53,13 @@ REFERENCE: dict[str, Any] = {
     "prior_dropout": None,
     "pose_lr_multiplier": 1.0,
     "pose_scale": (0.01, 0.01),
+    "pose_features": "images_and_prior",
 }
 
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """One training run, as data (DESIGN §5; the optimisation defaults are the Stereo DPC paper's).
+    """One training run, as data (docs/method.md §5; the optimisation defaults are the Stereo DPC paper's).
 
     Model
         * ``method``: ``"ss_dpc"`` (ss-DPC-Net, mono + flow) or ``"stereo_dpc"`` (Zhang et al.).
@@ -78,6 +79,7 @@ class TrainConfig:
         * ``pose_lr_multiplier``: learning-rate factor of the pose head (FC reductions, prior
           branch, output layer).
         * ``pose_scale``: ``(translation m, rotation rad)`` per unit of the output layer.
+        * ``pose_features``: ``"images_and_prior"`` or ``"prior"`` (see ``ModelConfig``).
     Loss
         * ``loss``: overrides of the method's loss config (``SSDPCLossConfig`` or
           ``StereoDPCLossConfig``): term weights, fixed λ_s, rotation weighting γ and λ_rot, ...
@@ -122,6 +124,7 @@ class TrainConfig:
     prior_dropout: float | None = 0.0
     pose_lr_multiplier: float = 1.0
     pose_scale: tuple[float, float] = (0.01, 1e-4)
+    pose_features: str = "images_and_prior"
     loss: dict[str, Any] = field(default_factory=dict)
     rotation_only: bool = False
     batch_size: int = 32
@@ -173,7 +176,9 @@ class TrainConfig:
             problems.append("acceptance_depth 'sgbm' needs the stereo method (stereo_dpc)")
         if self.image_size is not None and min(self.image_size) < 1:
             problems.append(f"image_size must be positive, got {self.image_size}")
-        for key in ("image_size", "dropout", "prior_dropout", "pose_init", "pose_scale", "learn_ssim_weight"):
+        top_level = ("image_size", "dropout", "prior_dropout", "pose_init", "pose_scale", "pose_features",
+                     "learn_ssim_weight")
+        for key in top_level:
             if key in self.model:
                 problems.append(f"model.{key} duplicates the top-level key {key!r}; set it there")
         if not self.validation_sequences:
@@ -201,7 +206,8 @@ class TrainConfig:
         base = PRESETS[self.preset]
         overrides = dict(
             self.model, dropout=self.dropout, prior_dropout=self.prior_dropout, pose_init=self.pose_init,
-            pose_scale=tuple(self.pose_scale), learn_ssim_weight=self.learn_ssim_weight,
+            pose_scale=tuple(self.pose_scale), pose_features=self.pose_features,
+            learn_ssim_weight=self.learn_ssim_weight,
         )
         if self.image_size is not None:
             overrides["image_size"] = tuple(self.image_size)

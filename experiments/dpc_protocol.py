@@ -37,7 +37,7 @@ import numpy as np
 
 from dpc_jax.trajectory import atomic_write
 
-# Odometry sequence ↔ raw drive (DESIGN §6): raw drives that *are* an odometry sequence must not be
+# Odometry sequence ↔ raw drive (docs/method.md §6): raw drives that *are* an odometry sequence must not be
 # used for training when that sequence is tested.
 ODOMETRY_DRIVES = {
     "00": "2011_10_03_drive_0027", "01": "2011_10_03_drive_0042", "02": "2011_10_03_drive_0034",

@@ -271,6 +271,28 @@ def test_loop_writes_checkpoints_metrics_and_refuses_other_runs(
     assert again["step"] == 6 and len(_read_metrics(tmp_path)) == 2
 
 
+def test_resume_from_a_damaged_checkpoint_names_it(
+    cache_root: Path, tmp_path: Path, cheap_losses: None, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from dpc_jax.checkpoints import CheckpointError
+    from dpc_jax.cli import main
+
+    config = tiny_config(cache_root, epochs=1)
+    train(config, tmp_path / "run", progress=False, workers=0)
+    # Truncate every array file of the stored state: what a full disk or a copy cut short leaves.
+    for path in (tmp_path / "run" / "checkpoints" / "epochs" / "1" / "state").rglob("*"):
+        if path.is_file() and path.stat().st_size > 1000:
+            path.write_bytes(path.read_bytes()[:100])
+    with pytest.raises(CheckpointError, match="cannot restore the checkpoint"):
+        train(config, tmp_path / "run", resume=True, progress=False, workers=0)
+    config_file = tmp_path / "tiny.py"
+    config_file.write_text(f"CONFIG = {config_lib.to_dict(config)!r}\n")
+    assert main(["train", "--config", str(config_file), "--workdir", str(tmp_path / "run"), "--resume",
+                 "--no-progress"]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and f"{tmp_path / 'run' / 'checkpoints'}: cannot restore the checkpoint" in err[0]
+
+
 def test_non_finite_loss_stops_and_keeps_the_last_good_checkpoint(
     cache_root: Path, tmp_path: Path, cheap_losses: None, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -141,6 +141,7 @@ def run(args: argparse.Namespace) -> int:
     # Orbax logs a warning per read-only checkpoint manager; they say nothing useful here.
     logging.getLogger("absl").setLevel(logging.ERROR)
     from dpc_jax._io import OutputSet, remove_stale
+    from dpc_jax.checkpoints import CheckpointError
     from dpc_jax.correct import correct_cache, prior_for_cache, write_correction_report, write_trajectory
     from dpc_jax.data.cache import prepare_sequence
     from dpc_jax.data.kitti import open_odometry, open_raw
@@ -156,10 +157,8 @@ def run(args: argparse.Namespace) -> int:
             checked = load_cache(args.data) if args.data is not None else None
             try:
                 run_ = load_run(args.checkpoint, args.select)
-            except FileNotFoundError:
-                raise
-            except Exception as error:  # orbax and tensorstore raise bare Exceptions for damaged data
-                return _error(restore_problem(args.checkpoint / "checkpoints", error))
+            except CheckpointError as error:
+                return _error(restore_problem(error.folder, error.__cause__))
             if args.data is not None:
                 cache, prior = checked, args.prior
             else:

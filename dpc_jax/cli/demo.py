@@ -7,15 +7,17 @@ import logging
 import sys
 from pathlib import Path
 
-from dpc_jax.cli._common import Formatter, output_problem
+from dpc_jax.cli._common import Formatter, output_problem, restore_problem
 
 HELP = "Synthetic end-to-end demo: train Stereo DPC on rendered sequences, correct our VO, write a report."
 
 EPILOG = """examples:
   dpc-jax demo --out demo
   dpc-jax demo --out demo_hard --config my_demo.py     # CONFIG = DemoConfig(...) or a dict of its fields
-Writes OUT/report.md (table, trajectory, segment-error and c-ATE plots) and keeps the data, priors, caches
-and the training run under OUT; re-running reuses what is up to date."""
+Writes OUT/report.md (the prior's error, the test table: prior, network as trained, network adapted to the
+test sequence, final; trajectory, segment-error and c-ATE plots), OUT/corrected.txt and OUT/summary.json, and
+keeps the data, priors, caches, the training run and the adapted network under OUT; re-running reuses what is
+up to date."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -31,8 +33,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from dpc_jax.checkpoints import CheckpointError
     from dpc_jax.config import ConfigError, load_file
-    from dpc_jax.demo import DemoConfig, run_demo
+    from dpc_jax.demo import DemoConfig, DemoError, run_demo
 
     problem = output_problem(args.out, "--out", folder=True)
     if problem is not None:
@@ -48,16 +51,20 @@ def run(args: argparse.Namespace) -> int:
     logging.getLogger("absl").setLevel(logging.ERROR)
     try:
         summary = run_demo(config, args.out, progress=progress, log=lambda line: print(line, flush=True))
-    except (ConfigError, FileExistsError) as error:
+    except (ConfigError, DemoError, FileExistsError) as error:
         print(f"dpc-jax demo: error: {error}", file=sys.stderr)
         return 2
+    except CheckpointError as error:
+        print(f"dpc-jax demo: error: {restore_problem(error.folder, error.__cause__)}", file=sys.stderr)
+        return 2
+
     def errors(label: str) -> str:
         values = summary["test"][label]
         t, r = (values[k] for k in ("seg_trans_pct", "seg_rot_deg_per_100m"))
         return "n/a (shorter than 100 m)" if t is None or r is None else f"{t:.3f} % / {r:.3f} °/100 m"
 
-    print(f"test sequence segment errors: prior {errors('prior')}, corrected {errors('corrected')} "
-          f"(epoch {summary['selected_epoch']}, selected by {summary['select']}); "
+    rows = ", ".join(f"{label} {errors(label)}" for label in summary["test"] if label != "corrected")
+    print(f"test sequence segment errors: {rows}; final ({summary['final']}) {errors('corrected')}; "
           f"{summary['seconds_total'] / 60:.1f} min")
     print(f"report: {summary['report']}")
     return 0

@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from dpc_jax.cli._common import Formatter, output_problem
+from dpc_jax.cli._common import Formatter, output_problem, restore_problem
 
 HELP = "Train ss-DPC-Net or Stereo DPC on prepared sequences (checkpoints, metrics.csv, TensorBoard)."
 
@@ -47,6 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from dpc_jax import config as config_lib
+    from dpc_jax.checkpoints import CheckpointError
     from dpc_jax.config import ConfigError
     from dpc_jax.data.pipeline import CacheError
     from dpc_jax.train import NonFiniteLossError, train
@@ -73,6 +74,9 @@ def run(args: argparse.Namespace) -> int:
         )
     except (ConfigError, CacheError, FileNotFoundError) as error:
         print(f"dpc-jax train: error: {error}", file=sys.stderr)
+        return 2
+    except CheckpointError as error:
+        print(f"dpc-jax train: error: {restore_problem(error.folder, error.__cause__)}", file=sys.stderr)
         return 2
     except NonFiniteLossError as error:
         print(f"dpc-jax train: stopped: {error}", file=sys.stderr)

@@ -1,4 +1,4 @@
-"""Synthetic stereo driving world, rendered exactly, in the KITTI odometry layout (DESIGN §6).
+"""Synthetic stereo driving world, rendered exactly, in the KITTI odometry layout (docs/method.md §6).
 
 * :class:`SynthConfig`, :func:`render_sequence`, :func:`iter_frames` (``sequence``): the Python API.
 * :func:`write_sequences`, :func:`write_sequence` (``writer``): KITTI-layout output.

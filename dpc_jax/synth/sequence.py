@@ -5,7 +5,7 @@
 sequences never sit in memory). Everything is deterministic from ``SynthConfig.seed``: the world,
 the trajectories, the illumination drift and the image noise.
 
-Camera model (DESIGN §1): rectified stereo pair, KITTI colour intrinsics (P2 of the odometry
+Camera model (docs/method.md §1): rectified stereo pair, KITTI colour intrinsics (P2 of the odometry
 calibration: fu = fv = 721.5377, cu = 609.5593, cv = 172.854 at 1242×375) scaled to the image
 size (row 0 by W/1242, row 1 by H/375), right camera ``baseline`` metres along the left camera's
 x axis. Poses are camera-to-world of the left camera, re-anchored so that the first pose is the

@@ -2,7 +2,7 @@
 
 Every albedo here is a function of *surface* coordinates in metres (distance along the road,
 height on a facade, position on a car's face, ...), never of the viewing ray, so the same world
-point has the same colour in every view: the photometric model of DESIGN §2 holds exactly up to
+point has the same colour in every view: the photometric model of docs/method.md §2 holds exactly up to
 interpolation. The only view-dependent input is the pixel footprint (metres on the surface covered
 by one pixel), passed as its reciprocal ``ppm`` (pixels per metre; multiplications are cheaper than
 divisions here) and used to band-limit: a noise octave or a periodic pattern whose wavelength falls

@@ -1,7 +1,7 @@
 """Frame-to-frame motion from 3D–2D correspondences of a stereo rig.
 
 The points are triangulated in frame ``k`` (left camera, metres) and observed in the left and
-(where matched) right image of frame ``k+1``. The motion is ``T = T_{k+1,k}`` (DESIGN §1): it maps
+(where matched) right image of frame ``k+1``. The motion is ``T = T_{k+1,k}`` (docs/method.md §1): it maps
 a point expressed in frame ``k`` into frame ``k+1``.
 
 Estimation follows libviso2-s (Geiger, Ziegler, Stiller, "StereoScan", IV 2011): a RANSAC

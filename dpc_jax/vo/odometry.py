@@ -15,7 +15,7 @@ For every new rectified grey pair ``k+1`` (see :class:`StereoVO`):
 5. The inliers and the new points with a stereo match in ``k+1`` are triangulated there (fresh
    depth every frame, so depth errors do not accumulate along a track).
 
-The trajectory is composed as ``T_w_{k+1} = T_w_k · inv(T_{k+1,k})`` (DESIGN §1) from the given
+The trajectory is composed as ``T_w_{k+1} = T_w_k · inv(T_{k+1,k})`` (docs/method.md §1) from the given
 first pose (identity by default).
 """
 

@@ -1,6 +1,6 @@
 """Left–right matching along the rows of a rectified pair, and triangulation.
 
-Conventions (DESIGN §1): rectified pair, right camera at ``+B`` along the left camera's x axis,
+Conventions (docs/method.md §1): rectified pair, right camera at ``+B`` along the left camera's x axis,
 disparity ``d = u_l − u_r = fu · B / Z`` in pixels.
 """
 

@@ -10,7 +10,7 @@ Protocol (three trained networks, "folds"):
 The mono network (left image pair + Farnebäck flow + prior), 240×376, batch 32, 30 epochs, coupled
 L2 4e-6, dropout 0.5, λ_exp = 0.23, λ_rot = 4 for samples with prior rotation ≥ γ = 0.005 rad,
 frame-skip augmentation. Stereo priors: Adam 1e-3 halved every 4 epochs and only the rotation of
-the correction applied; mono priors: 5e-5 halved every 10 epochs, the full correction (DESIGN §5).
+the correction applied; mono priors: 5e-5 halved every 10 epochs, the full correction (docs/method.md §5).
 The epoch is chosen by the validation gradient loss (``--select loop`` for the loop-closure count);
 the correction head has the published settings (``dpc_jax.train_config.REFERENCE``) and every
 correction is applied (no acceptance test).

@@ -1,4 +1,4 @@
-"""The synthetic demo (issue 9): what ``dpc-jax demo`` runs; this file spells out its defaults.
+"""The synthetic demo: what ``dpc-jax demo`` runs; this file spells out its defaults.
 
 Command (either; the second is the installed console script):
 
@@ -7,19 +7,12 @@ Command (either; the second is the installed console script):
 
 What it produces in OUT (see ``dpc_jax.demo``): ``data/`` (rendered synthetic sequences in the
 KITTI odometry layout: train0, train1 for training, val for epoch selection, test held out),
-``vo/`` (priors from our classical stereo VO), ``cache/`` (prepared at the network's size),
-``run/`` (the Stereo DPC training run: checkpoints, metrics.csv, TensorBoard), ``report.md``
-(prior vs corrected on the test sequence, per-length segment errors, trajectory / segment-error /
-cumulative-error plots), ``corrected.txt``, ``summary.json``. The epoch is selected by the
-validation gradient loss (no ground truth); the test sequence is never read by training.
-
-The cameras are 120×188 (see ``dpc_jax.demo``): at 240×376 our VO is more precise than the small
-network at 64×96 can resolve in this budget (test: 0.90 % / 0.57 °/100 m prior, 2.10 % / 1.23
-°/100 m corrected, measured before the convolution rewrite of ``dpc_jax/conv.py``). Measured
-with this config on the 2-core machine: test segment errors 11.96 % / 9.61 °/100 m (prior) →
-9.39 % / 9.59 °/100 m (corrected, epoch 4 selected), 2.1 min; a second run gave a byte-identical
-corrected trajectory. With ``"seed": 1`` or ``2`` the corrected test errors are not both lower
-(7.55 % / 10.23 → 12.25 % / 9.04; 4.28 % / 4.60 → 7.48 % / 6.89).
+``vo/`` (priors from our classical stereo VO with its offset estimate off, and the calibration
+runs with it on), ``cache/`` (prepared at the network's size, rectified by the measured offset),
+``run/`` (the Stereo DPC training run), ``adapted/`` (the network adapted to the test sequence),
+``report.md`` (the prior's error composition; prior, network as trained, network adapted and the
+final trajectory on the test sequence; plots), ``corrected.txt``, ``summary.json``. Over several
+seeds: ``python experiments/demo_seeds.py``.
 """
 
 CONFIG = {
@@ -27,11 +20,16 @@ CONFIG = {
     "train_frames": 300,
     "validation_frames": 150,
     "test_frames": 300,
-    "render_size": (120, 188),
+    "render_size": (240, 376),
     "moving_objects": 6,
     "illumination_drift": 0.3,
     "noise": 1.0,
+    "disparity_offset": -0.36,
+    "vo_estimate_offset": False,
+    "rectify_offset": True,
     "seed": 0,
     "training": {},
-    "select": "gradient",
+    "select": "delta",
+    "adapt_steps": 300,
+    "holdout_every": 5,
 }

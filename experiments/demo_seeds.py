@@ -1,0 +1,145 @@
+"""The demo over several seeds (other towns and routes): does the correction help on every one?
+
+For each seed the demo (``dpc_jax.demo``, default config unless ``--config``) runs into
+``WORKDIR/seed_K``; the table ``WORKDIR/seeds.md`` (and ``seeds.csv``) has per seed the test
+sequence's segment errors of the prior, of the network as trained and of the network adapted to
+the test sequence (each with its acceptance decision), of the final trajectory, its change against
+the prior, and the minutes the demo took. Re-running reuses each seed's finished stages.
+
+    python experiments/demo_seeds.py --seeds 0 1 2 3 4 --workdir runs/demo_seeds
+    python experiments/demo_seeds.py --seeds 0 1 --workdir runs/x --config my_demo.py --set adapt_steps=0
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import logging
+import math
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from dpc_jax.hugepages import reexec_with_huge_pages
+
+ROOT = Path(__file__).resolve().parent
+DEFAULT_CONFIG = ROOT / "configs" / "synthetic_demo.py"
+SEG = ("seg_trans_pct", "seg_rot_deg_per_100m")
+
+
+def _pair(values: dict[str, Any] | None) -> str:
+    if values is None:
+        return "—"
+    t, r = (values[k] for k in SEG)
+    return "n/a" if t is None or r is None else f"{t:.2f} / {r:.2f}"
+
+
+def _row(seed: int, summary: dict[str, Any], minutes: float) -> dict[str, Any]:
+    test = summary["test"]
+    change = summary["change_pct"]
+    return {
+        "seed": seed,
+        "prior": _pair(test["prior"]),
+        "trained": _pair(test.get("trained")),
+        "trained_test": summary["decisions"].get("trained", "—"),
+        "adapted": _pair(test.get("adapted")),
+        "adapted_test": summary["decisions"].get("adapted", "—"),
+        "final": f"{summary['final']}: {_pair(test['corrected'])}",
+        "change_t_pct": change["seg_trans_pct"],
+        "change_r_pct": change["seg_rot_deg_per_100m"],
+        "minutes": minutes,
+    }
+
+
+def seeds_markdown(rows: list[dict[str, Any]], config_name: str) -> str:
+    """The table: one row per seed (segment errors t % / r °/100 m)."""
+    lines = [
+        f"# The demo over {len(rows)} seeds ({config_name})",
+        "",
+        "Test sequence segment errors, translation % / rotation °/100 m. *trained*: the network as trained; "
+        "*adapted*: adapted to the test sequence's own images (no ground truth); each with its acceptance "
+        "test; *final*: what `corrected.txt` holds; change: final against the prior.",
+        "",
+        "| seed | prior | trained | test | adapted | test | final | change t | change r | minutes |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['seed']} | {r['prior']} | {r['trained']} | {r['trained_test']} | {r['adapted']} | "
+            f"{r['adapted_test']} | {r['final']} | {r['change_t_pct']:+.1f} % | {r['change_r_pct']:+.1f} % | "
+            f"{r['minutes']:.1f} |"
+        )
+    good = [r for r in rows if r["change_t_pct"] <= -20 and r["change_r_pct"] <= -20]
+    worse = [r for r in rows
+             if max(r["change_t_pct"], r["change_r_pct"]) > 2 or math.isnan(r["change_t_pct"])]
+    lines += ["", f"Both segment errors at least 20 % lower: {len(good)} of {len(rows)} seeds; "
+              f"worse than the prior by more than 2 % in either: {len(worse)}."]
+    return "\n".join(lines) + "\n"
+
+
+def seeds_csv(rows: list[dict[str, Any]]) -> str:
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=list(rows[0]), lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    return buffer.getvalue()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4], metavar="K")
+    parser.add_argument("--workdir", type=Path, default=Path("runs/demo_seeds"), metavar="DIR")
+    parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG, metavar="FILE",
+                        help="demo config (CONFIG = DemoConfig(...) or a dict); its seed is replaced")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a DemoConfig field (JSON value), e.g. --set adapt_steps=0")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    args = parser.parse_args(argv)
+
+    from dpc_jax import config as config_lib
+    from dpc_jax.demo import DemoConfig, DemoError, run_demo
+    from dpc_jax.trajectory import atomic_write
+
+    logging.getLogger("absl").setLevel(logging.ERROR)
+    try:
+        base = config_lib.to_dict(config_lib.load_file(args.config, DemoConfig))
+        for pair in args.set:
+            key, sep, value = pair.partition("=")
+            if not sep:
+                raise config_lib.ConfigError(f"--set {pair!r}: expected KEY=VALUE")
+            try:
+                base[key] = json.loads(value)
+            except json.JSONDecodeError:
+                base[key] = value
+        configs = {seed: config_lib.from_dict(DemoConfig, {**base, "seed": seed}, where="--set")
+                   for seed in args.seeds}
+    except (OSError, config_lib.ConfigError) as error:
+        print(f"demo_seeds: error: {error}", file=sys.stderr)
+        return 2
+    progress = not args.no_progress and sys.stderr.isatty()
+    rows = []
+    for seed, config in configs.items():
+        began = time.perf_counter()
+        try:
+            summary = run_demo(config, args.workdir / f"seed_{seed}", progress=progress,
+                               log=lambda line, seed=seed: print(f"[seed {seed}] {line}", flush=True))
+        except (OSError, ValueError, DemoError) as error:
+            print(f"demo_seeds: error: seed {seed}: {error}", file=sys.stderr)
+            return 1
+        rows.append(_row(seed, summary, (time.perf_counter() - began) / 60))
+        args.workdir.mkdir(parents=True, exist_ok=True)
+        text = seeds_markdown(rows, args.config.name + (" " + " ".join(args.set) if args.set else ""))
+        atomic_write(args.workdir / "seeds.md", text)
+        atomic_write(args.workdir / "seeds.csv", seeds_csv(rows))
+    print(text, end="")
+    return 0
+
+
+if __name__ == "__main__":
+    reexec_with_huge_pages()
+    sys.exit(main())
