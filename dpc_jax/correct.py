@@ -223,6 +223,16 @@ def compose_correction(
     )
 
 
+def preferred(corrections: dict[str, Correction]) -> tuple[str, Correction]:
+    """The final choice among corrections of one sequence, listed in order of preference (e.g.
+    ``{"adapted": …, "trained": …}``): the first whose acceptance test let a correction through,
+    else ``("prior", c)`` with ``c`` the last one, whose trajectory is then the prior re-composed."""
+    for name, correction in corrections.items():
+        if correction.applied != "none":
+            return name, correction
+    return "prior", list(corrections.values())[-1]
+
+
 def frames_path(path: str | os.PathLike) -> Path:
     """Where :func:`write_trajectory` lists frame numbers: ``corrected.txt`` → ``corrected.frames.txt``."""
     path = Path(path)

@@ -28,6 +28,10 @@ one; its table in ``docs/ablation.md`` is the measurement behind them):
   The reference's 0.01 for both makes a rotation unit a hundred times larger than a good VO's
   rotation error per frame; Adam moves every output weight by about the learning rate, so the
   rotation part then jitters by more than the bias it should learn.
+* ``pose_features="prior"``: the correction is a learned function of the VO step alone (the image
+  branches still give the depth and masks the loss needs). What a correction can learn is the
+  VO's systematic error, a function of its motion; from 64×96 images the per-pair correction is
+  noisy, and that noise adds to the trajectory's error.
 """
 
 from __future__ import annotations
@@ -124,7 +128,7 @@ class TrainConfig:
     prior_dropout: float | None = 0.0
     pose_lr_multiplier: float = 1.0
     pose_scale: tuple[float, float] = (0.01, 1e-4)
-    pose_features: str = "images_and_prior"
+    pose_features: str = "prior"
     loss: dict[str, Any] = field(default_factory=dict)
     rotation_only: bool = False
     batch_size: int = 32

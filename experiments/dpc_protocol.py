@@ -23,13 +23,14 @@ KITTI (their ``--smoke`` tests).
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import json
 import logging
 import math
 import runpy
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -71,7 +72,9 @@ class Result:
     selection: str
     frames: int
     metrics: dict[str, dict[str, Any]]  # {"prior": summary, "corrected": summary}
-    applied: str = "full"  # the acceptance decision: full, rotation or none (forced corrections: full)
+    applied: str = "full"  # which network's correction the final trajectory holds (or "prior")
+    stages: dict[str, dict[str, Any]] = field(default_factory=dict)  # network label → its proposal's summary
+    decisions: dict[str, str] = field(default_factory=dict)  # network label → acceptance decision
 
 
 def load_protocol(path: str | Path) -> tuple[Any, dict[str, Any]]:
@@ -131,29 +134,26 @@ def find_prior(directory: Path, name: str, kind: str = "stereo") -> Path:
     raise FileNotFoundError(f"{directory}: no prior for sequence {name} (looked for {', '.join(candidates)})")
 
 
-def vo_prior(sequence: Any, out: Path, progress: bool) -> Path:
-    """Our classical stereo VO over ``sequence``, started at its first GT pose, as KITTI text ``out``."""
-    from dpc_jax.trajectory import write_kitti_poses
-    from dpc_jax.vo import run_vo
+def vo_prior(sequence: Any, out: Path, progress: bool) -> dict[str, Any]:
+    """Our classical stereo VO over ``sequence``, started at its first GT pose, as KITTI text ``out``
+    (recomputed when its inputs change; ``dpc_jax.vo.prior``); the run's summary with ``path``."""
+    from dpc_jax.vo.prior import vo_prior as run
 
-    if not out.is_file():
-        first = None if sequence.poses is None else sequence.poses[0]
-        result = run_vo(sequence, first_pose=first, progress=progress)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        write_kitti_poses(out, result.poses)
-    return out
+    return run(sequence, out, first_pose=None if sequence.poses is None else sequence.poses[0],
+               progress=progress)
 
 
 def prepare(
     sequence: Any, prior: Path | np.ndarray, cache_root: Path, config: Any, *, name: str | None = None,
     frames: tuple[int, int] | None = None, ground_truth: Path | None = None, mono_rescale: bool = False,
-    progress: bool = False,
+    disparity_offset: float = 0.0, progress: bool = False,
 ) -> Path:
     """Prepare (or find up to date) a sequence's cache at the config's image size.
 
     Flow (with the augmentation flows for frame-skip/reversed pairs) is stored when the network
     reads flow. Static frames are kept: the trajectories are corrected and evaluated on every
-    frame, like the published tables.
+    frame, like the published tables. ``disparity_offset``: rectify the network's images by this
+    calibration residual (``dpc_jax.data.cache.prepare_sequence``).
     """
     from dpc_jax.data.cache import prepare_sequence
 
@@ -162,7 +162,8 @@ def prepare(
     return prepare_sequence(
         sequence, prior, cache_root, size=config.resolved_image_size, flow=flow,
         flow_augment=flow and (config.frame_skip or config.reverse), mono_rescale=mono_rescale,
-        frames=frames, ground_truth=ground_truth, name=name, progress=progress,
+        frames=frames, ground_truth=ground_truth, name=name, disparity_offset=disparity_offset,
+        progress=progress,
     )
 
 
@@ -179,28 +180,48 @@ def train_fold(config: Any, workdir: Path, progress: bool) -> dict[str, Any]:
 def correct_and_evaluate(
     fold: str, run_dir: Path, cache: Path, out_root: Path, *, select: str = "gradient",
     prior_label: str = "prior", rotation_only: bool | None = None, acceptance: bool = True,
-    progress: bool = False,
+    adapt_steps: int = 0, holdout_every: int = 5, progress: bool = False,
 ) -> Result:
     """Correct the prior of ``cache`` with the run's selected epoch (only where the acceptance test
-    allows it, unless ``acceptance`` is False); write trajectory and report."""
-    from dpc_jax.correct import correct_cache, write_correction_report, write_trajectory
+    allows it, unless ``acceptance`` is False) and, with ``adapt_steps``, also with the network
+    adapted to ``cache``'s own pairs (``dpc_jax.adapt``, the ground truth unread); the final
+    trajectory is the adapted correction if accepted, else the trained one if accepted, else the
+    prior. Writes the final trajectory, the reports and (adapting) the adapted network."""
+    from dpc_jax.correct import correct_cache, preferred, write_correction_report, write_trajectory
+    from dpc_jax.data.pipeline import load_cache
     from dpc_jax.inference import load_run
 
     run = load_run(run_dir, select)
-    correction = correct_cache(run, cache, rotation_only=rotation_only, force=not acceptance,
-                               progress=progress)
+    loaded = load_cache(cache)
+    name = Path(cache).name
+    corrections = {"trained": correct_cache(run, loaded, rotation_only=rotation_only, force=not acceptance,
+                                            progress=progress)}
+    if adapt_steps:
+        from dpc_jax.adapt import AdaptConfig, adapt, save_adapted
+
+        how = AdaptConfig(adapt_steps, holdout_every=holdout_every)
+        adaptation = adapt(run, loaded, how, progress=progress)
+        adapted = correct_cache(adaptation.run, loaded, rotation_only=rotation_only, force=not acceptance,
+                                held_out=adaptation.held_out, progress=progress)
+        corrections["adapted"] = dataclasses.replace(adapted, adaptation=adaptation.summary())
+        test = adapted.acceptance.tests[next(iter(adapted.acceptance.tests))]
+        save_adapted(out_root / "adapted" / fold / name, adaptation, {"delta": test.mean_delta})
+    final, correction = preferred(dict(reversed(corrections.items())))
     if correction.evaluation is None:
         raise ValueError(f"{cache}: no ground truth; the experiment needs it to evaluate")
-    name = Path(cache).name
     (out_root / "corrected" / fold).mkdir(parents=True, exist_ok=True)
     write_trajectory(out_root / "corrected" / fold / f"{name}.txt", correction)
-    write_correction_report(
-        out_root / "reports" / fold / name, correction,
-        f"{fold}: {name} ({prior_label} prior, epoch {run.epoch} by {select})",
-    )
+    for label, c in corrections.items():
+        write_correction_report(
+            out_root / "reports" / fold / name / label, c,
+            f"{fold}: {name} ({prior_label} prior, epoch {run.epoch} by {select}, network {label})",
+        )
+    stages = {label: c.evaluation["estimates"]["network"] for label, c in corrections.items()}
+    decisions = {label: "forced" if c.acceptance.forced else c.applied for label, c in corrections.items()}
     estimates = correction.evaluation["estimates"]
     return Result(fold, name, prior_label, run.epoch, select, int(correction.corrected.shape[0]),
-                  {"prior": estimates["prior"], "corrected": estimates["corrected"]}, correction.applied)
+                  {"prior": estimates["prior"], "corrected": estimates["corrected"]},
+                  f"{final}" + (f" ({correction.applied})" if final != "prior" else ""), stages, decisions)
 
 
 COLUMNS = (
@@ -226,8 +247,23 @@ def results_markdown(results: Sequence[Result], title: str, notes: Sequence[str]
              *cells]
         ) + " |")
     lines += ["", "Each cell: prior → corrected. Segment errors are the mean of the per-length means over "
-              "100–800 m (n/a when the sequence is shorter than 100 m). applied: what the acceptance test "
-              "let through (full, rotation or none = the prior kept)."]
+              "100–800 m (n/a when the sequence is shorter than 100 m). applied: which network's correction "
+              "the final trajectory holds and what its acceptance test let through (full, rotation), or "
+              "prior (no test passed)."]
+    staged = [r for r in results if r.stages]
+    if staged:
+        titles = " | ".join(t for _, t in COLUMNS)
+        header = f"| sequence | prior | estimate | acceptance test | {titles} |"
+        lines += ["", "Per network (each row: that network's correction applied, whatever its test said):",
+                  "", header, "|---" * (4 + len(COLUMNS)) + "|"]
+        for r in staged:
+            rows = [("prior", "", r.metrics["prior"])]
+            rows += [(f"network {label}", r.decisions[label], m) for label, m in r.stages.items()]
+            rows.append((f"final ({r.applied})", "", r.metrics["corrected"]))
+            for label, decision, m in rows:
+                cells = [_cell(m[k]) for k, _ in COLUMNS]
+                head = f"| {r.sequence} | {r.prior_label} | {label} | {decision} | "
+                lines.append(head + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -327,7 +363,7 @@ def prior_source(priors: str, directory_kind: str, sequence: Any, workdir: Path,
     if priors == "vo":
         if directory_kind != "stereo":
             raise ValueError(f"--priors vo gives stereo priors only; {directory_kind} priors need a folder")
-        return vo_prior(sequence, workdir / "priors" / f"{sequence.name}.txt", progress)
+        return Path(vo_prior(sequence, workdir / "priors" / f"{sequence.name}.txt", progress)["path"])
     return find_prior(Path(priors), sequence.name, directory_kind)
 
 

@@ -10,13 +10,15 @@ import pytest
 
 from dpc_jax import config as config_lib
 from dpc_jax.cli import main as cli_main
-from dpc_jax.demo import DemoConfig, run_demo
+from dpc_jax.demo import DemoConfig, DemoError, run_demo
 from dpc_jax.trajectory import read_trajectory
 
 ROOT = Path(__file__).resolve().parents[1]
+# At 48×80 the VO falls back on most pairs; the tiny demo accepts that (the refusal is tested below).
 TINY = {
     "train_sequences": 1, "train_frames": 6, "validation_frames": 5, "test_frames": 7,
-    "render_size": (48, 80), "moving_objects": 1,
+    "render_size": (48, 80), "moving_objects": 1, "max_fallback_share": 1.0, "adapt_steps": 2,
+    "holdout_every": 2,
     "training": {"image_size": (32, 48), "batch_size": 2, "epochs": 1, "steps_per_epoch": 2},
 }
 
@@ -45,21 +47,32 @@ def test_outputs_and_report(demo: tuple[Path, dict, list[str]]) -> None:
     np.testing.assert_allclose(corrected[0], gt[0], atol=1e-9)  # composed from the first GT pose
 
     report = (out / "report.md").read_text()
-    rows = [line for line in report.splitlines() if line.startswith("| prior |") or
-            line.startswith("| corrected |")]
-    assert len(rows) == 4  # summary table and per-length table, prior and corrected each
+    for label in ("| prior (our VO) |", "| network as trained", "| network adapted to the test sequence",
+                  "| **final:"):
+        assert label in report, label
+    assert "What the prior's error consists of" in report and "| train0 |" in report
     for image in ("trajectory.png", "segment_errors.png", "c_ate.png"):
         assert f"]({image})" in report
         assert (out / image).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert "| 1 (selected) |" in report
 
     stored = json.loads((out / "summary.json").read_text())
     assert stored["report"] == str(out / "report.md") == summary["report"]
-    assert set(stored["test"]) == {"prior", "corrected"}
+    assert set(stored["test"]) == {"prior", "trained", "adapted", "corrected"}
+    assert set(stored["decisions"]) == {"trained", "adapted"}
+    # The final trajectory is the adapted correction if accepted, else the trained one, else the prior.
+    accepted = [k for k in ("adapted", "trained") if stored["decisions"][k].startswith("accepted")]
+    assert stored["final"] == (accepted[0] if accepted else "prior")
+    if stored["final"] == "prior":
+        prior = read_trajectory(out / "vo" / "test.txt")
+        np.testing.assert_allclose(corrected, gt[0] @ np.linalg.inv(prior[0]) @ prior, atol=1e-9)
     # The sequences are shorter than 100 m: no segment errors, so no claim of improvement.
     assert stored["test"]["prior"]["seg_trans_pct"] is None and stored["corrected_better"] is False
     assert stored["test"]["prior"]["m_ate_trans_m"] > 0
-    assert stored["selected_epoch"] == 1 and stored["steps_per_epoch"] == 2
+    assert stored["steps_per_epoch"] == 2 and stored["adaptation"]["steps"] == 2
+    assert (out / "adapted" / "adapt.csv").is_file()
+    assert (out / "adapted" / "checkpoints" / "config.json").is_file()
+    composition = stored["sequences"]["test"]
+    assert len(composition["error"]["mean"]) == 6 and composition["pairs"] == TINY["test_frames"] - 1
 
 
 @pytest.mark.slow
@@ -74,6 +87,16 @@ def test_second_run_reuses_everything(demo: tuple[Path, dict, list[str]]) -> Non
     assert {p: p.stat().st_mtime_ns for p in stamps} == stamps
     assert again["test"] == summary["test"]  # the finished run is restored, not retrained
     assert again["seconds"]["train"] < summary["seconds"]["train"]
+
+
+@pytest.mark.slow
+def test_a_prior_that_is_not_vo_is_refused(demo: tuple[Path, dict, list[str]]) -> None:
+    out, summary, _ = demo
+    fallbacks = summary["sequences"]["train0"]["fallbacks"]
+    assert fallbacks > 0.05 * summary["sequences"]["train0"]["pairs"]  # 48×80 is too small for the VO
+    strict = config_lib.from_dict(DemoConfig, {**TINY, "max_fallback_share": 0.05})
+    with pytest.raises(DemoError, match=rf"train0: our VO fell back to constant velocity on {fallbacks} of"):
+        run_demo(strict, out)
 
 
 def test_config_checks() -> None:

@@ -330,9 +330,10 @@ def run_vo(
 
 
 def summary(result: VOResult) -> dict[str, object]:
-    """Counts of a VO run: frames, fallbacks and their share, median inliers, final disparity offset,
-    and ``warning`` (a sentence, or None) when the fallback share exceeds
-    :data:`FALLBACK_WARNING_SHARE`."""
+    """Counts of a VO run: frames, fallbacks and their share, median inliers, the final disparity
+    offset and its median over the second half of the run (the online estimate settles within tens
+    of pairs: the rig's calibration residual as measured), and ``warning`` (a sentence, or None)
+    when the fallback share exceeds :data:`FALLBACK_WARNING_SHARE`."""
     pairs = int(result.status.size)
     fallbacks = int(np.count_nonzero(result.status != VOStatus.OK))
     share = fallbacks / pairs
@@ -348,6 +349,7 @@ def summary(result: VOResult) -> dict[str, object]:
         "fallback_share": share,
         "median_inliers": float(np.median(result.inliers)),
         "disparity_offset_px": float(result.disparity_offset[-1]),
+        "disparity_offset_median_px": float(np.median(result.disparity_offset[pairs // 2:])),
         "warning": warning,
     }
 

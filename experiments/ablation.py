@@ -1,0 +1,152 @@
+"""Ablation of the correction remedies on the demo's sequences, one row per remedy added cumulatively.
+
+Every row is the demo (``dpc_jax.demo``, default data: same rendered sequences, priors and caches,
+shared through symbolic links) with the training and correction settings of that row, from the
+published choices (``dpc_jax.train_config.REFERENCE``, epoch by the gradient loss, every correction
+applied) to ours. Per row: the test sequence's segment errors of the prior and of the final
+trajectory, Δ of the correction on the test sequence (mean over its pairs, the network's depth),
+what the acceptance test decided, and the minutes the row took (training and correction; the data
+are made once, by the first row). The table goes to ``WORKDIR/ablation.md`` (and ``.csv``); the
+README / docs/ablation.md show it.
+
+    python experiments/ablation.py --workdir runs/ablation                 # every row, seed 0
+    python experiments/ablation.py --workdir runs/ablation --seed 1 --rows 0 5
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import logging
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from dpc_jax.hugepages import reexec_with_huge_pages
+
+# The published choices, then each remedy on top of the previous row (TrainConfig / DemoConfig fields).
+PUBLISHED = {
+    "training": {"pose_init": "pytorch", "pose_warmup_epochs": 0, "prior_normalization": "none",
+                 "dropout": 0.5, "prior_dropout": None, "pose_scale": (0.01, 0.01),
+                 "pose_features": "images_and_prior"},
+    "select": "gradient", "acceptance": False, "adapt_steps": 0,
+}
+ROWS: list[tuple[str, dict[str, Any]]] = [
+    ("reference (published choices)", {}),
+    ("+ zero-initialised pose output", {"training": {"pose_init": "zero"}}),
+    ("+ pose warm-up (1 epoch)", {"training": {"pose_warmup_epochs": 1}}),
+    ("+ scaled prior, no dropout", {"training": {"prior_normalization": "train_statistics", "dropout": 0.0,
+                                                 "prior_dropout": 0.0}}),
+    ("+ Δ selection and acceptance test", {"select": "delta", "acceptance": True}),
+    ("+ rotation output unit 1e-4 rad", {"training": {"pose_scale": (0.01, 1e-4)}}),
+    ("+ correction from the prior alone", {"training": {"pose_features": "prior"}}),
+    ("+ adaptation to the test sequence (300 steps)", {"adapt_steps": 300}),
+]
+
+
+def row_configs(base: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
+    """The DemoConfig dicts of the rows: ``base`` with the published settings, then the remedies."""
+    out = []
+    current = {**base, **PUBLISHED, "training": {**base.get("training", {}), **PUBLISHED["training"]}}
+    for name, change in ROWS:
+        current = {**current, **change,
+                   "training": {**current["training"], **change.get("training", {})}}
+        out.append((name, current))
+    return out
+
+
+def _cell(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.2f}"
+
+
+def table(rows: list[dict[str, Any]], seed: int) -> str:
+    lines = [
+        f"# Ablation of the correction remedies (demo sequences, seed {seed})",
+        "",
+        "Each row adds one remedy to the row above. Segment errors of the test sequence, translation % / "
+        "rotation °/100 m; Δ: mean paired photometric effect of the (final) network's correction on the "
+        "test sequence (negative: it explains the images better); acceptance: what the test decided (rows "
+        "without it apply every correction); minutes: training and correction of the row.",
+        "",
+        "| row | prior | final | change t | change r | Δ on the test sequence | acceptance | minutes |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['row']} | {_cell(r['prior_t'])} / {_cell(r['prior_r'])} | {_cell(r['final_t'])} / "
+            f"{_cell(r['final_r'])} | {r['change_t']:+.1f} % | {r['change_r']:+.1f} % | {r['delta']:.2e} | "
+            f"{r['acceptance']} | {r['minutes']:.1f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--workdir", type=Path, default=Path("runs/ablation"), metavar="DIR")
+    parser.add_argument("--seed", type=int, default=0, help="demo seed (its towns and routes)")
+    parser.add_argument("--rows", type=int, nargs="+", metavar="K", help="only these rows (0-based)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    args = parser.parse_args(argv)
+
+    from dpc_jax import config as config_lib
+    from dpc_jax.demo import DemoConfig, DemoError, run_demo
+    from dpc_jax.trajectory import atomic_write
+
+    logging.getLogger("absl").setLevel(logging.ERROR)
+    base = {**config_lib.to_dict(DemoConfig()), "seed": args.seed}
+    configs = row_configs(base)
+    chosen = range(len(configs)) if args.rows is None else args.rows
+    shared = args.workdir / "shared"
+    progress = not args.no_progress and sys.stderr.isatty()
+    results = []
+    for k in chosen:
+        name, values = configs[k]
+        out = args.workdir / f"row_{k}"
+        out.mkdir(parents=True, exist_ok=True)
+        for folder in ("data", "vo", "cache"):
+            (shared / folder).mkdir(parents=True, exist_ok=True)
+            if not (out / folder).exists():
+                (out / folder).symlink_to((shared / folder).absolute(), target_is_directory=True)
+        began = time.perf_counter()
+        try:
+            config = config_lib.from_dict(DemoConfig, values, where=f"row {k}")
+            summary = run_demo(config, out, progress=progress,
+                               log=lambda line, k=k: print(f"[row {k}] {line}", flush=True))
+        except (OSError, ValueError, DemoError) as error:
+            print(f"ablation: error: row {k}: {error}", file=sys.stderr)
+            return 1
+        minutes = (time.perf_counter() - began) / 60 - sum(
+            summary["seconds"].get(s, 0.0) for s in ("render", "vo", "prepare")) / 60
+        final = "adapted" if "adapted" in summary["test"] else "trained"
+        test = summary["acceptance"][final]["tests"]["full"]
+        decision = summary["decisions"][final]
+        results.append({
+            "row": name,
+            "prior_t": summary["test"]["prior"]["seg_trans_pct"],
+            "prior_r": summary["test"]["prior"]["seg_rot_deg_per_100m"],
+            "final_t": summary["test"]["corrected"]["seg_trans_pct"],
+            "final_r": summary["test"]["corrected"]["seg_rot_deg_per_100m"],
+            "change_t": summary["change_pct"]["seg_trans_pct"],
+            "change_r": summary["change_pct"]["seg_rot_deg_per_100m"],
+            "delta": test["mean_delta"],
+            "acceptance": f"{decision} → final: {summary['final']}",
+            "minutes": minutes,
+        })
+        args.workdir.mkdir(parents=True, exist_ok=True)
+        atomic_write(args.workdir / "ablation.md", table(results, args.seed))
+        buffer = io.StringIO()
+        writer = csv.DictWriter(buffer, fieldnames=list(results[0]), lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(results)
+        atomic_write(args.workdir / "ablation.csv", buffer.getvalue())
+    print(table(results, args.seed), end="")
+    return 0
+
+
+if __name__ == "__main__":
+    reexec_with_huge_pages()
+    sys.exit(main())
