@@ -402,3 +402,33 @@ def test_cli_warns_when_the_vo_falls_back_too_often(
                  str(tmp_path / "clean.txt"), "--no-progress"]) == 0
     assert "warning" not in capsys.readouterr().err
     assert json.loads((tmp_path / "clean.json").read_text())["warning"] is None
+
+
+def test_vo_prior_file_is_reused_until_its_inputs_change(
+    tmp_path: Path, scene: tuple[np.ndarray, list]
+) -> None:
+    import json
+
+    from dpc_jax.data.kitti import open_odometry
+    from dpc_jax.trajectory import read_kitti_poses
+    from dpc_jax.vo.prior import vo_prior
+
+    poses, frames = scene
+    _odometry_layout(tmp_path / "kitti", frames[:4], poses[:4])
+    sequence = open_odometry(tmp_path / "kitti", "00")
+    out = tmp_path / "priors" / "00.txt"
+    first = vo_prior(sequence, out, first_pose=poses[0])
+    expected = run_vo_frames(frames[:4], K, BASELINE, VOConfig(), first_pose=poses[0])
+    np.testing.assert_allclose(read_kitti_poses(out), expected.poses, atol=1e-12)
+    assert first["pairs"] == 3 and first["path"] == str(out)
+    assert json.loads(out.with_suffix(".json").read_text())["summary"]["fallbacks"] == first["fallbacks"]
+    stamp = out.stat().st_mtime_ns
+    assert vo_prior(sequence, out, first_pose=poses[0]) == first and out.stat().st_mtime_ns == stamp
+    # Another VO configuration, or other images, run the VO again.
+    vo_prior(sequence, out, VOConfig(estimate_offset=False), first_pose=poses[0])
+    assert out.stat().st_mtime_ns != stamp
+    stamp = out.stat().st_mtime_ns
+    image = sequence.left_paths[2]
+    cv2.imwrite(str(image), cv2.flip(cv2.imread(str(image)), 1))
+    vo_prior(sequence, out, VOConfig(estimate_offset=False), first_pose=poses[0])
+    assert out.stat().st_mtime_ns != stamp
