@@ -99,8 +99,9 @@ class ModelConfig:
       image bottlenecks and the prior branch) or ``"prior"`` (the prior branch only: the
       correction is a learned function of the VO step, fitted to the images by the loss; the
       image branches still give depth and masks).
-    * ``pose_scale``: ``(translation m, rotation rad)`` per unit of the output layer; the
-      reference's 0.01 for both. Adam moves every output weight by about the learning rate
+    * ``pose_scale``: ``(translation m, rotation rad)`` per unit of the output layer, or six
+      numbers, one per component ``[ρx, ρy, ρz, φx, φy, φz]`` (0 switches a component off); the
+      reference's 0.01 for all. Adam moves every output weight by about the learning rate
       whatever its gradient, so this sets the jitter of each component's correction.
     * ``flow``: append Farnebäck flow (2 channels) to each branch's input; ``None`` = the
       method's default (ss-DPC-Net: True, Stereo DPC: False).
@@ -125,7 +126,7 @@ class ModelConfig:
     dropout: float = 0.5
     prior_dropout: float | None = None
     pose_init: Literal["pytorch", "zero"] = "pytorch"
-    pose_scale: tuple[float, float] = (0.01, 0.01)
+    pose_scale: tuple[float, ...] = (0.01, 0.01)
     pose_features: Literal["images_and_prior", "prior"] = "images_and_prior"
     flow: bool | None = None
     frames: int | None = None
@@ -159,8 +160,10 @@ class ModelConfig:
             problems.append(f"dropout must be in [0, 1), got {self.dropout}")
         if self.prior_dropout is not None and not 0.0 <= self.prior_dropout < 1.0:
             problems.append(f"prior_dropout must be None or in [0, 1), got {self.prior_dropout}")
-        if len(self.pose_scale) != 2 or not all(x > 0 for x in self.pose_scale):
-            problems.append(f"pose_scale must be two positive numbers, got {self.pose_scale}")
+        if len(self.pose_scale) not in (2, 6) or not all(x >= 0 for x in self.pose_scale) or not any(
+            self.pose_scale
+        ):
+            problems.append(f"pose_scale must be 2 or 6 numbers >= 0, not all 0, got {self.pose_scale}")
         if self.pose_features not in ("images_and_prior", "prior"):
             problems.append(f"pose_features must be 'images_and_prior' or 'prior': {self.pose_features!r}")
         if self.pose_init not in ("pytorch", "zero"):
@@ -173,6 +176,12 @@ class ModelConfig:
             problems.append(f"bn_momentum must be in [0, 1), got {self.bn_momentum}")
         if problems:
             raise ValueError("invalid ModelConfig: " + "; ".join(problems))
+
+    def component_scales(self) -> tuple[float, ...]:
+        """The six output scales ``[ρx, ρy, ρz, φx, φy, φz]`` of ``pose_scale``."""
+        if len(self.pose_scale) == 2:
+            return (self.pose_scale[0],) * 3 + (self.pose_scale[1],) * 3
+        return tuple(self.pose_scale)
 
     def scaled(self, planes: int) -> int:
         """Plane count after the width multiplier."""
@@ -481,9 +490,7 @@ class _DPCBase(nnx.Module):
         mean, std = self.prior_statistics[...]
         prior = (xi_vo.astype(jnp.float32) - mean) / std
         features = jnp.concatenate([*reduced, self.prior(prior, key)], axis=-1)
-        translation, rotation = self.config.pose_scale
-        scale = jnp.asarray([translation] * 3 + [rotation] * 3, jnp.float32)
-        return scale * self.fc_out(features)
+        return jnp.asarray(self.config.component_scales(), jnp.float32) * self.fc_out(features)
 
     def _ssim_weight(self) -> jax.Array | None:
         return None if self.ssim_logit is None else jax.nn.sigmoid(self.ssim_logit[...])

@@ -24,10 +24,15 @@ one; its table in ``docs/ablation.md`` is the measurement behind them):
   apart; both off by default (training-mode dropout 0.5 moves the correction by mrad between
   keys, far more than the precision a correction needs).
 * ``pose_lr_multiplier``: the pose head's learning rate relative to the rest.
-* ``pose_scale``: the correction per unit of the output layer, ``(translation m, rotation rad)``.
-  The reference's 0.01 for both makes a rotation unit a hundred times larger than a good VO's
-  rotation error per frame; Adam moves every output weight by about the learning rate, so the
-  rotation part then jitters by more than the bias it should learn.
+* ``pose_scale``: the correction per unit of the output layer, per component ``[ρx, ρy, ρz, φx,
+  φy, φz]``: 1 cm along the direction of travel (z), 0.1 mrad for rotations, and no sideways or
+  vertical translation. The reference's 0.01 for all makes a rotation unit a hundred times larger
+  than a good VO's rotation error per frame (Adam moves every output weight by about the learning
+  rate, so the rotation then jitters by more than the drift it should learn). And a small yaw
+  and a sideways step move distant image content alike: free to correct both, the networks traded
+  one for the other along that valley of the photometric loss (a spurious sideways correction of
+  5–8 mm per frame against the wrong yaw); a VO's systematic translation error lies along its
+  direction of travel (the README's error tables), so the other two are off.
 * ``pose_features="prior"``: the correction is a learned function of the VO step alone (the image
   branches still give the depth and masks the loss needs). What a correction can learn is the
   VO's systematic error, a function of its motion; from 64×96 images the per-pair correction is
@@ -82,7 +87,8 @@ class TrainConfig:
         * ``prior_dropout``: dropout rate on the prior branch; None = ``dropout``.
         * ``pose_lr_multiplier``: learning-rate factor of the pose head (FC reductions, prior
           branch, output layer).
-        * ``pose_scale``: ``(translation m, rotation rad)`` per unit of the output layer.
+        * ``pose_scale``: ``(translation m, rotation rad)`` per unit of the output layer, or six
+          numbers, one per component (0 switches it off).
         * ``pose_features``: ``"images_and_prior"`` or ``"prior"`` (see ``ModelConfig``).
     Loss
         * ``loss``: overrides of the method's loss config (``SSDPCLossConfig`` or
@@ -127,7 +133,7 @@ class TrainConfig:
     dropout: float = 0.0
     prior_dropout: float | None = 0.0
     pose_lr_multiplier: float = 1.0
-    pose_scale: tuple[float, float] = (0.01, 1e-4)
+    pose_scale: tuple[float, ...] = (0.0, 0.0, 0.01, 1e-4, 1e-4, 1e-4)
     pose_features: str = "prior"
     loss: dict[str, Any] = field(default_factory=dict)
     rotation_only: bool = False

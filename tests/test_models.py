@@ -147,6 +147,12 @@ def test_config_variants_shapes(changes: dict) -> None:
         {"frames": 3},
         {"width_multiplier": 0.0},
         {"image_size": (0, 10)},
+        {"pose_scale": (0.01, 0.01, 0.01)},
+        {"pose_scale": (0.0, 0.0)},
+        {"pose_scale": (-0.01, 0.01)},
+        {"pose_features": "images"},
+        {"pose_init": "xavier"},
+        {"prior_dropout": 1.0},
     ],
 )
 def test_config_rejects_invalid(changes: dict) -> None:
@@ -173,6 +179,40 @@ def test_input_errors() -> None:
         create_model("stereo_dpc", dataclasses.replace(SMALL, frames=1), 0)
     with pytest.raises(ValueError, match="unknown method"):
         create_model("mono", SMALL, 0)
+
+
+def test_pose_head_options_prior_statistics_scales_and_prior_only() -> None:
+    """The prior enters as (ξ_vo − μ)/σ; each output component has its scale (0 switches it off); a
+    prior-only head's correction does not depend on the images."""
+    from dpc_jax.models import set_prior_statistics
+
+    config = dataclasses.replace(SMALL, pose_init="pytorch", dropout=0.0)
+    batch = make_batch(3, TINY, flow=False)
+    mean, scale = np.linspace(-0.2, 0.3, 6), np.linspace(0.05, 0.5, 6)
+    model = create_model("stereo_dpc", config, 0)
+    model.eval()
+    set_prior_statistics(model, mean, scale)
+    normalised = model(batch).xi_corr
+    set_prior_statistics(model, np.zeros(6), np.ones(6))
+    raw = model(batch._replace(xi_vo=((batch.xi_vo - mean) / scale).astype(np.float32))).xi_corr
+    np.testing.assert_allclose(np.asarray(normalised), np.asarray(raw), rtol=1e-5, atol=1e-7)
+
+    scales = (0.0, 0.0, 0.01, 1e-4, 1e-4, 1e-4)
+    reference = create_model("stereo_dpc", config, 0)
+    reference.eval()
+    scaled = create_model("stereo_dpc", dataclasses.replace(config, pose_scale=scales), 0)
+    scaled.eval()
+    ratio = np.asarray(scaled(batch).xi_corr) / np.asarray(reference(batch).xi_corr)
+    np.testing.assert_allclose(ratio, np.tile(np.array(scales) / 0.01, (3, 1)), rtol=1e-5)
+
+    prior_only = create_model("stereo_dpc", dataclasses.replace(config, pose_features="prior"), 0)
+    prior_only.eval()
+    other_images = make_batch(3, TINY, seed=5, flow=False)._replace(xi_vo=batch.xi_vo)
+    np.testing.assert_array_equal(np.asarray(prior_only(batch).xi_corr),
+                                  np.asarray(prior_only(other_images).xi_corr))
+    images_too = [np.asarray(reference(b).xi_corr) for b in (batch, other_images)]
+    assert not np.array_equal(*images_too)
+    assert prior_only.left_reduce is None and prior_only.fc_out.kernel.shape == (config.fc_planes[1], 6)
 
 
 def test_upsample2x_matches_opencv() -> None:

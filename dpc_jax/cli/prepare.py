@@ -58,6 +58,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="also the flow of reversed and frame-skip pairs (implies --flow)")
     parser.add_argument("--mono-rescale", action="store_true",
                         help="rescale each prior step to the ground-truth step length (monocular VO)")
+    parser.add_argument("--disparity-offset", type=float, default=0.0, metavar="PX",
+                        help="the rig's disparity calibration residual (px at the source size, as "
+                        "`dpc-jax vo` reports it): the right images are resampled so the stored pairs are "
+                        "rectified without it")
     parser.add_argument("--force", action="store_true", help="rebuild even when the cache is up to date")
     parser.add_argument("--no-progress", action="store_true",
                         help="hide the progress bars (off a terminal: the progress lines)")
@@ -110,6 +114,7 @@ def run(args: argparse.Namespace) -> int:
                 flow_augment=args.flow_augment,
                 mono_rescale=args.mono_rescale,
                 frames=args.frames,
+                disparity_offset=args.disparity_offset,
                 prior_format=args.prior_format,
                 ground_truth=None if args.gt is None else args.gt.replace("{seq}", sequence.name),
                 force=args.force,

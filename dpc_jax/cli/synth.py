@@ -38,6 +38,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="amplitude X of the slow global gain (1±X) and gamma (1±X/2) drift")
     parser.add_argument("--noise", type=float, default=0.0, metavar="SIGMA",
                         help="Gaussian image noise std, 0..255 units")
+    parser.add_argument("--disparity-offset", type=float, default=0.0, metavar="PX",
+                        help="stereo calibration residual: every disparity measured with the written "
+                        "calib.txt is PX larger than fu·B/Z (KITTI's colour pair: about -1.2 px at 1242 px)")
     parser.add_argument("--overwrite", action="store_true", help="replace existing sequences")
     parser.add_argument("--no-progress", action="store_true",
                         help="no progress bar (off a terminal: no progress lines)")
@@ -57,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         config = SynthConfig(frames=args.frames, height=args.size[0], width=args.size[1], seed=args.seed,
                              moving_objects=args.moving_objects, illumination_drift=args.illumination_drift,
-                             noise=args.noise)
+                             noise=args.noise, disparity_offset=args.disparity_offset)
         paths = write_sequences(args.out, config, sequences=args.sequences, overwrite=args.overwrite,
                                 progress=progress_mode(args.no_progress))
     except FileExistsError as err:
