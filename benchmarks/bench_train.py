@@ -27,7 +27,7 @@ from dpc_jax.hugepages import reexec_with_huge_pages
 from dpc_jax.models import PRESETS, create_model
 from dpc_jax.optim import create_train_state, make_optimizer
 from dpc_jax.train import make_train_step
-from dpc_jax.train_config import TrainConfig
+from dpc_jax.train_config import REFERENCE, TrainConfig
 
 
 def random_batch(batch: int, size: tuple[int, int], flow: bool, seed: int = 0) -> Batch:
@@ -46,7 +46,9 @@ def random_batch(batch: int, size: tuple[int, int], flow: bool, seed: int = 0) -
 
 
 def bench(method: str, preset: str, batch_size: int, warmup: int, repeats: int) -> dict[str, float]:
-    config = TrainConfig(method=method, preset=preset, batch_size=batch_size, validation_sequences=("v",))
+    # The published architecture (the papers' pose head), comparable with the PyTorch reference.
+    config = TrainConfig(method=method, preset=preset, batch_size=batch_size, validation_sequences=("v",),
+                         **REFERENCE)
     mesh = parallel.make_mesh()
     model_config = config.model_config()
     graphdef, state = create_train_state(
