@@ -110,7 +110,7 @@ def _check_result_row(
     corrected = read_trajectory(workdir / "corrected" / fold / f"{sequence}.txt", "kitti")
     assert corrected.shape == (FRAMES, 4, 4)
     np.testing.assert_allclose(corrected[0], gt[0], atol=1e-12)
-    assert (workdir / "reports" / fold / sequence / "report.md").is_file()
+    assert (workdir / "reports" / fold / sequence / "trained" / "report.md").is_file()
     return corrected
 
 
