@@ -42,6 +42,8 @@ ROWS: list[tuple[str, dict[str, Any]]] = [
                                                  "prior_dropout": 0.0}}),
     ("+ Δ selection and acceptance test", {"select": "delta", "acceptance": True}),
     ("+ rotation output unit 1e-4 rad", {"training": {"pose_scale": (0.01, 1e-4)}}),
+    ("+ forward translation only (sideways, vertical off)",
+     {"training": {"pose_scale": (0.0, 0.0, 0.01, 1e-4, 1e-4, 1e-4)}}),
     ("+ correction from the prior alone", {"training": {"pose_features": "prior"}}),
     ("+ adaptation to the test sequence (300 steps)", {"adapt_steps": 300}),
 ]
