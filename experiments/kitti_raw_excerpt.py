@@ -64,6 +64,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         results = [
             P.correct_and_evaluate(fold.name, run_dir, cache_root / name, args.workdir, select=select,
                                    prior_label=name, acceptance=protocol.get("acceptance", True),
+                                   rotation_only=protocol.get("rotation_only"),
                                    adapt_steps=protocol.get("adapt_steps", 0),
                                    holdout_every=protocol.get("holdout_every", 5), progress=progress)
             for name in ("vo", "libviso2")
@@ -76,7 +77,9 @@ def main(argv: Sequence[str] | None = None) -> int:
              f"{t0}–{t1 - 1} with our VO prior, validated on {v0}–{v1 - 1}; network images rectified by the "
              f"disparity offset our VO measured ({offset:+.3f} px); the whole drive corrected by the network "
              f"as trained and by the network adapted to each prior ({protocol.get('adapt_steps', 0)} steps); "
-             f"epoch selection: {select}. Not a reproduction: the trained network has seen frames "
+             f"epoch selection: {select}; "
+             f"{'rotation only' if protocol.get('rotation_only') else 'full correction'} applied. "
+             f"Not a reproduction: the trained network has seen frames "
              f"{t0}–{t1 - 1}, and 108 frames give only a handful of 100 m segments."
              + (" SMOKE RUN (1 epoch of 2 steps)." if args.smoke else "")]
     P.print_results(P.write_results(args.workdir, results, "Pipeline on the real KITTI raw excerpt", notes))
