@@ -23,6 +23,7 @@ import errno
 import os
 import secrets
 import shutil
+import tempfile
 from pathlib import Path
 from types import TracebackType
 
@@ -132,8 +133,17 @@ def remove_stale(folder: str | os.PathLike[str], prefix: str) -> list[Path]:
 
 
 def writable(folder: Path) -> bool:
-    """Whether this process may create entries in ``folder``."""
-    return os.access(folder, os.W_OK | os.X_OK)
+    """Whether this process may create entries in ``folder``.
+
+    Tried for real (a temporary file, removed at once): ``os.access`` says yes to root in a
+    read-only mount or ``/proc``, where the write would fail after the work is done."""
+    if not os.access(folder, os.W_OK | os.X_OK):
+        return False
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            return True
+    except OSError:
+        return False
 
 
 def _nearest_existing(path: Path) -> Path:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import pkgutil
 import signal
 import sys
@@ -82,12 +83,20 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     with warnings.catch_warnings():
         warnings.showwarning = one_line
+        # Orbax reports a damaged checkpoint through absl's log before raising; the command's own
+        # one-line error says it better.
+        logging.getLogger("absl").setLevel(logging.CRITICAL)
         try:
             _import_jax_uninterrupted()
             return int(args._run(args) or 0)
         except KeyboardInterrupt:
             print(f"dpc-jax {args.command}: interrupted; nothing half-written", file=sys.stderr)
             return 130
+        except OSError as error:
+            # Outputs are checked before the work starts; this is the disk failing afterwards
+            # (full, removed, remounted). Output sets have rolled back, so nothing is half-written.
+            print(f"dpc-jax {args.command}: error: {error}; nothing half-written", file=sys.stderr)
+            return 1
 
 
 def console_main() -> None:
