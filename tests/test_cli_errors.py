@@ -438,6 +438,11 @@ def test_calibration_nan_says_not_finite(tmp_path: Path, capsys: pytest.CaptureF
                  str(prior), "--out", str(tmp_path / "cache"), "--size", "8x8", "--no-progress"]) == 1
     _one_line(capsys.readouterr().err,
               f"{calib}, line 3: P2 holds a value that is not finite (nan at entry 2")
+    assert main(["vo", "--kitti-odometry", str(tmp_path / "kitti"), "--sequence", "00", "--no-progress",
+                 "--out", str(tmp_path / "vo.txt")]) == 1
+    _one_line(capsys.readouterr().err,
+              f"dpc-jax vo: error: {calib}, line 3: P2 holds a value that is not finite (nan at entry 2")
+    assert not (tmp_path / "vo.txt").exists()
 
 
 @pytest.mark.parametrize("command", ["synth", "prepare"])

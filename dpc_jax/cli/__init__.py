@@ -85,7 +85,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         warnings.showwarning = one_line
         # Orbax reports a damaged checkpoint through absl's log before raising; the command's own
         # one-line error says it better.
-        logging.getLogger("absl").setLevel(logging.CRITICAL)
+        logging.getLogger("absl").addFilter(lambda record: record.levelno >= logging.CRITICAL)
         try:
             _import_jax_uninterrupted()
             return int(args._run(args) or 0)

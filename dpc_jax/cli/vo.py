@@ -85,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
     if csv_path.resolve() == args.out.resolve():
         problem = f"--csv {csv_path}: the same file as --out; give the CSV another name"
     if problem is not None:
-        print(f"error: {problem}", file=sys.stderr)
+        print(f"dpc-jax vo: error: {problem}", file=sys.stderr)
         return 2
     try:
         sequence = _open(args)
@@ -94,10 +94,10 @@ def run(args: argparse.Namespace) -> int:
         if args.start == "gt" and sequence.poses is None:
             raise _UsageError(f"--start gt: no ground truth for {sequence.name} (poses/XX.txt or --gt)")
     except _UsageError as error:
-        print(f"error: {error}", file=sys.stderr)
+        print(f"dpc-jax vo: error: {error}", file=sys.stderr)
         return 2
     except (OSError, ValueError, KeyError) as error:
-        print(f"error: {error}", file=sys.stderr)
+        print(f"dpc-jax vo: error: {error}", file=sys.stderr)
         return 1
 
     config = VOConfig(disparity_offset=args.disparity_offset, estimate_offset=not args.fixed_offset)
@@ -106,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
         progress = not args.no_progress and sys.stderr.isatty()
         result = run_vo(sequence, config, first_pose=first_pose, progress=progress)
     except (OSError, ValueError) as error:
-        print(f"error: {sequence.name}: {error}", file=sys.stderr)
+        print(f"dpc-jax vo: error: {sequence.name}: {error}", file=sys.stderr)
         return 1
 
     counts = summary(result)
