@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dpc_jax.camera import backproject, pixel_grid, project, scale_intrinsics
+from dpc_jax.geometry.camera import backproject, pixel_grid, project, scale_intrinsics
 
 K_NP = np.array([[40.0, 0.0, 31.5], [0.0, 38.0, 23.5], [0.0, 0.0, 1.0]])
 

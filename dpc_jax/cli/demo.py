@@ -33,9 +33,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from dpc_jax.checkpoints import CheckpointError
     from dpc_jax.config import ConfigError, load_file
-    from dpc_jax.demo import DemoConfig, DemoError, run_demo
+    from dpc_jax.pipelines.demo import DemoConfig, DemoError, run_demo
+    from dpc_jax.training.checkpoints import CheckpointError
 
     problem = output_problem(args.out, "--out", folder=True)
     if problem is not None:

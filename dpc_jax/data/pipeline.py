@@ -1,4 +1,4 @@
-"""numpy input pipeline: prepared caches → fixed-shape :class:`~dpc_jax.batch.Batch` es.
+"""numpy input pipeline: prepared caches → fixed-shape :class:`~dpc_jax.nn.batch.Batch` es.
 
 A *sample* is an ordered frame pair ``(i, j)`` of one cached sequence: the network reconstructs
 frame j from frame i, its prior is ``T_vo_{j,i} = inv(T_vo_j) T_vo_i`` and, when ground truth is
@@ -36,10 +36,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dpc_jax.batch import Batch
 from dpc_jax.data.cache import FLOW_FILES, MANIFEST
+from dpc_jax.data.poses_io import validate_poses
 from dpc_jax.data.priors import log_poses
-from dpc_jax.lie import validate_poses
+from dpc_jax.nn.batch import Batch
 
 PAIR_KINDS = {"forward": (1, False), "reverse": (1, True), "skip": (2, False), "skip_reverse": (2, True)}
 

@@ -30,7 +30,7 @@ use another size: ``dataclasses.replace(PRESETS["reference"], image_size=(H, W))
 convolutional parts accept any ``H × W`` (the crop-to-skip logic handles sizes that are not
 multiples of ``2**depth``).
 
-Inputs (see ``dpc_jax.batch.Batch``): uint8 images are converted to [0, 1] and whitened with the
+Inputs (see ``dpc_jax.nn.batch.Batch``): uint8 images are converted to [0, 1] and whitened with the
 ImageNet statistics inside the model; optical flow (pixels) is appended unscaled, as in the
 reference. Everything is NHWC inside; dense outputs are returned as ``[B, F, H, W]``.
 
@@ -63,9 +63,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from dpc_jax.batch import Batch
-from dpc_jax.conv import conv3x3_few_outputs, conv_s2, upconv3x3_s2
-from dpc_jax.outputs import BranchOutputs, DPCOutputs
+from dpc_jax.nn.batch import Batch
+from dpc_jax.nn.conv import conv3x3_few_outputs, conv_s2, upconv3x3_s2
+from dpc_jax.nn.outputs import BranchOutputs, DPCOutputs
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -267,7 +267,7 @@ class UpConv(nnx.Module):
     Mathematically ``lax.conv_transpose(x, kernel, (2, 2), ((1, 2), (1, 2)))`` (Flax's
     ``ConvTranspose`` with that padding, i.e. PyTorch's ``ConvTranspose2d(3, stride=2, padding=1,
     output_padding=1)`` up to a kernel flip), with the same ``[3, 3, C_in, C_out]`` kernel,
-    evaluated by ``dpc_jax.conv.upconv3x3_s2``.
+    evaluated by ``dpc_jax.nn.conv.upconv3x3_s2``.
     """
 
     def __init__(self, cin: int, cout: int, rngs: nnx.Rngs):
