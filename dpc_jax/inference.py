@@ -60,7 +60,8 @@ class TrainedRun:
     @property
     def image_size(self) -> tuple[int, int]:
         """``(H, W)`` the network expects."""
-        return tuple(self.config.resolved_image_size)
+        height, width = self.config.resolved_image_size
+        return height, width
 
     @property
     def use_flow(self) -> bool:

@@ -158,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
             try:
                 run_ = load_run(args.checkpoint, args.select)
             except CheckpointError as error:
-                return _error(restore_problem(error.folder, error.__cause__))
+                return _error(restore_problem(error.folder, error.__cause__ or error))
             if args.data is not None:
                 cache, prior = checked, args.prior
             else:

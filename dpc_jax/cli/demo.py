@@ -55,7 +55,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"dpc-jax demo: error: {error}", file=sys.stderr)
         return 2
     except CheckpointError as error:
-        print(f"dpc-jax demo: error: {restore_problem(error.folder, error.__cause__)}", file=sys.stderr)
+        problem = restore_problem(error.folder, error.__cause__ or error)
+        print(f"dpc-jax demo: error: {problem}", file=sys.stderr)
         return 2
 
     def errors(label: str) -> str:

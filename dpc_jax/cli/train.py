@@ -77,7 +77,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"dpc-jax train: error: {error}", file=sys.stderr)
         return 2
     except CheckpointError as error:
-        print(f"dpc-jax train: error: {restore_problem(error.folder, error.__cause__)}", file=sys.stderr)
+        problem = restore_problem(error.folder, error.__cause__ or error)
+        print(f"dpc-jax train: error: {problem}", file=sys.stderr)
         return 2
     except NonFiniteLossError as error:
         print(f"dpc-jax train: stopped: {error}", file=sys.stderr)

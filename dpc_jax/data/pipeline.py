@@ -28,8 +28,9 @@ the consumer stops iterating (the generator is closed or garbage collected).
 from __future__ import annotations
 
 import json
+import os
 from collections import deque
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Generator, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -133,7 +134,7 @@ def _check_finite_poses(path: Path, poses: np.ndarray) -> None:
         raise CacheError(str(error)) from None
 
 
-def load_cache(path: str | Path) -> SequenceCache:
+def load_cache(path: str | os.PathLike[str]) -> SequenceCache:
     """Memory-map the cache folder ``path`` written by :func:`~dpc_jax.data.cache.prepare_sequence`.
 
     Everything is checked against ``manifest.json`` before it is used: the manifest itself (valid
@@ -431,7 +432,7 @@ def iterate_sequence(
     flow: bool | None = None,
     workers: int = 1,
     depth: int = 4,
-) -> Iterator[Batch]:
+) -> Generator[Batch, None, None]:
     """The forward pairs ``(k, k+1)``, k = 0 … N-2, of one sequence in order, in fixed-size batches.
 
     The last batch is padded with copies of the final pair whose ``weight`` is 0, so every batch

@@ -120,8 +120,8 @@ def check_label(label: str) -> str:
 def _scalar(value: np.ndarray, integer: bool = False) -> float | int | None:
     if integer:
         return int(value)
-    value = float(value)
-    return None if math.isnan(value) else value
+    number = float(value)
+    return None if math.isnan(number) else number
 
 
 def evaluate(

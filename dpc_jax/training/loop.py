@@ -216,7 +216,8 @@ class MetricsLog:
         numbers = {k: float(v) for k, v in row.items() if k not in ("epoch", "step")}
         numbers = {k: v for k, v in numbers.items() if math.isfinite(v)}
         self.scalars(int(row["step"]), numbers, "epoch")
-        self.writer.flush()
+        if self.writer is not None:
+            self.writer.flush()
 
     def close(self) -> None:
         if self.writer is not None:
