@@ -121,9 +121,6 @@ def _wrap(a: Array) -> Array:
     return a - 2 * jnp.pi * jnp.floor((a + jnp.pi) / (2 * jnp.pi))
 
 
-_PIECE_COLS = 13
-
-
 def _extend_pieces(pieces: Array) -> Array:
     """Append derived columns to piece rows ``[P, 6]`` → ``[P, 13]``: ``sin ψ0, cos ψ0``, arc centre
     ``cx, cz``, turn sign ``σ``, radius and ``tan`` of the arc angle (so that per-pixel code that
