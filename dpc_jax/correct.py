@@ -34,11 +34,9 @@ import numpy as np
 from dpc_jax._io import atomic_write
 from dpc_jax.acceptance import DEFAULT_ALPHA, Acceptance, acceptance_test, forced
 from dpc_jax.data.pipeline import SequenceCache, load_cache
-from dpc_jax.data.poses_io import write_kitti_poses, write_tum
+from dpc_jax.data.poses_io import WRITE_FORMATS, write_kitti_poses, write_tum
 from dpc_jax.eval.evaluation import Evaluation
 from dpc_jax.inference import SequencePrediction, TrainedRun, run_prediction
-
-FORMATS = ("kitti", "tum")
 
 
 def prior_for_cache(
@@ -246,8 +244,8 @@ def write_trajectory(path: str | os.PathLike, correction: Correction, format: st
     time), the source frame number of every pose is written too, one per line, to
     :func:`frames_path`. Returns the written paths.
     """
-    if format not in FORMATS:
-        raise ValueError(f"format must be one of {FORMATS}, got {format!r}")
+    if format not in WRITE_FORMATS:
+        raise ValueError(f"format must be one of {WRITE_FORMATS}, got {format!r}")
     path = Path(path)
     if format == "kitti":
         write_kitti_poses(path, correction.corrected)

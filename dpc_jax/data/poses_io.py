@@ -34,6 +34,7 @@ from dpc_jax._io import InputWarning, atomic_write
 from dpc_jax.geometry.poses import invert_poses
 
 FORMATS = ("kitti", "tum", "mat")
+WRITE_FORMATS = ("kitti", "tum")
 MAT_KEYS = ("poses_gt", "poses_est")
 TUM_GAP_FACTOR = 10.0
 

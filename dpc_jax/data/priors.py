@@ -17,8 +17,6 @@ from dpc_jax.data.poses_io import validate_poses
 from dpc_jax.geometry.lie import se3_log
 from dpc_jax.geometry.poses import compose, relative_poses
 
-PRIOR_FORMATS = ("kitti", "tum", "mat")
-
 
 def load_prior(
     source: str | Path | np.ndarray, n_frames: int, format: str | None = None
@@ -36,8 +34,8 @@ def load_prior(
     else:
         path = Path(source)
         label = str(path)
-        if format is not None and format not in PRIOR_FORMATS:
-            raise ValueError(f"{path}: unknown prior format {format!r}; expected one of {PRIOR_FORMATS}")
+        if format is not None and format not in poses_io.FORMATS:
+            raise ValueError(f"{path}: unknown prior format {format!r}; expected one of {poses_io.FORMATS}")
         poses = poses_io.read_trajectory(path, format)
     if poses.shape[0] != n_frames:
         raise ValueError(

@@ -409,6 +409,11 @@ def _whiten(images: jax.Array) -> jax.Array:
     return (x - jnp.asarray(IMAGENET_MEAN, jnp.float32)) / jnp.asarray(IMAGENET_STD, jnp.float32)
 
 
+def uses_flow(method: str, config: ModelConfig) -> bool:
+    """The flow-input rule: ``config.flow`` when set, else the method's default (ss-DPC-Net reads flow)."""
+    return config.flow if config.flow is not None else method == "ss_dpc"
+
+
 def _branch_input(images: jax.Array, flow: jax.Array | None) -> jax.Array:
     """``images`` uint8 ``[B, 2, H, W, 3]`` (+ flow ``[B, H, W, 2]``) → ``[B, H, W, 6 (+2)]``."""
     parts = [_whiten(images[:, 0]), _whiten(images[:, 1])]
@@ -436,7 +441,7 @@ class _DPCBase(nnx.Module):
         self.uses_images = config.pose_features == "images_and_prior"
         n_pose_inputs = (n_branches if self.uses_images else 0) + 1
         self.method = method
-        self.use_flow = config.flow if config.flow is not None else method == "ss_dpc"
+        self.use_flow = uses_flow(method, config)
         self.frames = config.frames if config.frames is not None else (1 if method == "ss_dpc" else 2)
         self.in_channels = 6 + (2 if self.use_flow else 0)
         h, w = config.scale_sizes()[-1]

@@ -49,6 +49,7 @@ import numpy as np
 
 from dpc_jax import config as config_lib
 from dpc_jax._io import atomic_write
+from dpc_jax.inference import SELECTIONS
 from dpc_jax.vo.odometry import FALLBACK_WARNING_SHARE
 
 # Training defaults of the demo (``TrainConfig`` fields); ``DemoConfig.training`` overrides them.
@@ -64,7 +65,6 @@ TRAINING: dict[str, Any] = {
 }
 # The demo sets these itself (paths and split).
 _MANAGED = ("cache_root", "train_sequences", "validation_sequences", "test_sequences")
-SELECTIONS = ("delta", "gradient", "loop", "last")
 
 
 class DemoError(ValueError):
@@ -128,7 +128,7 @@ class DemoConfig:
             if getattr(self, name) < 3:
                 problems.append(f"{name} must be >= 3, got {getattr(self, name)}")
         if self.select not in SELECTIONS:
-            problems.append(f"select must be one of {SELECTIONS}, got {self.select!r}")
+            problems.append(f"select must be one of {tuple(SELECTIONS)}, got {self.select!r}")
         if self.adapt_steps < 0 or self.holdout_every < 2:
             problems.append(f"adapt_steps must be >= 0 and holdout_every >= 2, got {self.adapt_steps}, "
                             f"{self.holdout_every}")

@@ -157,8 +157,7 @@ def prepare(
     """
     from dpc_jax.data.cache import prepare_sequence
 
-    model = config.model_config()
-    flow = model.flow if model.flow is not None else config.method == "ss_dpc"
+    flow = config.use_flow
     return prepare_sequence(
         sequence, prior, cache_root, size=config.resolved_image_size, flow=flow,
         flow_augment=flow and (config.frame_skip or config.reverse), mono_rescale=mono_rescale,
@@ -340,9 +339,11 @@ def write_fake_odometry(
 
 def add_common_arguments(parser: Any, config: Path) -> None:
     """Options every entry point has: work folder, config, epoch selection, overrides, smoke, progress."""
+    from dpc_jax.inference import SELECTIONS
+
     parser.add_argument("--workdir", required=True, type=Path, metavar="DIR", help="everything goes here")
     parser.add_argument("--config", type=Path, default=config, metavar="FILE", help="experiment config")
-    parser.add_argument("--select", choices=("delta", "gradient", "loop", "last"),
+    parser.add_argument("--select", choices=tuple(SELECTIONS),
                         help="epoch selection (default: the protocol's)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a TrainConfig field (JSON value), e.g. --set epochs=2")

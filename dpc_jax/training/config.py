@@ -242,8 +242,9 @@ class TrainConfig:
     @property
     def use_flow(self) -> bool:
         """Whether the network reads optical flow (the method's default unless ``model`` says)."""
-        flow = self.model_config().flow
-        return flow if flow is not None else self.method == "ss_dpc"
+        from dpc_jax.nn.models import uses_flow
+
+        return uses_flow(self.method, self.model_config())
 
     def warmup_steps(self, steps_per_epoch: int) -> int:
         """Optimizer steps during which the loss sees ξ_corr = 0."""
