@@ -55,7 +55,7 @@ import cv2
 import jax
 import numpy as np
 
-from dpc_jax._io import remove_stale, temp_name
+from dpc_jax._io import install_folder, remove_stale, temp_name
 from dpc_jax._progress import Progress, progress_bar
 from dpc_jax.data.kitti import StereoSequence, load_image, read_ground_truth
 from dpc_jax.data.poses_io import validate_poses
@@ -362,7 +362,7 @@ def prepare_sequence(
         manifest_tmp = tmp / (MANIFEST + ".part")
         manifest_tmp.write_text(json.dumps(manifest, indent=2))
         os.replace(manifest_tmp, tmp / MANIFEST)
-        _install(tmp, target)
+        install_folder(tmp, target)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -381,15 +381,3 @@ def _load_ground_truth(source: str | Path | np.ndarray, n: int) -> np.ndarray:
             f"{label}: {poses.shape[0]} ground-truth poses for {n} frames; expected one per frame"
         )
     return poses
-
-
-def _install(tmp: Path, target: Path) -> None:
-    """Move the finished folder ``tmp`` to ``target``, replacing an older cache there."""
-    if target.exists():
-        old = target.parent / temp_name(f".{target.name}.old-")
-        old.mkdir()
-        os.replace(target, old / target.name)
-        os.replace(tmp, target)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(tmp, target)
