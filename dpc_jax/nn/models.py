@@ -590,7 +590,7 @@ def _init_like_pytorch(model: nnx.Module, seed: int) -> None:
             var.set_value(jnp.asarray(rng.uniform(-bound, bound, var.shape).astype(np.float32)))
 
 
-def create_model(method: Method, config: ModelConfig, seed: int) -> MonoDPC | StereoDPC:
+def create_model(method: str, config: ModelConfig, seed: int) -> MonoDPC | StereoDPC:
     """Build ``MonoDPC`` (``"ss_dpc"``) or ``StereoDPC`` (``"stereo_dpc"``) in training mode.
 
     Weights are drawn from ``seed`` with PyTorch's default initialisation (see

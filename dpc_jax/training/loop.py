@@ -396,6 +396,32 @@ def _train_epoch(
     return state, means
 
 
+def _initial_state(
+    config: TrainConfig, data: TrainData, mesh: Mesh
+) -> tuple[nnx.GraphDef, nnx.GraphDef, nnx.State]:
+    """A fresh model with the training prior statistics, split with its optimizer onto ``mesh``.
+
+    Returns ``(model_graphdef, graphdef, state)``: ``state[0]`` of the train state is the model's
+    and merges with ``model_graphdef`` (validation runs the model alone).
+    """
+    from dpc_jax.nn.models import create_model, set_prior_statistics
+
+    model = create_model(config.method, config.model_config(), config.seed)
+    set_prior_statistics(model, *data.prior_statistics)
+    model_graphdef = nnx.graphdef(model)
+    graphdef, state = create_train_state(model, make_optimizer(config, data.steps_per_epoch), mesh)
+    return model_graphdef, graphdef, state
+
+
+def _check_finite_validation(val: dict[str, Any], epoch: int) -> None:
+    if not all(math.isfinite(val[k]) for k in ("val_loss", "val_gradient_loss", "val_delta")):
+        raise NonFiniteLossError(
+            f"non-finite validation loss at epoch {epoch} ({val['val_loss']}, gradient loss "
+            f"{val['val_gradient_loss']}); stopping. "
+            f"The last good checkpoint (epoch {epoch - 1}) is intact"
+        )
+
+
 def train(
     config: TrainConfig,
     workdir: str | os.PathLike,
@@ -421,8 +447,6 @@ def train(
     Errors before any compute: ``ConfigError`` for a bad split, missing cache, wrong image size,
     or a workdir holding another run. ``NonFiniteLossError`` when a loss becomes NaN/inf.
     """
-    from dpc_jax.nn.models import create_model, set_prior_statistics
-
     workdir = Path(workdir).absolute()
     has_run = check_workdir(config, workdir, resume)
     if config.distributed:
@@ -438,12 +462,7 @@ def train(
         raise ConfigError(str(error)) from None
     is_main = jax.process_index() == 0
 
-    model = create_model(config.method, config.model_config(), config.seed)
-    set_prior_statistics(model, *data.prior_statistics)
-    # state[0] of the train state is the model's; it merges with the model's own graphdef.
-    model_graphdef = nnx.graphdef(model)
-    graphdef, state = create_train_state(model, make_optimizer(config, data.steps_per_epoch), mesh)
-    del model
+    model_graphdef, graphdef, state = _initial_state(config, data, mesh)
     checkpoints = Checkpoints(workdir, keep_last=config.keep_checkpoints)
     meta: dict[str, Any] | None = None
     if has_run and checkpoints.latest_epoch() is not None:
@@ -469,12 +488,7 @@ def train(
             )
             step += data.steps_per_epoch
             val = validate(model_graphdef, state[0], data, config, mesh)
-            if not all(math.isfinite(val[k]) for k in ("val_loss", "val_gradient_loss", "val_delta")):
-                raise NonFiniteLossError(
-                    f"non-finite validation loss at epoch {epoch} ({val['val_loss']}, gradient loss "
-                    f"{val['val_gradient_loss']}); stopping. "
-                    f"The last good checkpoint (epoch {epoch - 1}) is intact"
-                )
+            _check_finite_validation(val, epoch)
             row = {
                 "epoch": epoch,
                 "step": step,
