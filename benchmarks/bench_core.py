@@ -16,10 +16,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dpc_jax.geometry.lie import se3_exp, se3_log
+from dpc_jax.geometry.ssim import ssim_loss
+from dpc_jax.geometry.warp import inverse_warp
 from dpc_jax.hugepages import reexec_with_huge_pages
-from dpc_jax.lie import se3_exp, se3_log
-from dpc_jax.ssim import ssim_loss
-from dpc_jax.warp import inverse_warp
 
 
 def timeit(fn: Callable[[], object], repeats: int) -> tuple[float, float]:

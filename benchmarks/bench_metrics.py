@@ -25,9 +25,9 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 import reference_metrics as ref  # noqa: E402
 
-from dpc_jax import metrics  # noqa: E402
+from dpc_jax.data.poses_io import read_mat  # noqa: E402
+from dpc_jax.eval import metrics  # noqa: E402
 from dpc_jax.hugepages import reexec_with_huge_pages  # noqa: E402
-from dpc_jax.trajectory import read_mat  # noqa: E402
 
 DEFAULT_MAT = ROOT.parent / "shared" / "data" / "kitti-libviso2" / "stereo_00.mat"
 

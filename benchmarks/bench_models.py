@@ -39,10 +39,10 @@ import numpy as np
 import optax
 from flax import nnx
 
-from dpc_jax.batch import Batch
 from dpc_jax.hugepages import reexec_with_huge_pages
-from dpc_jax.losses import SSDPCLossConfig, StereoDPCLossConfig, ss_dpc_loss, stereo_dpc_loss
-from dpc_jax.models import PRESETS, create_model
+from dpc_jax.nn.batch import Batch
+from dpc_jax.nn.losses import SSDPCLossConfig, StereoDPCLossConfig, ss_dpc_loss, stereo_dpc_loss
+from dpc_jax.nn.models import PRESETS, create_model
 
 
 def timeit(fn: Callable[..., object], args: tuple, repeats: int) -> tuple[float, float, float, float]:

@@ -21,13 +21,13 @@ import time
 import jax
 import numpy as np
 
-from dpc_jax import parallel
-from dpc_jax.batch import Batch
 from dpc_jax.hugepages import reexec_with_huge_pages
-from dpc_jax.models import PRESETS, create_model
-from dpc_jax.optim import create_train_state, make_optimizer
-from dpc_jax.train import make_train_step
-from dpc_jax.train_config import REFERENCE, TrainConfig
+from dpc_jax.nn.batch import Batch
+from dpc_jax.nn.models import PRESETS, create_model
+from dpc_jax.training import parallel
+from dpc_jax.training.config import REFERENCE, TrainConfig
+from dpc_jax.training.optim import create_train_state, make_optimizer
+from dpc_jax.training.steps import make_train_step
 
 
 def random_batch(batch: int, size: tuple[int, int], flow: bool, seed: int = 0) -> Batch:

@@ -12,48 +12,51 @@ from typing import Any
 __version__ = "0.1.0"
 
 _EXPORTS: dict[str, tuple[str, ...]] = {
-    "dpc_jax.lie": (
+    "dpc_jax.geometry.lie": (
         "so3_hat", "so3_vee", "so3_exp", "so3_log", "so3_left_jacobian", "so3_left_jacobian_inv",
-        "se3_exp", "se3_log", "se3_inverse", "transform_points", "project_to_so3", "validate_poses",
+        "se3_exp", "se3_log", "se3_inverse", "transform_points", "project_to_so3",
     ),
-    "dpc_jax.camera": ("scale_intrinsics", "pixel_grid", "backproject", "project"),
-    "dpc_jax.warp": ("bilinear_sample", "inverse_warp", "stereo_warp", "disparity_consistency"),
-    "dpc_jax.ssim": ("ssim_loss",),
-    "dpc_jax.correction": ("apply_correction", "corrected_trajectory"),
-    "dpc_jax.losses": (
+    "dpc_jax.geometry.camera": ("scale_intrinsics", "pixel_grid", "backproject", "project"),
+    "dpc_jax.geometry.warp": ("bilinear_sample", "inverse_warp", "stereo_warp", "disparity_consistency"),
+    "dpc_jax.geometry.ssim": ("ssim_loss",),
+    "dpc_jax.geometry.correction": ("apply_correction", "corrected_trajectory"),
+    "dpc_jax.nn.losses": (
         "SSDPCLossConfig", "StereoDPCLossConfig", "ss_dpc_loss", "stereo_dpc_loss", "dpc_loss",
         "gradient_loss", "temporal_pair_errors", "correction_deltas",
     ),
-    "dpc_jax.batch": ("Batch",),
-    "dpc_jax.outputs": ("BranchOutputs", "DPCOutputs"),
-    "dpc_jax.trajectory": (
+    "dpc_jax.nn.batch": ("Batch",),
+    "dpc_jax.nn.outputs": ("BranchOutputs", "DPCOutputs"),
+    "dpc_jax.geometry.poses": ("relative_poses", "compose", "remove_static_frames"),
+    "dpc_jax.data.poses_io": (
         "read_trajectory", "read_kitti_poses", "read_tum", "read_mat", "write_kitti_poses", "write_tum",
-        "relative_poses", "compose", "remove_static_frames",
+        "validate_poses",
     ),
-    "dpc_jax.metrics": (
+    "dpc_jax.eval.metrics": (
         "m_ate", "c_ate", "segment_errors", "kitti_devkit_errors", "ate", "rpe", "count_loop_closures",
         "trajectory_metrics",
     ),
-    "dpc_jax.evaluation": ("evaluate", "Evaluation", "write_report", "export_trajectories"),
+    "dpc_jax.eval.evaluation": ("evaluate", "Evaluation", "write_report", "export_trajectories"),
     "dpc_jax.data": (
         "StereoSequence", "open_odometry", "open_raw", "load_image", "prepare_sequence", "load_cache",
         "TrainLoader", "iterate_sequence", "leave_one_out",
     ),
     "dpc_jax.synth": ("SynthConfig", "render_sequence", "write_sequences"),
     "dpc_jax.vo": ("StereoVO", "VOConfig", "VOResult", "VOStatus", "run_vo", "run_vo_frames"),
-    "dpc_jax.conv": ("conv_s2", "upconv3x3_s2", "conv3x3_few_outputs"),
-    "dpc_jax.models": ("ModelConfig", "PRESETS", "MonoDPC", "StereoDPC", "create_model", "count_parameters"),
-    "dpc_jax.train_config": ("TrainConfig", "REFERENCE"),
-    "dpc_jax.optim": ("make_optimizer", "create_train_state", "learning_rate_schedule"),
-    "dpc_jax.train": ("make_train_step", "NonFiniteLossError"),
-    "dpc_jax.checkpoints": ("Checkpoints",),
-    "dpc_jax.parallel": ("make_mesh", "shard_batch", "replicate"),
+    "dpc_jax.nn.conv": ("conv_s2", "upconv3x3_s2", "conv3x3_few_outputs"),
+    "dpc_jax.nn.models": (
+        "ModelConfig", "PRESETS", "MonoDPC", "StereoDPC", "create_model", "count_parameters",
+    ),
+    "dpc_jax.training.config": ("TrainConfig", "REFERENCE"),
+    "dpc_jax.training.optim": ("make_optimizer", "create_train_state", "learning_rate_schedule"),
+    "dpc_jax.training.steps": ("make_train_step", "NonFiniteLossError"),
+    "dpc_jax.training.checkpoints": ("Checkpoints",),
+    "dpc_jax.training.parallel": ("make_mesh", "shard_batch", "replicate"),
     "dpc_jax.hugepages": ("reexec_with_huge_pages", "huge_pages_requested"),
     "dpc_jax.config": ("ConfigError", "load_file"),
     "dpc_jax.inference": ("load_run", "predict_sequence", "predict_corrections", "TrainedRun"),
     "dpc_jax.acceptance": ("acceptance_test", "Acceptance"),
     "dpc_jax.correct": ("correct_cache", "write_trajectory"),
-    "dpc_jax.demo": ("DemoConfig", "run_demo"),
+    "dpc_jax.pipelines.demo": ("DemoConfig", "run_demo"),
 }
 _MODULE_OF = {name: module for module, names in _EXPORTS.items() for name in names}
 

@@ -70,6 +70,24 @@ def atomic_write(path: str | os.PathLike[str], data: str | bytes) -> None:
 # ----------------------------------------------------------------------------- stale temporaries
 
 
+def install_folder(tmp: str | os.PathLike[str], target: str | os.PathLike[str]) -> None:
+    """Move the finished folder ``tmp`` to ``target`` (same file system), replacing an older one there.
+
+    The older folder is first renamed aside to ``.NAME.old-<pid>-<random>`` beside ``target``, so
+    ``target`` is missing only between two renames; a crash leaves it under a name
+    :func:`remove_stale` attributes to this process.
+    """
+    tmp, target = Path(tmp), Path(target)
+    if target.exists():
+        old = target.parent / temp_name(f".{target.name}.old-")
+        old.mkdir()
+        os.replace(target, old / target.name)
+        os.replace(tmp, target)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(tmp, target)
+
+
 def _process_start_time(pid: int) -> float | None:
     """Start time of process ``pid`` (seconds since the epoch) from /proc, or None where unknown."""
     try:

@@ -2,7 +2,7 @@
 
 For a network and a sequence, every frame pair i gives a *paired* difference
 ``Δ_i = L_i(ξ_corr) − L_i(0)``: the gradient-masked photometric error of the temporal
-reconstructions (``dpc_jax.losses.correction_deltas``) with the correction and without it, with
+reconstructions (``dpc_jax.nn.losses.correction_deltas``) with the correction and without it, with
 the same depth and validity. Δ < 0 means the corrected relative pose reconstructs the pair better.
 The test is one-sided: the correction is accepted when the Δ are significantly below zero by the
 Wilcoxon signed-rank test (``scipy.stats.wilcoxon``, ``alternative="less"``) at level ``alpha``
@@ -97,7 +97,7 @@ def acceptance_test(
 ) -> Acceptance:
     """Test each of ``components`` (in order of preference) on its Δ; decide (module docstring).
 
-    ``deltas``: ``{component: Δ [M]}`` as from ``dpc_jax.losses.correction_deltas`` (pairs
+    ``deltas``: ``{component: Δ [M]}`` as from ``dpc_jax.nn.losses.correction_deltas`` (pairs
     already selected, padding dropped).
     """
     if not 0.0 < alpha < 1.0:

@@ -34,11 +34,11 @@ import numpy as np
 from flax import nnx
 from tqdm.auto import tqdm
 
+from dpc_jax._io import atomic_write
 from dpc_jax.data.pipeline import SequenceCache, TrainLoader
 from dpc_jax.inference import TrainedRun
-from dpc_jax.optim import create_train_state, make_optimizer
-from dpc_jax.train import NonFiniteLossError, make_train_step
-from dpc_jax.trajectory import atomic_write
+from dpc_jax.training.optim import create_train_state, make_optimizer
+from dpc_jax.training.steps import NonFiniteLossError, make_train_step
 
 
 @dataclass(frozen=True)
@@ -164,7 +164,7 @@ def save_adapted(directory: str | os.PathLike, adaptation: Adaptation, metrics: 
     """Write the adapted network as a run folder in ``directory`` (module docstring); ``metrics``
     (e.g. the held-out Δ) go into the checkpoint's record and ``adapt.json``. Returns the folder."""
     from dpc_jax import config as config_lib
-    from dpc_jax.checkpoints import Checkpoints
+    from dpc_jax.training.checkpoints import Checkpoints
 
     directory = Path(directory).absolute()
     run = adaptation.run

@@ -1,6 +1,6 @@
 """Configuration as data: dataclasses built from dicts and config files, with strict checking.
 
-A run is described by one frozen dataclass (``dpc_jax.train_config.TrainConfig``). It comes from a
+A run is described by one frozen dataclass (``dpc_jax.training.config.TrainConfig``). It comes from a
 Python file ``experiments/configs/NAME.py`` that defines ``CONFIG`` — either the dataclass itself
 or a plain ``dict`` of its fields — and is stored beside the checkpoints as JSON, so that a
 resumed run can prove it continues the same experiment.
@@ -23,7 +23,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, TypeVar
 
-from dpc_jax.trajectory import atomic_write
+from dpc_jax._io import atomic_write
 
 T = TypeVar("T")
 

@@ -11,7 +11,7 @@ Pipeline (docs/method.md §1, §7):
    relative poses). ``force=True`` applies the network's correction whatever the test says.
 3. ``T*_{k+1,k} = Exp(ξ_corr,k) · T_vo_{k+1,k}`` is composed from the first ground-truth pose when
    the cache has ground truth, else from the first prior pose
-   (``dpc_jax.correction.corrected_trajectory``, float64); the prior, the network's proposal and
+   (``dpc_jax.geometry.correction.corrected_trajectory``, float64); the prior, the network's proposal and
    the final trajectory are evaluated against the ground truth when it exists.
 
 Frames: a cache holds the frames it was prepared with (``indices``: their numbers in the source
@@ -31,13 +31,12 @@ from pathlib import Path
 
 import numpy as np
 
+from dpc_jax._io import atomic_write
 from dpc_jax.acceptance import DEFAULT_ALPHA, Acceptance, acceptance_test, forced
 from dpc_jax.data.pipeline import SequenceCache, load_cache
-from dpc_jax.evaluation import Evaluation
+from dpc_jax.data.poses_io import WRITE_FORMATS, write_kitti_poses, write_tum
+from dpc_jax.eval.evaluation import Evaluation
 from dpc_jax.inference import SequencePrediction, TrainedRun, run_prediction
-from dpc_jax.trajectory import atomic_write, write_kitti_poses, write_tum
-
-FORMATS = ("kitti", "tum")
 
 
 def prior_for_cache(
@@ -45,13 +44,12 @@ def prior_for_cache(
 ) -> np.ndarray:
     """A replacement VO prior for the frames of ``cache`` → ``[len(cache), 4, 4]`` float64.
 
-    ``source`` (array, or KITTI/TUM/``.mat`` file as in :func:`dpc_jax.trajectory.read_trajectory`)
+    ``source`` (array, or KITTI/TUM/``.mat`` file as in :func:`dpc_jax.data.poses_io.read_trajectory`)
     holds either one pose per cached frame, or one pose per frame of the source range the cache
     was prepared from (``manifest["n_source_frames"]``), of which the cached frames
     (``cache.indices``) are taken. It is used as is (no monocular rescaling).
     """
-    from dpc_jax.lie import validate_poses
-    from dpc_jax.trajectory import read_trajectory
+    from dpc_jax.data.poses_io import read_trajectory, validate_poses
 
     n = len(cache)
     n_source = int(cache.manifest.get("n_source_frames", n))
@@ -189,8 +187,8 @@ def compose_correction(
     run: TrainedRun, cache: SequenceCache, xi_corr: np.ndarray, acceptance: Acceptance, rotation_only: bool
 ) -> Correction:
     """The trajectories of a decided correction of ``cache`` and their evaluation (module docstring)."""
-    from dpc_jax.correction import corrected_trajectory
-    from dpc_jax.evaluation import evaluate
+    from dpc_jax.eval.evaluation import evaluate
+    from dpc_jax.geometry.correction import corrected_trajectory
 
     prior = np.asarray(cache.prior, np.float64)
     gt = None if cache.gt is None else np.asarray(cache.gt, np.float64)
@@ -246,8 +244,8 @@ def write_trajectory(path: str | os.PathLike, correction: Correction, format: st
     time), the source frame number of every pose is written too, one per line, to
     :func:`frames_path`. Returns the written paths.
     """
-    if format not in FORMATS:
-        raise ValueError(f"format must be one of {FORMATS}, got {format!r}")
+    if format not in WRITE_FORMATS:
+        raise ValueError(f"format must be one of {WRITE_FORMATS}, got {format!r}")
     path = Path(path)
     if format == "kitti":
         write_kitti_poses(path, correction.corrected)
@@ -288,7 +286,7 @@ def acceptance_markdown(acceptance: Acceptance) -> str:
 def write_correction_report(directory: str | os.PathLike, correction: Correction, title: str) -> list[Path]:
     """``report.md`` (acceptance test; with ground truth also the metrics, CSV tables and plots),
     ``summary.json`` and, with ground truth, ``metrics.json`` in ``directory``."""
-    from dpc_jax.evaluation import write_report
+    from dpc_jax.eval.evaluation import write_report
 
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)

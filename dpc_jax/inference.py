@@ -8,9 +8,9 @@ adaptation, the demo and the experiments. It imports neither the training loop n
 * :func:`predict_sequence` evaluates a model (any ``graphdef, state``) on every consecutive pair
   ``(k, k+1)`` of a cached sequence in fixed-shape batches (the last one padded, its padding
   dropped), so one compilation serves the sequence: ξ_corr, the training loss, and the paired
-  photometric effect Δ of the correction (``dpc_jax.losses.correction_deltas``), with the
-  network's depth or an independent stereo depth (``dpc_jax.stereo_depth``).
-* Composing the corrected trajectory is ``dpc_jax.correction.corrected_trajectory``.
+  photometric effect Δ of the correction (``dpc_jax.nn.losses.correction_deltas``), with the
+  network's depth or an independent stereo depth (``dpc_jax.data.stereo_depth``).
+* Composing the corrected trajectory is ``dpc_jax.geometry.correction.corrected_trajectory``.
 """
 
 from __future__ import annotations
@@ -29,13 +29,13 @@ from flax import nnx
 from jax.sharding import Mesh
 from tqdm.auto import tqdm
 
-from dpc_jax import parallel
-from dpc_jax.batch import Batch
 from dpc_jax.data.pipeline import SequenceCache, iterate_sequence, load_cache
-from dpc_jax.losses import correction_deltas, dpc_loss
-from dpc_jax.train_config import TrainConfig
+from dpc_jax.nn.batch import Batch
+from dpc_jax.nn.losses import correction_deltas, dpc_loss
+from dpc_jax.training import parallel
+from dpc_jax.training.config import TrainConfig
 
-# Selection criterion → checkpoint folder (see dpc_jax.checkpoints).
+# Selection criterion → checkpoint folder (see dpc_jax.training.checkpoints).
 SELECTIONS = {
     "delta": "best_delta", "gradient": "best_gradient_loss", "loop": "best_loop_closures", "last": "epochs",
 }
@@ -60,7 +60,8 @@ class TrainedRun:
     @property
     def image_size(self) -> tuple[int, int]:
         """``(H, W)`` the network expects."""
-        return tuple(self.config.resolved_image_size)
+        height, width = self.config.resolved_image_size
+        return height, width
 
     @property
     def use_flow(self) -> bool:
@@ -79,9 +80,9 @@ def load_run(workdir: str | os.PathLike, select: str = "delta") -> TrainedRun:
     import orbax.checkpoint as ocp
 
     from dpc_jax import config as config_lib
-    from dpc_jax.checkpoints import Checkpoints
-    from dpc_jax.models import create_model
-    from dpc_jax.optim import create_train_state, make_optimizer
+    from dpc_jax.nn.models import create_model
+    from dpc_jax.training.checkpoints import Checkpoints
+    from dpc_jax.training.optim import create_train_state, make_optimizer
 
     if select not in SELECTIONS:
         raise ValueError(f"select must be one of {', '.join(SELECTIONS)}, got {select!r}")
@@ -191,7 +192,7 @@ def predict_sequence(
     """Run the model ``(graphdef, state)`` in evaluation mode over every pair of ``cache``.
 
     ``loss_config``: the run's loss config (``TrainConfig.loss_config()``). ``stereo_depth``:
-    ``(inverse depth, valid)`` ``[N, camera, H, W]`` of every frame (``dpc_jax.stereo_depth``)
+    ``(inverse depth, valid)`` ``[N, camera, H, W]`` of every frame (``dpc_jax.data.stereo_depth``)
     to measure Δ with instead of the network's depth (Stereo DPC only). Batches hold
     ``min(batch_size, N-1)`` samples; with ``mesh`` each is sharded on its ``data`` axis (the
     size must then divide over the devices). Batch k+1 is dispatched before the results of
@@ -290,7 +291,7 @@ def stereo_depth_of(cache: SequenceCache, acceptance_depth: str) -> tuple[np.nda
         return None
     if acceptance_depth != "sgbm":
         raise ValueError(f"acceptance_depth must be 'network' or 'sgbm', got {acceptance_depth!r}")
-    from dpc_jax.stereo_depth import sequence_inverse_depth
+    from dpc_jax.data.stereo_depth import sequence_inverse_depth
 
     return sequence_inverse_depth(np.asarray(cache.left), np.asarray(cache.right), float(cache.K[0, 0]),
                                   cache.baseline)

@@ -1,8 +1,8 @@
 """Ablation of the correction remedies on the demo's sequences, one row per remedy added cumulatively.
 
-Every row is the demo (``dpc_jax.demo``, default data: same rendered sequences, priors and caches,
+Every row is the demo (``dpc_jax.pipelines.demo``, default data: same rendered sequences, priors and caches,
 shared through symbolic links) with the training and correction settings of that row, from the
-published choices (``dpc_jax.train_config.REFERENCE``, epoch by the gradient loss, every correction
+published choices (``dpc_jax.training.config.REFERENCE``, epoch by the gradient loss, every correction
 applied) to ours. Per row: the test sequence's segment errors of the prior and of the final
 trajectory, Δ of the correction on the test sequence (mean over its pairs, the network's depth),
 what the acceptance test decided, and the minutes the row took (training and correction; the data
@@ -95,8 +95,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     from dpc_jax import config as config_lib
-    from dpc_jax.demo import DemoConfig, DemoError, run_demo
-    from dpc_jax.trajectory import atomic_write
+    from dpc_jax._io import atomic_write
+    from dpc_jax.pipelines.demo import DemoConfig, DemoError, run_demo
 
     logging.getLogger("absl").setLevel(logging.ERROR)
     base = {**config_lib.to_dict(DemoConfig()), "seed": args.seed}

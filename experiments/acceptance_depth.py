@@ -112,7 +112,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("folders", type=Path, nargs="+", metavar="DEMO_OUT")
     parser.add_argument("--out", type=Path, default=Path("runs/acceptance_depth"), metavar="DIR")
     args = parser.parse_args(argv)
-    from dpc_jax.trajectory import atomic_write
+    from dpc_jax._io import atomic_write
 
     logging.getLogger("absl").setLevel(logging.ERROR)
     rows = [row for folder in args.folders for row in evaluate_folder(folder)]

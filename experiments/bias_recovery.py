@@ -28,7 +28,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dpc_jax import config as config_lib
-from dpc_jax import trajectory
+from dpc_jax.geometry.poses import compose, relative_poses
 from dpc_jax.hugepages import reexec_with_huge_pages
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -50,14 +50,14 @@ def biased_prior(
 ) -> np.ndarray:
     """The true trajectory with each relative pose perturbed on the left by bias and noise."""
     rng = np.random.default_rng(seed)
-    relative = trajectory.relative_poses(gt)
+    relative = relative_poses(gt)
     n = relative.shape[0]
     rotvec = np.radians(rng.normal(0.0, rot_noise_deg, (n, 3)))
     rotvec[:, 1] += np.radians(bias_deg)
     perturbation = np.tile(np.eye(4), (n, 1, 1))
     perturbation[:, :3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
     perturbation[:, :3, 3] = rng.normal(0.0, trans_noise, (n, 3))
-    return trajectory.compose(perturbation @ relative, gt[0])
+    return compose(perturbation @ relative, gt[0])
 
 
 def make_data(out: Path, config: object, args: argparse.Namespace) -> None:
@@ -84,8 +84,8 @@ def trajectory_length(poses: np.ndarray) -> float:
 def evaluate_test(config: object, workdir: Path, selection: str) -> dict[str, float]:
     """Correct the test sequence with the epoch chosen by ``selection`` (acceptance test on its own
     images); prior vs corrected."""
-    from dpc_jax import metrics
     from dpc_jax.correct import correct_cache
+    from dpc_jax.eval import metrics
     from dpc_jax.inference import load_run
 
     run = load_run(workdir, selection)
@@ -97,7 +97,7 @@ def evaluate_test(config: object, workdir: Path, selection: str) -> dict[str, fl
         errors = metrics.segment_errors(gt, estimate)
         result[f"{label}_r_err"] = float(errors.rot_deg_per_100m)
         result[f"{label}_t_err"] = float(errors.trans_pct)
-    truth, vo = trajectory.relative_poses(gt), trajectory.relative_poses(prior)
+    truth, vo = relative_poses(gt), relative_poses(prior)
     needed = Rotation.from_matrix(truth[:, :3, :3] @ np.swapaxes(vo[:, :3, :3], 1, 2))
     result["mean_yaw_needed_deg"] = float(np.degrees(needed.as_rotvec()[:, 1].mean()))
     result["mean_yaw_correction_deg"] = float(np.degrees(correction.xi_corr[:, 4].mean()))
@@ -116,8 +116,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--resume", action="store_true", help="continue the training run in OUT/run")
     args = parser.parse_args(argv)
 
-    from dpc_jax.train import train
-    from dpc_jax.train_config import TrainConfig
+    from dpc_jax.training.config import TrainConfig
+    from dpc_jax.training.loop import train
 
     config = config_lib.load_file(args.config, TrainConfig)
     cache_root = (ROOT / config.cache_root).resolve()

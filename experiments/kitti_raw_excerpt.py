@@ -10,12 +10,10 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from dpc_jax.hugepages import reexec_with_huge_pages
+from dpc_jax.pipelines import protocol as P
+
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-
-import dpc_protocol as P  # noqa: E402
-
-from dpc_jax.hugepages import reexec_with_huge_pages  # noqa: E402
 
 CONFIG = HERE / "configs" / "kitti_raw_excerpt.py"
 DEFAULT_ROOT = HERE.parents[1] / "shared" / "data" / "kitti-raw"

@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 
 from dpc_jax.acceptance import acceptance_test, component_test, forced
-from dpc_jax.batch import Batch
 from dpc_jax.data.priors import log_poses
-from dpc_jax.lie import se3_exp
-from dpc_jax.losses import SSDPCLossConfig, StereoDPCLossConfig, correction_deltas, temporal_pair_errors
-from dpc_jax.outputs import BranchOutputs, DPCOutputs
+from dpc_jax.geometry.lie import se3_exp
+from dpc_jax.geometry.poses import relative_poses
+from dpc_jax.nn.batch import Batch
+from dpc_jax.nn.losses import SSDPCLossConfig, StereoDPCLossConfig, correction_deltas, temporal_pair_errors
+from dpc_jax.nn.outputs import BranchOutputs, DPCOutputs
 from dpc_jax.synth import SynthConfig, render_sequence
-from dpc_jax.trajectory import relative_poses
 
 
 def test_wilcoxon_exact_p_values_in_closed_form() -> None:

@@ -13,13 +13,13 @@ from dpc_jax.adapt import AdaptConfig, adapt, held_out_pairs, save_adapted
 from dpc_jax.data.cache import prepare_sequence
 from dpc_jax.data.kitti import open_odometry
 from dpc_jax.data.pipeline import load_cache
+from dpc_jax.geometry.lie import se3_exp
+from dpc_jax.geometry.poses import compose, relative_poses
 from dpc_jax.inference import TrainedRun, load_run, run_prediction
-from dpc_jax.lie import se3_exp
-from dpc_jax.models import create_model
+from dpc_jax.nn.models import create_model
 from dpc_jax.synth import SynthConfig
 from dpc_jax.synth.writer import write_sequence
-from dpc_jax.train_config import TrainConfig
-from dpc_jax.trajectory import compose, relative_poses
+from dpc_jax.training.config import TrainConfig
 
 SIZE = (32, 80)
 YAW_BIAS = 4e-3  # rad per frame: the prior turns this much less than the truth

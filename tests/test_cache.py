@@ -17,7 +17,7 @@ from dpc_jax.cli import main
 from dpc_jax.data.cache import prepare_sequence
 from dpc_jax.data.kitti import open_odometry, open_raw
 from dpc_jax.data.pipeline import load_cache
-from dpc_jax.warp import stereo_warp
+from dpc_jax.geometry.warp import stereo_warp
 
 RAW = SHARED / "data" / "kitti-raw"
 STEREO_MAT = RAW / "libviso2" / "stereo_2011_09_26_drive_0001.mat"

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dpc_jax.camera import backproject, pixel_grid, project, scale_intrinsics
+from dpc_jax.geometry.camera import backproject, pixel_grid, project, scale_intrinsics
 
 K_NP = np.array([[40.0, 0.0, 31.5], [0.0, 38.0, 23.5], [0.0, 0.0, 1.0]])
 
@@ -110,3 +110,39 @@ def test_project_gradient_finite_at_zero_depth() -> None:
 def test_shape_errors(call, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         call()
+
+
+# The fast inline projections elsewhere (the warp's per-coordinate form, the VO's numpy form) are
+# the same pinhole model as this module: checked here so the one camera model stays one.
+
+
+def test_inverse_warp_projects_like_the_camera_model() -> None:
+    from dpc_jax.geometry.lie import se3_exp, transform_points
+    from dpc_jax.geometry.warp import inverse_warp
+
+    height, width = 24, 32
+    with jax.enable_x64(True):
+        K = jnp.array([[30.0, 0.0, 15.5], [0.0, 29.0, 11.5], [0.0, 0.0, 1.0]])
+        T = se3_exp(jnp.array([0.05, -0.02, 0.1, 0.01, -0.02, 0.005]))
+        depth = 4.0 + jnp.linspace(0.0, 2.0, height * width).reshape(height, width)
+        # Bilinear sampling of an image that is its own pixel coordinates returns the sampled point.
+        sampled, valid = inverse_warp(pixel_grid(height, width, jnp.float64), depth, T, K)
+        points = transform_points(T, backproject(depth, K).reshape(-1, 3)).reshape(height, width, 3)
+        uv, _ = project(points, K)
+    mask = np.asarray(valid)
+    assert mask.mean() > 0.5
+    np.testing.assert_allclose(np.asarray(sampled)[mask], np.asarray(uv)[mask], atol=1e-9)
+
+
+def test_vo_projection_is_the_camera_model() -> None:
+    from dpc_jax.vo.motion import project as vo_project
+
+    rng = np.random.default_rng(0)
+    points = rng.uniform([-5.0, -2.0, 3.0], [5.0, 2.0, 30.0], size=(50, 3))
+    T = np.eye(4)
+    T[:3, 3] = [0.1, -0.05, 0.3]
+    uv, in_front = vo_project(T, points, K_NP, offset_x=0.54)
+    moved = points @ T[:3, :3].T + T[:3, 3] - np.array([0.54, 0.0, 0.0])
+    expected, valid = project(jnp.asarray(moved[None]), jnp.asarray(K_NP))
+    np.testing.assert_array_equal(in_front, np.asarray(valid)[0])
+    np.testing.assert_allclose(uv, np.asarray(expected)[0], rtol=1e-12, atol=1e-9)

@@ -11,7 +11,7 @@ import orbax.checkpoint as ocp
 import pytest
 from flax import nnx
 
-from dpc_jax.checkpoints import Checkpoints, Record
+from dpc_jax.training.checkpoints import Checkpoints, Record
 
 
 class _Net(nnx.Module):

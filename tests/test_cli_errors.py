@@ -35,7 +35,7 @@ from dpc_jax.cli._common import Formatter, progress_mode, restore_problem
 from dpc_jax.data.cache import prepare_sequence
 from dpc_jax.data.kitti import open_odometry
 from dpc_jax.data.pipeline import CacheError, load_cache
-from dpc_jax.trajectory import read_trajectory, write_kitti_poses, write_tum
+from dpc_jax.data.poses_io import read_trajectory, write_kitti_poses, write_tum
 
 ROOT = Path(__file__).resolve().parents[1]
 N_POSES = 30

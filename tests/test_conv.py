@@ -1,4 +1,4 @@
-"""dpc_jax.conv against XLA's own convolutions (float64): values and both gradients, under jit."""
+"""dpc_jax.nn.conv against XLA's own convolutions (float64): values and both gradients, under jit."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dpc_jax.conv import NHWC, conv3x3_few_outputs, conv_s2, upconv3x3_s2
+from dpc_jax.nn.conv import NHWC, conv3x3_few_outputs, conv_s2, upconv3x3_s2
 
 
 def _reference_s2(x: jax.Array, kernel: jax.Array) -> jax.Array:

@@ -2,17 +2,15 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "experiments"))
+from dpc_jax.pipelines import protocol as dpc_protocol
 
-import dpc_protocol  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 SIZE = dpc_protocol.SMOKE["image_size"]
 FRAMES = 10
@@ -57,12 +55,12 @@ def setup(tmp_path_factory: pytest.TempPathFactory) -> dict:
     end to end in test_experiments.py. A second run ("flat") has no epoch with a negative Δ.
     """
     from dpc_jax import config as config_lib
-    from dpc_jax.checkpoints import Checkpoints
     from dpc_jax.data.cache import prepare_sequence
     from dpc_jax.data.kitti import open_odometry
-    from dpc_jax.models import create_model
-    from dpc_jax.optim import create_train_state, make_optimizer
-    from dpc_jax.train_config import REFERENCE, TrainConfig
+    from dpc_jax.nn.models import create_model
+    from dpc_jax.training.checkpoints import Checkpoints
+    from dpc_jax.training.config import REFERENCE, TrainConfig
+    from dpc_jax.training.optim import create_train_state, make_optimizer
 
     tmp = tmp_path_factory.mktemp("correct")
     kitti = dpc_protocol.write_fake_odometry(tmp / "kitti", ["00", "05"], frames=FRAMES,
@@ -110,7 +108,7 @@ def test_selection_restores_the_chosen_epoch(setup: dict, run) -> None:
 
 def _reference_corrections(model, cache) -> np.ndarray:
     """The stored network applied to one pair at a time (BatchNorm uses its running statistics)."""
-    from dpc_jax.batch import Batch
+    from dpc_jax.nn.batch import Batch
 
     model.eval()
     out = []
@@ -194,8 +192,8 @@ def test_composes_from_the_first_prior_pose_without_ground_truth(setup: dict, ru
 def test_cli_writes_trajectory_that_reads_back_and_a_report(setup: dict, tmp_path: Path, capsys) -> None:
     from dpc_jax.cli import main
     from dpc_jax.correct import correct_cache
+    from dpc_jax.data.poses_io import read_trajectory, read_tum
     from dpc_jax.inference import load_run
-    from dpc_jax.trajectory import read_trajectory, read_tum
 
     expected = correct_cache(load_run(setup["run"], "gradient"), setup["cache"] / "05", force=True).corrected
     out = tmp_path / "corrected.txt"
@@ -222,7 +220,7 @@ def test_cli_prepares_raw_input_and_writes_kept_frames(setup: dict, tmp_path: Pa
     """Odometry input with static-frame removal: the trajectory has the kept frames, listed beside it."""
     from dpc_jax.cli import main
     from dpc_jax.data.pipeline import load_cache
-    from dpc_jax.trajectory import read_trajectory
+    from dpc_jax.data.poses_io import read_trajectory
 
     out = tmp_path / "corrected.txt"
     argv = ["correct", "--checkpoint", str(setup["run"]), "--kitti-odometry", str(setup["kitti"]),
@@ -240,7 +238,7 @@ def test_cli_prepares_raw_input_and_writes_kept_frames(setup: dict, tmp_path: Pa
 
     # A full-length prior is accepted for a cache with fewer frames: the cached frames are taken.
     from dpc_jax.correct import prior_for_cache
-    from dpc_jax.trajectory import read_mat
+    from dpc_jax.data.poses_io import read_mat
 
     _, full = read_mat(setup["priors"] / "stereo_05.mat")
     np.testing.assert_allclose(prior_for_cache(cache, full), full[cache.indices], atol=1e-12)
@@ -258,7 +256,7 @@ def _error(capsys, argv: list[str]) -> str:
 def test_bad_input_errors_name_what_was_expected(setup: dict, tmp_path: Path, capsys) -> None:
     from dpc_jax.data.cache import prepare_sequence
     from dpc_jax.data.kitti import open_odometry
-    from dpc_jax.trajectory import read_trajectory, write_kitti_poses
+    from dpc_jax.data.poses_io import read_trajectory, write_kitti_poses
 
     base = ["correct", "--checkpoint", str(setup["run"]), "--out", str(tmp_path / "c.txt"), "--no-progress"]
     data = ["--data", str(setup["cache"] / "05")]
@@ -291,11 +289,11 @@ def test_an_untrained_network_leaves_the_prior_unchanged(setup: dict) -> None:
     """Zero-initialised output layer (the default): ξ_corr = 0 exactly, corrected trajectory = prior."""
     from flax import nnx
 
-    from dpc_jax.correction import corrected_trajectory
     from dpc_jax.data.pipeline import load_cache
+    from dpc_jax.geometry.correction import corrected_trajectory
     from dpc_jax.inference import predict_sequence
-    from dpc_jax.models import create_model, set_prior_statistics
-    from dpc_jax.train_config import TrainConfig
+    from dpc_jax.nn.models import create_model, set_prior_statistics
+    from dpc_jax.training.config import TrainConfig
 
     config = TrainConfig(method="stereo_dpc", **dpc_protocol.SMOKE, validation_sequences=("05",))
     cache = load_cache(setup["cache"] / "05")
@@ -319,8 +317,8 @@ def test_cli_keeps_the_prior_when_no_epoch_beats_it_and_applies_with_force(
     from dpc_jax.cli import main
     from dpc_jax.correct import correct_cache
     from dpc_jax.data.pipeline import load_cache
+    from dpc_jax.data.poses_io import read_trajectory
     from dpc_jax.inference import load_run
-    from dpc_jax.trajectory import read_trajectory
 
     cache = load_cache(setup["cache"] / "05")
     base = ["correct", "--checkpoint", str(setup["flat"]), "--data", str(setup["cache"] / "05"),

@@ -16,8 +16,9 @@ from conftest import SHARED
 from scipy.spatial.transform import Rotation
 
 from dpc_jax.cli import main
-from dpc_jax.evaluation import SUMMARY_KEYS, evaluate
-from dpc_jax.trajectory import compose, read_kitti_poses, read_mat, read_tum, write_kitti_poses, write_tum
+from dpc_jax.data.poses_io import read_kitti_poses, read_mat, read_tum, write_kitti_poses, write_tum
+from dpc_jax.eval.evaluation import SUMMARY_KEYS, evaluate
+from dpc_jax.geometry.poses import compose
 
 MAT = SHARED / "data" / "kitti-libviso2" / "stereo_00.mat"
 N = 300

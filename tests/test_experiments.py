@@ -5,17 +5,15 @@ from __future__ import annotations
 import csv
 import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from dpc_jax.pipelines import protocol as dpc_protocol
+
 ROOT = Path(__file__).resolve().parents[1]
 EXPERIMENTS = ROOT / "experiments"
-sys.path.insert(0, str(EXPERIMENTS))
-
-import dpc_protocol  # noqa: E402
 
 FRAMES = 10
 
@@ -100,8 +98,8 @@ def _check_result_row(
     row: dict[str, str], workdir: Path, fold: str, sequence: str, kitti: Path
 ) -> np.ndarray:
     """The row's prior figures equal an independent evaluation; returns the corrected trajectory."""
-    from dpc_jax.evaluation import evaluate
-    from dpc_jax.trajectory import read_mat, read_trajectory
+    from dpc_jax.data.poses_io import read_mat, read_trajectory
+    from dpc_jax.eval.evaluation import evaluate
 
     gt, prior = read_mat(kitti / "priors" / f"stereo_{sequence}.mat")
     expected = evaluate(gt, {"prior": prior})["estimates"]["prior"]
@@ -133,7 +131,8 @@ def test_kitti_stereo_dpc_smoke(kitti: Path, tmp_path: Path, capsys) -> None:
 
 @pytest.mark.slow
 def test_kitti_ss_dpc_smoke_corrects_rotation_only(kitti: Path, tmp_path: Path) -> None:
-    from dpc_jax.trajectory import read_mat, relative_poses
+    from dpc_jax.data.poses_io import read_mat
+    from dpc_jax.geometry.poses import relative_poses
 
     ss = _entry("kitti_ss_dpc")
     workdir = tmp_path / "ss"

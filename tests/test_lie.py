@@ -17,7 +17,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from dpc_jax.lie import (
+from dpc_jax.data.poses_io import validate_poses
+from dpc_jax.geometry.lie import (
     project_to_so3,
     se3_exp,
     se3_inverse,
@@ -29,7 +30,6 @@ from dpc_jax.lie import (
     so3_log,
     so3_vee,
     transform_points,
-    validate_poses,
 )
 
 SHAPES = [(), (5,), (2, 3)]

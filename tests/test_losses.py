@@ -10,9 +10,10 @@ import pytest
 from test_warp import BASELINE, K_SCENE, render_scene, right_of
 from test_warp import pose as make_pose
 
-from dpc_jax.batch import Batch
-from dpc_jax.lie import se3_log
-from dpc_jax.losses import (
+from dpc_jax.geometry.lie import se3_log
+from dpc_jax.geometry.ssim import ssim_loss
+from dpc_jax.nn.batch import Batch
+from dpc_jax.nn.losses import (
     SSDPCLossConfig,
     StereoDPCLossConfig,
     explainability_loss,
@@ -24,8 +25,7 @@ from dpc_jax.losses import (
     ss_dpc_loss,
     stereo_dpc_loss,
 )
-from dpc_jax.outputs import BranchOutputs, DPCOutputs
-from dpc_jax.ssim import ssim_loss
+from dpc_jax.nn.outputs import BranchOutputs, DPCOutputs
 
 # --- building blocks ----------------------------------------------------------------------------
 

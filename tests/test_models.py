@@ -1,4 +1,4 @@
-"""Tests of dpc_jax.models: shapes, parameter counts, modes, split/merge under jit, gradients."""
+"""Tests of dpc_jax.nn.models: shapes, parameter counts, modes, split/merge under jit, gradients."""
 
 from __future__ import annotations
 
@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from dpc_jax.batch import Batch
-from dpc_jax.losses import StereoDPCLossConfig, stereo_dpc_loss
-from dpc_jax.models import PRESETS, ModelConfig, UpConv, create_model, upsample2x_bilinear
+from dpc_jax.nn.batch import Batch
+from dpc_jax.nn.losses import StereoDPCLossConfig, stereo_dpc_loss
+from dpc_jax.nn.models import PRESETS, ModelConfig, UpConv, create_model, upsample2x_bilinear
 
 TINY = (24, 40)
 SMALL = dataclasses.replace(PRESETS["small"], image_size=TINY)
@@ -184,7 +184,7 @@ def test_input_errors() -> None:
 def test_pose_head_options_prior_statistics_scales_and_prior_only() -> None:
     """The prior enters as (ξ_vo − μ)/σ; each output component has its scale (0 switches it off); a
     prior-only head's correction does not depend on the images."""
-    from dpc_jax.models import set_prior_statistics
+    from dpc_jax.nn.models import set_prior_statistics
 
     config = dataclasses.replace(SMALL, pose_init="pytorch", dropout=0.0)
     batch = make_batch(3, TINY, flow=False)

@@ -18,18 +18,18 @@ import numpy as np
 import pytest
 from jax.sharding import PartitionSpec
 
-from dpc_jax import parallel
+from dpc_jax.training import parallel
 
 SCRIPT = textwrap.dedent(
     """
     import jax, numpy as np
     from jax.sharding import PartitionSpec
-    from dpc_jax import parallel
-    from dpc_jax.batch import Batch
-    from dpc_jax.models import create_model
-    from dpc_jax.optim import create_train_state, make_optimizer
-    from dpc_jax.train import make_train_step
-    from dpc_jax.train_config import TrainConfig
+    from dpc_jax.training import parallel
+    from dpc_jax.nn.batch import Batch
+    from dpc_jax.nn.models import create_model
+    from dpc_jax.training.optim import create_train_state, make_optimizer
+    from dpc_jax.training.steps import make_train_step
+    from dpc_jax.training.config import TrainConfig
 
     assert len(jax.devices()) == 4, jax.devices()
     TINY = dict(encoder_planes=(8, 16, 32), encoder_kernels=(3, 3, 3), decoder_planes=(32, 16, 8),

@@ -11,8 +11,8 @@ import scipy.io
 import scipy.linalg
 from conftest import SHARED
 
+from dpc_jax.data.poses_io import validate_poses
 from dpc_jax.data.priors import load_prior, relative_xi, rescale_monocular
-from dpc_jax.lie import validate_poses
 
 LIBVISO = SHARED / "data" / "kitti-raw" / "libviso2"
 STEREO = LIBVISO / "stereo_2011_09_26_drive_0001.mat"

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dpc_jax.ssim import ssim, ssim_loss
+from dpc_jax.geometry.ssim import ssim, ssim_loss
 
 
 def reflect(i: int, n: int) -> int:

@@ -1,6 +1,6 @@
 """Synthetic driving world: exact geometry, KITTI layout, nuisances, determinism.
 
-References are independent of the renderer: the foundation's warps (``dpc_jax.warp``), float64
+References are independent of the renderer: the foundation's warps (``dpc_jax.geometry.warp``), float64
 numpy geometry of the road layout, the KITTI odometry reader (``dpc_jax.data.kitti``), and the
 closed-form illumination and noise models.
 """
@@ -18,10 +18,10 @@ from scipy.spatial import cKDTree
 
 from dpc_jax.cli import main
 from dpc_jax.data.kitti import load_image, open_odometry
+from dpc_jax.geometry.warp import inverse_warp, stereo_warp
 from dpc_jax.synth import SynthConfig, render_sequence, sequence_poses, write_sequences
 from dpc_jax.synth.render import FACADE, GROUND, FrameScene, nearest_hits
 from dpc_jax.synth.sequence import _plan, frame_scene, kitti_intrinsics
-from dpc_jax.warp import inverse_warp, stereo_warp
 
 H, W = 64, 160
 BASE = SynthConfig(frames=3, height=H, width=W, seed=3)

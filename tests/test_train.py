@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import csv
-import importlib
 import itertools
 import json
 import os
@@ -22,20 +21,20 @@ import orbax.checkpoint as ocp
 import pytest
 
 from dpc_jax import config as config_lib
-from dpc_jax import models as models_lib
-from dpc_jax.batch import Batch
-from dpc_jax.checkpoints import Checkpoints
 from dpc_jax.config import ConfigError
 from dpc_jax.data.cache import prepare_sequence
 from dpc_jax.data.kitti import StereoSequence
-from dpc_jax.models import create_model
-from dpc_jax.optim import create_train_state, learning_rate_schedule, make_optimizer
-from dpc_jax.outputs import DPCOutputs
-from dpc_jax.train import NonFiniteLossError, make_train_step, train
-from dpc_jax.train_config import TrainConfig
-
-# The module itself: ``from dpc_jax import train`` is the re-exported function of the same name.
-train_lib = importlib.import_module("dpc_jax.train")
+from dpc_jax.nn import models as models_lib
+from dpc_jax.nn.batch import Batch
+from dpc_jax.nn.models import create_model
+from dpc_jax.nn.outputs import DPCOutputs
+from dpc_jax.training import loop as train_lib
+from dpc_jax.training import steps as steps_lib
+from dpc_jax.training.checkpoints import Checkpoints
+from dpc_jax.training.config import TrainConfig
+from dpc_jax.training.loop import train
+from dpc_jax.training.optim import create_train_state, learning_rate_schedule, make_optimizer
+from dpc_jax.training.steps import NonFiniteLossError, make_train_step
 
 
 @pytest.mark.parametrize(("halving", "steps_per_epoch"), [(5, 7), (4, 3), (1, 1)])
@@ -185,7 +184,7 @@ def _cheap_loss(outputs: DPCOutputs, batch: Batch, config: object) -> tuple[jax.
 @pytest.fixture
 def cheap_losses(monkeypatch: pytest.MonkeyPatch) -> None:
     """The train step with a loss that compiles fast (validation keeps the real losses)."""
-    monkeypatch.setattr(train_lib, "dpc_loss", _cheap_loss)
+    monkeypatch.setattr(steps_lib, "dpc_loss", _cheap_loss)
 
 
 def _logs(poses: np.ndarray, step: int) -> np.ndarray:
@@ -274,8 +273,8 @@ def test_loop_writes_checkpoints_metrics_and_refuses_other_runs(
 def test_resume_from_a_damaged_checkpoint_names_it(
     cache_root: Path, tmp_path: Path, cheap_losses: None, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from dpc_jax.checkpoints import CheckpointError
     from dpc_jax.cli import main
+    from dpc_jax.training.checkpoints import CheckpointError
 
     config = tiny_config(cache_root, epochs=1)
     train(config, tmp_path / "run", progress=False, workers=0)

@@ -11,19 +11,16 @@ import scipy.io
 from conftest import SHARED
 from scipy.spatial.transform import Rotation
 
-from dpc_jax.trajectory import (
-    compose,
+from dpc_jax.data.poses_io import (
     detect_format,
-    invert_poses,
     read_kitti_poses,
     read_mat,
     read_trajectory,
     read_tum,
-    relative_poses,
-    remove_static_frames,
     write_kitti_poses,
     write_tum,
 )
+from dpc_jax.geometry.poses import compose, invert_poses, relative_poses, remove_static_frames
 
 LIBVISO2 = SHARED / "data" / "kitti-libviso2"
 

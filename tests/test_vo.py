@@ -313,8 +313,8 @@ def test_run_vo_reads_a_sequence(tmp_path: Path, scene: tuple[np.ndarray, list])
 
 @pytest.mark.slow
 def test_real_excerpt_within_125_percent_of_libviso2() -> None:
-    from dpc_jax.metrics import m_ate
-    from dpc_jax.trajectory import read_mat
+    from dpc_jax.data.poses_io import read_mat
+    from dpc_jax.eval.metrics import m_ate
 
     root = SHARED / "data" / "kitti-raw"
     mat = root / "libviso2" / "stereo_2011_09_26_drive_0001.mat"
@@ -354,7 +354,7 @@ def test_cli_writes_trajectory_and_csv(
     tmp_path: Path, scene: tuple[np.ndarray, list], capsys: pytest.CaptureFixture[str]
 ) -> None:
     from dpc_jax.cli import main
-    from dpc_jax.trajectory import read_kitti_poses
+    from dpc_jax.data.poses_io import read_kitti_poses
 
     poses, frames = scene
     _odometry_layout(tmp_path / "kitti", frames[:4], poses[:4])
@@ -410,7 +410,7 @@ def test_vo_prior_file_is_reused_until_its_inputs_change(
     import json
 
     from dpc_jax.data.kitti import open_odometry
-    from dpc_jax.trajectory import read_kitti_poses
+    from dpc_jax.data.poses_io import read_kitti_poses
     from dpc_jax.vo.prior import vo_prior
 
     poses, frames = scene

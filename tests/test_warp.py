@@ -15,8 +15,8 @@ import pytest
 from jax.test_util import check_grads
 from scipy.spatial.transform import Rotation
 
-from dpc_jax.lie import se3_exp
-from dpc_jax.warp import bilinear_sample, disparity_consistency, inverse_warp, stereo_warp
+from dpc_jax.geometry.lie import se3_exp
+from dpc_jax.geometry.warp import bilinear_sample, disparity_consistency, inverse_warp, stereo_warp
 
 HEIGHT, WIDTH = 48, 64
 K_SCENE = np.array([[40.0, 0.0, 31.5], [0.0, 40.0, 23.5], [0.0, 0.0, 1.0]])

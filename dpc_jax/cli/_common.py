@@ -12,6 +12,7 @@ import argparse
 import logging
 import sys
 from pathlib import Path
+from typing import Literal
 
 from dpc_jax._io import output_problem as _output_problem
 
@@ -34,7 +35,8 @@ class Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsH
         return super()._get_help_string(action)
 
     def _get_default_metavar_for_optional(self, action: argparse.Action) -> str:
-        return {int: "N", float: "X", Path: "PATH"}.get(action.type, "VALUE")
+        metavars: dict[object, str] = {int: "N", float: "X", Path: "PATH"}
+        return metavars.get(action.type, "VALUE")
 
 
 def image_size(text: str) -> tuple[int, int]:
@@ -75,7 +77,7 @@ def output_problem(path: Path | str | None, option: str, *, folder: bool = False
     return _output_problem(path, option, folder=folder)
 
 
-def progress_mode(no_progress: bool) -> bool | str:
+def progress_mode(no_progress: bool) -> bool | Literal["lines"]:
     """The ``progress`` argument of the data writers: bars on a terminal, lines in a log."""
     if no_progress:
         return False

@@ -141,13 +141,13 @@ def run(args: argparse.Namespace) -> int:
     # Orbax logs a warning per read-only checkpoint manager; they say nothing useful here.
     logging.getLogger("absl").setLevel(logging.ERROR)
     from dpc_jax._io import OutputSet, remove_stale
-    from dpc_jax.checkpoints import CheckpointError
     from dpc_jax.correct import correct_cache, prior_for_cache, write_correction_report, write_trajectory
     from dpc_jax.data.cache import prepare_sequence
     from dpc_jax.data.kitti import open_odometry, open_raw
     from dpc_jax.data.pipeline import SequenceCache, load_cache
-    from dpc_jax.evaluation import format_table
+    from dpc_jax.eval.evaluation import format_table
     from dpc_jax.inference import load_run
+    from dpc_jax.training.checkpoints import CheckpointError
 
     progress = False if args.no_progress else None
     show = sys.stderr.isatty() and not args.no_progress
@@ -158,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
             try:
                 run_ = load_run(args.checkpoint, args.select)
             except CheckpointError as error:
-                return _error(restore_problem(error.folder, error.__cause__))
+                return _error(restore_problem(error.folder, error.__cause__ or error))
             if args.data is not None:
                 cache, prior = checked, args.prior
             else:

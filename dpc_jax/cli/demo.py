@@ -33,9 +33,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from dpc_jax.checkpoints import CheckpointError
     from dpc_jax.config import ConfigError, load_file
-    from dpc_jax.demo import DemoConfig, DemoError, run_demo
+    from dpc_jax.pipelines.demo import DemoConfig, DemoError, run_demo
+    from dpc_jax.training.checkpoints import CheckpointError
 
     problem = output_problem(args.out, "--out", folder=True)
     if problem is not None:
@@ -55,7 +55,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"dpc-jax demo: error: {error}", file=sys.stderr)
         return 2
     except CheckpointError as error:
-        print(f"dpc-jax demo: error: {restore_problem(error.folder, error.__cause__)}", file=sys.stderr)
+        problem = restore_problem(error.folder, error.__cause__ or error)
+        print(f"dpc-jax demo: error: {problem}", file=sys.stderr)
         return 2
 
     def errors(label: str) -> str:

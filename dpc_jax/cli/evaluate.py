@@ -70,8 +70,8 @@ def _error(message: str) -> int:
 
 def _inputs(args: argparse.Namespace) -> tuple[object, dict[str, object]]:
     """Read ground truth and estimates -> ``(gt, {label: estimate})``; raises ValueError/OSError."""
-    from dpc_jax.evaluation import check_label
-    from dpc_jax.trajectory import read_mat, read_trajectory
+    from dpc_jax.data.poses_io import read_mat, read_trajectory
+    from dpc_jax.eval.evaluation import check_label
 
     if args.mat is not None:
         if args.est or args.label:
@@ -103,9 +103,8 @@ def run(args: argparse.Namespace) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from dpc_jax._io import OutputSet
-    from dpc_jax.evaluation import evaluate, export_trajectories, format_table, write_report
-    from dpc_jax.trajectory import atomic_write
+    from dpc_jax._io import OutputSet, atomic_write
+    from dpc_jax.eval.evaluation import evaluate, export_trajectories, format_table, write_report
 
     problem = (
         output_problem(None if args.json == "-" else args.json, "--json")

@@ -15,7 +15,7 @@ EPILOG = """examples:
   dpc-jax train --config experiments/configs/own_data.py --workdir runs/own_data
   dpc-jax train --config experiments/configs/own_data.py --workdir runs/own_data --resume
 experiments/configs/own_data.py is the minimal config for a cache of your own (from `dpc-jax prepare`).
-The config file defines CONFIG = TrainConfig(...) or a dict of its fields (see dpc_jax.train_config).
+The config file defines CONFIG = TrainConfig(...) or a dict of its fields (see dpc_jax.training.config).
 Outputs in WORKDIR: checkpoints/{epochs,best_gradient_loss,best_loop_closures}/EPOCH, checkpoints/config.json,
 checkpoints/split.json, metrics.csv, tensorboard/. Several hosts: set distributed=True in the config and
 pass --coordinator-address/--num-processes/--process-id on each host (or nothing on clusters JAX detects)."""
@@ -47,11 +47,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from dpc_jax import config as config_lib
-    from dpc_jax.checkpoints import CheckpointError
     from dpc_jax.config import ConfigError
     from dpc_jax.data.pipeline import CacheError
-    from dpc_jax.train import NonFiniteLossError, train
-    from dpc_jax.train_config import TrainConfig
+    from dpc_jax.training.checkpoints import CheckpointError
+    from dpc_jax.training.config import TrainConfig
+    from dpc_jax.training.loop import train
+    from dpc_jax.training.steps import NonFiniteLossError
 
     problem = output_problem(args.workdir, "--workdir", folder=True)
     if problem is not None:
@@ -76,7 +77,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"dpc-jax train: error: {error}", file=sys.stderr)
         return 2
     except CheckpointError as error:
-        print(f"dpc-jax train: error: {restore_problem(error.folder, error.__cause__)}", file=sys.stderr)
+        problem = restore_problem(error.folder, error.__cause__ or error)
+        print(f"dpc-jax train: error: {problem}", file=sys.stderr)
         return 2
     except NonFiniteLossError as error:
         print(f"dpc-jax train: stopped: {error}", file=sys.stderr)

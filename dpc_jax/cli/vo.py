@@ -73,8 +73,8 @@ class _UsageError(Exception):
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from dpc_jax._io import OutputSet
-    from dpc_jax.trajectory import atomic_write, write_kitti_poses
+    from dpc_jax._io import OutputSet, atomic_write
+    from dpc_jax.data.poses_io import write_kitti_poses
     from dpc_jax.vo import VOConfig, run_vo
     from dpc_jax.vo.odometry import per_frame_table, summary
 
@@ -127,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
     if counts["warning"] is not None:
         print(f"dpc-jax vo: warning: {sequence.name}: {counts['warning']}", file=sys.stderr)
     if sequence.poses is not None:
-        from dpc_jax.metrics import m_ate
+        from dpc_jax.eval.metrics import m_ate
 
         gt = sequence.poses
         est = gt[0] @ np.linalg.inv(result.poses[0]) @ result.poses

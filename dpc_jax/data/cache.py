@@ -55,13 +55,13 @@ import cv2
 import jax
 import numpy as np
 
-from dpc_jax import trajectory
-from dpc_jax._io import remove_stale, temp_name
+from dpc_jax._io import install_folder, remove_stale, temp_name
 from dpc_jax._progress import Progress, progress_bar
-from dpc_jax.camera import scale_intrinsics
 from dpc_jax.data.kitti import StereoSequence, load_image, read_ground_truth
+from dpc_jax.data.poses_io import validate_poses
 from dpc_jax.data.priors import load_prior, rescale_monocular
-from dpc_jax.lie import validate_poses
+from dpc_jax.geometry.camera import scale_intrinsics
+from dpc_jax.geometry.poses import remove_static_frames
 
 log = logging.getLogger(__name__)
 
@@ -224,7 +224,7 @@ def prepare_sequence(
       When the sequence has none and the prior is a ``.mat`` file, its ``poses_gt`` is used.
     * ``frames``: ``(start, stop)`` keeps only those source frames (before anything else).
     * ``size``: ``(H, W)`` of the stored images (INTER_AREA), K scaled accordingly
-      (``dpc_jax.camera.scale_intrinsics``; ``half_pixel_intrinsics=False``: the reference code's
+      (``dpc_jax.geometry.camera.scale_intrinsics``; ``half_pixel_intrinsics=False``: the reference code's
       rule, which leaves the principal point off by up to half a pixel).
     * ``mono_rescale``: rescale each prior step to the ground-truth step length (monocular VO);
       needs ground truth.
@@ -292,7 +292,7 @@ def prepare_sequence(
 
     kept = np.arange(len(sequence))
     if remove_static:
-        kept = np.asarray(trajectory.remove_static_frames(prior_poses), dtype=np.int64)
+        kept = np.asarray(remove_static_frames(prior_poses), dtype=np.int64)
         if kept.size < 2:
             raise ValueError(f"{sequence.name}: static-frame removal left {kept.size} frame(s); need 2")
 
@@ -362,7 +362,7 @@ def prepare_sequence(
         manifest_tmp = tmp / (MANIFEST + ".part")
         manifest_tmp.write_text(json.dumps(manifest, indent=2))
         os.replace(manifest_tmp, tmp / MANIFEST)
-        _install(tmp, target)
+        install_folder(tmp, target)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -381,15 +381,3 @@ def _load_ground_truth(source: str | Path | np.ndarray, n: int) -> np.ndarray:
             f"{label}: {poses.shape[0]} ground-truth poses for {n} frames; expected one per frame"
         )
     return poses
-
-
-def _install(tmp: Path, target: Path) -> None:
-    """Move the finished folder ``tmp`` to ``target``, replacing an older cache there."""
-    if target.exists():
-        old = target.parent / temp_name(f".{target.name}.old-")
-        old.mkdir()
-        os.replace(target, old / target.name)
-        os.replace(tmp, target)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(tmp, target)

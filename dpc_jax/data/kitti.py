@@ -30,8 +30,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from dpc_jax import trajectory
-from dpc_jax.lie import validate_poses
+from dpc_jax.data import poses_io
+from dpc_jax.data.poses_io import validate_poses
 
 
 @dataclass(frozen=True)
@@ -268,7 +268,7 @@ def open_odometry(root: str | Path, sequence: str | int, grey: bool = False) -> 
     sources = [calib_path, times_path]
     poses = None
     if pose_path.is_file():
-        poses = _check_poses(trajectory.read_trajectory(pose_path, "kitti"), len(left), str(pose_path))
+        poses = _check_poses(poses_io.read_trajectory(pose_path, "kitti"), len(left), str(pose_path))
         sources.append(pose_path)
     return StereoSequence(
         name=name, left_paths=left, right_paths=right, K=K, baseline=baseline,
@@ -278,7 +278,7 @@ def open_odometry(root: str | Path, sequence: str | int, grey: bool = False) -> 
 
 def read_ground_truth(source: str | Path, format: str | None = None) -> np.ndarray:
     """Ground-truth trajectory ``[N, 4, 4]`` from a pose file; for ``.mat`` its ``poses_gt``."""
-    return trajectory.read_trajectory(source, format, mat_key="poses_gt")
+    return poses_io.read_trajectory(source, format, mat_key="poses_gt")
 
 
 def open_raw(

@@ -1,4 +1,4 @@
-"""numpy input pipeline: prepared caches → fixed-shape :class:`~dpc_jax.batch.Batch` es.
+"""numpy input pipeline: prepared caches → fixed-shape :class:`~dpc_jax.nn.batch.Batch` es.
 
 A *sample* is an ordered frame pair ``(i, j)`` of one cached sequence: the network reconstructs
 frame j from frame i, its prior is ``T_vo_{j,i} = inv(T_vo_j) T_vo_i`` and, when ground truth is
@@ -28,18 +28,19 @@ the consumer stops iterating (the generator is closed or garbage collected).
 from __future__ import annotations
 
 import json
+import os
 from collections import deque
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Generator, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from dpc_jax.batch import Batch
 from dpc_jax.data.cache import FLOW_FILES, MANIFEST
+from dpc_jax.data.poses_io import validate_poses
 from dpc_jax.data.priors import log_poses
-from dpc_jax.lie import validate_poses
+from dpc_jax.nn.batch import Batch
 
 PAIR_KINDS = {"forward": (1, False), "reverse": (1, True), "skip": (2, False), "skip_reverse": (2, True)}
 
@@ -133,7 +134,7 @@ def _check_finite_poses(path: Path, poses: np.ndarray) -> None:
         raise CacheError(str(error)) from None
 
 
-def load_cache(path: str | Path) -> SequenceCache:
+def load_cache(path: str | os.PathLike[str]) -> SequenceCache:
     """Memory-map the cache folder ``path`` written by :func:`~dpc_jax.data.cache.prepare_sequence`.
 
     Everything is checked against ``manifest.json`` before it is used: the manifest itself (valid
@@ -431,7 +432,7 @@ def iterate_sequence(
     flow: bool | None = None,
     workers: int = 1,
     depth: int = 4,
-) -> Iterator[Batch]:
+) -> Generator[Batch, None, None]:
     """The forward pairs ``(k, k+1)``, k = 0 … N-2, of one sequence in order, in fixed-size batches.
 
     The last batch is padded with copies of the final pair whose ``weight`` is 0, so every batch

@@ -12,10 +12,10 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from dpc_jax import trajectory
-from dpc_jax.lie import se3_log, validate_poses
-
-PRIOR_FORMATS = ("kitti", "tum", "mat")
+from dpc_jax.data import poses_io
+from dpc_jax.data.poses_io import validate_poses
+from dpc_jax.geometry.lie import se3_log
+from dpc_jax.geometry.poses import compose, relative_poses
 
 
 def load_prior(
@@ -34,9 +34,9 @@ def load_prior(
     else:
         path = Path(source)
         label = str(path)
-        if format is not None and format not in PRIOR_FORMATS:
-            raise ValueError(f"{path}: unknown prior format {format!r}; expected one of {PRIOR_FORMATS}")
-        poses = trajectory.read_trajectory(path, format)
+        if format is not None and format not in poses_io.FORMATS:
+            raise ValueError(f"{path}: unknown prior format {format!r}; expected one of {poses_io.FORMATS}")
+        poses = poses_io.read_trajectory(path, format)
     if poses.shape[0] != n_frames:
         raise ValueError(
             f"{label}: {poses.shape[0]} prior poses for {n_frames} frames; expected one pose per frame"
@@ -48,7 +48,7 @@ _jit_se3_log = jax.jit(se3_log)
 
 
 def log_poses(transforms: np.ndarray) -> np.ndarray:
-    """:func:`dpc_jax.lie.se3_log` of ``[M, 4, 4]`` transforms as a numpy ``[M, 6]`` array.
+    """:func:`dpc_jax.geometry.lie.se3_log` of ``[M, 4, 4]`` transforms as a numpy ``[M, 6]`` array.
 
     Compiled once per power-of-two bucket of M, at least 1024 (identity padding), so loaders
     and caches of any length reuse one or two compilations instead of tracing op by op.
@@ -62,7 +62,7 @@ def log_poses(transforms: np.ndarray) -> np.ndarray:
 
 def relative_xi(poses: np.ndarray) -> np.ndarray:
     """``ξ_{t+1,t} = Log(inv(T_{t+1}) T_t)`` of a trajectory ``[N, 4, 4]`` → ``[N-1, 6]`` (m, rad)."""
-    return log_poses(trajectory.relative_poses(poses))
+    return log_poses(relative_poses(poses))
 
 
 def rescale_monocular(prior: np.ndarray, ground_truth: np.ndarray) -> np.ndarray:
@@ -78,9 +78,9 @@ def rescale_monocular(prior: np.ndarray, ground_truth: np.ndarray) -> np.ndarray
         raise ValueError(
             f"prior {prior.shape} and ground truth {ground_truth.shape} must have the same shape"
         )
-    rel = trajectory.relative_poses(prior).copy()
-    gt_dist = np.linalg.norm(trajectory.relative_poses(ground_truth)[:, :3, 3], axis=1)
+    rel = relative_poses(prior).copy()
+    gt_dist = np.linalg.norm(relative_poses(ground_truth)[:, :3, 3], axis=1)
     est_dist = np.linalg.norm(rel[:, :3, 3], axis=1)
     scale = np.divide(gt_dist, est_dist, out=np.zeros_like(gt_dist), where=est_dist > 0)
     rel[:, :3, 3] *= scale[:, None]
-    return trajectory.compose(rel, ground_truth[0])
+    return compose(rel, ground_truth[0])

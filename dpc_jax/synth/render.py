@@ -19,6 +19,7 @@ recomputed once per pixel for the winning primitive of each kind.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import partial
 from typing import NamedTuple
 
@@ -118,9 +119,6 @@ def _atan2(y: Array, x: Array) -> Array:
 
 def _wrap(a: Array) -> Array:
     return a - 2 * jnp.pi * jnp.floor((a + jnp.pi) / (2 * jnp.pi))
-
-
-_PIECE_COLS = 13
 
 
 def _extend_pieces(pieces: Array) -> Array:
@@ -263,7 +261,7 @@ def _slab(oa: Array, ob: Array, oy: Array, ia: Array, ib: Array, iy: Array, box:
     return jnp.where((hi >= lo) & (lo > NEAR), lo, jnp.inf)
 
 
-def _nearest(table: Array, hit_t: callable, parts: int = 0) -> tuple[Array, Array]:
+def _nearest(table: Array, hit_t: Callable[[Array], Array], parts: int = 0) -> tuple[Array, Array]:
     """Scan ``hit_t(row) -> t [pixels]`` over the rows of ``table``: nearest ``t`` and its row index.
 
     With ``parts > 0``, ``hit_t`` returns ``(t, part)`` for a row made of that many surfaces, and

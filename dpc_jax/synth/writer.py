@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -35,7 +34,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from dpc_jax._io import atomic_write, remove_stale, temp_name
+from dpc_jax._io import atomic_write, install_folder, remove_stale, temp_name
 from dpc_jax._progress import Progress, progress_bar
 from dpc_jax.synth.sequence import SynthConfig, iter_frames, kitti_intrinsics, sequence_poses
 
@@ -95,11 +94,7 @@ def write_sequence(out: Path | str, name: str, config: SynthConfig, overwrite: b
         meta = {"generator": "dpc_jax.synth", "config": dataclasses.asdict(config),
                 "depth": "float32 z-depth in metres, inf = sky", "poses": f"poses/{name}.txt"}
         (tmp / "synth.json").write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
-        if seq_dir.exists():
-            old = out / "sequences" / temp_name(f".{name}.old-")
-            os.replace(seq_dir, old)
-            shutil.rmtree(old)
-        os.replace(tmp, seq_dir)
+        install_folder(tmp, seq_dir)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

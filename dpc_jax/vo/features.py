@@ -42,7 +42,7 @@ def detect_bucketed(
       ``float32 [K, 2]`` new corners, strongest first within each bucket.
     """
     height, width = image.shape
-    keypoints = cv2.FastFeatureDetector_create(threshold, True).detect(image)
+    keypoints = cv2.FastFeatureDetector_create(threshold, True).detect(image)  # type: ignore[attr-defined]  # missing from cv2's stubs
     if not keypoints:
         return np.zeros((0, 2), np.float32)
     points = np.array([k.pt for k in keypoints], np.float32)

@@ -18,8 +18,9 @@ from typing import Any
 
 import numpy as np
 
+from dpc_jax._io import atomic_write
 from dpc_jax.data.kitti import StereoSequence
-from dpc_jax.trajectory import atomic_write, write_kitti_poses
+from dpc_jax.data.poses_io import write_kitti_poses
 from dpc_jax.vo.odometry import VOConfig, run_vo, summary
 
 # Bump when the VO's output changes for the same inputs, so stored priors are recomputed.

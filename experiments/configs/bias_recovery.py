@@ -5,7 +5,7 @@ sequences s00–s03 for training, s04 for validation (epoch selection), s05 held
 Their priors are the true relative poses with a yaw bias of 0.15°/frame plus noise.
 """
 
-from dpc_jax.train_config import TrainConfig
+from dpc_jax.training.config import TrainConfig
 
 CONFIG = TrainConfig(
     method="stereo_dpc",

@@ -12,7 +12,7 @@ L2 4e-6, dropout 0.5, λ_exp = 0.23, λ_rot = 4 for samples with prior rotation 
 frame-skip augmentation. Stereo priors: Adam 1e-3 halved every 4 epochs and only the rotation of
 the correction applied; mono priors: 5e-5 halved every 10 epochs, the full correction (docs/method.md §5).
 The epoch is chosen by the validation gradient loss (``--select loop`` for the loop-closure count);
-the correction head has the published settings (``dpc_jax.train_config.REFERENCE``) and every
+the correction head has the published settings (``dpc_jax.training.config.REFERENCE``) and every
 correction is applied (no acceptance test).
 
 Command (every fold):
@@ -54,7 +54,7 @@ CONFIG = {
     "learning_rate": 1e-3,
     "lr_halving_epochs": 4,
     "weight_decay": 4e-6,
-    # The published choices of the correction head (dpc_jax.train_config.REFERENCE).
+    # The published choices of the correction head (dpc_jax.training.config.REFERENCE).
     "pose_init": "pytorch",
     "pose_warmup_epochs": 0,
     "pose_warmup_steps": 0,

@@ -8,7 +8,7 @@ sequence one network is trained on the others. Zhang et al. train on all the oth
 report the last epoch; epoch selection without ground truth needs a held-out sequence, so here one
 of the others is the validation sequence (05, or 00 when 05 is tested) and is not trained on —
 a documented deviation. The epoch is chosen by the validation gradient loss (ss-DPC-Net §IV), and
-the correction head has the published settings (``dpc_jax.train_config.REFERENCE``) and is applied
+the correction head has the published settings (``dpc_jax.training.config.REFERENCE``) and is applied
 without our acceptance test.
 
 Command (every fold; the libviso2-s priors of the ss-DPC-Net release, or ``--priors vo`` for ours):
@@ -43,7 +43,7 @@ CONFIG = {
     "learning_rate": 6e-3,
     "lr_halving_epochs": 5,
     "weight_decay": 4e-6,
-    # The published choices of the correction head (dpc_jax.train_config.REFERENCE).
+    # The published choices of the correction head (dpc_jax.training.config.REFERENCE).
     "pose_init": "pytorch",
     "pose_warmup_epochs": 0,
     "pose_warmup_steps": 0,

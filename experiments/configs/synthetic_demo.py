@@ -5,7 +5,7 @@ Command (either; the second is the installed console script):
     python experiments/synthetic_demo.py --out runs/synthetic_demo
     dpc-jax demo --out runs/synthetic_demo
 
-What it produces in OUT (see ``dpc_jax.demo``): ``data/`` (rendered synthetic sequences in the
+What it produces in OUT (see ``dpc_jax.pipelines.demo``): ``data/`` (rendered synthetic sequences in the
 KITTI odometry layout: train0, train1 for training, val for epoch selection, test held out),
 ``vo/`` (priors from our classical stereo VO with its offset estimate off, and the calibration
 runs with it on), ``cache/`` (prepared at the network's size, rectified by the measured offset),

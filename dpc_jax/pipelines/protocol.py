@@ -1,6 +1,6 @@
 """What the experiment entry points share: priors, caches, folds, training, correction, result tables.
 
-An experiment is a list of *folds*. A fold trains one network (``dpc_jax.train.train``) on its
+An experiment is a list of *folds*. A fold trains one network (``dpc_jax.training.loop.train``) on its
 training sequences, selects the epoch on its validation sequence without ground truth, corrects
 the prior of each of its test sequences (``dpc_jax.correct``) and evaluates prior and corrected
 trajectories against the ground truth. Everything lives under one work folder::
@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from dpc_jax.trajectory import atomic_write
+from dpc_jax._io import atomic_write
 
 # Odometry sequence ↔ raw drive (docs/method.md §6): raw drives that *are* an odometry sequence must not be
 # used for training when that sequence is tested.
@@ -80,7 +80,7 @@ class Result:
 def load_protocol(path: str | Path) -> tuple[Any, dict[str, Any]]:
     """``(CONFIG, PROTOCOL)`` of an experiment config file (``CONFIG`` is a TrainConfig or its dict)."""
     from dpc_jax import config as config_lib
-    from dpc_jax.train_config import TrainConfig
+    from dpc_jax.training.config import TrainConfig
 
     namespace = runpy.run_path(str(path))
     config = config_lib.load_file(path, TrainConfig)
@@ -104,7 +104,7 @@ def parse_overrides(pairs: Sequence[str]) -> dict[str, Any]:
 def fold_config(base: Any, fold: Fold, cache_root: Path, overrides: dict[str, Any]) -> Any:
     """The fold's TrainConfig: ``base`` with its split, the cache root and the overrides."""
     from dpc_jax import config as config_lib
-    from dpc_jax.train_config import TrainConfig
+    from dpc_jax.training.config import TrainConfig
 
     data = config_lib.to_dict(base)
     unknown = [k for k in overrides if k not in data]
@@ -157,8 +157,7 @@ def prepare(
     """
     from dpc_jax.data.cache import prepare_sequence
 
-    model = config.model_config()
-    flow = model.flow if model.flow is not None else config.method == "ss_dpc"
+    flow = config.use_flow
     return prepare_sequence(
         sequence, prior, cache_root, size=config.resolved_image_size, flow=flow,
         flow_augment=flow and (config.frame_skip or config.reverse), mono_rescale=mono_rescale,
@@ -172,7 +171,7 @@ def prepare(
 
 def train_fold(config: Any, workdir: Path, progress: bool) -> dict[str, Any]:
     """Train (or resume, or find finished) the fold's run in ``workdir``."""
-    from dpc_jax.train import train
+    from dpc_jax.training.loop import train
 
     return train(config, workdir, resume=True, progress=progress)
 
@@ -306,9 +305,9 @@ def write_fake_odometry(
     """
     import scipy.io
 
-    from dpc_jax.lie import se3_exp
+    from dpc_jax.geometry.lie import se3_exp
+    from dpc_jax.geometry.poses import compose, relative_poses
     from dpc_jax.synth import SynthConfig, sequence_poses, write_sequence
-    from dpc_jax.trajectory import compose, relative_poses
 
     rng = np.random.default_rng(seed)
     for k, name in enumerate(names):
@@ -340,9 +339,11 @@ def write_fake_odometry(
 
 def add_common_arguments(parser: Any, config: Path) -> None:
     """Options every entry point has: work folder, config, epoch selection, overrides, smoke, progress."""
+    from dpc_jax.inference import SELECTIONS
+
     parser.add_argument("--workdir", required=True, type=Path, metavar="DIR", help="everything goes here")
     parser.add_argument("--config", type=Path, default=config, metavar="FILE", help="experiment config")
-    parser.add_argument("--select", choices=("delta", "gradient", "loop", "last"),
+    parser.add_argument("--select", choices=tuple(SELECTIONS),
                         help="epoch selection (default: the protocol's)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a TrainConfig field (JSON value), e.g. --set epochs=2")

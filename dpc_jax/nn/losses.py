@@ -1,7 +1,7 @@
 """Self-supervised losses of ss-DPC-Net and Stereo DPC (docs/method.md §2 and §4).
 
-Pure ``jnp`` functions of a :class:`~dpc_jax.outputs.DPCOutputs` and a
-:class:`~dpc_jax.batch.Batch`; they never import the models. They work under ``jax.jit`` (pass
+Pure ``jnp`` functions of a :class:`~dpc_jax.nn.outputs.DPCOutputs` and a
+:class:`~dpc_jax.nn.batch.Batch`; they never import the models. They work under ``jax.jit`` (pass
 the config as a static argument or close over it: it is a frozen, hashable dataclass) and are
 dtype-preserving: the computation runs in the dtype of ``outputs.left.inv_depth`` (float32 in
 training). Images arrive as uint8 and are divided by 255; float images are taken to be in
@@ -14,7 +14,7 @@ weighted by ``batch.weight``. Explainability masks multiply the per-pixel error 
 the denominator (the mask regulariser keeps them from collapsing to zero).
 
 Relative poses: ``T_vo = Exp(ξ_vo)`` is ``T_{t+1,t}``, mapping frame-t points into frame t+1,
-and ``T* = Exp(ξ_corr) · T_vo`` (:func:`~dpc_jax.correction.apply_correction`). Reconstructing
+and ``T* = Exp(ξ_corr) · T_vo`` (:func:`~dpc_jax.geometry.correction.apply_correction`). Reconstructing
 frame t+1 from frame t therefore needs ``T_{t,t+1} = inv(T*)``, computed exactly.
 """
 
@@ -25,12 +25,12 @@ from dataclasses import dataclass
 import jax.numpy as jnp
 from jax import Array
 
-from dpc_jax.batch import Batch
-from dpc_jax.correction import apply_correction
-from dpc_jax.lie import se3_exp, se3_inverse
-from dpc_jax.outputs import BranchOutputs, DPCOutputs
-from dpc_jax.ssim import ssim_loss
-from dpc_jax.warp import disparity_consistency, inverse_warp, stereo_warp
+from dpc_jax.geometry.correction import apply_correction
+from dpc_jax.geometry.lie import se3_exp, se3_inverse
+from dpc_jax.geometry.ssim import ssim_loss
+from dpc_jax.geometry.warp import disparity_consistency, inverse_warp, stereo_warp
+from dpc_jax.nn.batch import Batch
+from dpc_jax.nn.outputs import BranchOutputs, DPCOutputs
 
 # ITU-R BT.601 luma weights, as in cv2.cvtColor(..., COLOR_RGB2GRAY).
 _GREY_WEIGHTS = (0.299, 0.587, 0.114)
@@ -171,7 +171,7 @@ def disparity_consistency_loss(
     """Left and right disparity-consistency terms (Zhang eq. 7–8), each a masked mean.
 
     ``disparity_*``: ``[B, ..., H, W]`` in pixels; errors are in units of the image width (see
-    :func:`~dpc_jax.warp.disparity_consistency`). -> ``(L_disp^l, L_disp^r)``.
+    :func:`~dpc_jax.geometry.warp.disparity_consistency`). -> ``(L_disp^l, L_disp^r)``.
     """
     err_l, valid_l, err_r, valid_r = disparity_consistency(disparity_left, disparity_right)
     return masked_mean(err_l, valid_l, weight), masked_mean(err_r, valid_r, weight)

@@ -30,7 +30,7 @@ use another size: ``dataclasses.replace(PRESETS["reference"], image_size=(H, W))
 convolutional parts accept any ``H × W`` (the crop-to-skip logic handles sizes that are not
 multiples of ``2**depth``).
 
-Inputs (see ``dpc_jax.batch.Batch``): uint8 images are converted to [0, 1] and whitened with the
+Inputs (see ``dpc_jax.nn.batch.Batch``): uint8 images are converted to [0, 1] and whitened with the
 ImageNet statistics inside the model; optical flow (pixels) is appended unscaled, as in the
 reference. Everything is NHWC inside; dense outputs are returned as ``[B, F, H, W]``.
 
@@ -63,9 +63,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from dpc_jax.batch import Batch
-from dpc_jax.conv import conv3x3_few_outputs, conv_s2, upconv3x3_s2
-from dpc_jax.outputs import BranchOutputs, DPCOutputs
+from dpc_jax.nn.batch import Batch
+from dpc_jax.nn.conv import conv3x3_few_outputs, conv_s2, upconv3x3_s2
+from dpc_jax.nn.outputs import BranchOutputs, DPCOutputs
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -267,7 +267,7 @@ class UpConv(nnx.Module):
     Mathematically ``lax.conv_transpose(x, kernel, (2, 2), ((1, 2), (1, 2)))`` (Flax's
     ``ConvTranspose`` with that padding, i.e. PyTorch's ``ConvTranspose2d(3, stride=2, padding=1,
     output_padding=1)`` up to a kernel flip), with the same ``[3, 3, C_in, C_out]`` kernel,
-    evaluated by ``dpc_jax.conv.upconv3x3_s2``.
+    evaluated by ``dpc_jax.nn.conv.upconv3x3_s2``.
     """
 
     def __init__(self, cin: int, cout: int, rngs: nnx.Rngs):
@@ -409,6 +409,11 @@ def _whiten(images: jax.Array) -> jax.Array:
     return (x - jnp.asarray(IMAGENET_MEAN, jnp.float32)) / jnp.asarray(IMAGENET_STD, jnp.float32)
 
 
+def uses_flow(method: str, config: ModelConfig) -> bool:
+    """The flow-input rule: ``config.flow`` when set, else the method's default (ss-DPC-Net reads flow)."""
+    return config.flow if config.flow is not None else method == "ss_dpc"
+
+
 def _branch_input(images: jax.Array, flow: jax.Array | None) -> jax.Array:
     """``images`` uint8 ``[B, 2, H, W, 3]`` (+ flow ``[B, H, W, 2]``) → ``[B, H, W, 6 (+2)]``."""
     parts = [_whiten(images[:, 0]), _whiten(images[:, 1])]
@@ -436,7 +441,7 @@ class _DPCBase(nnx.Module):
         self.uses_images = config.pose_features == "images_and_prior"
         n_pose_inputs = (n_branches if self.uses_images else 0) + 1
         self.method = method
-        self.use_flow = config.flow if config.flow is not None else method == "ss_dpc"
+        self.use_flow = uses_flow(method, config)
         self.frames = config.frames if config.frames is not None else (1 if method == "ss_dpc" else 2)
         self.in_channels = 6 + (2 if self.use_flow else 0)
         h, w = config.scale_sizes()[-1]
@@ -585,7 +590,7 @@ def _init_like_pytorch(model: nnx.Module, seed: int) -> None:
             var.set_value(jnp.asarray(rng.uniform(-bound, bound, var.shape).astype(np.float32)))
 
 
-def create_model(method: Method, config: ModelConfig, seed: int) -> MonoDPC | StereoDPC:
+def create_model(method: str, config: ModelConfig, seed: int) -> MonoDPC | StereoDPC:
     """Build ``MonoDPC`` (``"ss_dpc"``) or ``StereoDPC`` (``"stereo_dpc"``) in training mode.
 
     Weights are drawn from ``seed`` with PyTorch's default initialisation (see

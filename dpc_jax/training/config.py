@@ -72,7 +72,7 @@ class TrainConfig:
 
     Model
         * ``method``: ``"ss_dpc"`` (ss-DPC-Net, mono + flow) or ``"stereo_dpc"`` (Zhang et al.).
-        * ``preset``: a key of ``dpc_jax.models.PRESETS`` (``"reference"``, ``"small"``).
+        * ``preset``: a key of ``dpc_jax.nn.models.PRESETS`` (``"reference"``, ``"small"``).
         * ``model``: overrides of ``ModelConfig`` fields on top of the preset.
         * ``image_size``: ``(H, W)`` of the cached images and the network input; None = the
           preset's.
@@ -118,7 +118,7 @@ class TrainConfig:
         * ``keep_checkpoints``: how many every-epoch checkpoints to keep (best ones are extra).
         * ``log_every``: steps between TensorBoard training scalars.
         * ``distributed``: call ``jax.distributed.initialize`` (several hosts; see
-          ``dpc_jax.parallel``).
+          ``dpc_jax.training.parallel``).
     """
 
     method: str = "stereo_dpc"
@@ -209,7 +209,7 @@ class TrainConfig:
 
     def model_config(self) -> Any:
         """The ``ModelConfig``: the preset, the ``model`` overrides and the top-level model keys."""
-        from dpc_jax.models import PRESETS
+        from dpc_jax.nn.models import PRESETS
 
         if self.preset not in PRESETS:
             raise ConfigError(f"preset must be one of {sorted(PRESETS)}, got {self.preset!r}")
@@ -225,7 +225,7 @@ class TrainConfig:
 
     def loss_config(self) -> Any:
         """The method's loss config dataclass with the ``loss`` overrides (and ``rotation_only``)."""
-        from dpc_jax import losses
+        from dpc_jax.nn import losses
 
         base = losses.SSDPCLossConfig() if self.method == "ss_dpc" else losses.StereoDPCLossConfig()
         overrides = dict(self.loss)
@@ -242,8 +242,9 @@ class TrainConfig:
     @property
     def use_flow(self) -> bool:
         """Whether the network reads optical flow (the method's default unless ``model`` says)."""
-        flow = self.model_config().flow
-        return flow if flow is not None else self.method == "ss_dpc"
+        from dpc_jax.nn.models import uses_flow
+
+        return uses_flow(self.method, self.model_config())
 
     def warmup_steps(self, steps_per_epoch: int) -> int:
         """Optimizer steps during which the loss sees ξ_corr = 0."""

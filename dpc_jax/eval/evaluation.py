@@ -2,7 +2,7 @@
 
 :func:`evaluate` is the one entry point every command that reports metrics uses (``evaluate``,
 ``train``, ``correct``, ``demo``). It prepares the trajectories as the papers do, then computes every
-metric of :mod:`dpc_jax.metrics` in one compiled call per estimate:
+metric of :mod:`dpc_jax.eval.metrics` in one compiled call per estimate:
 
 * **Re-anchoring** (docs/method.md §7): each estimate is moved rigidly onto the first ground-truth pose,
   ``E_i ← G_0 · inv(E_0) · E_i``.
@@ -30,15 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
-from dpc_jax.trajectory import (
-    atomic_write,
-    compose,
-    invert_poses,
-    relative_poses,
-    remove_static_frames,
-    write_kitti_poses,
-    write_tum,
-)
+from dpc_jax._io import atomic_write
+from dpc_jax.data.poses_io import write_kitti_poses, write_tum
+from dpc_jax.geometry.poses import compose, invert_poses, relative_poses, remove_static_frames
 
 SUMMARY_KEYS: tuple[str, ...] = (
     "m_ate_trans_m",
@@ -126,8 +120,8 @@ def check_label(label: str) -> str:
 def _scalar(value: np.ndarray, integer: bool = False) -> float | int | None:
     if integer:
         return int(value)
-    value = float(value)
-    return None if math.isnan(value) else value
+    number = float(value)
+    return None if math.isnan(number) else number
 
 
 def evaluate(
@@ -146,7 +140,7 @@ def evaluate(
     """
     import jax
 
-    from dpc_jax.metrics import ALIGNMENTS, trajectory_metrics
+    from dpc_jax.eval.metrics import ALIGNMENTS, trajectory_metrics
 
     if align not in ALIGNMENTS:
         raise ValueError(f"align must be one of {', '.join(ALIGNMENTS)}, got {align!r}")
@@ -270,7 +264,7 @@ def write_report(
     and rotation), ``c_ate.png`` (cumulative errors). Every file is written atomically; the
     directory is created if needed. Returns the written paths.
     """
-    from dpc_jax import plots
+    from dpc_jax.eval import plots
 
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)

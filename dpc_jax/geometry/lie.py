@@ -14,15 +14,11 @@ unused branch is evaluated at a harmless argument, so neither its value nor its 
 produce NaN (``jax.grad`` at ξ = 0 is finite and equals the generators). ``so3_log`` switches to
 an eigenvector construction for angles above π/2, where ``θ / sin θ`` is ill-conditioned, so that
 rotations by exactly π return a vector of norm π.
-
-The numpy helper :func:`validate_poses` is for poses read from files (the shell, not the
-jitted core): it rejects non-finite and far-from-rigid matrices and projects near-rotations.
 """
 
 from __future__ import annotations
 
 import jax.numpy as jnp
-import numpy as np
 from jax import Array
 
 # Below this squared angle (rad²) the Taylor branches are used. With the series truncated after
@@ -231,53 +227,3 @@ def project_to_so3(matrix: Array) -> Array:
     det = jnp.linalg.det(u @ vt)
     fix = jnp.ones((*matrix.shape[:-2], 3), dtype=matrix.dtype).at[..., 2].set(det)
     return (u * fix[..., None, :]) @ vt
-
-
-def validate_poses(
-    poses: np.ndarray, source: str = "poses", tolerance: float = 1e-3
-) -> np.ndarray:
-    """Check and clean homogeneous poses read from a file (numpy, float64).
-
-    ``poses``: ``[N, 4, 4]`` or ``[N, 3, 4]``. Returns ``[N, 4, 4]`` float64 whose rotation
-    blocks are projected onto SO(3) and whose bottom rows are exactly ``[0, 0, 0, 1]``.
-
-    Raises ``ValueError`` naming ``source`` and the pose index when a pose holds a non-finite
-    value, when its rotation block deviates from orthonormality by more than ``tolerance``
-    (max |RᵀR − I|), when its determinant is not positive, or when a given bottom row is not
-    ``[0, 0, 0, 1]`` within ``tolerance``. Deviations below ``tolerance`` (rounding in text
-    files) are silently projected away.
-    """
-    arr = np.asarray(poses, dtype=np.float64)
-    if arr.ndim != 3 or arr.shape[1:] not in ((4, 4), (3, 4)):
-        raise ValueError(f"{source}: expected poses of shape [N, 4, 4] or [N, 3, 4], got {arr.shape}")
-    finite = np.isfinite(arr).all(axis=(1, 2))
-    if not finite.all():
-        i = int(np.argmin(finite))
-        raise ValueError(f"{source}: pose {i} contains a non-finite value (NaN or inf)")
-    if arr.shape[1] == 4:
-        bottom_dev = np.abs(arr[:, 3, :] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=1)
-        bad = np.flatnonzero(bottom_dev > tolerance)
-        if bad.size:
-            i = int(bad[0])
-            raise ValueError(
-                f"{source}: pose {i} has bottom row {arr[i, 3].tolist()}, expected [0, 0, 0, 1]"
-            )
-    rotation = arr[:, :3, :3]
-    gram = np.einsum("nji,njk->nik", rotation, rotation)
-    deviation = np.abs(gram - np.eye(3)).max(axis=(1, 2))
-    det = np.linalg.det(rotation)
-    bad = np.flatnonzero((deviation > tolerance) | (det <= 0.0))
-    if bad.size:
-        i = int(bad[0])
-        raise ValueError(
-            f"{source}: pose {i} is not rigid: max |RᵀR − I| = {deviation[i]:.3g} "
-            f"(tolerance {tolerance:g}), det R = {det[i]:.6g}"
-        )
-    u, _, vt = np.linalg.svd(rotation)
-    d = np.sign(np.linalg.det(u @ vt))
-    u[:, :, 2] *= d[:, None]
-    out = np.zeros((arr.shape[0], 4, 4))
-    out[:, :3, :3] = u @ vt
-    out[:, :3, 3] = arr[:, :3, 3]
-    out[:, 3, 3] = 1.0
-    return out

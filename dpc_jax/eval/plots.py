@@ -5,7 +5,7 @@
   frame of some releases) would collapse there, so the plane is the one spanned by the two axes
   along which the ground truth extends most, and the axes are labelled accordingly. The subtitle
   says how the estimates were placed (by default: started at the first ground-truth pose, not
-  aligned — the trajectories of :func:`dpc_jax.evaluation.evaluate`).
+  aligned — the trajectories of :func:`dpc_jax.eval.evaluation.evaluate`).
 * :func:`plot_segment_errors` — per-length translation (%) and rotation (°/100 m) errors; a
   sequence too short for the shortest length gets a note instead of empty axes.
 * :func:`plot_c_ate` — cumulative translation (m) and rotation (°) errors (c-ATE) per frame; the
@@ -23,10 +23,10 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from dpc_jax.trajectory import atomic_write
+from dpc_jax._io import atomic_write
 
 if TYPE_CHECKING:
-    from dpc_jax.evaluation import EstimateMetrics
+    from dpc_jax.eval.evaluation import EstimateMetrics
 
 _AXES = "xyz"
 _DPI = 120

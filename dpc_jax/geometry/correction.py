@@ -8,8 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from dpc_jax.lie import se3_exp
-from dpc_jax.trajectory import compose, relative_poses
+from dpc_jax.geometry.lie import se3_exp
+from dpc_jax.geometry.poses import compose, relative_poses
 
 
 def apply_correction(xi_corr: Array, T_vo: Array, rotation_only: bool = False) -> Array:

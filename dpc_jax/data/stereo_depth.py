@@ -19,7 +19,7 @@ MIN_DEPTH = 1.5
 
 def _matcher(max_disparity: float, block: int) -> cv2.StereoSGBM:
     channels = 1
-    return cv2.StereoSGBM_create(
+    return cv2.StereoSGBM_create(  # type: ignore[attr-defined]  # missing from cv2's stubs
         minDisparity=0,
         numDisparities=16 * max(1, math.ceil(max_disparity / 16)),
         blockSize=block,

@@ -5,7 +5,7 @@ the gradient before the Adam moments (not AdamW's decoupled decay), on every par
 and BatchNorm scales included, as PyTorch does). The learning rate is halved every
 ``lr_halving_epochs`` epochs, counted in optimizer steps from the epoch length: the update with
 (0-based) index ``s`` uses ``lr · 0.5 ** floor(s / (lr_halving_epochs · steps_per_epoch))``.
-With ``pose_lr_multiplier ≠ 1`` or a pose warm-up the pose head (``dpc_jax.models.POSE_HEAD``) gets
+With ``pose_lr_multiplier ≠ 1`` or a pose warm-up the pose head (``dpc_jax.nn.models.POSE_HEAD``) gets
 its own copy of the chain (``optax.multi_transform``): its rate multiplied, and during the warm-up
 its updates masked *and its Adam state held* (``optax.transforms.conditionally_mask``), so that
 its first real update is a proper first Adam step rather than one with a bias correction that
@@ -21,8 +21,8 @@ import optax
 from flax import nnx
 from jax.sharding import Mesh
 
-from dpc_jax import parallel
-from dpc_jax.models import POSE_HEAD
+from dpc_jax.nn.models import POSE_HEAD
+from dpc_jax.training import parallel
 
 
 def learning_rate_schedule(learning_rate: float, halving_epochs: int, steps_per_epoch: int) -> optax.Schedule:

@@ -9,16 +9,15 @@ that carry the most pixels:
 
 * the gradient of a stride-2 convolution with respect to its input is an input-dilated
   convolution: ``conv_s2`` computes both gradients through the equivalent stride-1 convolution of
-  the space-to-depth image instead (4·C_in channels, no dilation). Input gradient of the second
-  encoder block (5×5, 8 → 16 channels, 120×188 input, batch 8): 42 ms → 3.3 ms;
+  the space-to-depth image instead (4·C_in channels, no dilation);
 * a transposed convolution is an input-dilated convolution: ``upconv3x3_s2`` evaluates it as one
   stride-1 convolution producing the four output phases, then interleaves them;
 * the inverse-depth and mask heads map 8–32 channels to one or two: ``conv3x3_few_outputs``
   evaluates them as a matrix product with the nine taps followed by nine shifted adds, and the
-  input gradient as nine shifted multiply-adds. Full-resolution head (8 → 1 channel, 240×376,
-  batch 8, huge pages on): forward 22 → 13 ms, input gradient 17 → 1.5 ms.
+  input gradient as nine shifted multiply-adds.
 
-``benchmarks/bench_models.py`` measures the effect on the training step.
+``benchmarks/bench_models.py`` measures the effect on the training step (figures are not kept here:
+they depend on the machine and go stale).
 """
 
 from __future__ import annotations

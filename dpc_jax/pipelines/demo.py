@@ -18,7 +18,7 @@
 3. **Calibrate and prepare**: the same VO with the estimate *on* measures the residual from the
    images (no ground truth); ``prepare`` rectifies the network's images by it, so the network sees
    a calibrated rig and its stereo depth is metric.
-4. **Train** Stereo DPC (``dpc_jax.train``, the improved settings of ``dpc_jax.train_config``) on
+4. **Train** Stereo DPC (``dpc_jax.training.loop``, the improved settings of ``dpc_jax.training.config``) on
    the training sequences; the validation sequence selects the epoch by Δ (the correction's paired
    photometric effect, no ground truth). The test sequence is never read by training.
 5. **Correct the test sequence twice**: with the network as trained (acceptance test on all its
@@ -48,7 +48,8 @@ from typing import Any
 import numpy as np
 
 from dpc_jax import config as config_lib
-from dpc_jax.trajectory import atomic_write
+from dpc_jax._io import atomic_write
+from dpc_jax.inference import SELECTIONS
 from dpc_jax.vo.odometry import FALLBACK_WARNING_SHARE
 
 # Training defaults of the demo (``TrainConfig`` fields); ``DemoConfig.training`` overrides them.
@@ -64,7 +65,6 @@ TRAINING: dict[str, Any] = {
 }
 # The demo sets these itself (paths and split).
 _MANAGED = ("cache_root", "train_sequences", "validation_sequences", "test_sequences")
-SELECTIONS = ("delta", "gradient", "loop", "last")
 
 
 class DemoError(ValueError):
@@ -128,7 +128,7 @@ class DemoConfig:
             if getattr(self, name) < 3:
                 problems.append(f"{name} must be >= 3, got {getattr(self, name)}")
         if self.select not in SELECTIONS:
-            problems.append(f"select must be one of {SELECTIONS}, got {self.select!r}")
+            problems.append(f"select must be one of {tuple(SELECTIONS)}, got {self.select!r}")
         if self.adapt_steps < 0 or self.holdout_every < 2:
             problems.append(f"adapt_steps must be >= 0 and holdout_every >= 2, got {self.adapt_steps}, "
                             f"{self.holdout_every}")
@@ -166,7 +166,7 @@ class DemoConfig:
 
     def train_config(self, cache_root: str | os.PathLike) -> Any:
         """The ``TrainConfig`` of the demo's run on the caches under ``cache_root``."""
-        from dpc_jax.train_config import TrainConfig
+        from dpc_jax.training.config import TrainConfig
 
         roles = self.sequences
         values = {
@@ -229,11 +229,11 @@ def _epoch_table(metrics_csv: Path, selected: int) -> str:
 
 def prior_error(gt: np.ndarray, prior: np.ndarray) -> dict[str, list[float]]:
     """What a prior's error consists of: the mean per frame (systematic) and the standard deviation
-    (random) of the correction each step needs (``dpc_jax.metrics.step_corrections``), per axis,
+    (random) of the correction each step needs (``dpc_jax.eval.metrics.step_corrections``), per axis,
     translation in mm and rotation in mrad."""
     import jax
 
-    from dpc_jax.metrics import step_corrections
+    from dpc_jax.eval.metrics import step_corrections
 
     with jax.enable_x64(True):
         need = 1e3 * np.asarray(step_corrections(np.asarray(gt, np.float64), np.asarray(prior, np.float64)))
@@ -281,8 +281,8 @@ def _results_table(summary: dict[str, Any]) -> str:
 def _write_report(out: Path, config: DemoConfig, train_config: Any, evaluation: Any, summary: dict[str, Any],
                   run_dir: Path) -> Path:
     """``OUT/report.md`` with the tables, the per-length errors, the records and the plots."""
-    from dpc_jax import plots
-    from dpc_jax.evaluation import format_segment_table, metrics_csv, segment_csv
+    from dpc_jax.eval import plots
+    from dpc_jax.eval.evaluation import format_segment_table, metrics_csv, segment_csv
 
     plots.plot_trajectories(out / "trajectory.png", evaluation.gt, evaluation.trajectories)
     plots.plot_segment_errors(out / "segment_errors.png", evaluation.metrics)
@@ -386,9 +386,9 @@ def run_demo(config: DemoConfig, out: str | os.PathLike, progress: bool = False,
     from dpc_jax.data.cache import prepare_sequence
     from dpc_jax.data.kitti import open_odometry
     from dpc_jax.data.pipeline import load_cache
-    from dpc_jax.evaluation import evaluate
+    from dpc_jax.eval.evaluation import evaluate
     from dpc_jax.inference import load_run
-    from dpc_jax.train import train
+    from dpc_jax.training.loop import train
     from dpc_jax.vo import VOConfig
     from dpc_jax.vo.prior import vo_prior
 
@@ -426,7 +426,7 @@ def run_demo(config: DemoConfig, out: str | os.PathLike, progress: bool = False,
         prepare_sequence(sequence, prior["path"], cache_root, size=size,
                          disparity_offset=offset if config.rectify_offset else 0.0, progress=progress)
         seconds["prepare"] += time.perf_counter() - t
-        from dpc_jax.trajectory import read_kitti_poses
+        from dpc_jax.data.poses_io import read_kitti_poses
 
         records[name] = {"fallbacks": prior["fallbacks"], "pairs": prior["pairs"], "offset": offset,
                          "error": prior_error(sequence.poses, read_kitti_poses(prior["path"]))}

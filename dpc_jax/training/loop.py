@@ -1,12 +1,12 @@
-"""Training: the jitted train step and the loop (checkpoints, logging, validation each epoch).
+"""The training loop: data, checkpoints, logging and validation each epoch around the jitted step.
 
-Functional core (docs/method.md §3, §5): the model and its optimizer (``dpc_jax.optim``) are split once,
-``graphdef, state = nnx.split((model, optimizer))``; ``state`` holds the parameters, the
+Functional core (docs/method.md §3, §5): the model and its optimizer (``dpc_jax.training.optim``)
+are split once, ``graphdef, state = nnx.split((model, optimizer))``; ``state`` holds the parameters, the
 BatchNorm statistics, the prior statistics, the Adam moments and the step count.
 ``make_train_step`` returns ONE jitted pure function ``train_step(graphdef, state, batch, key) ->
 (state, metrics)`` that merges, differentiates the loss w.r.t. the ``nnx.Param`` variables only,
 applies the optimizer and splits again; ``state`` is donated. Given a mesh
-(``dpc_jax.parallel``), the batch is sharded on ``data`` and the state replicated, so the same
+(``dpc_jax.training.parallel``), the batch is sharded on ``data`` and the state replicated, so the same
 function runs on 1..N devices and hosts, with the gradient mean and the BatchNorm batch
 statistics over the global batch.
 
@@ -15,7 +15,7 @@ warm-up length the loss sees ξ_corr = 0, so depth, masks and λ_s learn first; 
 updates are masked in the optimizer for the same steps.
 
 Validation (each epoch, ``dpc_jax.inference.predict_sequence``) gives the three selection
-criteria of ``dpc_jax.checkpoints``: the gradient loss, the loop-closure count of the corrected
+criteria of ``dpc_jax.training.checkpoints``: the gradient loss, the loop-closure count of the corrected
 validation trajectory and the mean paired photometric effect Δ of the correction.
 
 The loop (``train``) and its files are described in its docstring.
@@ -38,66 +38,23 @@ from pathlib import Path
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 import numpy as np
-import optax
 import orbax.checkpoint as ocp
 from flax import nnx
 from jax.sharding import Mesh
 from tqdm.auto import tqdm
 
 from dpc_jax import config as config_lib
-from dpc_jax import metrics as metrics_lib
-from dpc_jax import parallel
-from dpc_jax.batch import Batch
-from dpc_jax.checkpoints import Checkpoints
+from dpc_jax._io import atomic_write
 from dpc_jax.config import ConfigError
-from dpc_jax.correction import corrected_trajectory
+from dpc_jax.eval import metrics as metrics_lib
+from dpc_jax.geometry.correction import corrected_trajectory
 from dpc_jax.inference import predict_sequence, stereo_depth_of
-from dpc_jax.losses import dpc_loss
-from dpc_jax.optim import create_train_state, learning_rate_schedule, make_optimizer
-from dpc_jax.train_config import TrainConfig
-from dpc_jax.trajectory import atomic_write
-
-TrainStep = Callable[[nnx.GraphDef, nnx.State, Batch, jax.Array], tuple[nnx.State, dict[str, jax.Array]]]
-
-
-# --------------------------------------------------------------------------- steps
-
-
-def make_train_step(loss_config: Any, warmup_steps: int = 0, mesh: Mesh | None = None) -> TrainStep:
-    """The jitted ``train_step(graphdef, state, batch, key) -> (state, metrics)``; ``state`` donated.
-
-    ``loss_config``: the method's loss config (``TrainConfig.loss_config()``); the loss sees
-    ξ_corr = 0 while the optimizer's step count is below ``warmup_steps``.
-    ``metrics``: ``loss``, the loss's named terms, ``grad_norm`` (global L2 norm of the gradient
-    before weight decay) — scalars. ``key`` drives dropout. With ``mesh``, the outputs are
-    replicated on it; put the state with ``parallel.replicate`` and the batch with
-    ``parallel.shard_batch``.
-    """
-
-    def step(
-        graphdef: nnx.GraphDef, state: nnx.State, batch: Batch, key: jax.Array
-    ) -> tuple[nnx.State, dict[str, jax.Array]]:
-        model, optimizer = nnx.merge(graphdef, state)
-        model.train()
-        pose_on = optimizer.step[...] >= warmup_steps
-
-        def objective(model: nnx.Module) -> tuple[jax.Array, dict[str, jax.Array]]:
-            outputs = model(batch, key=key)
-            outputs = outputs._replace(xi_corr=jnp.where(pose_on, outputs.xi_corr, 0.0))
-            return dpc_loss(outputs, batch, loss_config)
-
-        (loss, terms), grads = nnx.value_and_grad(objective, has_aux=True)(model)
-        optimizer.update(model, grads)
-        metrics = {"loss": loss, **terms, "grad_norm": optax.tree.norm(grads)}
-        return nnx.state((model, optimizer)), metrics
-
-    kwargs: dict[str, Any] = {}
-    if mesh is not None:
-        kwargs["out_shardings"] = parallel.replicated(mesh)
-    return jax.jit(step, static_argnums=0, donate_argnums=1, **kwargs)
-
+from dpc_jax.training import parallel
+from dpc_jax.training.checkpoints import Checkpoints
+from dpc_jax.training.config import TrainConfig
+from dpc_jax.training.optim import create_train_state, learning_rate_schedule, make_optimizer
+from dpc_jax.training.steps import NonFiniteLossError, make_train_step
 
 # --------------------------------------------------------------------------- data
 
@@ -214,10 +171,6 @@ def prior_statistics(xi_vo: np.ndarray, normalization: str) -> np.ndarray:
 # --------------------------------------------------------------------------- logging
 
 
-class NonFiniteLossError(RuntimeError):
-    """Training produced a NaN or infinite loss; the run stopped without saving that state."""
-
-
 METRICS_CSV = "metrics.csv"
 
 
@@ -263,7 +216,8 @@ class MetricsLog:
         numbers = {k: float(v) for k, v in row.items() if k not in ("epoch", "step")}
         numbers = {k: v for k, v in numbers.items() if math.isfinite(v)}
         self.scalars(int(row["step"]), numbers, "epoch")
-        self.writer.flush()
+        if self.writer is not None:
+            self.writer.flush()
 
     def close(self) -> None:
         if self.writer is not None:
@@ -442,6 +396,32 @@ def _train_epoch(
     return state, means
 
 
+def _initial_state(
+    config: TrainConfig, data: TrainData, mesh: Mesh
+) -> tuple[nnx.GraphDef, nnx.GraphDef, nnx.State]:
+    """A fresh model with the training prior statistics, split with its optimizer onto ``mesh``.
+
+    Returns ``(model_graphdef, graphdef, state)``: ``state[0]`` of the train state is the model's
+    and merges with ``model_graphdef`` (validation runs the model alone).
+    """
+    from dpc_jax.nn.models import create_model, set_prior_statistics
+
+    model = create_model(config.method, config.model_config(), config.seed)
+    set_prior_statistics(model, *data.prior_statistics)
+    model_graphdef = nnx.graphdef(model)
+    graphdef, state = create_train_state(model, make_optimizer(config, data.steps_per_epoch), mesh)
+    return model_graphdef, graphdef, state
+
+
+def _check_finite_validation(val: dict[str, Any], epoch: int) -> None:
+    if not all(math.isfinite(val[k]) for k in ("val_loss", "val_gradient_loss", "val_delta")):
+        raise NonFiniteLossError(
+            f"non-finite validation loss at epoch {epoch} ({val['val_loss']}, gradient loss "
+            f"{val['val_gradient_loss']}); stopping. "
+            f"The last good checkpoint (epoch {epoch - 1}) is intact"
+        )
+
+
 def train(
     config: TrainConfig,
     workdir: str | os.PathLike,
@@ -453,7 +433,7 @@ def train(
 ) -> dict[str, Any]:
     """Train ``config`` in ``workdir``; return a summary (epochs, steps, best epochs, last metrics).
 
-    Files: ``WORKDIR/checkpoints/`` (see ``dpc_jax.checkpoints``: every epoch, the best by
+    Files: ``WORKDIR/checkpoints/`` (see ``dpc_jax.training.checkpoints``: every epoch, the best by
     gradient loss, by loop closures and by Δ, ``config.json``, ``split.json``),
     ``WORKDIR/metrics.csv`` (one row per epoch: step, learning rate, training means, samples/s,
     validation figures), ``WORKDIR/tensorboard/`` (the same, plus training scalars every
@@ -467,8 +447,6 @@ def train(
     Errors before any compute: ``ConfigError`` for a bad split, missing cache, wrong image size,
     or a workdir holding another run. ``NonFiniteLossError`` when a loss becomes NaN/inf.
     """
-    from dpc_jax.models import create_model, set_prior_statistics
-
     workdir = Path(workdir).absolute()
     has_run = check_workdir(config, workdir, resume)
     if config.distributed:
@@ -484,12 +462,7 @@ def train(
         raise ConfigError(str(error)) from None
     is_main = jax.process_index() == 0
 
-    model = create_model(config.method, config.model_config(), config.seed)
-    set_prior_statistics(model, *data.prior_statistics)
-    # state[0] of the train state is the model's; it merges with the model's own graphdef.
-    model_graphdef = nnx.graphdef(model)
-    graphdef, state = create_train_state(model, make_optimizer(config, data.steps_per_epoch), mesh)
-    del model
+    model_graphdef, graphdef, state = _initial_state(config, data, mesh)
     checkpoints = Checkpoints(workdir, keep_last=config.keep_checkpoints)
     meta: dict[str, Any] | None = None
     if has_run and checkpoints.latest_epoch() is not None:
@@ -515,12 +488,7 @@ def train(
             )
             step += data.steps_per_epoch
             val = validate(model_graphdef, state[0], data, config, mesh)
-            if not all(math.isfinite(val[k]) for k in ("val_loss", "val_gradient_loss", "val_delta")):
-                raise NonFiniteLossError(
-                    f"non-finite validation loss at epoch {epoch} ({val['val_loss']}, gradient loss "
-                    f"{val['val_gradient_loss']}); stopping. "
-                    f"The last good checkpoint (epoch {epoch - 1}) is intact"
-                )
+            _check_finite_validation(val, epoch)
             row = {
                 "epoch": epoch,
                 "step": step,

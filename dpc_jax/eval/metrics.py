@@ -2,7 +2,7 @@
 
 Inputs are trajectories ``[N, 4, 4]`` of camera-to-world poses ``T_w_c`` — ground truth ``G`` and
 estimate ``E`` of the same frames, the estimate already re-anchored to the first ground-truth pose
-(see :mod:`dpc_jax.evaluation`). Every function is dtype-preserving (float64 in, float64 out) and
+(see :mod:`dpc_jax.eval.evaluation`). Every function is dtype-preserving (float64 in, float64 out) and
 equals a plain float64 loop over poses and segments (``tests/reference_metrics.py``) to rounding.
 Rotation errors are reported in degrees, translations in metres, segment errors in % and °/100 m.
 
@@ -40,7 +40,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from dpc_jax.lie import se3_inverse, se3_log, so3_log
+from dpc_jax.geometry.lie import se3_inverse, se3_log, so3_log
 
 SEGMENT_LENGTHS: tuple[float, ...] = (100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0)
 ALIGNMENTS = ("none", "se3", "sim3")
@@ -334,7 +334,7 @@ def trajectory_metrics(
     devkit_step: int = 10,
     loop_stride: int = 8,
 ) -> dict[str, Array]:
-    """Every metric of this module in one compiled call (what :mod:`dpc_jax.evaluation` reports).
+    """Every metric of this module in one compiled call (what :mod:`dpc_jax.eval.evaluation` reports).
 
     Keys: ``m_ate_trans_m, m_ate_rot_deg, seg_trans_pct, seg_rot_deg_per_100m, kitti_trans_pct,
     kitti_rot_deg_per_100m, ate_m, rpe_trans_m, rpe_rot_deg, loop_closures`` (scalars) and

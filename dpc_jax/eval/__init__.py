@@ -1,0 +1,1 @@
+"""Evaluation: trajectory metrics, the evaluation of estimates against ground truth, its report and plots."""

@@ -1,0 +1,130 @@
+"""Pose algebra on trajectories (numpy): inverses, relative poses, composition, static-frame removal.
+
+A trajectory is a numpy array ``[N, 4, 4]`` of camera-to-world poses ``T_w_c`` ("Twv", docs/method.md §1).
+Reading and writing trajectory files is :mod:`dpc_jax.data.poses_io`.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+
+import numpy as np
+
+# The ss-DPC-Net static-frame rule (docs/method.md §6): a frame pair moving less than this much in both
+# translation (m, ‖ρ‖ of the se(3) log) and rotation (rad, ‖φ‖) counts as static.
+STATIC_TRANSLATION_M = 1.5
+STATIC_ROTATION_RAD = 0.007
+_CHUNK = 1024
+
+
+def invert_poses(poses: np.ndarray) -> np.ndarray:
+    """Closed-form inverse of rigid transforms ``[..., 4, 4]`` (dtype-preserving numpy)."""
+    poses = np.asarray(poses)
+    rotation_t = np.swapaxes(poses[..., :3, :3], -1, -2)
+    out = np.zeros_like(poses)
+    out[..., :3, :3] = rotation_t
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", rotation_t, poses[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def relative_poses(trajectory: np.ndarray) -> np.ndarray:
+    """``[N, 4, 4]`` -> ``[N-1, 4, 4]`` with ``T_{t+1,t} = inv(T_w_{t+1}) @ T_w_t`` (docs/method.md §1).
+
+    ``T_{t+1,t}`` maps a point expressed in frame t into frame t+1. Dtype-preserving numpy.
+    """
+    trajectory = np.asarray(trajectory)
+    if trajectory.ndim != 3 or trajectory.shape[1:] != (4, 4) or trajectory.shape[0] < 1:
+        raise ValueError(f"trajectory must have shape [N, 4, 4] with N ≥ 1, got {trajectory.shape}")
+    return invert_poses(trajectory[1:]) @ trajectory[:-1]
+
+
+def compose(relative: np.ndarray, first_pose: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`relative_poses`: ``T_w_{t+1} = T_w_t @ inv(T_{t+1,t})`` from ``T_w_0 = first_pose``.
+
+    ``relative``: ``[N-1, 4, 4]``; ``first_pose``: ``[4, 4]`` -> ``[N, 4, 4]`` in the dtype of
+    ``relative``. The product is accumulated sequentially, exactly as the papers compose VO.
+    """
+    relative = np.asarray(relative)
+    if relative.ndim != 3 or relative.shape[1:] != (4, 4):
+        raise ValueError(f"relative must have shape [N-1, 4, 4], got {relative.shape}")
+    first = np.asarray(first_pose, dtype=relative.dtype)
+    if first.shape != (4, 4):
+        raise ValueError(f"first_pose must have shape [4, 4], got {first.shape}")
+    steps = invert_poses(relative)
+    out = np.empty((relative.shape[0] + 1, 4, 4), dtype=relative.dtype)
+    out[0] = first
+    for t in range(relative.shape[0]):
+        out[t + 1] = out[t] @ steps[t]
+    return out
+
+
+# ----------------------------------------------------------------------------- static frames
+
+@functools.cache
+def _log_norm_function() -> Callable[[np.ndarray], tuple[object, object]]:
+    """Jitted ``(‖ρ‖, ‖φ‖)`` of se(3) logs; built on first use so importing this module stays light."""
+    import jax
+    import jax.numpy as jnp
+
+    from dpc_jax.geometry.lie import se3_log
+
+    def norms(transforms: jax.Array) -> tuple[jax.Array, jax.Array]:
+        xi = se3_log(transforms)
+        return jnp.linalg.norm(xi[..., :3], axis=-1), jnp.linalg.norm(xi[..., 3:], axis=-1)
+
+    return jax.jit(norms)
+
+
+def _log_norms(transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(‖ρ‖ m, ‖φ‖ rad)`` of the se(3) logs of ``[M, 4, 4]`` transforms.
+
+    Evaluated in fixed chunks padded with identities, so it compiles once per process and dtype.
+    """
+    function = _log_norm_function()
+    m = transforms.shape[0]
+    padded = np.broadcast_to(np.eye(4), (-(-m // _CHUNK) * _CHUNK, 4, 4)).copy()
+    padded[:m] = transforms
+    rho, phi = zip(*(function(padded[k : k + _CHUNK]) for k in range(0, m, _CHUNK)), strict=True)
+    return np.concatenate(rho)[:m].astype(np.float64), np.concatenate(phi)[:m].astype(np.float64)
+
+
+def remove_static_frames(
+    reference: np.ndarray,
+    prior: np.ndarray | None = None,
+    translation_m: float = STATIC_TRANSLATION_M,
+    rotation_rad: float = STATIC_ROTATION_RAD,
+) -> np.ndarray:
+    """Indices of the frames kept by the ss-DPC-Net static-frame rule (docs/method.md §6).
+
+    ``reference``: ``[N, 4, 4]``, the trajectory whose frames are kept or dropped (typically the
+    ground truth); ``prior``: ``[N, 4, 4]``, the trajectory the rule reads (the VO prior, as in
+    ss-DPC-Net), or None to read ``reference`` itself (sequences without a prior). Both lose the
+    same frames. Returns sorted int64 indices into ``[0, N)``.
+
+    The rule, on the current (already shortened) sequence: for each pair ``(i, i+1)`` with ``i``
+    even, ``[ρ, φ] = Log(inv(T_{i+1}) T_i)`` of the prior; frame ``i`` is dropped when
+    ``‖ρ‖ < translation_m`` (m) **and** ``‖φ‖ < rotation_rad`` (rad). Passes repeat until one
+    drops nothing. The last frame is never dropped (it is never the first of a pair).
+    """
+    reference = np.asarray(reference)
+    source = reference if prior is None else np.asarray(prior)
+    if reference.ndim != 3 or reference.shape[1:] != (4, 4):
+        raise ValueError(f"reference must have shape [N, 4, 4], got {reference.shape}")
+    if source.shape != reference.shape:
+        raise ValueError(
+            f"prior has {source.shape[0]} poses but reference has {reference.shape[0]}; "
+            "they must describe the same frames"
+        )
+    poses = source.astype(np.float64)
+    kept = np.arange(poses.shape[0])
+    while kept.size >= 2:
+        first = kept[0 : kept.size - 1 : 2]
+        second = kept[1 : kept.size : 2]
+        rho, phi = _log_norms(invert_poses(poses[second]) @ poses[first])
+        static = (rho < translation_m) & (phi < rotation_rad)
+        if not static.any():
+            break
+        kept = np.setdiff1d(kept, first[static], assume_unique=True)
+    return kept.astype(np.int64)

@@ -1,0 +1,1 @@
+"""Training: the run configuration, the optimizer, the jitted step, the loop, checkpoints and devices."""
