@@ -52,6 +52,10 @@ def test_configs_are_train_configs_and_state_their_command(name: str) -> None:
         assert config.image_size == (240, 376) and config.epochs == 30 and config.learning_rate == 6e-3
         assert config.lr_halving_epochs == 5 and config.loss["alpha"] == (1.0, 1.0, 1.0, 0.08)
         assert not config.rotation_only and config.method == "stereo_dpc"
+    if name in ("kitti_stereo_dpc", "kitti_ss_dpc"):  # the papers' correction head, every field of it
+        from dpc_jax.training.config import REFERENCE
+
+        assert {k: getattr(config, k) for k in REFERENCE} == REFERENCE
     if name == "kitti_ss_dpc":
         assert config.rotation_only and config.method == "ss_dpc"
         assert config.loss == {"exp_weight": 0.23, "rot_weight": 4.0, "rot_threshold": 0.005}

@@ -28,6 +28,8 @@ This file is also a plain training config for the ``stereo_val05`` fold once its
 ``dpc-jax train --config experiments/configs/kitti_ss_dpc.py --workdir runs/kitti_ss_dpc/runs/stereo_val05``.
 """
 
+from dpc_jax.training.config import REFERENCE
+
 PROTOCOL = {
     "sequences": ("00", "02", "05", "06", "07", "08", "09", "10"),
     "folds": {
@@ -54,14 +56,8 @@ CONFIG = {
     "learning_rate": 1e-3,
     "lr_halving_epochs": 4,
     "weight_decay": 4e-6,
-    # The published choices of the correction head (dpc_jax.training.config.REFERENCE).
-    "pose_init": "pytorch",
-    "pose_warmup_epochs": 0,
-    "pose_warmup_steps": 0,
-    "prior_normalization": "none",
-    "dropout": 0.5,
-    "prior_dropout": None,
-    "pose_lr_multiplier": 1.0,
+    # The published choices of the correction head.
+    **REFERENCE,
     "loss": {"exp_weight": 0.23, "rot_weight": 4.0, "rot_threshold": 0.005},
     "rotation_only": True,
     "frame_skip": True,

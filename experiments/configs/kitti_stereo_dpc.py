@@ -25,6 +25,8 @@ This file is also a plain training config for one fold (test 00) once the caches
 ``dpc-jax train --config experiments/configs/kitti_stereo_dpc.py --workdir runs/stereo_dpc_00``.
 """
 
+from dpc_jax.training.config import REFERENCE
+
 PROTOCOL = {
     "sequences": ("00", "02", "05", "06", "07", "08", "09", "10"),
     # Validation (epoch selection) sequence per test sequence; "default" for the others.
@@ -43,14 +45,8 @@ CONFIG = {
     "learning_rate": 6e-3,
     "lr_halving_epochs": 5,
     "weight_decay": 4e-6,
-    # The published choices of the correction head (dpc_jax.training.config.REFERENCE).
-    "pose_init": "pytorch",
-    "pose_warmup_epochs": 0,
-    "pose_warmup_steps": 0,
-    "prior_normalization": "none",
-    "dropout": 0.5,
-    "prior_dropout": None,
-    "pose_lr_multiplier": 1.0,
+    # The published choices of the correction head.
+    **REFERENCE,
     "loss": {"alpha": (1.0, 1.0, 1.0, 0.08), "ssim_weight": 0.85},
     "rotation_only": False,
     "frame_skip": True,
