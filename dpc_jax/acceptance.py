@@ -57,6 +57,12 @@ class Acceptance:
     reason: str = ""
     forced: bool = False
 
+    @property
+    def mean_delta(self) -> float:
+        """Mean Δ of the first component tested (the full correction, or the rotation alone when
+        only that was tested): the figure a run's record keeps."""
+        return next(iter(self.tests.values())).mean_delta
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "alpha": self.alpha,

@@ -26,7 +26,7 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
@@ -39,6 +39,9 @@ from dpc_jax.data.pipeline import SequenceCache, TrainLoader
 from dpc_jax.inference import TrainedRun
 from dpc_jax.training.optim import create_train_state, make_optimizer
 from dpc_jax.training.steps import NonFiniteLossError, make_train_step
+
+if TYPE_CHECKING:
+    from dpc_jax.correct import Correction
 
 
 @dataclass(frozen=True)
@@ -149,6 +152,20 @@ def adapt(
     adapted_run = dataclasses.replace(run, selection=f"{run.selection}+adapted", graphdef=model_graphdef,
                                       state=model_state, improves_on_prior=True)
     return Adaptation(adapted_run, run, config, held_out, log, time.perf_counter() - began)
+
+
+def adapt_and_correct(
+    run: TrainedRun, cache: SequenceCache, how: AdaptConfig, *, progress: bool = False, **correct_options: Any
+) -> tuple[Adaptation, Correction]:
+    """Adapt ``run`` to ``cache`` (:func:`adapt`), then correct ``cache`` with the adapted network
+    (``dpc_jax.correct.correct_cache`` with ``correct_options``), its acceptance test on the kept-out
+    pairs only; the correction carries the adaptation's summary."""
+    from dpc_jax.correct import correct_cache
+
+    adaptation = adapt(run, cache, how, progress=progress)
+    correction = correct_cache(adaptation.run, cache, held_out=adaptation.held_out, progress=progress,
+                               **correct_options)
+    return adaptation, dataclasses.replace(correction, adaptation=adaptation.summary())
 
 
 def _log_csv(log: list[dict[str, float]]) -> str:

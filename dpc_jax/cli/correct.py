@@ -178,23 +178,19 @@ def run(args: argparse.Namespace) -> int:
                 )
                 prior = None
             adaptation = None
+            options = {"rotation_only": args.rotation_only, "batch_size": args.batch_size,
+                       "acceptance_depth": args.acceptance_depth, "alpha": args.alpha, "force": args.force}
             if args.adapt:
-                from dpc_jax.adapt import AdaptConfig, adapt
+                from dpc_jax.adapt import AdaptConfig, adapt_and_correct
 
                 cache = load_cache(cache) if not isinstance(cache, SequenceCache) else cache
                 if prior is not None:
-                    replaced = prior_for_cache(cache, prior, args.prior_format)
-                    cache, prior = dataclasses.replace(cache, prior=replaced), None
+                    cache = dataclasses.replace(cache, prior=prior_for_cache(cache, prior, args.prior_format))
                 how = AdaptConfig(args.adapt, holdout_every=args.holdout_every, learning_rate=args.adapt_lr)
-                adaptation = adapt(run_, cache, how, progress=show)
-            correction = correct_cache(
-                adaptation.run if adaptation else run_, cache, prior, rotation_only=args.rotation_only,
-                prior_format=args.prior_format, batch_size=args.batch_size,
-                acceptance_depth=args.acceptance_depth, alpha=args.alpha, force=args.force,
-                held_out=adaptation.held_out if adaptation else None, progress=show,
-            )
-            if adaptation is not None:
-                correction = dataclasses.replace(correction, adaptation=adaptation.summary())
+                adaptation, correction = adapt_and_correct(run_, cache, how, progress=show, **options)
+            else:
+                correction = correct_cache(run_, cache, prior, prior_format=args.prior_format, progress=show,
+                                           **options)
         except (OSError, ValueError, KeyError) as error:
             return _error(str(error))
     # The corrected trajectory (with its frame list) and the report are written all or nothing.
@@ -206,8 +202,8 @@ def run(args: argparse.Namespace) -> int:
         if adaptation is not None:
             from dpc_jax.adapt import save_adapted
 
-            test = correction.acceptance.tests[next(iter(correction.acceptance.tests))]
-            save_adapted(outputs.folder(adapted_path(args.out)), adaptation, {"delta": test.mean_delta})
+            save_adapted(outputs.folder(adapted_path(args.out)), adaptation,
+                         {"delta": correction.acceptance.mean_delta})
         outputs.commit()
     written = [args.out.parent / path.name for path in staged]
     criterion = {"delta": "most negative validation Δ", "gradient": "best gradient loss",

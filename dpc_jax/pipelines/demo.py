@@ -381,7 +381,7 @@ def run_demo(config: DemoConfig, out: str | os.PathLike, progress: bool = False,
     """
     import jax
 
-    from dpc_jax.adapt import AdaptConfig, adapt, save_adapted
+    from dpc_jax.adapt import AdaptConfig, adapt_and_correct, save_adapted
     from dpc_jax.correct import correct_cache, preferred, write_trajectory
     from dpc_jax.data.cache import prepare_sequence
     from dpc_jax.data.kitti import open_odometry
@@ -450,11 +450,9 @@ def run_demo(config: DemoConfig, out: str | os.PathLike, progress: bool = False,
     if config.adapt_steps:
         t = time.perf_counter()
         how = AdaptConfig(config.adapt_steps, holdout_every=config.holdout_every)
-        adaptation = adapt(run, test_cache, how, progress=progress)
-        corrections["adapted"] = correct_cache(adaptation.run, test_cache, held_out=adaptation.held_out,
-                                               force=not config.acceptance, progress=progress)
-        test = corrections["adapted"].acceptance.tests
-        save_adapted(out / "adapted", adaptation, {"delta": next(iter(test.values())).mean_delta})
+        adaptation, corrections["adapted"] = adapt_and_correct(
+            run, test_cache, how, force=not config.acceptance, progress=progress)
+        save_adapted(out / "adapted", adaptation, {"delta": corrections["adapted"].acceptance.mean_delta})
         seconds["adapt"] = time.perf_counter() - t
         say(f"adapted ({config.adapt_steps} steps): {_decision(corrections['adapted'])} on held-out pairs")
     final, result = preferred({k: corrections[k] for k in ("adapted", "trained") if k in corrections})

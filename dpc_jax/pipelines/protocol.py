@@ -23,7 +23,6 @@ KITTI (their ``--smoke`` tests).
 from __future__ import annotations
 
 import csv
-import dataclasses
 import io
 import json
 import logging
@@ -196,15 +195,13 @@ def correct_and_evaluate(
     corrections = {"trained": correct_cache(run, loaded, rotation_only=rotation_only, force=not acceptance,
                                             progress=progress)}
     if adapt_steps:
-        from dpc_jax.adapt import AdaptConfig, adapt, save_adapted
+        from dpc_jax.adapt import AdaptConfig, adapt_and_correct, save_adapted
 
         how = AdaptConfig(adapt_steps, holdout_every=holdout_every)
-        adaptation = adapt(run, loaded, how, progress=progress)
-        adapted = correct_cache(adaptation.run, loaded, rotation_only=rotation_only, force=not acceptance,
-                                held_out=adaptation.held_out, progress=progress)
-        corrections["adapted"] = dataclasses.replace(adapted, adaptation=adaptation.summary())
-        test = adapted.acceptance.tests[next(iter(adapted.acceptance.tests))]
-        save_adapted(out_root / "adapted" / fold / name, adaptation, {"delta": test.mean_delta})
+        adaptation, corrections["adapted"] = adapt_and_correct(
+            run, loaded, how, rotation_only=rotation_only, force=not acceptance, progress=progress)
+        save_adapted(out_root / "adapted" / fold / name, adaptation,
+                     {"delta": corrections["adapted"].acceptance.mean_delta})
     final, correction = preferred(dict(reversed(corrections.items())))
     if correction.evaluation is None:
         raise ValueError(f"{cache}: no ground truth; the experiment needs it to evaluate")
