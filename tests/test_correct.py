@@ -359,3 +359,22 @@ def test_the_decision_follows_the_test_on_the_sequence(setup: dict, run) -> None
         np.testing.assert_allclose(result.proposed, _compose(result.xi_corr, cache.prior, cache.gt[0], False),
                                    atol=1e-9)
     assert correct_cache(run, cache, alpha=1e-9).applied == "none"  # 9 pairs cannot reach p < 1e-9
+
+
+def test_cli_adapt_writes_the_adapted_network_that_made_the_trajectory(setup: dict, tmp_path: Path) -> None:
+    from dpc_jax.adapt import held_out_pairs
+    from dpc_jax.cli import main
+    from dpc_jax.correct import correct_cache
+    from dpc_jax.data.poses_io import read_trajectory
+    from dpc_jax.inference import load_run
+
+    out = tmp_path / "c.txt"
+    assert main(["correct", "--checkpoint", str(setup["run"]), "--data", str(setup["cache"] / "05"),
+                 "--out", str(out), "--select", "gradient", "--adapt", "3", "--holdout-every", "2",
+                 "--force", "--no-progress"]) == 0
+    folder = tmp_path / "c.adapted"
+    assert (folder / "adapt.csv").read_text().count("\n") == 4  # header and one line per step
+    # The saved network, restored, gives the written trajectory.
+    held = held_out_pairs(FRAMES - 1, 2)
+    again = correct_cache(load_run(folder, "last"), setup["cache"] / "05", force=True, held_out=held)
+    np.testing.assert_allclose(read_trajectory(out, "kitti"), again.corrected, atol=1e-9)
