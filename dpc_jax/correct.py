@@ -32,7 +32,14 @@ from pathlib import Path
 import numpy as np
 
 from dpc_jax._io import atomic_write
-from dpc_jax.acceptance import DEFAULT_ALPHA, Acceptance, acceptance_test, forced
+from dpc_jax.acceptance import (
+    DEFAULT_ALPHA,
+    Acceptance,
+    ComponentTest,
+    acceptance_test,
+    component_test,
+    forced,
+)
 from dpc_jax.data.pipeline import SequenceCache, load_cache
 from dpc_jax.data.poses_io import WRITE_FORMATS, write_kitti_poses, write_tum
 from dpc_jax.eval.evaluation import Evaluation
@@ -77,8 +84,10 @@ class Correction:
     applied (only their rotation for a rotation-only run); ``corrected``: the final trajectory,
     per ``acceptance.decision`` (``full``: the proposal, ``rotation``: only the rotations,
     ``none``: the prior re-composed); ``evaluation``: ``prior``, ``network`` (the proposal) and
-    ``corrected`` against the ground truth, or None without ground truth; ``adaptation``: what
-    ``dpc_jax.adapt`` did first (steps, seconds, held-out pairs), if anything.
+    ``corrected`` against the ground truth, or None without ground truth; ``delta``: Δ of every
+    pair ``[N-1]`` per component (``full``, ``rotation``); ``tested``: the pairs the acceptance
+    test used (None: all); ``adaptation``: what ``dpc_jax.adapt`` did first (steps, seconds,
+    held-out pairs), if anything; ``choice``: how :func:`choose` picked it among candidates.
     """
 
     name: str
@@ -93,7 +102,10 @@ class Correction:
     acceptance: Acceptance
     epoch: int
     evaluation: Evaluation | None
+    delta: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    tested: np.ndarray | None = None
     adaptation: dict[str, object] | None = None
+    choice: dict[str, object] | None = None
 
     @property
     def applied(self) -> str:
@@ -116,6 +128,8 @@ class Correction:
         }
         if self.adaptation is not None:
             out["adaptation"] = self.adaptation
+        if self.choice is not None:
+            out["choice"] = self.choice
         if self.evaluation is not None:
             out["evaluation"] = json.loads(self.evaluation.to_json())
         return out
@@ -180,7 +194,9 @@ def correct_cache(
     )
     acceptance = decide(run, prediction, rotation_only=rotation_only, pairs=held_out, alpha=alpha,
                         force=force)
-    return compose_correction(run, cache, prediction.xi_corr, acceptance, rotation_only)
+    correction = compose_correction(run, cache, prediction.xi_corr, acceptance, rotation_only)
+    return dataclasses.replace(correction, delta=prediction.delta,
+                               tested=None if held_out is None else np.asarray(held_out, np.int64))
 
 
 def compose_correction(
@@ -221,14 +237,54 @@ def compose_correction(
     )
 
 
-def preferred(corrections: dict[str, Correction]) -> tuple[str, Correction]:
-    """The final choice among corrections of one sequence, listed in order of preference (e.g.
-    ``{"adapted": …, "trained": …}``): the first whose acceptance test let a correction through,
-    else ``("prior", c)`` with ``c`` the last one, whose trajectory is then the prior re-composed."""
-    for name, correction in corrections.items():
-        if correction.applied != "none":
-            return name, correction
-    return "prior", list(corrections.values())[-1]
+def choose(trained: Correction, adapted: Correction | None = None) -> tuple[str, Correction]:
+    """The final correction of a sequence corrected by a network as trained and, optionally, by the
+    same network adapted to the sequence (``dpc_jax.adapt``) → ``(name, correction)`` with ``name``
+    ``adapted``, ``trained`` or ``prior`` (then the trajectory is the prior re-composed).
+
+    Each candidate has passed or failed its own acceptance test against the prior. The adapted
+    network is the more flexible model, fitted to the very images it is judged on (its test pairs
+    are kept out of adaptation, but their neighbours were fitted), so it must also beat the trained
+    network's applied correction on the kept-out pairs: the paired differences of the two effects,
+    ``Δ_adapted,i − Δ_trained,i``, significantly below 0 (the same one-sided Wilcoxon test at the
+    adapted test's level). Failing that, the trained network's accepted correction is kept — a
+    nested comparison, prior ⊂ trained ⊂ adapted, each step taken only on significant evidence.
+    With one depth for both (``acceptance_depth="sgbm"``) the difference is exactly
+    ``L(ξ_adapted) − L(ξ_trained)``; with each network's own depth it compares the two effects.
+    Forced corrections (``force``) are not compared: the adapted one is applied. The returned
+    correction's ``choice`` records the comparison.
+    """
+    if adapted is None or adapted.applied == "none":
+        name = "trained" if trained.applied != "none" else "prior"
+        first = "no adapted correction" if adapted is None else "the adapted correction failed its test"
+        reason = first + ("; the trained correction passed its test" if name == "trained"
+                          else "; the trained correction failed its test: the prior is kept")
+        return name, dataclasses.replace(trained, choice={"final": name, "reason": reason})
+    if trained.applied == "none" or adapted.acceptance.forced:
+        reason = ("forced" if adapted.acceptance.forced
+                  else "the adapted correction passed its test, the trained one did not")
+        return "adapted", dataclasses.replace(adapted, choice={"final": "adapted", "reason": reason})
+    pairs = slice(None) if adapted.tested is None else adapted.tested
+    difference = adapted.delta[adapted.applied][pairs] - trained.delta[trained.applied][pairs]
+    test = component_test("adapted − trained", difference, adapted.acceptance.alpha)
+    name = "adapted" if test.passed else "trained"
+    verdict = "beats" if test.passed else "does not significantly beat"
+    reason = (f"both passed their tests; the adapted correction {verdict} the trained one on the "
+              f"{test.pairs} kept-out pairs (mean difference of Δ {test.mean_delta:.3g}, "
+              f"p = {test.p_value:.3g})")
+    chosen = adapted if test.passed else trained
+    return name, dataclasses.replace(chosen, choice={"final": name, "reason": reason,
+                                                     "comparison": dataclasses.asdict(test)})
+
+
+def choice_markdown(choice: dict[str, object]) -> str:
+    """How :func:`choose` decided, as Markdown (a table row for the comparison, if one was made)."""
+    lines = ["## Final choice (no ground truth used)", "", f"**{choice['final']}**: {choice['reason']}.", ""]
+    comparison = choice.get("comparison")
+    if isinstance(comparison, dict):
+        t = ComponentTest(**comparison)
+        lines += [_TEST_HEADER.replace("component", "comparison"), _TEST_RULE, _test_row(t), ""]
+    return "\n".join(lines)
 
 
 def frames_path(path: str | os.PathLike) -> Path:
@@ -258,18 +314,20 @@ def write_trajectory(path: str | os.PathLike, correction: Correction, format: st
     return written
 
 
+_TEST_HEADER = ("| component | pairs | mean Δ | median Δ | pairs improved | Wilcoxon W | p (one-sided) "
+                "| passed |")
+_TEST_RULE = "|---|---|---|---|---|---|---|---|"
+
+
+def _test_row(t: ComponentTest) -> str:
+    return (f"| {t.component} | {t.pairs} | {t.mean_delta:.3e} | {t.median_delta:.3e} | "
+            f"{100 * t.improved_share:.1f} % | {t.statistic:.4g} | {t.p_value:.3g} | "
+            f"{'yes' if t.passed else 'no'} |")
+
+
 def acceptance_markdown(acceptance: Acceptance) -> str:
     """The acceptance test as Markdown: one row per component tested, then the decision."""
-    lines = [
-        "| component | pairs | mean Δ | median Δ | pairs improved | Wilcoxon W | p (one-sided) | passed |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for name, t in acceptance.tests.items():
-        lines.append(
-            f"| {name} | {t.pairs} | {t.mean_delta:.3e} | {t.median_delta:.3e} | "
-            f"{100 * t.improved_share:.1f} % | {t.statistic:.4g} | {t.p_value:.3g} | "
-            f"{'yes' if t.passed else 'no'} |"
-        )
+    lines = [_TEST_HEADER, _TEST_RULE, *(_test_row(t) for t in acceptance.tests.values())]
     applied = {"full": "the full correction", "rotation": "only the rotation of the correction",
                "none": "nothing: the corrected trajectory is the prior"}[acceptance.decision]
     return "\n".join([
@@ -291,6 +349,8 @@ def write_correction_report(directory: str | os.PathLike, correction: Correction
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     section = "## Acceptance test (no ground truth used)\n\n" + acceptance_markdown(correction.acceptance)
+    if correction.choice is not None:
+        section += "\n" + choice_markdown(correction.choice)
     if correction.adaptation is not None:
         a = correction.adaptation
         section = (f"## Adaptation (no ground truth used)\n\n{a['steps']} steps on this sequence's own "

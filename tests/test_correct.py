@@ -378,3 +378,61 @@ def test_cli_adapt_writes_the_adapted_network_that_made_the_trajectory(setup: di
     held = held_out_pairs(FRAMES - 1, 2)
     again = correct_cache(load_run(folder, "last"), setup["cache"] / "05", force=True, held_out=held)
     np.testing.assert_allclose(read_trajectory(out, "kitti"), again.corrected, atol=1e-9)
+
+
+def _candidate(delta: np.ndarray, tested: np.ndarray | None, label: float):
+    """A Correction whose acceptance test ran on ``delta[tested]`` (full and rotation alike); its
+    trajectories are filled with ``label`` so the chosen one can be told apart."""
+    from dpc_jax.acceptance import acceptance_test
+    from dpc_jax.correct import Correction
+
+    deltas = {"full": delta, "rotation": delta}
+    chosen = slice(None) if tested is None else tested
+    acceptance = acceptance_test({c: d[chosen] for c, d in deltas.items()})
+    poses = np.full((delta.size + 1, 4, 4), label)
+    return Correction(name="s", frames=np.arange(delta.size + 1), times=np.zeros(delta.size + 1), prior=poses,
+                      proposed=poses, corrected=poses, ground_truth=None, xi_corr=np.zeros((delta.size, 6)),
+                      rotation_only=False, acceptance=acceptance, epoch=1, evaluation=None, delta=deltas,
+                      tested=tested)
+
+
+def test_choose_takes_the_adapted_correction_only_when_it_beats_the_trained_one() -> None:
+    """Reference: scipy's one-sided Wilcoxon on the paired differences of Δ on the kept-out pairs."""
+    from scipy import stats
+
+    from dpc_jax.correct import choose
+
+    rng = np.random.default_rng(0)
+    n, held = 120, np.arange(2, 120, 3)
+    trained = _candidate(-1e-3 + 1e-4 * rng.standard_normal(n), None, 1.0)
+    assert trained.applied == "full"
+    better = _candidate(trained.delta["full"] - 5e-4 + 1e-4 * rng.standard_normal(n), held, 2.0)
+    as_good = _candidate(trained.delta["full"] + 1e-4 * rng.standard_normal(n), held, 3.0)
+    for adapted, expected in ((better, "adapted"), (as_good, "trained")):
+        assert adapted.applied == "full"
+        difference = adapted.delta["full"][held] - trained.delta["full"][held]
+        p = stats.wilcoxon(difference, alternative="less").pvalue
+        assert (p < 0.01) == (expected == "adapted")
+        name, final = choose(trained, adapted)
+        assert name == expected and final.choice is not None and final.choice["final"] == expected
+        assert final.choice["comparison"]["pairs"] == held.size
+        np.testing.assert_allclose(final.choice["comparison"]["p_value"], p)
+        assert final.corrected[0, 0, 0] == (2.0 if expected == "adapted" else 1.0)
+
+
+def test_choose_falls_back_in_order_adapted_trained_prior() -> None:
+    from dpc_jax.correct import choose
+
+    rng = np.random.default_rng(1)
+    n, held = 60, np.arange(2, 60, 5)
+    good = -1e-3 + 1e-4 * rng.standard_normal(n)
+    bad = 1e-3 + 1e-4 * rng.standard_normal(n)
+    trained_good, trained_bad = _candidate(good, None, 1.0), _candidate(bad, None, 1.0)
+    adapted_good, adapted_bad = _candidate(good, held, 2.0), _candidate(bad, held, 2.0)
+    assert choose(trained_good)[0] == "trained"
+    assert choose(trained_bad)[0] == "prior"
+    assert choose(trained_good, adapted_bad)[0] == "trained"
+    assert choose(trained_bad, adapted_good)[0] == "adapted"
+    name, final = choose(trained_bad, adapted_bad)
+    assert name == "prior" and final.applied == "none" and final.choice is not None
+    assert "prior is kept" in str(final.choice["reason"])

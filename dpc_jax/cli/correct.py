@@ -74,8 +74,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--acceptance-depth", choices=("network", "sgbm"),
                         help="depth Δ is measured with (default: the run's acceptance_depth)")
     parser.add_argument("--adapt", type=int, default=0, metavar="STEPS",
-                        help="first fine-tune the network for STEPS steps on this sequence's own images (no "
-                        "ground truth); the adapted network and its log go to OUT's stem + '.adapted/'")
+                        help="also fine-tune the network for STEPS steps on this sequence's own images (no "
+                        "ground truth); its correction is applied only if it passes its test and beats the "
+                        "network as trained on the kept-out pairs; the adapted network and its log go to "
+                        "OUT's stem + '.adapted/'")
     parser.add_argument("--holdout-every", type=int, default=5, metavar="K",
                         help="with --adapt: every K-th frame pair is kept out of adaptation, for the test")
     parser.add_argument("--adapt-lr", type=float, metavar="LR",
@@ -141,7 +143,13 @@ def run(args: argparse.Namespace) -> int:
     # Orbax logs a warning per read-only checkpoint manager; they say nothing useful here.
     logging.getLogger("absl").setLevel(logging.ERROR)
     from dpc_jax._io import OutputSet, remove_stale
-    from dpc_jax.correct import correct_cache, prior_for_cache, write_correction_report, write_trajectory
+    from dpc_jax.correct import (
+        choose,
+        correct_cache,
+        prior_for_cache,
+        write_correction_report,
+        write_trajectory,
+    )
     from dpc_jax.data.cache import prepare_sequence
     from dpc_jax.data.kitti import open_odometry, open_raw
     from dpc_jax.data.pipeline import SequenceCache, load_cache
@@ -177,7 +185,7 @@ def run(args: argparse.Namespace) -> int:
                     prior_format=args.prior_format, ground_truth=args.gt, progress=progress,
                 )
                 prior = None
-            adaptation = None
+            adaptation = adapted = None
             options = {"rotation_only": args.rotation_only, "batch_size": args.batch_size,
                        "acceptance_depth": args.acceptance_depth, "alpha": args.alpha, "force": args.force}
             if args.adapt:
@@ -187,7 +195,9 @@ def run(args: argparse.Namespace) -> int:
                 if prior is not None:
                     cache = dataclasses.replace(cache, prior=prior_for_cache(cache, prior, args.prior_format))
                 how = AdaptConfig(args.adapt, holdout_every=args.holdout_every, learning_rate=args.adapt_lr)
-                adaptation, correction = adapt_and_correct(run_, cache, how, progress=show, **options)
+                trained = correct_cache(run_, cache, progress=show, **options)
+                adaptation, adapted = adapt_and_correct(run_, cache, how, progress=show, **options)
+                _, correction = choose(trained, adapted)
             else:
                 correction = correct_cache(run_, cache, prior, prior_format=args.prior_format, progress=show,
                                            **options)
@@ -199,11 +209,11 @@ def run(args: argparse.Namespace) -> int:
         if args.report is not None:
             title = f"DPC correction: {correction.name}"
             write_correction_report(outputs.folder(args.report), correction, title)
-        if adaptation is not None:
+        if adaptation is not None and adapted is not None:
             from dpc_jax.adapt import save_adapted
 
             save_adapted(outputs.folder(adapted_path(args.out)), adaptation,
-                         {"delta": correction.acceptance.mean_delta})
+                         {"delta": adapted.acceptance.mean_delta})
         outputs.commit()
     written = [args.out.parent / path.name for path in staged]
     criterion = {"delta": "most negative validation Δ", "gradient": "best gradient loss",
@@ -222,9 +232,10 @@ def run(args: argparse.Namespace) -> int:
         print("no ground truth: nothing to evaluate")
     else:
         sys.stdout.write(format_table(correction.evaluation))
-    if adaptation is not None:
+    if adaptation is not None and correction.choice is not None:
         print(f"adapted: {args.adapt} steps in {adaptation.seconds / 60:.1f} min on {correction.name}'s own "
               f"pairs, {adaptation.held_out.size} kept out for the test -> {adapted_path(args.out)}")
+        print(f"final: {correction.choice['final']} ({correction.choice['reason']})")
     if args.report is not None:
         print(f"report: {args.report / 'report.md'}")
     return 0

@@ -24,8 +24,9 @@
 5. **Correct the test sequence twice**: with the network as trained (acceptance test on all its
    pairs), and after adapting the network to the test sequence's own images for ``adapt_steps``
    steps (``dpc_jax.adapt``; every ``holdout_every``-th pair kept out, the acceptance test on those).
-   The final trajectory (``corrected.txt``, ``summary.json``'s ``test.corrected``) is the adapted
-   correction if its test passes, else the trained one if its test passes, else the prior.
+   The final trajectory (``corrected.txt``, ``summary.json``'s ``test.corrected``) is chosen by
+   ``dpc_jax.correct.choose``: the adapted correction if its test passes *and* it beats the trained
+   one on the kept-out pairs, else the trained one if its test passes, else the prior.
 6. **Report** ``OUT/report.md``: the prior's error composition, the test table (prior, trained,
    adapted, final), plots, the training and adaptation records. The ground truth is read only here.
 
@@ -269,7 +270,7 @@ def _results_table(summary: dict[str, Any]) -> str:
     for key, label in labels:
         if key in summary["test"]:
             rows.append((f"{label} (epoch {summary['selected_epoch']})", key, summary["decisions"][key]))
-    rows.append((f"**final: {summary['final']}** (corrected.txt)", "corrected", ""))
+    rows.append((f"**final: {summary['final']}** (corrected.txt)", "corrected", summary["choice"]["reason"]))
     lines = ["| estimate | acceptance test | " + " | ".join(t for _, t in columns) + " |",
              "|---|---|" + "---|" * len(columns)]
     for label, key, decision in rows:
@@ -382,7 +383,7 @@ def run_demo(config: DemoConfig, out: str | os.PathLike, progress: bool = False,
     import jax
 
     from dpc_jax.adapt import AdaptConfig, adapt_and_correct, save_adapted
-    from dpc_jax.correct import correct_cache, preferred, write_trajectory
+    from dpc_jax.correct import choose, correct_cache, write_trajectory
     from dpc_jax.data.cache import prepare_sequence
     from dpc_jax.data.kitti import open_odometry
     from dpc_jax.data.pipeline import load_cache
@@ -455,7 +456,7 @@ def run_demo(config: DemoConfig, out: str | os.PathLike, progress: bool = False,
         save_adapted(out / "adapted", adaptation, {"delta": corrections["adapted"].acceptance.mean_delta})
         seconds["adapt"] = time.perf_counter() - t
         say(f"adapted ({config.adapt_steps} steps): {_decision(corrections['adapted'])} on held-out pairs")
-    final, result = preferred({k: corrections[k] for k in ("adapted", "trained") if k in corrections})
+    final, result = choose(corrections["trained"], corrections.get("adapted"))
     write_trajectory(out / "corrected.txt", result)
 
     gt = np.asarray(test_cache.gt, np.float64)
@@ -471,6 +472,7 @@ def run_demo(config: DemoConfig, out: str | os.PathLike, progress: bool = False,
         "decisions": {k: _decision(c) for k, c in corrections.items()},
         "acceptance": {k: c.acceptance.to_dict() for k, c in corrections.items()},
         "final": final,
+        "choice": result.choice,
         "change_pct": change,
         "corrected_better": all(v < 0 for v in change.values()),
         "selected_epoch": run.epoch,

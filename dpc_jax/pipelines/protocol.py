@@ -183,9 +183,10 @@ def correct_and_evaluate(
     """Correct the prior of ``cache`` with the run's selected epoch (only where the acceptance test
     allows it, unless ``acceptance`` is False) and, with ``adapt_steps``, also with the network
     adapted to ``cache``'s own pairs (``dpc_jax.adapt``, the ground truth unread); the final
-    trajectory is the adapted correction if accepted, else the trained one if accepted, else the
-    prior. Writes the final trajectory, the reports and (adapting) the adapted network."""
-    from dpc_jax.correct import correct_cache, preferred, write_correction_report, write_trajectory
+    trajectory is chosen by ``dpc_jax.correct.choose`` (the adapted correction only if it passes
+    its test and beats the trained one, else the trained one if it passes, else the prior). Writes
+    the final trajectory, the reports and (adapting) the adapted network."""
+    from dpc_jax.correct import choose, correct_cache, write_correction_report, write_trajectory
     from dpc_jax.data.pipeline import load_cache
     from dpc_jax.inference import load_run
 
@@ -202,7 +203,8 @@ def correct_and_evaluate(
             run, loaded, how, rotation_only=rotation_only, force=not acceptance, progress=progress)
         save_adapted(out_root / "adapted" / fold / name, adaptation,
                      {"delta": corrections["adapted"].acceptance.mean_delta})
-    final, correction = preferred(dict(reversed(corrections.items())))
+    final, correction = choose(corrections["trained"], corrections.get("adapted"))
+    corrections[final if final != "prior" else "trained"] = correction  # its report says how it was chosen
     if correction.evaluation is None:
         raise ValueError(f"{cache}: no ground truth; the experiment needs it to evaluate")
     (out_root / "corrected" / fold).mkdir(parents=True, exist_ok=True)
