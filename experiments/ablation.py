@@ -123,7 +123,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 1
         minutes = (time.perf_counter() - began) / 60 - sum(
             summary["seconds"].get(s, 0.0) for s in ("render", "vo", "prepare")) / 60
-        final = "adapted" if "adapted" in summary["test"] else "trained"
+        # The network whose correction the final trajectory holds (the last one tried if none).
+        tried = summary["acceptance"]
+        final = summary["final"] if summary["final"] in tried else list(tried)[-1]
         test = summary["acceptance"][final]["tests"]["full"]
         decision = summary["decisions"][final]
         results.append({
