@@ -315,6 +315,55 @@ def test_random_bytes_named_mat_are_refused_in_one_line(
     assert _files(tmp_path) == ["random.mat"]
 
 
+def test_bad_inputs_fail_before_jax_is_imported(data: dict[str, Path], tmp_path: Path) -> None:
+    """Every command checks its inputs (and options and outputs) before it imports JAX, so a mistake
+    costs a fraction of a second: run in a fresh interpreter, JAX is still not imported afterwards."""
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "random.mat").write_bytes(bytes(range(256)))
+    (tmp_path / "no_config.py").write_text("X = 1\n")
+    missing, out = tmp_path / "missing", tmp_path / "out"
+    correct = ["correct", "--checkpoint", data["run"], "--out", out / "c.txt"]
+    cases = {
+        "--mat {m}/a.mat: no such file": ["evaluate", "--mat", missing / "a.mat"],
+        "random.mat: not a readable MATLAB .mat file": ["evaluate", "--gt", data["gt"], "--est",
+                                                        tmp_path / "random.mat"],
+        "--data {m}: not a folder": [*correct, "--data", missing],
+        "not a prepared cache (no manifest.json)": [*correct, "--data", tmp_path / "empty"],
+        "--checkpoint {m}: not a training run": ["correct", "--checkpoint", missing, "--data", data["cache"],
+                                                 "--out", out / "c.txt"],
+        "--prior {m}/p.txt: no such file": [*correct, "--kitti-odometry", data["kitti"], "--sequence", "00",
+                                            "--prior", missing / "p.txt"],
+        "--kitti-raw {m}: no such folder": [*correct, "--kitti-raw", missing, "--date", "2011_09_26",
+                                            "--drive", "1", "--prior", data["prior"]],
+        "07: {k}/sequences/07: odometry sequence folder not found": [
+            "prepare", "--kitti-odometry", data["kitti"], "--sequence", "07", "--prior", data["prior"],
+            "--out", out / "cache"],
+        "00: --gt {m}/gt.txt: no such file": [
+            "prepare", "--kitti-odometry", data["kitti"], "--sequence", "00", "--prior", data["prior"],
+            "--gt", missing / "gt.txt", "--out", out / "cache"],
+        "--kitti-odometry {m}: no such folder": ["vo", "--kitti-odometry", missing, "--sequence", "00",
+                                                 "--out", out / "t.txt"],
+        "frames must be at least 2": ["synth", "--out", out / "synth", "--frames", "1"],
+        "missing/c.py: config file not found": ["train", "--config", missing / "c.py", "--workdir",
+                                                out / "run"],
+        "no_config.py: defines no CONFIG": ["train", "--config", tmp_path / "no_config.py", "--workdir",
+                                            out / "run"],
+        "--config {m}/c.py: no such file": ["demo", "--config", missing / "c.py", "--out", out / "demo"],
+    }
+    argvs = [[str(a) for a in argv] for argv in cases.values()]
+    code = ("import json, sys; from dpc_jax.cli import main; "
+            f"status = [main(argv) for argv in {argvs!r}]; "
+            "print(json.dumps([status, [m for m in ('jax', 'jaxlib', 'flax') if m in sys.modules]]))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
+    status, imported = json.loads(done.stdout)
+    assert imported == [] and all(s != 0 for s in status), (status, imported)
+    lines = done.stderr.splitlines()
+    assert len(lines) == len(cases) and "Traceback" not in done.stderr, done.stderr
+    for needle, line in zip(cases, lines, strict=True):
+        assert needle.format(m=missing, k=data["kitti"]) in line, (needle, line)
+    assert not out.exists()
+
+
 def _damage(cache: Path, how: str) -> str:
     """Damage a copy of a cache; return the file the error must name."""
     def rewrite(file: str, change) -> None:

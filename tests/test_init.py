@@ -22,3 +22,14 @@ def test_no_export_shadows_a_submodule() -> None:
 
     submodules = {m.name for m in pkgutil.iter_modules(dpc_jax.__path__)}
     assert submodules.isdisjoint(dpc_jax.__all__)
+
+
+def test_data_package_reexports_lazily_and_its_file_readers_are_light() -> None:
+    import dpc_jax.data
+
+    for name in dpc_jax.data.__all__:
+        assert getattr(dpc_jax.data, name) is not None, name
+    # The command line reads trajectories before it imports JAX (and OpenCV is not needed for them).
+    code = "import sys, dpc_jax.data.poses_io; print('jax' in sys.modules, 'cv2' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["False", "False"]

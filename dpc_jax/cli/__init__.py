@@ -1,17 +1,25 @@
 """The ``dpc-jax`` command line.
 
-Every module in this package except this one is a subcommand. It defines ``HELP`` (one line for
-``dpc-jax --help``), ``add_arguments(parser)`` and ``run(args) -> int``. Heavy imports (JAX, the
-models) happen inside ``run`` so that ``--help`` and argument errors are instant.
+Every module in this package except those starting with ``_`` is a subcommand. It defines ``HELP``
+(one line for ``dpc-jax --help``), ``HUGE_PAGES`` (below), ``add_arguments(parser)`` and
+``run(args) -> int``. ``run`` first checks its options, inputs and outputs with the
+standard library and numpy only, and only then calls :func:`~dpc_jax.cli._common.import_jax` and
+imports what uses JAX: a command that fails on its inputs fails in a fraction of a second, before
+JAX is imported, with one line on stderr (exit status 2, or 1 where the input's content is at fault).
+
+The executable (``console_main``) turns on JAX's persistent compilation cache
+(:mod:`dpc_jax.compilation_cache`), so a repeated command compiles nothing, and restarts itself with
+huge-page malloc (:mod:`dpc_jax.hugepages`) for the commands whose ``HUGE_PAGES`` says it pays.
+``main`` alone, as the tests call it in-process, does neither.
 
 Around every subcommand: Ctrl-C ends it with one line, ``dpc-jax COMMAND: interrupted; nothing
 half-written``, and exit status 130 (every writer is atomic or all-or-nothing, so that is true), and
 an :class:`~dpc_jax._io.InputWarning` is printed as one ``dpc-jax COMMAND: warning: ...`` line.
-Two places where Python cannot deliver Ctrl-C are covered: JAX is imported (by every subcommand)
-with the interrupt held back until the import is complete, because a KeyboardInterrupt inside
-jaxlib's initialisation crashes the interpreter (SIGSEGV or SIGABRT); and an interrupt that lands
-in a garbage-collection callback, where Python would print "Exception ignored" and drop it, is
-raised again in the main thread (``console_main``).
+Two places where Python cannot deliver Ctrl-C are covered: JAX is imported (``import_jax``) with the
+interrupt held back until the import is complete, because a KeyboardInterrupt inside jaxlib's
+initialisation crashes the interpreter (SIGSEGV or SIGABRT); and an interrupt that lands in a
+garbage-collection callback, where Python would print "Exception ignored" and drop it, is raised
+again in the main thread (``console_main``).
 """
 
 from __future__ import annotations
@@ -30,6 +38,7 @@ from typing import Any
 import dpc_jax
 from dpc_jax._io import InputWarning
 from dpc_jax.cli._common import Formatter
+from dpc_jax.compilation_cache import use_compilation_cache
 from dpc_jax.hugepages import reexec_with_huge_pages
 
 
@@ -48,31 +57,23 @@ def build_parser() -> argparse.ArgumentParser:
         module = importlib.import_module(f"{__name__}.{name}")
         command = sub.add_parser(name, help=module.HELP, description=module.HELP, formatter_class=Formatter)
         module.add_arguments(command)
-        command.set_defaults(_run=module.run)
+        command.set_defaults(_run=module.run, _huge_pages=module.HUGE_PAGES)
     return parser
 
 
-def _import_jax_uninterrupted() -> None:
-    """``import jax`` with Ctrl-C held back until it is complete (see the module docstring)."""
-    if threading.current_thread() is not threading.main_thread():
-        importlib.import_module("jax")
-        return
-    pending: list[int] = []
-    previous = signal.signal(signal.SIGINT, lambda number, frame: pending.append(number))
-    try:
-        importlib.import_module("jax")
-    finally:
-        signal.signal(signal.SIGINT, previous)
-    if pending:
-        raise KeyboardInterrupt
+def main(argv: Sequence[str] | None = None, *, entry_point: bool = False) -> int:
+    """Run the command line ``argv`` (default: ``sys.argv[1:]``); the exit status.
 
-
-def main(argv: Sequence[str] | None = None) -> int:
+    ``entry_point``: this is the ``dpc-jax`` process itself, which may be restarted with huge-page
+    malloc for the command (``console_main``); never in-process.
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
         parser.print_help()
         return 2
+    if entry_point and args._huge_pages:
+        reexec_with_huge_pages()
     show_warning = warnings.showwarning
 
     def one_line(message: Any, category: type[Warning], *rest: Any, **kw: Any) -> None:
@@ -87,7 +88,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         # one-line error says it better.
         logging.getLogger("absl").addFilter(lambda record: record.levelno >= logging.CRITICAL)
         try:
-            _import_jax_uninterrupted()
             return int(args._run(args) or 0)
         except KeyboardInterrupt:
             print(f"dpc-jax {args.command}: interrupted; nothing half-written", file=sys.stderr)
@@ -100,9 +100,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def console_main() -> None:
-    """The ``dpc-jax`` executable: restart with huge-page malloc if useful (see
-    ``dpc_jax.hugepages``), then ``main``."""
-    reexec_with_huge_pages()
+    """The ``dpc-jax`` executable: ``main`` with the compilation cache on, restarted with huge-page
+    malloc where that pays (see the module docstring)."""
+    use_compilation_cache()
     ignored = sys.unraisablehook
 
     def redeliver_interrupt(unraisable: Any) -> None:
@@ -115,7 +115,7 @@ def console_main() -> None:
 
     sys.unraisablehook = redeliver_interrupt
     try:
-        status = main()
+        status = main(entry_point=True)
     except KeyboardInterrupt:  # before a subcommand was chosen (while the parser is built)
         print("dpc-jax: interrupted; nothing half-written", file=sys.stderr)
         status = 130

@@ -1,5 +1,6 @@
 """What the subcommands share (not a subcommand itself): the help formatter, argument types, the
-output-path checks, progress modes, and the one-line report of a checkpoint that cannot be read.
+input- and output-path checks, the import of JAX that ends the checks, progress modes, and the
+one-line report of a checkpoint that cannot be read.
 
 Output paths follow one rule in every command (``dpc_jax._io``): missing parent folders are
 created when the outputs are written, the nearest existing folder must be writable, and this is
@@ -9,8 +10,11 @@ checked before any work starts (:func:`output_problem`).
 from __future__ import annotations
 
 import argparse
+import importlib
 import logging
+import signal
 import sys
+import threading
 from pathlib import Path
 from typing import Literal
 
@@ -75,6 +79,43 @@ def output_problem(path: Path | str | None, option: str, *, folder: bool = False
     if path is None:
         return None
     return _output_problem(path, option, folder=folder)
+
+
+def input_problem(path: Path | str | None, option: str, *, folder: bool = False) -> str | None:
+    """Why ``path`` (an option's value; None = not given) is not an existing file (a folder when
+    ``folder``), or None. Only the path is looked at: what the file holds is checked when it is read.
+    """
+    if path is None:
+        return None
+    path = Path(path)
+    if not path.exists():
+        return f"{option} {path}: no such {'folder' if folder else 'file'}"
+    if folder and not path.is_dir():
+        return f"{option} {path}: is a file; expected a folder"
+    if not folder and path.is_dir():
+        return f"{option} {path}: is a folder; expected a file"
+    return None
+
+
+def import_jax(*, x64: bool = False) -> None:
+    """``import jax``, with Ctrl-C held back until it is complete (see :mod:`dpc_jax.cli`).
+
+    A subcommand calls it when its checks have passed, before it imports anything that uses JAX.
+    ``x64``: compute in float64 (``jax_enable_x64``).
+    """
+    if threading.current_thread() is not threading.main_thread():
+        jax = importlib.import_module("jax")
+    else:
+        pending: list[int] = []
+        previous = signal.signal(signal.SIGINT, lambda number, frame: pending.append(number))
+        try:
+            jax = importlib.import_module("jax")
+        finally:
+            signal.signal(signal.SIGINT, previous)
+        if pending:
+            raise KeyboardInterrupt
+    if x64:
+        jax.config.update("jax_enable_x64", True)
 
 
 def progress_mode(no_progress: bool) -> bool | Literal["lines"]:

@@ -11,9 +11,18 @@ import sys
 import tempfile
 from pathlib import Path
 
-from dpc_jax.cli._common import Formatter, frame_range, output_problem, restore_problem
+from dpc_jax.cli._common import (
+    Formatter,
+    frame_range,
+    import_jax,
+    input_problem,
+    output_problem,
+    restore_problem,
+)
 
 HELP = "Correct a VO trajectory with a trained network (T* = Exp(xi_corr) T_vo); evaluate it against GT."
+# Restart with huge-page malloc (dpc_jax.hugepages): the network runs about a quarter faster.
+HUGE_PAGES = True
 
 EPILOG = """The sequence (--data, one of):
   a prepared cache   --data cache/05   (from `dpc-jax prepare`; corrects its own prior unless --prior)
@@ -94,7 +103,7 @@ def _error(message: str) -> int:
 
 
 def _check_arguments(args: argparse.Namespace) -> str | None:
-    """The first inconsistency of the options, or None."""
+    """The first problem of the options, input paths and outputs (all checked without JAX), or None."""
     raw_only = {"--gt": args.gt, "--cache": args.cache, "--frames": args.frames,
                 "--remove-static": args.remove_static or None, "--mono-rescale": args.mono_rescale or None}
     if args.data is not None:
@@ -105,6 +114,8 @@ def _check_arguments(args: argparse.Namespace) -> str | None:
             return f"{', '.join(extra)} only apply to raw inputs (--kitti-odometry/--kitti-raw), not --data"
         if not args.data.is_dir():
             return f"--data {args.data}: not a folder (expected a cache prepared by `dpc-jax prepare`)"
+        if not (args.data / "manifest.json").is_file():
+            return f"--data {args.data}: not a prepared cache (no manifest.json); run `dpc-jax prepare`"
     elif args.kitti_odometry is not None:
         if not args.sequence or args.date or args.drive:
             return "--kitti-odometry needs --sequence (and no --date/--drive)"
@@ -120,7 +131,10 @@ def _check_arguments(args: argparse.Namespace) -> str | None:
         return f"--adapt must be >= 0 and --holdout-every >= 2, got {args.adapt} and {args.holdout_every}"
     if args.adapt_lr is not None and not args.adapt_lr > 0:
         return f"--adapt-lr must be > 0, got {args.adapt_lr}"
-    problem = (output_problem(args.out, "--out") or output_problem(args.report, "--report", folder=True)
+    problem = (input_problem(args.kitti_odometry, "--kitti-odometry", folder=True)
+               or input_problem(args.kitti_raw, "--kitti-raw", folder=True)
+               or input_problem(args.prior, "--prior") or input_problem(args.gt, "--gt")
+               or output_problem(args.out, "--out") or output_problem(args.report, "--report", folder=True)
                or output_problem(args.cache, "--cache", folder=True)
                or (output_problem(adapted_path(args.out), "--adapt", folder=True) if args.adapt else None))
     if problem is not None:
@@ -140,6 +154,7 @@ def run(args: argparse.Namespace) -> int:
     problem = _check_arguments(args)
     if problem is not None:
         return _error(problem)
+    import_jax()
     # Orbax logs a warning per read-only checkpoint manager; they say nothing useful here.
     logging.getLogger("absl").setLevel(logging.ERROR)
     from dpc_jax._io import OutputSet, remove_stale

@@ -7,9 +7,11 @@ import logging
 import sys
 from pathlib import Path
 
-from dpc_jax.cli._common import Formatter, output_problem, restore_problem
+from dpc_jax.cli._common import Formatter, import_jax, input_problem, output_problem, restore_problem
 
 HELP = "Synthetic end-to-end demo: train Stereo DPC on rendered sequences, correct our VO, write a report."
+# Restart with huge-page malloc (dpc_jax.hugepages): the demo's time goes to training.
+HUGE_PAGES = True
 
 EPILOG = """examples:
   dpc-jax demo --out demo
@@ -33,14 +35,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    problem = output_problem(args.out, "--out", folder=True) or input_problem(args.config, "--config")
+    if problem is not None:
+        print(f"dpc-jax demo: error: {problem}", file=sys.stderr)
+        return 2
+    import_jax()
     from dpc_jax.config import ConfigError, load_file
     from dpc_jax.pipelines.demo import DemoConfig, DemoError, run_demo
     from dpc_jax.training.checkpoints import CheckpointError
 
-    problem = output_problem(args.out, "--out", folder=True)
-    if problem is not None:
-        print(f"dpc-jax demo: error: {problem}", file=sys.stderr)
-        return 2
     try:
         config = load_file(args.config, DemoConfig) if args.config is not None else DemoConfig()
     except ConfigError as error:

@@ -1,8 +1,8 @@
 """``dpc-jax evaluate``: metrics of estimated trajectories against ground truth, reports and exports.
 
 Everything is read, checked and computed before anything is written; bad input ends with a
-message on stderr and exit status 2, and no file is written. The outputs (``--json``, ``--report``,
-``--export``) are written all or nothing.
+message on stderr and exit status 2, before JAX is imported, and no file is written. The outputs
+(``--json``, ``--report``, ``--export``) are written all or nothing.
 """
 
 from __future__ import annotations
@@ -11,9 +11,11 @@ import argparse
 import sys
 from pathlib import Path
 
-from dpc_jax.cli._common import Formatter, output_problem
+from dpc_jax.cli._common import Formatter, import_jax, input_problem, output_problem
 
 HELP = "Evaluate trajectories against ground truth (m-ATE, segment errors, ATE, RPE, loop closures)."
+# No huge-page restart (dpc_jax.hugepages): it would not make the metrics faster, only add a start.
+HUGE_PAGES = False
 
 EPILOG = """examples:
   dpc-jax evaluate --mat stereo_00.mat --remove-static --json -
@@ -100,14 +102,10 @@ def _inputs(args: argparse.Namespace) -> tuple[object, dict[str, object]]:
 
 
 def run(args: argparse.Namespace) -> int:
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
-    from dpc_jax._io import OutputSet, atomic_write
-    from dpc_jax.eval.evaluation import evaluate, export_trajectories, format_table, write_report
-
     problem = (
-        output_problem(None if args.json == "-" else args.json, "--json")
+        input_problem(args.mat, "--mat") or input_problem(args.gt, "--gt")
+        or next(filter(None, (input_problem(path, "--est") for path in args.est)), None)
+        or output_problem(None if args.json == "-" else args.json, "--json")
         or output_problem(args.report, "--report", folder=True)
         or output_problem(args.export, "--export", folder=True)
     )
@@ -115,6 +113,10 @@ def run(args: argparse.Namespace) -> int:
         return _error(problem)
     try:
         gt, estimates = _inputs(args)
+        import_jax(x64=True)
+        from dpc_jax._io import OutputSet, atomic_write
+        from dpc_jax.eval.evaluation import evaluate, export_trajectories, format_table, write_report
+
         result = evaluate(gt, estimates, remove_static=args.remove_static, align=args.align,
                           rpe_delta=args.rpe_delta)
     except (ValueError, OSError) as error:

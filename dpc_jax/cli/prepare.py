@@ -10,12 +10,16 @@ from dpc_jax.cli._common import (
     Formatter,
     frame_range,
     image_size,
+    import_jax,
+    input_problem,
     output_problem,
     progress_mode,
     size_problem,
 )
 
 HELP = "Decode, resize and cache stereo sequences with their VO prior (and optical flow) for training."
+# No huge-page restart (dpc_jax.hugepages): decoding, resizing and flow gain nothing from it.
+HUGE_PAGES = False
 
 EPILOG = """examples:
   dpc-jax prepare --kitti-odometry ROOT --sequence 00 05 --prior 'priors/stereo_{seq}.mat' --out cache --flow
@@ -84,29 +88,46 @@ def _manifest_identity(folder: Path) -> tuple[int, int] | None:
 def run(args: argparse.Namespace) -> int:
     import time
 
-    from dpc_jax.data.cache import prepare_sequence
-    from dpc_jax.data.kitti import open_odometry, open_raw
-
     if args.kitti_odometry is not None:
         if not args.sequence or args.date or args.drive:
             return _error("--kitti-odometry needs --sequence (and no --date/--drive)")
-        jobs = [(s, lambda s=s: open_odometry(args.kitti_odometry, s, grey=args.grey)) for s in args.sequence]
-    else:
-        if not args.date or not args.drive or args.sequence:
-            return _error("--kitti-raw needs --date and --drive (and no --sequence)")
-        jobs = [(d, lambda d=d: open_raw(args.kitti_raw, args.date, d)) for d in args.drive]
-    problem = output_problem(args.out, "--out", folder=True) or size_problem(args.size, args.allow_large)
+    elif not args.date or not args.drive or args.sequence:
+        return _error("--kitti-raw needs --date and --drive (and no --sequence)")
+    problem = (input_problem(args.kitti_odometry, "--kitti-odometry", folder=True)
+               or input_problem(args.kitti_raw, "--kitti-raw", folder=True)
+               or output_problem(args.out, "--out", folder=True) or size_problem(args.size, args.allow_large))
     if problem is not None:
         return _error(problem)
-    progress = progress_mode(args.no_progress)
-    for key, opener in jobs:
+    # Every sequence is opened (its files listed, calibration and times read: OpenCV, no JAX) and
+    # its prior and ground-truth files found before the first one is prepared.
+    from dpc_jax.data.kitti import open_odometry, open_raw
+
+    sequences = []
+    for key in args.sequence or args.drive:
         try:
-            sequence = opener()
+            if args.kitti_odometry is not None:
+                sequence = open_odometry(args.kitti_odometry, key, grey=args.grey)
+            else:
+                sequence = open_raw(args.kitti_raw, args.date, key)
+        except (OSError, ValueError, KeyError) as error:
+            return _error(f"{key}: {error}", status=1)
+        prior = args.prior.replace("{seq}", sequence.name)
+        gt = None if args.gt is None else args.gt.replace("{seq}", sequence.name)
+        problem = input_problem(prior, "--prior") or input_problem(gt, "--gt")
+        if problem is not None:
+            return _error(f"{key}: {problem}", status=1)
+        sequences.append((key, sequence, prior, gt))
+    import_jax()
+    from dpc_jax.data.cache import prepare_sequence
+
+    progress = progress_mode(args.no_progress)
+    for key, sequence, prior, gt in sequences:
+        try:
             before = _manifest_identity(args.out / sequence.name)
             began = time.monotonic()
             path = prepare_sequence(
                 sequence,
-                args.prior.replace("{seq}", sequence.name),
+                prior,
                 args.out,
                 size=args.size,
                 remove_static=args.remove_static,
@@ -116,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
                 frames=args.frames,
                 disparity_offset=args.disparity_offset,
                 prior_format=args.prior_format,
-                ground_truth=None if args.gt is None else args.gt.replace("{seq}", sequence.name),
+                ground_truth=gt,
                 force=args.force,
                 progress=progress,
             )

@@ -7,9 +7,11 @@ import json
 import sys
 from pathlib import Path
 
-from dpc_jax.cli._common import Formatter, frame_range, output_problem
+from dpc_jax.cli._common import Formatter, frame_range, import_jax, input_problem, output_problem
 
 HELP = "Classical stereo visual odometry (libviso2-s-like): write the trajectory and a per-frame CSV."
+# Restart with huge-page malloc (dpc_jax.hugepages): the VO is about 6 % faster.
+HUGE_PAGES = True
 
 EPILOG = """examples:
   dpc-jax vo --kitti-odometry ROOT --sequence 09 --out vo/09.txt
@@ -71,6 +73,17 @@ class _UsageError(Exception):
 
 
 def run(args: argparse.Namespace) -> int:
+    csv_path = args.csv if args.csv is not None else args.out.with_suffix(".csv")
+    json_path = args.out.with_suffix(".json")
+    problem = (input_problem(args.kitti_odometry, "--kitti-odometry", folder=True)
+               or input_problem(args.kitti_raw, "--kitti-raw", folder=True) or input_problem(args.gt, "--gt")
+               or output_problem(args.out, "--out") or output_problem(csv_path, "--csv")
+               or output_problem(json_path, "--out"))
+    if csv_path.resolve() == args.out.resolve():
+        problem = f"--csv {csv_path}: the same file as --out; give the CSV another name"
+    if problem is not None:
+        print(f"dpc-jax vo: error: {problem}", file=sys.stderr)
+        return 2
     import numpy as np
 
     from dpc_jax._io import OutputSet, atomic_write
@@ -78,15 +91,6 @@ def run(args: argparse.Namespace) -> int:
     from dpc_jax.vo import VOConfig, run_vo
     from dpc_jax.vo.odometry import per_frame_table, summary
 
-    csv_path = args.csv if args.csv is not None else args.out.with_suffix(".csv")
-    json_path = args.out.with_suffix(".json")
-    problem = (output_problem(args.out, "--out") or output_problem(csv_path, "--csv")
-               or output_problem(json_path, "--out"))
-    if csv_path.resolve() == args.out.resolve():
-        problem = f"--csv {csv_path}: the same file as --out; give the CSV another name"
-    if problem is not None:
-        print(f"dpc-jax vo: error: {problem}", file=sys.stderr)
-        return 2
     try:
         sequence = _open(args)
         if args.frames is not None:
@@ -127,6 +131,7 @@ def run(args: argparse.Namespace) -> int:
     if counts["warning"] is not None:
         print(f"dpc-jax vo: warning: {sequence.name}: {counts['warning']}", file=sys.stderr)
     if sequence.poses is not None:
+        import_jax()  # the VO itself runs without JAX; the metric is jitted
         from dpc_jax.eval.metrics import m_ate
 
         gt = sequence.poses

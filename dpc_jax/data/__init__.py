@@ -4,33 +4,38 @@
 * :mod:`dpc_jax.data.priors`: ``load_prior``, ``relative_xi``, ``rescale_monocular``.
 * :mod:`dpc_jax.data.cache`: ``prepare_sequence`` (the ``dpc-jax prepare`` command).
 * :mod:`dpc_jax.data.pipeline`: ``load_cache``, ``TrainLoader``, ``iterate_sequence``, ``leave_one_out``.
+
+The names above are re-exported lazily (PEP 562), as in :mod:`dpc_jax`: importing one module of the
+package (the trajectory files of :mod:`dpc_jax.data.poses_io`, which the command line reads before it
+starts JAX) does not import JAX and OpenCV through the others.
 """
 
-from dpc_jax.data.cache import prepare_sequence
-from dpc_jax.data.kitti import StereoSequence, load_image, open_odometry, open_raw
-from dpc_jax.data.pipeline import (
-    SequenceCache,
-    Split,
-    TrainLoader,
-    iterate_sequence,
-    leave_one_out,
-    load_cache,
-)
-from dpc_jax.data.priors import load_prior, relative_xi, rescale_monocular
+from __future__ import annotations
 
-__all__ = [
-    "SequenceCache",
-    "Split",
-    "StereoSequence",
-    "TrainLoader",
-    "iterate_sequence",
-    "leave_one_out",
-    "load_cache",
-    "load_image",
-    "load_prior",
-    "open_odometry",
-    "open_raw",
-    "prepare_sequence",
-    "relative_xi",
-    "rescale_monocular",
-]
+import importlib
+from typing import Any
+
+_EXPORTS: dict[str, tuple[str, ...]] = {
+    "dpc_jax.data.cache": ("prepare_sequence",),
+    "dpc_jax.data.kitti": ("StereoSequence", "load_image", "open_odometry", "open_raw"),
+    "dpc_jax.data.pipeline": (
+        "SequenceCache", "Split", "TrainLoader", "iterate_sequence", "leave_one_out", "load_cache",
+    ),
+    "dpc_jax.data.priors": ("load_prior", "relative_xi", "rescale_monocular"),
+}
+_MODULE_OF = {name: module for module, names in _EXPORTS.items() for name in names}
+
+__all__ = sorted(_MODULE_OF)
+
+
+def __getattr__(name: str) -> Any:
+    module = _MODULE_OF.get(name)
+    if module is None:
+        raise AttributeError(f"module 'dpc_jax.data' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)
