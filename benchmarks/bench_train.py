@@ -17,6 +17,7 @@ import os
 import platform
 import statistics
 import time
+from collections.abc import Callable
 
 import jax
 import numpy as np
@@ -45,10 +46,14 @@ def random_batch(batch: int, size: tuple[int, int], flow: bool, seed: int = 0) -
     )
 
 
-def bench(method: str, preset: str, batch_size: int, warmup: int, repeats: int) -> dict[str, float]:
-    # The published architecture (the papers' pose head), comparable with the PyTorch reference.
+def train_step_runner(
+    method: str, preset: str, batch_size: int, image_size: tuple[int, int] | None = None
+) -> tuple[Callable[[], object], tuple[int, int]]:
+    """``(run, (H, W))``: ``run()`` performs one training step of the published architecture
+    (the papers' pose head, comparable with the PyTorch reference) on a fixed random batch and
+    returns its metrics (not blocked on). The state is donated and kept between calls."""
     config = TrainConfig(method=method, preset=preset, batch_size=batch_size, validation_sequences=("v",),
-                         **REFERENCE)
+                         image_size=image_size, **REFERENCE)
     mesh = parallel.make_mesh()
     model_config = config.model_config()
     graphdef, state = create_train_state(
@@ -57,22 +62,30 @@ def bench(method: str, preset: str, batch_size: int, warmup: int, repeats: int) 
     step = make_train_step(config.loss_config(), 0, mesh)
     batch = parallel.shard_batch(random_batch(batch_size, model_config.image_size, method == "ss_dpc"), mesh)
     key = jax.random.key(0)
+    live = [state]
+
+    def run() -> object:
+        live[0], metrics = step(graphdef, live[0], batch, key)
+        return metrics
+
+    return run, tuple(model_config.image_size)
+
+
+def bench(method: str, preset: str, batch_size: int, warmup: int, repeats: int) -> dict[str, float]:
+    run, size = train_step_runner(method, preset, batch_size)
     began = time.perf_counter()
-    state, metrics = step(graphdef, state, batch, key)
-    jax.block_until_ready(metrics)
+    jax.block_until_ready(run())
     compile_s = time.perf_counter() - began
     for _ in range(warmup):
-        state, metrics = step(graphdef, state, batch, key)
-    jax.block_until_ready(metrics)
+        jax.block_until_ready(run())
     times = []
     for _ in range(repeats):
         began = time.perf_counter()
-        state, metrics = step(graphdef, state, batch, key)
-        jax.block_until_ready(metrics)
+        jax.block_until_ready(run())
         times.append(time.perf_counter() - began)
     median = statistics.median(times)
     return {
-        "size": model_config.image_size,
+        "size": size,
         "compile_s": compile_s,
         "median_ms": 1e3 * median,
         "min_ms": 1e3 * min(times),
