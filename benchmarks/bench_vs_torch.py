@@ -17,7 +17,9 @@ process restarts itself with huge pages as ``dpc-jax`` does; PyTorch uses ``TORC
 (default 2) threads. Load: ``foreign`` is the share of the machine's CPU time that other
 processes used while a run was timing (each side measures its own, from ``/proc/stat``), ``load``
 the 1-minute load average when the run started. A ratio from a run with much foreign load mostly
-measures the other processes (PyTorch's OpenMP threads suffer more from a stolen core than ours).
+measures the other processes (PyTorch's OpenMP threads suffer far more from a stolen core than
+ours): such pairs are marked ``*`` and left out of the median. Before each run the script waits
+(``--wait-quiet``) for the other processes to go quiet.
 
 ``--ours VARIANT MODE BATCH REPS WARMUP`` is the worker: one configuration of ours in this process,
 one JSON line on stdout, the interface of ``bench_torch.py``.
@@ -174,18 +176,24 @@ def our_run(args: argparse.Namespace, variant: str, mode: str, batch: int, reps:
     return Run(1e3 * record["median_s"], record["foreign_cpu_frac"], load), record
 
 
-def table_row(label: str, pairs: Sequence[tuple[Run, Run]]) -> str:
-    """One Markdown row: each pair's PyTorch and our times, ratios, median ratio, load."""
+def table_row(label: str, pairs: Sequence[tuple[Run, Run]], max_foreign: float) -> str:
+    """One Markdown row: each pair's PyTorch and our times, ratios (``*``: a pair in which either
+    run had a foreign CPU share above ``max_foreign``), the median ratio of the other pairs (of
+    all pairs, marked "loaded", when every pair was loaded), and the load."""
     ratios = [theirs.median_ms / ours.median_ms for theirs, ours in pairs]
+    loaded = [max(t.foreign, o.foreign) > max_foreign for t, o in pairs]
+    clean = [r for r, bad in zip(ratios, loaded, strict=True) if not bad]
+    median = f"**{statistics.median(clean):.2f}×**" if clean else f"{statistics.median(ratios):.2f}× (loaded)"
 
     def joined(values: Sequence[float], fmt: str) -> str:
         return ", ".join(format(v, fmt) for v in values)
 
     runs = [run for pair in pairs for run in pair]
     theirs, ours = [t.median_ms for t, _ in pairs], [o.median_ms for _, o in pairs]
+    marked = ", ".join(f"{r:.2f}{'*' if bad else ''}" for r, bad in zip(ratios, loaded, strict=True))
     return (
         f"| {label} | {joined(theirs, '.1f')} | {joined(ours, '.1f')} "
-        f"| {joined(ratios, '.2f')} | **{statistics.median(ratios):.2f}×** "
+        f"| {marked} | {median} "
         f"| {joined([t.foreign for t, _ in pairs], '.2f')} / {joined([o.foreign for _, o in pairs], '.2f')} "
         f"| {min(r.load for r in runs):.1f}–{max(r.load for r in runs):.1f} |"
     )
@@ -195,6 +203,17 @@ TABLE_HEADER = (
     "| configuration | PyTorch ms | dpc_jax ms | ratio per pair | median ratio "
     "| foreign CPU (PyTorch / ours) | load avg |\n|---|---|---|---|---|---|---|"
 )
+
+
+def wait_until_quiet(limit_s: float, max_busy: float) -> None:
+    """Wait, at most ``limit_s``, until the other processes use at most ``max_busy`` cores' worth
+    of CPU over one second (nothing of ours runs meanwhile)."""
+    deadline = time.monotonic() + limit_s
+    while time.monotonic() < deadline:
+        began = _busy_s()
+        time.sleep(1.0)
+        if _busy_s() - began <= max_busy:
+            return
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
@@ -207,6 +226,11 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--warmup", type=int, default=2, help="untimed calls per run after the first")
     parser.add_argument("--only", nargs="+", choices=names, metavar="NAME",
                         help=f"configurations to run (default all: {' '.join(names)})")
+    parser.add_argument("--max-foreign", type=float, default=0.1,
+                        help="foreign CPU share above which a pair counts as loaded (default 0.1)")
+    parser.add_argument("--wait-quiet", type=float, default=120, metavar="SECONDS",
+                        help="before each run, wait up to this long for the other processes to go "
+                             "quiet (default 120; 0: never wait)")
     parser.add_argument("--size", nargs=2, type=int, default=(240, 376), metavar=("H", "W"))
     parser.add_argument("--ours", nargs=5, metavar=("VARIANT", "MODE", "BATCH", "REPS", "WARMUP"),
                         help=argparse.SUPPRESS)
@@ -240,7 +264,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         pairs = []
         try:
             for _ in range(args.pairs):
+                wait_until_quiet(args.wait_quiet, 0.2)
                 theirs, torch_record = torch_run(args, variant, mode, batch, reps)
+                wait_until_quiet(args.wait_quiet, 0.2)
                 ours, our_record = our_run(args, variant, mode, batch, reps)
                 pairs.append((theirs, ours))
         except BenchError as error:
@@ -249,7 +275,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         versions = {"torch": torch_record["torch"], "threads": torch_record["threads"],
                     "jax": our_record["jax"]}
         label = f"{NAMES[variant]} {'inference' if mode == 'infer' else 'train step'}, b{batch}"
-        rows.append(table_row(label, pairs))
+        rows.append(table_row(label, pairs, args.max_foreign))
         print(f"  {rows[-1]}", file=sys.stderr, flush=True)
     print(f"PyTorch {versions['torch']} ({versions['threads']} threads), jax {versions['jax']}; "
           f"median step time of each run ({args.reps or '20 inference / 5 training'} timed calls, "

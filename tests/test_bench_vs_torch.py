@@ -57,24 +57,29 @@ def test_row_has_each_pair_its_ratio_and_the_median() -> None:
     bench = _module()
     pairs = [(bench.Run(100.0, 0.0, 0.5), bench.Run(50.0, 0.1, 0.7)),
              (bench.Run(90.0, 0.02, 0.6), bench.Run(60.0, 0.0, 1.2))]
-    row = bench.table_row("Stereo DPC train step, b8", pairs)
+    row = bench.table_row("Stereo DPC train step, b8", pairs, max_foreign=0.1)
     assert row == ("| Stereo DPC train step, b8 | 100.0, 90.0 | 50.0, 60.0 | 2.00, 1.50 | **1.75×** "
                    "| 0.00, 0.02 / 0.10, 0.00 | 0.5–1.2 |")
     assert row.count("|") == bench.TABLE_HEADER.splitlines()[0].count("|")
+    # A pair with a busy machine is marked and left out of the median; all loaded: said so.
+    assert "| 2.00*, 1.50 | **1.50×** |" in bench.table_row("x", pairs, max_foreign=0.05)
+    assert "| 2.00*, 1.50* | 1.75× (loaded) |" in bench.table_row("x", pairs, max_foreign=0.0)
 
 
 @pytest.mark.slow
 def test_end_to_end_against_a_stand_in(tmp_path: Path) -> None:
     fake = _fake_torch_python(tmp_path, 0.5)
     command = [sys.executable, str(SCRIPT), "--torch-python", str(fake), "--torch-bench", str(SCRIPT),
-               "--only", "mono-infer-1", "--pairs", "2", "--reps", "2", "--warmup", "0", "--size", "32", "48"]
+               "--only", "mono-infer-1", "--pairs", "2", "--wait-quiet", "0", "--reps", "2", "--warmup", "0",
+               "--size", "32", "48"]
     done = subprocess.run(command, capture_output=True, text=True, check=False, timeout=600)
     assert done.returncode == 0, done.stderr
     row = next(line for line in done.stdout.splitlines() if line.startswith("| ss-DPC-Net inference, b1"))
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert cells[1] == "500.0, 500.0"
     ours = [float(t) for t in cells[2].split(", ")]
-    ratios = [float(r) for r in cells[3].split(", ")]
+    ratios = [float(r.rstrip("*")) for r in cells[3].split(", ")]
     assert len(ours) == 2 and all(t > 0 for t in ours)
     assert ratios == pytest.approx([500.0 / t for t in ours], rel=0.01)
     assert cells[5].startswith("0.25, 0.25 / ")
+    assert cells[3].count("*") == 2 and cells[4].endswith("(loaded)")  # the stand-in reports 0.25
