@@ -6,8 +6,7 @@ start without importing JAX, Flax or OpenCV; ``from dpc_jax import se3_exp`` imp
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from dpc_jax._lazy import lazy_getattr
 
 __version__ = "0.1.0"
 
@@ -58,18 +57,8 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "dpc_jax.correct": ("correct_cache", "write_trajectory"),
     "dpc_jax.pipelines.demo": ("DemoConfig", "run_demo"),
 }
-_MODULE_OF = {name: module for module, names in _EXPORTS.items() for name in names}
-
-__all__ = ["__version__", *_MODULE_OF]
-
-
-def __getattr__(name: str) -> Any:
-    module = _MODULE_OF.get(name)
-    if module is None:
-        raise AttributeError(f"module 'dpc_jax' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
+__all__ = ["__version__", *(name for names in _EXPORTS.values() for name in names)]
+__getattr__ = lazy_getattr("dpc_jax", _EXPORTS, globals())
 
 
 def __dir__() -> list[str]:

@@ -12,8 +12,7 @@ starts JAX) does not import JAX and OpenCV through the others.
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from dpc_jax._lazy import lazy_getattr
 
 _EXPORTS: dict[str, tuple[str, ...]] = {
     "dpc_jax.data.cache": ("prepare_sequence",),
@@ -23,18 +22,8 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     ),
     "dpc_jax.data.priors": ("load_prior", "relative_xi", "rescale_monocular"),
 }
-_MODULE_OF = {name: module for module, names in _EXPORTS.items() for name in names}
-
-__all__ = sorted(_MODULE_OF)
-
-
-def __getattr__(name: str) -> Any:
-    module = _MODULE_OF.get(name)
-    if module is None:
-        raise AttributeError(f"module 'dpc_jax.data' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
+__all__ = sorted(name for names in _EXPORTS.values() for name in names)
+__getattr__ = lazy_getattr("dpc_jax.data", _EXPORTS, globals())
 
 
 def __dir__() -> list[str]:
