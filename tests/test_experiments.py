@@ -155,3 +155,32 @@ def test_kitti_ss_dpc_smoke_corrects_rotation_only(kitti: Path, tmp_path: Path) 
     np.testing.assert_allclose(np.linalg.norm(steps[:, :3, 3], axis=1),
                                np.linalg.norm(prior_steps[:, :3, 3], axis=1), rtol=1e-9)
     assert np.abs(steps[:, :3, :3] - prior_steps[:, :3, :3]).max() > 1e-7
+
+
+def test_excerpt_ground_truth_step_geometry_round_trip() -> None:
+    """Travel length, elevation and lateral angle of known camera motions (closed form), and back."""
+    from scipy.spatial.transform import Rotation
+
+    check = _entry("excerpt_ground_truth")
+    rng = np.random.default_rng(0)
+    n = 6
+    length = rng.uniform(0.5, 2.0, n)
+    elevation = rng.uniform(-0.05, 0.05, n)
+    lateral = rng.uniform(-0.1, 0.1, n)
+    # Camera t moves by `travel` (its own frame: x right, y down, z forward) and turns by R_t_{t+1}.
+    direction = [np.cos(elevation) * np.sin(lateral), -np.sin(elevation), np.cos(elevation) * np.cos(lateral)]
+    travel = length[:, None] * np.stack(direction, axis=1)
+    turn = Rotation.from_rotvec(rng.normal(0, 0.02, (n, 3))).as_matrix()
+    step = np.tile(np.eye(4), (n, 1, 1))  # T_{t+1,t} = inv([turn | travel])
+    step[:, :3, :3] = np.swapaxes(turn, 1, 2)
+    step[:, :3, 3] = -np.einsum("nji,nj->ni", turn, travel)
+    got = check.step_geometry(step)
+    np.testing.assert_allclose(got[0], length, rtol=1e-12)
+    np.testing.assert_allclose(got[1], elevation, atol=1e-12)
+    np.testing.assert_allclose(got[2], lateral, atol=1e-12)
+    np.testing.assert_allclose(check.with_travel(step, length, elevation, lateral), step, atol=1e-12)
+    other = step.copy()
+    other[:, :3, :3] = np.eye(3)
+    swapped = check.exchange(other, step)  # identity rotation, the same travel in frame t
+    np.testing.assert_allclose(swapped[:, :3, :3], np.tile(np.eye(3), (n, 1, 1)))
+    np.testing.assert_allclose(-swapped[:, :3, 3], travel, atol=1e-12)
