@@ -7,9 +7,9 @@ Usage::
         [--repeats 10] [--breakdown] [--profile DIR]
 
 * ``inference``: jitted eval-mode forward of ``(state, batch)``.
-* ``train step``: one jitted, buffer-donating step: train-mode forward, the loss assembly with
-  its warps (``ss_dpc_loss`` / ``stereo_dpc_loss``), backward, Adam with coupled L2 weight
-  decay 4e-6 (optax), new parameters and BatchNorm statistics.
+* ``train step``: the library's own jitted, state-donating step (``dpc_jax.training.steps``, the
+  ``REFERENCE`` settings, as ``bench_train.py`` runs it): train-mode forward, the loss with its
+  warps, backward, the optimizer update, new parameters and BatchNorm statistics.
 * ``--breakdown`` adds rows that split the training step: the forward alone, the loss alone on
   fixed network outputs, and the loss's forward+backward.
 * ``--profile DIR`` writes a ``jax.profiler`` trace of a few training steps (TensorBoard /
@@ -31,12 +31,11 @@ import dataclasses
 import os
 import statistics
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import jax
-import jax.numpy as jnp
 import numpy as np
-import optax
+from bench_train import train_step_runner
 from flax import nnx
 
 from dpc_jax.hugepages import reexec_with_huge_pages
@@ -88,27 +87,17 @@ def loss_fn(method: str) -> Callable:
 
 
 def build(method: str, preset: str, hw: tuple[int, int]) -> dict[str, Callable]:
-    """Jitted inference, training step and breakdown functions for one model."""
+    """Jitted inference and the breakdown functions of the training step for one model."""
     config = dataclasses.replace(PRESETS[preset], image_size=hw)
     model = create_model(method, config, seed=0)
     graphdef, params, stats = nnx.split(model, nnx.Param, ...)
     loss = loss_fn(method)
-    optimizer = optax.chain(optax.add_decayed_weights(4e-6), optax.adam(1e-4))
-    opt_state = optimizer.init(params)
 
     @jax.jit
     def infer(params: nnx.State, stats: nnx.State, batch: Batch):
         m = nnx.merge(graphdef, params, stats)
         m.eval()
         return m(batch)
-
-    def train_loss(params: nnx.State, stats: nnx.State, batch: Batch, key: jax.Array):
-        # copy=True: fresh Variables at jax.grad's trace level, where BatchNorm writes its statistics.
-        m = nnx.merge(graphdef, params, stats, copy=True)
-        m.train()
-        outputs = m(batch, key=key)
-        value, _ = loss(outputs, batch)
-        return value, nnx.state(m, nnx.BatchStat)
 
     @jax.jit
     def forward_train(params: nnx.State, stats: nnx.State, batch: Batch, key: jax.Array):
@@ -126,34 +115,22 @@ def build(method: str, preset: str, hw: tuple[int, int]) -> dict[str, Callable]:
 
     @jax.jit
     def grad_only(params: nnx.State, stats: nnx.State, batch: Batch, key: jax.Array):
-        return jax.grad(train_loss, has_aux=True)(params, stats, batch, key)
+        # As the library's step differentiates: with respect to the merged model, in train mode.
+        m = nnx.merge(graphdef, params, stats)
+        m.train()
+        return nnx.grad(lambda m: loss(m(batch, key=key), batch)[0])(m)
 
-    @jax.jit
-    def train_step(params, stats, opt_state, batch: Batch, key: jax.Array):
-        (value, new_stats), grads = jax.value_and_grad(train_loss, has_aux=True)(params, stats, batch, key)
-        updates, opt_state = optimizer.update(grads, opt_state, params)
-        return optax.apply_updates(params, updates), new_stats, opt_state, value
-
-    # Donation is a separate jit so the breakdown rows can reuse the undonated inputs.
-    train_step_donated = jax.jit(train_step.__wrapped__, donate_argnums=(0, 1, 2))
     return {
-        "state": (params, stats, opt_state),
+        "state": (params, stats),
         "infer": infer,
         "forward_train": forward_train,
         "loss_only": loss_only,
         "loss_grad": loss_grad,
         "grad_only": grad_only,
-        "train_step": train_step_donated,
     }
 
 
-def donated_step(train_step: Callable, live: list, batch: Batch, key: jax.Array) -> jax.Array:
-    """Run a state-donating step on ``live = [params, stats, opt_state]``, replacing it in place."""
-    live[0], live[1], live[2], value = train_step(*live, batch, key)
-    return value
-
-
-def main() -> int:
+def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--preset", default="reference", choices=sorted(PRESETS))
     parser.add_argument("--height", type=int, default=240)
@@ -164,7 +141,7 @@ def main() -> int:
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--breakdown", action="store_true", help="also time parts of the training step")
     parser.add_argument("--profile", help="write a jax.profiler trace of training steps to this folder")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
 
     hw = (args.height, args.width)
     device = jax.devices()[0]
@@ -188,7 +165,7 @@ def main() -> int:
     key = jax.random.key(0)
     for method in args.methods:
         fns = build(method, args.preset, hw)
-        params, stats, opt_state = fns["state"]
+        params, stats = fns["state"]
         for b in args.infer_batches:
             batch = jax.device_put(make_batch(b, *hw))
             row(method, "inference (eval)", b, fns["infer"], params, stats, batch)
@@ -200,14 +177,12 @@ def main() -> int:
                 row(method, "loss fwd (fixed outputs)", b, fns["loss_only"], outputs, batch)
                 row(method, "loss fwd+bwd (fixed outputs)", b, fns["loss_grad"], outputs, batch)
                 row(method, "forward+loss+backward", b, fns["grad_only"], params, stats, batch, key)
-            # The donated step consumes its inputs: the live state is kept in a mutable cell.
-            live = list(jax.tree.map(jnp.copy, (params, stats, opt_state)))
-            step = fns["train_step"]
-            row(method, "train step (fwd+loss+bwd+Adam)", b, donated_step, step, live, batch, key)
+            step, _ = train_step_runner(method, args.preset, b, hw)
+            row(method, "train step (fwd+loss+bwd+Adam)", b, step)
             if args.profile:
                 with jax.profiler.trace(os.path.join(args.profile, f"{method}_b{b}")):
                     for _ in range(3):
-                        jax.block_until_ready(donated_step(step, live, batch, key))
+                        jax.block_until_ready(step())
     print("load average after: {:.2f} {:.2f} {:.2f}".format(*os.getloadavg()))
     return 0
 

@@ -106,7 +106,7 @@ def run_ours(variant: str, mode: str, batch: int, reps: int, warmup: int, size: 
         fn, _ = bench_train.train_step_runner(method, "reference", batch, size)
     else:
         fns = bench_models.build(method, "reference", size)
-        params, stats, _ = fns["state"]
+        params, stats = fns["state"]
         inputs = jax.device_put(bench_models.make_batch(batch, *size))
         fn = lambda: fns["infer"](params, stats, inputs)
     jax.block_until_ready(fn())
