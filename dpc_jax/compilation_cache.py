@@ -14,8 +14,10 @@ or set JAX's options, in your own programs).
 ``DPC_JAX_COMPILATION_CACHE=0`` turns it off, ``DPC_JAX_COMPILATION_CACHE=PATH`` moves it, and a
 ``JAX_COMPILATION_CACHE_DIR`` of your own is left as it is. The folder may be deleted at any
 time; it grows by one entry per compiled program and shape (about 0.1 MB for the metrics of one
-trajectory length, a few MB for a network). JAX trusts what it loads from the cache, so the
-folder is created readable and writable by its owner only.
+trajectory length, a few MB for a network), up to :data:`MAX_SIZE_BYTES`: beyond that JAX deletes
+the least recently used entries (``JAX_COMPILATION_CACHE_MAX_SIZE``, in bytes, sets another
+limit; JAX locks the folder with ``filelock`` to do this). JAX trusts what it loads from the cache,
+so the folder is created readable and writable by its owner only.
 """
 
 from __future__ import annotations
@@ -29,6 +31,9 @@ OPT_OUT = "DPC_JAX_COMPILATION_CACHE"
 # leave out the programs that compile in under a second, and which ones those are depends on the
 # machine and its load).
 MIN_COMPILE_TIME_S = 0.0
+# A bound on the folder in the user's home, which would otherwise grow with every new shape and
+# JAX version: room for hundreds of compiled networks.
+MAX_SIZE_BYTES = 1 << 30
 
 
 def cache_folder(environ: Mapping[str, str] = os.environ) -> Path | None:
@@ -68,4 +73,5 @@ def use_compilation_cache() -> Path | None:
         return None
     os.environ["JAX_COMPILATION_CACHE_DIR"] = str(folder)
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", str(MIN_COMPILE_TIME_S))
+    os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(MAX_SIZE_BYTES))
     return folder

@@ -34,6 +34,7 @@ def _jax_variables(monkeypatch: pytest.MonkeyPatch) -> None:
     """Let use_compilation_cache write JAX's variables into a copy of the environment."""
     monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
     monkeypatch.delenv("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", raising=False)
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_MAX_SIZE", raising=False)
 
 
 def test_use_sets_jax_variables_and_a_private_folder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -44,6 +45,7 @@ def test_use_sets_jax_variables_and_a_private_folder(tmp_path: Path, monkeypatch
     assert os.environ["JAX_COMPILATION_CACHE_DIR"] == str(folder)
     min_time = float(os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"])
     assert min_time == compilation_cache.MIN_COMPILE_TIME_S
+    assert int(os.environ["JAX_COMPILATION_CACHE_MAX_SIZE"]) == compilation_cache.MAX_SIZE_BYTES
     # JAX runs what it loads from the cache: nobody else may write there.
     assert stat.S_IMODE(folder.stat().st_mode) == 0o700
 
@@ -68,7 +70,8 @@ def test_use_leaves_off_a_chosen_jax_folder_and_an_unwritable_one(
 
 
 def _entries(folder: Path) -> dict[str, int]:
-    return {p.name: p.stat().st_mtime_ns for p in folder.iterdir()}
+    # The compiled programs; with the size bound JAX also keeps an access-time file per entry.
+    return {p.name: p.stat().st_mtime_ns for p in folder.glob("*-cache")}
 
 
 @pytest.mark.slow
@@ -90,6 +93,8 @@ def test_second_evaluate_compiles_nothing_and_prints_the_same_numbers(tmp_path: 
     first = run()
     written = _entries(folder)
     assert any(name.startswith("jit_trajectory_metrics") for name in written), written
+    # The size bound is on: JAX keeps the access times it evicts by (and needs filelock for it).
+    assert any(p.name.endswith("-atime") for p in folder.iterdir())
     second = run()
     # Every compiled program is stored (MIN_COMPILE_TIME_S = 0): no new or rewritten entry means
     # the second process compiled nothing.
