@@ -23,7 +23,7 @@ at the scale of the corrections being judged:
    beside the prior's.
 
 Writes ``WORKDIR/ground_truth_check.md`` and ``.csv``; our VO's prior is computed into (or reused
-from) ``WORKDIR/priors/vo.txt``, as ``kitti_raw_excerpt.py`` does. About two minutes on a 2-core
+from) ``WORKDIR/priors/vo.txt``, as ``kitti_raw_excerpt.py`` does. A few minutes on a 2-core
 CPU.
 
     python experiments/excerpt_ground_truth.py --workdir runs/kitti_raw_excerpt
