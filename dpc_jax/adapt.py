@@ -41,7 +41,7 @@ from dpc_jax.training.optim import create_train_state, make_optimizer
 from dpc_jax.training.steps import NonFiniteLossError, make_train_step
 
 if TYPE_CHECKING:
-    from dpc_jax.correct import Correction
+    from dpc_jax.correct import AdaptationSummary, Correction
 
 
 @dataclass(frozen=True)
@@ -96,7 +96,7 @@ class Adaptation:
     log: list[dict[str, float]] = field(default_factory=list)
     seconds: float = 0.0
 
-    def summary(self) -> dict[str, object]:
+    def summary(self) -> AdaptationSummary:
         """What a report says of it (``dpc_jax.correct.Correction.adaptation``)."""
         return {"steps": self.config.steps, "seconds": self.seconds, "held_out": int(self.held_out.size),
                 "holdout_every": self.config.holdout_every, "source_epoch": self.source.epoch}

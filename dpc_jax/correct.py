@@ -28,6 +28,7 @@ import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypedDict
 
 import numpy as np
 
@@ -44,6 +45,16 @@ from dpc_jax.data.pipeline import SequenceCache, load_cache
 from dpc_jax.data.poses_io import WRITE_FORMATS, write_kitti_poses, write_tum
 from dpc_jax.eval.evaluation import Evaluation
 from dpc_jax.inference import SequencePrediction, TrainedRun, run_prediction
+
+
+class AdaptationSummary(TypedDict):
+    """What ``dpc_jax.adapt`` did before a correction (:attr:`Correction.adaptation`)."""
+
+    steps: int
+    seconds: float
+    held_out: int
+    holdout_every: int
+    source_epoch: int
 
 
 def prior_for_cache(
@@ -104,7 +115,7 @@ class Correction:
     evaluation: Evaluation | None
     delta: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
     tested: np.ndarray | None = None
-    adaptation: dict[str, object] | None = None
+    adaptation: AdaptationSummary | None = None
     choice: dict[str, object] | None = None
 
     @property

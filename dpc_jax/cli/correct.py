@@ -182,7 +182,9 @@ def run(args: argparse.Namespace) -> int:
                 run_ = load_run(args.checkpoint, args.select)
             except CheckpointError as error:
                 return _error(restore_problem(error.folder, error.__cause__ or error))
+            cache: SequenceCache | Path
             if args.data is not None:
+                assert checked is not None  # loaded above whenever --data is given
                 cache, prior = checked, args.prior
             else:
                 if args.kitti_odometry is not None:
@@ -236,10 +238,11 @@ def run(args: argparse.Namespace) -> int:
     if correction.applied == "none":
         print(f"{correction.name}: correction NOT applied, the prior is written unchanged "
               f"({correction.acceptance.reason}); --force applies it anyway")
-    how = {"full": "rotation only" if correction.rotation_only else "full 6-DoF", "rotation": "rotation only",
-           "none": "none"}[correction.applied]
-    print(f"{correction.name}: {correction.corrected.shape[0]} poses, correction applied: {how} (network: "
-          f"epoch {run_.epoch} of {args.checkpoint}, {criterion}) -> {', '.join(map(str, written))}")
+    applied = {"full": "rotation only" if correction.rotation_only else "full 6-DoF",
+               "rotation": "rotation only", "none": "none"}[correction.applied]
+    print(f"{correction.name}: {correction.corrected.shape[0]} poses, correction applied: {applied} "
+          f"(network: epoch {run_.epoch} of {args.checkpoint}, {criterion}) -> "
+          f"{', '.join(map(str, written))}")
     if not correction.all_source_frames:
         print(f"note: the trajectory holds {correction.frames.size} cached frames, not every source frame "
               f"(frame numbers in {written[-1]})")

@@ -10,8 +10,12 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from dpc_jax.cli._common import Formatter, import_jax, input_problem, output_problem
+
+if TYPE_CHECKING:
+    import numpy as np
 
 HELP = "Evaluate trajectories against ground truth (m-ATE, segment errors, ATE, RPE, loop closures)."
 # No huge-page restart (dpc_jax.hugepages): it would not make the metrics faster, only add a start.
@@ -70,7 +74,7 @@ def _error(message: str) -> int:
     return 2
 
 
-def _inputs(args: argparse.Namespace) -> tuple[object, dict[str, object]]:
+def _inputs(args: argparse.Namespace) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """Read ground truth and estimates -> ``(gt, {label: estimate})``; raises ValueError/OSError."""
     from dpc_jax.data.poses_io import read_mat, read_trajectory
     from dpc_jax.eval.evaluation import check_label
@@ -90,7 +94,7 @@ def _inputs(args: argparse.Namespace) -> tuple[object, dict[str, object]]:
     if len(set(labels)) != len(labels):
         raise ValueError(f"estimate labels must be unique, got {labels}; use --label")
     gt = read_trajectory(args.gt, args.format, mat_key="poses_gt")
-    estimates = {}
+    estimates: dict[str, np.ndarray] = {}
     for label, path in zip(labels, args.est, strict=True):
         est = read_trajectory(path, args.format)
         if est.shape[0] != gt.shape[0]:

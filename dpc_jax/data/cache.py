@@ -50,6 +50,7 @@ import shutil
 from collections.abc import Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import TypedDict
 
 import cv2
 import jax
@@ -74,8 +75,23 @@ FLOW_FILES = {
     "skip": "flow_skip.npy",
     "skip_reverse": "flow_skip_reverse.npy",
 }
+
+
+class FarnebackParams(TypedDict):
+    """Keyword arguments of ``cv2.calcOpticalFlowFarneback`` (besides ``flags``)."""
+
+    pyr_scale: float
+    levels: int
+    winsize: int
+    iterations: int
+    poly_n: int
+    poly_sigma: float
+
+
 # docs/method.md §6: pyr_scale 0.5, 3 levels, window 15, 3 iterations, poly_n 5, poly_sigma 1.2.
-FARNEBACK = {"pyr_scale": 0.5, "levels": 3, "winsize": 15, "iterations": 3, "poly_n": 5, "poly_sigma": 1.2}
+FARNEBACK: FarnebackParams = {
+    "pyr_scale": 0.5, "levels": 3, "winsize": 15, "iterations": 3, "poly_n": 5, "poly_sigma": 1.2
+}
 
 
 def farneback_flow(source_grey: np.ndarray, target_grey: np.ndarray) -> np.ndarray:
@@ -83,7 +99,10 @@ def farneback_flow(source_grey: np.ndarray, target_grey: np.ndarray) -> np.ndarr
 
     ``target(y + Δy, x + Δx) ≈ source(y, x)``.
     """
-    flow = cv2.calcOpticalFlowFarneback(source_grey, target_grey, None, flags=0, **FARNEBACK)
+    # OpenCV's stubs require an output array ``flow``; None (allocate one) is what OpenCV accepts.
+    flow = cv2.calcOpticalFlowFarneback(  # type: ignore[call-overload]
+        source_grey, target_grey, None, flags=0, **FARNEBACK
+    )
     return flow.astype(np.float32, copy=False)
 
 

@@ -265,6 +265,7 @@ def _build_table(
             parts["slot"].append(np.minimum(i, j))
             parts["vo"].append(_relative_poses(cache.prior, i, j))
             if with_gt:
+                assert cache.gt is not None  # with_gt: every cache has ground truth
                 parts["gt"].append(_relative_poses(cache.gt, i, j))
     if not parts["cache"]:
         raise ValueError("no frame pairs: every sequence is too short for the requested pair kinds")
@@ -317,7 +318,9 @@ def _assemble(
     )
 
 
-def prefetch(tasks: Iterator[Callable[[], Batch]], depth: int = 4, workers: int = 2) -> Iterator[Batch]:
+def prefetch(
+    tasks: Iterator[Callable[[], Batch]], depth: int = 4, workers: int = 2
+) -> Generator[Batch, None, None]:
     """Run ``tasks`` (callables) on ``workers`` threads, yielding their results in order.
 
     At most ``depth`` tasks are in flight (bounded memory). An exception of a task is raised in
@@ -412,7 +415,7 @@ class TrainLoader:
             return np.arange(self.num_samples)
         return np.random.default_rng((self.seed, epoch)).permutation(self.num_samples)
 
-    def epoch(self, epoch: int) -> Iterator[Batch]:
+    def epoch(self, epoch: int) -> Generator[Batch, None, None]:
         """The ``len(self)`` batches of epoch ``epoch``, prefetched in the background."""
         order = self.order(epoch)
         ones = np.ones(self.batch_size, np.float32)
@@ -420,7 +423,11 @@ class TrainLoader:
         def tasks() -> Iterator[Callable[[], Batch]]:
             for b in range(len(self)):
                 rows = order[b * self.batch_size:(b + 1) * self.batch_size]
-                yield lambda rows=rows: _assemble(self.caches, self.table, rows, ones, self.use_flow)
+
+                def task(rows: np.ndarray = rows) -> Batch:
+                    return _assemble(self.caches, self.table, rows, ones, self.use_flow)
+
+                yield task
 
         return prefetch(tasks(), self.depth, self.workers)
 
@@ -448,7 +455,11 @@ def iterate_sequence(
             real = np.arange(start, min(start + batch_size, n))
             rows = np.concatenate([real, np.full(batch_size - real.size, n - 1)])
             weight = (np.arange(batch_size) < real.size).astype(np.float32)
-            yield lambda rows=rows, weight=weight: _assemble([loaded], table, rows, weight, use_flow)
+
+            def task(rows: np.ndarray = rows, weight: np.ndarray = weight) -> Batch:
+                return _assemble([loaded], table, rows, weight, use_flow)
+
+            yield task
 
     return prefetch(tasks(), depth, workers)
 

@@ -27,6 +27,7 @@ import re
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
@@ -96,6 +97,12 @@ class Evaluation(Mapping[str, object]):
 
     def __getitem__(self, key: str) -> object:
         return self._summary[key]
+
+    @property
+    def estimates(self) -> dict[str, dict[str, float | int | None]]:
+        """``self["estimates"]`` with its type: label -> the estimate's summary (SUMMARY_KEYS)."""
+        # Built in __post_init__ with this type; the mapping's values are typed ``object``.
+        return cast(dict[str, dict[str, float | int | None]], self._summary["estimates"])
 
     def __iter__(self) -> Iterator[str]:
         return iter(self._summary)

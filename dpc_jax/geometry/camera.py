@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 from jax import Array
+from jax.typing import ArrayLike
 
 
-def _float(x: Array) -> Array:
+def _float(x: ArrayLike) -> Array:
     x = jnp.asarray(x)
     return x if jnp.issubdtype(x.dtype, jnp.floating) else x.astype(jnp.float32)
 
@@ -21,7 +22,9 @@ def _check_intrinsics(K: Array) -> None:
         raise ValueError(f"K must have shape [..., 3, 3], got {K.shape}")
 
 
-def scale_intrinsics(K: Array, sx: float | Array, sy: float | Array, half_pixel: bool = True) -> Array:
+def scale_intrinsics(
+    K: ArrayLike, sx: float | Array, sy: float | Array, half_pixel: bool = True
+) -> Array:
     """Intrinsics of an image resized by ``(sx, sy)`` (new width = sx · old width).
 
     ``fu, fv`` (and the skew) are multiplied by ``sx``/``sy``. With pixel centres at integers, as

@@ -7,12 +7,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
+from jax.typing import ArrayLike
 
 from dpc_jax.geometry.lie import se3_exp
 from dpc_jax.geometry.poses import compose, relative_poses
 
 
-def apply_correction(xi_corr: Array, T_vo: Array, rotation_only: bool = False) -> Array:
+def apply_correction(xi_corr: ArrayLike, T_vo: ArrayLike, rotation_only: bool = False) -> Array:
     """Corrected relative pose ``T* = Exp(ξ_corr) · T_vo`` (correction on the left).
 
     ``xi_corr``: ``[..., 6]`` as ``[ρ (m), φ (rad)]``; ``T_vo``: ``[..., 4, 4]`` with leading

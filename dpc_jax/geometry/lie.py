@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 from jax import Array
+from jax.typing import ArrayLike
 
 # Below this squared angle (rad²) the Taylor branches are used. With the series truncated after
 # the θ⁴ term the truncation error is below θ⁶/5040 ≈ 2e-16, float64 rounding.
@@ -31,7 +32,7 @@ def _check_last(x: Array, shape: tuple[int, ...], name: str) -> None:
         raise ValueError(f"{name} must have shape [..., {', '.join(map(str, shape))}], got {x.shape}")
 
 
-def _float(x: Array) -> Array:
+def _float(x: ArrayLike) -> Array:
     x = jnp.asarray(x)
     return x if jnp.issubdtype(x.dtype, jnp.floating) else x.astype(jnp.float32)
 
@@ -163,7 +164,7 @@ def so3_log(rotation: Array) -> Array:
     return jnp.where(near_pi[..., None], phi_near_pi, phi_general)
 
 
-def se3_exp(xi: Array) -> Array:
+def se3_exp(xi: ArrayLike) -> Array:
     """4×4 transform ``Exp(ξ)``, ``ξ = [ρ, φ]`` (m, rad). ``[..., 6] -> [..., 4, 4]``."""
     xi = _float(xi)
     _check_last(xi, (6,), "xi")

@@ -9,7 +9,7 @@ be excluded by the caller.
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, cast
 
 import jax
 import jax.numpy as jnp
@@ -103,11 +103,13 @@ def _sample(image: Array, x: Array, y: Array | None) -> tuple[Array, Array]:
 
     flat, (row, col), lead = _flatten(image, [y0, x0])
     patches = _patches(flat, row, col, rows).reshape(*lead, out_h, out_w, rows, 2, channels)
-    sampled = sum(
+    # sum() starts from the int 0, which the type checker keeps in the result's type; the generator
+    # is never empty (rows >= 1), so the sum is an Array.
+    sampled = cast(Array, sum(
         patches[..., i, j, :] * jnp.broadcast_to(weights[j][i], (*lead, out_h, out_w))[..., None]
         for i in range(rows)
         for j in range(2)
-    )
+    ))
     return sampled, jnp.broadcast_to(valid, (*lead, out_h, out_w))
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import numpy as np
 from jax import Array
 
 
@@ -31,11 +32,11 @@ class Batch(NamedTuple):
       evaluation and reporting only, never used by a loss.
     """
 
-    left: Array
-    right: Array
-    xi_vo: Array
-    intrinsics: Array
-    baseline: Array
-    weight: Array
-    flow: Array | None = None
-    xi_gt: Array | None = None
+    left: Array | np.ndarray
+    right: Array | np.ndarray
+    xi_vo: Array | np.ndarray
+    intrinsics: Array | np.ndarray
+    baseline: Array | np.ndarray
+    weight: Array | np.ndarray
+    flow: Array | np.ndarray | None = None
+    xi_gt: Array | np.ndarray | None = None

@@ -22,6 +22,8 @@ they depend on the machine and go stale).
 
 from __future__ import annotations
 
+from typing import cast
+
 import jax
 import jax.numpy as jnp
 
@@ -161,12 +163,14 @@ def _conv3x3_few_bwd(residuals: tuple[jax.Array, jax.Array], g: jax.Array) -> tu
     # dx[p] = Σ_{a,b,j} g[p − (a−1, b−1), j] · kernel[a, b, :, j]: nine shifted copies of each
     # one-channel cotangent times a channel vector, one elementwise pass.
     gp = jnp.pad(g, ((0, 0), (1, 1), (1, 1), (0, 0)))
-    dx = sum(
+    # sum() starts from the int 0, which the type checker keeps in the result's type; the generator
+    # is never empty (nine taps, at least one output channel), so the sum is an Array.
+    dx = cast(jax.Array, sum(
         gp[:, 2 - a : 2 - a + h, 2 - b : 2 - b + w, j : j + 1] * kernel[a, b, :, j]
         for a in range(3)
         for b in range(3)
         for j in range(kernel.shape[3])
-    )
+    ))
     _, kernel_vjp = jax.vjp(lambda k: _conv3x3_same(x, k), kernel)
     return dx, kernel_vjp(g)[0]
 

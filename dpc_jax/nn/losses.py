@@ -21,9 +21,11 @@ frame t+1 from frame t therefore needs ``T_{t,t+1} = inv(T*)``, computed exactly
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import jax.numpy as jnp
 from jax import Array
+from jax.typing import ArrayLike
 
 from dpc_jax.geometry.correction import apply_correction
 from dpc_jax.geometry.lie import se3_exp, se3_inverse
@@ -83,7 +85,7 @@ class StereoDPCLossConfig:
 # --- building blocks --------------------------------------------------------------------------
 
 
-def to_unit_images(images: Array, dtype: jnp.dtype) -> Array:
+def to_unit_images(images: ArrayLike, dtype: jnp.dtype) -> Array:
     """uint8 images in [0, 255] -> ``dtype`` in [0, 1]; float images are only cast."""
     images = jnp.asarray(images)
     if jnp.issubdtype(images.dtype, jnp.integer):
@@ -308,6 +310,7 @@ def stereo_dpc_loss(
     ``ssim_weight``.
     """
     left, right, K, baseline, poses, weight = _stereo_setup(outputs, batch, config)
+    assert outputs.right is not None  # _stereo_setup raised otherwise
     ssim_weight = _ssim_weight(outputs, config.ssim_weight)
     a_spatial, a_disp, a_temporal, a_exp = config.alpha
 
@@ -403,8 +406,9 @@ def temporal_pair_errors(
     if not isinstance(config, StereoDPCLossConfig):
         raise TypeError(f"config must be SSDPCLossConfig or StereoDPCLossConfig, got {type(config).__name__}")
     left, right, K, _, poses, _ = _stereo_setup(outputs, batch, config)
+    assert outputs.right is not None  # _stereo_setup raised otherwise
     ssim_weight = _ssim_weight(outputs, config.ssim_weight)
-    terms = []
+    terms: list[Array] = []
     cameras = (("left", left, outputs.left, left_valid), ("right", right, outputs.right, right_valid))
     for camera, images, branch, depth_ok in cameras:
         forward, backward = _stereo_temporal(images, branch, poses[camera], K, config.depth_eps)
@@ -413,7 +417,9 @@ def temporal_pair_errors(
             error = photometric_error(target, recon, ssim_weight, valid)
             keep = valid & _valid_depth(depth_ok, frame) & gradient_mask(target, config.grad_threshold)
             terms.append(per_sample_mean(error, keep))
-    return sum(terms) / len(terms)
+    # sum() starts from the int 0, which the type checker keeps in the result's type; there are
+    # always four terms, so the sum is an Array.
+    return cast(Array, sum(terms)) / len(terms)
 
 
 def gradient_loss(

@@ -56,7 +56,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, cast
 
 import jax
 import jax.numpy as jnp
@@ -189,7 +189,8 @@ class ModelConfig:
 
     def scale_sizes(self) -> list[tuple[int, int]]:
         """``(h, w)`` of the input followed by the output of every encoder block."""
-        sizes = [tuple(self.image_size)]
+        h0, w0 = self.image_size
+        sizes = [(h0, w0)]
         for _ in self.encoder_planes:
             h, w = sizes[-1]
             sizes.append((-(-h // 2), -(-w // 2)))
@@ -235,7 +236,7 @@ def upsample2x_bilinear(x: jax.Array) -> jax.Array:
     return along(along(x, 1), 2)
 
 
-def _crop(x: jax.Array, size: tuple[int, int]) -> jax.Array:
+def _crop(x: jax.Array, size: tuple[int, ...]) -> jax.Array:
     """Crop ``[B, h, w, C]`` to its top-left ``size`` (the skip tensor's ``(h, w)``)."""
     return x[:, : size[0], : size[1], :]
 
@@ -254,6 +255,7 @@ class _ConvBlock(nnx.Module):
     def __call__(self, x: jax.Array) -> jax.Array:
         if self.stride == 2:
             # nnx.Conv only holds the parameters here (names and initialisation as before).
+            assert self.conv.bias is not None  # nnx.Conv's default use_bias=True
             y = conv_s2(x, self.conv.kernel[...])
             y = y + self.conv.bias[...].astype(y.dtype)
         else:
@@ -288,6 +290,7 @@ class _Head(nnx.Module):
 
     def __call__(self, x: jax.Array) -> jax.Array:
         # nnx.Conv only holds the parameters (names and initialisation as before).
+        assert self.conv.bias is not None  # nnx.Conv's default use_bias=True
         y = conv3x3_few_outputs(x, self.conv.kernel[...])
         return y + self.conv.bias[...].astype(y.dtype)
 
@@ -354,6 +357,7 @@ class Branch(nnx.Module):
                 head_index += 1
                 if s >= 2:
                     inv_depth_up = _crop(upsample2x_bilinear(inv_depth), sizes[s - 2])
+        assert inv_depth is not None  # the last stage s = 1 has a head (ModelConfig: depth_scales >= 1)
         inv_depth = 0.5 * inv_depth
 
         m = features[self.mask_source]
@@ -394,7 +398,7 @@ class PriorStatistics(nnx.Variable):
     """
 
 
-def set_prior_statistics(model: nnx.Module, mean: np.ndarray, scale: np.ndarray) -> None:
+def set_prior_statistics(model: _DPCBase, mean: np.ndarray, scale: np.ndarray) -> None:
     """Normalise the prior input of ``model`` by ``mean`` and ``scale`` (``[6]`` each, scale > 0)."""
     mean, scale = np.asarray(mean, np.float64), np.asarray(scale, np.float64)
     ok = mean.shape == scale.shape == (6,) and np.all(np.isfinite(mean)) and np.all(scale > 0)
@@ -403,10 +407,12 @@ def set_prior_statistics(model: nnx.Module, mean: np.ndarray, scale: np.ndarray)
     model.prior_statistics.set_value(jnp.asarray(np.stack([mean, scale]), jnp.float32))
 
 
-def _whiten(images: jax.Array) -> jax.Array:
+def _whiten(images: jax.Array | np.ndarray) -> jax.Array:
     """uint8 ``[..., 3]`` → float32 in [0, 1] → ImageNet-whitened."""
     x = images.astype(jnp.float32) / 255.0
-    return (x - jnp.asarray(IMAGENET_MEAN, jnp.float32)) / jnp.asarray(IMAGENET_STD, jnp.float32)
+    # A jax.Array also for numpy images (numpy minus a jax.Array is one); numpy's stubs say ndarray.
+    whitened = (x - jnp.asarray(IMAGENET_MEAN, jnp.float32)) / jnp.asarray(IMAGENET_STD, jnp.float32)
+    return cast(jax.Array, whitened)
 
 
 def uses_flow(method: str, config: ModelConfig) -> bool:
@@ -414,9 +420,9 @@ def uses_flow(method: str, config: ModelConfig) -> bool:
     return config.flow if config.flow is not None else method == "ss_dpc"
 
 
-def _branch_input(images: jax.Array, flow: jax.Array | None) -> jax.Array:
+def _branch_input(images: jax.Array | np.ndarray, flow: jax.Array | np.ndarray | None) -> jax.Array:
     """``images`` uint8 ``[B, 2, H, W, 3]`` (+ flow ``[B, H, W, 2]``) → ``[B, H, W, 6 (+2)]``."""
-    parts = [_whiten(images[:, 0]), _whiten(images[:, 1])]
+    parts: list[jax.Array | np.ndarray] = [_whiten(images[:, 0]), _whiten(images[:, 1])]
     if flow is not None:
         parts.append(flow.astype(jnp.float32))
     return jnp.concatenate(parts, axis=-1)
@@ -450,6 +456,7 @@ class _DPCBase(nnx.Module):
         self.prior = FCReduction(6, config, prior_rate, False, rngs)
         self.prior_statistics = PriorStatistics(jnp.stack([jnp.zeros(6), jnp.ones(6)]).astype(jnp.float32))
         self.fc_out = nnx.Linear(n_pose_inputs * config.fc_planes[1], 6, rngs=rngs)
+        self.ssim_logit: nnx.Param[jax.Array] | None
         if config.learn_ssim_weight:
             self.ssim_logit = nnx.Param(_ssim_logit(config))
         else:
@@ -491,7 +498,9 @@ class _DPCBase(nnx.Module):
             return nnx.data(None)
         return FCReduction(self.bottleneck_features, self.config, self.config.dropout, True, rngs)
 
-    def _pose(self, reduced: list[jax.Array], xi_vo: jax.Array, key: jax.Array | None) -> jax.Array:
+    def _pose(
+        self, reduced: list[jax.Array], xi_vo: jax.Array | np.ndarray, key: jax.Array | None
+    ) -> jax.Array:
         mean, std = self.prior_statistics[...]
         prior = (xi_vo.astype(jnp.float32) - mean) / std
         features = jnp.concatenate([*reduced, self.prior(prior, key)], axis=-1)
@@ -515,7 +524,8 @@ class MonoDPC(_DPCBase):
 
     def __call__(self, batch: Batch, *, key: jax.Array | None = None) -> DPCOutputs:
         self._check(batch, key)
-        flow = batch.flow[:, 0] if self.use_flow else None
+        # _check raised if the model reads flow and the batch has none.
+        flow = batch.flow[:, 0] if self.use_flow and batch.flow is not None else None
         bottleneck, inv_depth, mask = self.branch(_branch_input(batch.left, flow))
         k_reduce, k_prior = self._keys(key, 2)
         flat = bottleneck.reshape(bottleneck.shape[0], -1)
@@ -544,12 +554,14 @@ class StereoDPC(_DPCBase):
 
     def __call__(self, batch: Batch, *, key: jax.Array | None = None) -> DPCOutputs:
         self._check(batch, key)
-        left_flow = batch.flow[:, 0] if self.use_flow else None
-        right_flow = batch.flow[:, 1] if self.use_flow else None
+        # _check raised if the model reads flow and the batch has none.
+        left_flow = batch.flow[:, 0] if self.use_flow and batch.flow is not None else None
+        right_flow = batch.flow[:, 1] if self.use_flow and batch.flow is not None else None
         bl, dl, ml = self.left_branch(_branch_input(batch.left, left_flow))
         br, dr, mr = self.right_branch(_branch_input(batch.right, right_flow))
         k_left, k_right, k_prior = self._keys(key, 3)
-        reduced = [] if self.left_reduce is None else [
+        # Both reductions exist, or neither (_reduction).
+        reduced = [] if self.left_reduce is None or self.right_reduce is None else [
             self.left_reduce(bl.reshape(bl.shape[0], -1), k_left),
             self.right_reduce(br.reshape(br.shape[0], -1), k_right),
         ]
@@ -581,12 +593,14 @@ def _init_like_pytorch(model: nnx.Module, seed: int) -> None:
                 (module.mean, 0.0),
                 (module.var, 1.0),
             ):
+                assert var is not None  # nnx.BatchNorm's defaults use_scale=use_bias=True
                 var.set_value(jnp.full((n,), value, jnp.float32))
             continue
         else:
             continue
         bound = 1.0 / math.sqrt(fan_in)
         for var in (module.kernel, module.bias):
+            assert var is not None  # every conv and linear layer here has a bias
             var.set_value(jnp.asarray(rng.uniform(-bound, bound, var.shape).astype(np.float32)))
 
 
@@ -597,7 +611,7 @@ def create_model(method: str, config: ModelConfig, seed: int) -> MonoDPC | Stere
     ``_init_like_pytorch``), the output FC layer zeroed with ``config.pose_init == "zero"``, the
     prior statistics set to the identity normalisation; call ``model.eval()`` for inference.
     """
-    classes = {"ss_dpc": MonoDPC, "stereo_dpc": StereoDPC}
+    classes: dict[str, type[MonoDPC] | type[StereoDPC]] = {"ss_dpc": MonoDPC, "stereo_dpc": StereoDPC}
     if method not in classes:
         raise ValueError(f"unknown method {method!r}; expected 'ss_dpc' or 'stereo_dpc'")
     model = nnx.eval_shape(lambda: classes[method](config, nnx.Rngs(params=seed)))
@@ -605,8 +619,10 @@ def create_model(method: str, config: ModelConfig, seed: int) -> MonoDPC | Stere
     model.prior_statistics.set_value(jnp.stack([jnp.zeros(6), jnp.ones(6)]).astype(jnp.float32))
     if config.pose_init == "zero":
         for var in (model.fc_out.kernel, model.fc_out.bias):
+            assert var is not None  # nnx.Linear's default use_bias=True
             var.set_value(jnp.zeros(var.shape, jnp.float32))
     if config.learn_ssim_weight:
+        assert model.ssim_logit is not None  # a Param with learn_ssim_weight (_DPCBase)
         model.ssim_logit.set_value(_ssim_logit(config))
     leftover = [x for x in jax.tree.leaves(nnx.state(model)) if isinstance(x, jax.ShapeDtypeStruct)]
     if leftover:

@@ -409,6 +409,8 @@ def run_demo(config: DemoConfig, out: str | os.PathLike, progress: bool = False,
         rendered = _render(config, data_root, name, progress)
         seconds["render"] += time.perf_counter() - t
         sequence = open_odometry(data_root, name)
+        if sequence.poses is None:  # every rendered sequence has its poses; a reused folder might not
+            raise DemoError(f"{name}: no ground-truth poses in {data_root}")
         t = time.perf_counter()
         libviso2_like = VOConfig(estimate_offset=config.vo_estimate_offset)
         prior = vo_prior(sequence, vo_dir / f"{name}.txt", libviso2_like, first_pose=sequence.poses[0],
@@ -464,7 +466,7 @@ def run_demo(config: DemoConfig, out: str | os.PathLike, progress: bool = False,
     estimates = {"prior": result.prior, **proposals, "corrected": result.corrected}
     with jax.enable_x64(True):
         evaluation = evaluate(gt, estimates)
-    test_metrics = {label: dict(evaluation["estimates"][label]) for label in estimates}
+    test_metrics = {label: dict(evaluation.estimates[label]) for label in estimates}
     change = {k: _change(test_metrics["prior"][k], test_metrics["corrected"][k])
               for k in ("seg_trans_pct", "seg_rot_deg_per_100m")}
     summary: dict[str, Any] = {

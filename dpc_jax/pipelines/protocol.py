@@ -31,11 +31,14 @@ import runpy
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from dpc_jax._io import atomic_write
+
+if TYPE_CHECKING:
+    from dpc_jax.correct import Correction
 
 # Odometry sequence ↔ raw drive (docs/method.md §6): raw drives that *are* an odometry sequence must not be
 # used for training when that sequence is tested.
@@ -175,6 +178,13 @@ def train_fold(config: Any, workdir: Path, progress: bool) -> dict[str, Any]:
     return train(config, workdir, resume=True, progress=progress)
 
 
+def _estimates(correction: Correction) -> dict[str, dict[str, Any]]:
+    """The per-estimate summaries of ``correction``'s evaluation (ValueError without ground truth)."""
+    if correction.evaluation is None:
+        raise ValueError(f"{correction.name}: no ground truth; the experiment needs it to evaluate")
+    return correction.evaluation.estimates
+
+
 def correct_and_evaluate(
     fold: str, run_dir: Path, cache: Path, out_root: Path, *, select: str = "gradient",
     prior_label: str = "prior", rotation_only: bool | None = None, acceptance: bool = True,
@@ -214,9 +224,9 @@ def correct_and_evaluate(
             out_root / "reports" / fold / name / label, c,
             f"{fold}: {name} ({prior_label} prior, epoch {run.epoch} by {select}, network {label})",
         )
-    stages = {label: c.evaluation["estimates"]["network"] for label, c in corrections.items()}
+    stages = {label: _estimates(c)["network"] for label, c in corrections.items()}
     decisions = {label: "forced" if c.acceptance.forced else c.applied for label, c in corrections.items()}
-    estimates = correction.evaluation["estimates"]
+    estimates = correction.evaluation.estimates
     return Result(fold, name, prior_label, run.epoch, select, int(correction.corrected.shape[0]),
                   {"prior": estimates["prior"], "corrected": estimates["corrected"]},
                   f"{final}" + (f" ({correction.applied})" if final != "prior" else ""), stages, decisions)
@@ -235,8 +245,8 @@ def _cell(value: Any) -> str:
 def results_markdown(results: Sequence[Result], title: str, notes: Sequence[str] = ()) -> str:
     """The results table: one row per test sequence and prior, prior → corrected for each metric."""
     header = ["fold", "sequence", "prior", "epoch", "applied", "frames", *(t for _, t in COLUMNS)]
-    lines = [f"# {title}", "", *(f"{n}" for n in notes), "" if notes else None]
-    lines = [x for x in lines if x is not None]
+    preamble: list[str | None] = [f"# {title}", "", *(f"{n}" for n in notes), "" if notes else None]
+    lines = [x for x in preamble if x is not None]
     lines += ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
     for r in results:
         cells = [f"{_cell(r.metrics['prior'][k])} → {_cell(r.metrics['corrected'][k])}" for k, _ in COLUMNS]
@@ -251,9 +261,9 @@ def results_markdown(results: Sequence[Result], title: str, notes: Sequence[str]
     staged = [r for r in results if r.stages]
     if staged:
         titles = " | ".join(t for _, t in COLUMNS)
-        header = f"| sequence | prior | estimate | acceptance test | {titles} |"
+        stage_header = f"| sequence | prior | estimate | acceptance test | {titles} |"
         lines += ["", "Per network (each row: that network's correction applied, whatever its test said):",
-                  "", header, "|---" * (4 + len(COLUMNS)) + "|"]
+                  "", stage_header, "|---" * (4 + len(COLUMNS)) + "|"]
         for r in staged:
             rows = [("prior", "", r.metrics["prior"])]
             rows += [(f"network {label}", r.decisions[label], m) for label, m in r.stages.items()]

@@ -19,9 +19,9 @@ recomputed once per pixel for the winning primitive of each kind.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from functools import partial
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import jax
 import jax.numpy as jnp
@@ -42,6 +42,9 @@ SKY, GROUND, FACADE, CYLINDER, SPHERE, CAR = 0, 1, 2, 3, 4, 5
 _CABIN_A = (-0.6, 0.4)
 _CABIN_B = 0.9
 _UNROLL = 4
+
+Row = Array | Sequence[Array]
+"""One row of a table: the array itself, or its columns as gathered per pixel by :func:`_rows`."""
 
 
 class FrameScene(NamedTuple):
@@ -134,7 +137,7 @@ def _extend_pieces(pieces: Array) -> Array:
     return jnp.concatenate([pieces, jnp.stack(extra, 1)], 1)
 
 
-def _arc_centre(piece: Array) -> tuple[Array, Array, Array, Array]:
+def _arc_centre(piece: Row) -> tuple[Array, Array, Array, Array]:
     return piece[8], piece[9], piece[10], piece[11]
 
 
@@ -145,7 +148,7 @@ def _arc_s(qx: Array, qz: Array, piece: Array) -> Array:
     return sigma * _wrap(ang - piece[2]) * radius
 
 
-def _straight_local(qx: Array, qz: Array, piece: Array) -> tuple[Array, Array]:
+def _straight_local(qx: Array, qz: Array, piece: Row) -> tuple[Array, Array]:
     fx, fz = piece[6], piece[7]
     ex, ez = qx - piece[0], qz - piece[1]
     return ex * fx + ez * fz, ex * fz - ez * fx
@@ -174,7 +177,7 @@ def _straight_facades_t(r: Rays, piece: Array, layers: Array) -> tuple[Array, Ar
     return best
 
 
-def _arc_param(qx: Array, qz: Array, piece: Array) -> tuple[Array, Array]:
+def _arc_param(qx: Array, qz: Array, piece: Row) -> tuple[Array, Array]:
     """Facade parameter along arc ``piece`` and whether the point lies in the arc's sector.
 
     The parameter is ``length · tan α / tan Θ`` (α the angle from the start radius, Θ the arc's
@@ -245,14 +248,16 @@ def _car_frame(r: Rays, car: Array) -> tuple[Array, Array, Array, Array]:
     return ex * fx + ez * fz, ex * fz - ez * fx, r.dx * fx + r.dz * fz, r.dx * fz - r.dz * fx
 
 
-def _car_boxes(car: Array) -> tuple[tuple[Array, ...], tuple[Array, ...]]:
+def _car_boxes(car: Row) -> tuple[tuple[Array | float, ...], tuple[Array | float, ...]]:
     hl, hw = car[4], car[5]
     body = (-hl, hl, -hw, hw, -CAR_BODY_TOP, -CAR_BODY_BOTTOM)
     cabin = (_CABIN_A[0] * hl, _CABIN_A[1] * hl, -_CABIN_B * hw, _CABIN_B * hw, -CAR_CABIN_TOP, -CAR_BODY_TOP)
     return body, cabin
 
 
-def _slab(oa: Array, ob: Array, oy: Array, ia: Array, ib: Array, iy: Array, box: tuple[Array, ...]) -> Array:
+def _slab(
+    oa: Array, ob: Array, oy: Array, ia: Array, ib: Array, iy: Array, box: tuple[Array | float, ...]
+) -> Array:
     ta0, ta1 = (box[0] - oa) * ia, (box[1] - oa) * ia
     tb0, tb1 = (box[2] - ob) * ib, (box[3] - ob) * ib
     ty0, ty1 = (box[4] - oy) * iy, (box[5] - oy) * iy
@@ -261,7 +266,9 @@ def _slab(oa: Array, ob: Array, oy: Array, ia: Array, ib: Array, iy: Array, box:
     return jnp.where((hi >= lo) & (lo > NEAR), lo, jnp.inf)
 
 
-def _nearest(table: Array, hit_t: Callable[[Array], Array], parts: int = 0) -> tuple[Array, Array]:
+def _nearest(
+    table: Array, hit_t: Callable[[Array], Array | tuple[Array, Array]], parts: int = 0
+) -> tuple[Array, Array]:
     """Scan ``hit_t(row) -> t [pixels]`` over the rows of ``table``: nearest ``t`` and its row index.
 
     With ``parts > 0``, ``hit_t`` returns ``(t, part)`` for a row made of that many surfaces, and
@@ -272,7 +279,8 @@ def _nearest(table: Array, hit_t: Callable[[Array], Array], parts: int = 0) -> t
         if parts:
             t, part = hit_t(row[1])
             return _closer(carry, t, row[0] * parts + part), None
-        return _closer(carry, hit_t(row[1]), row[0]), None
+        # Without parts, hit_t returns t alone (the docstring's contract; the type can't say so).
+        return _closer(carry, cast(Array, hit_t(row[1])), row[0]), None
 
     shape = jax.eval_shape(lambda row: hit_t(row)[0] if parts else hit_t(row), table[0]).shape
     init = (jnp.full(shape, jnp.inf, jnp.float32), jnp.zeros(shape, jnp.int32))

@@ -213,12 +213,12 @@ def iter_frames(config: SynthConfig) -> Iterator[SynthFrame]:
     size = (config.height, config.width)
     for i in range(config.frames):
         scene = FrameScene(*(jnp.asarray(t) for t in frame_scene(plan, i, K, size, config.baseline)))
-        image, depth, moving = render_stereo(
+        image, depth_map, moving_map = render_stereo(
             scene, jnp.asarray(plan.world_poses[i], jnp.float32), jnp.asarray(K, jnp.float32), baseline,
             float(plan.gain[i]), float(plan.gamma[i]), height=config.height, width=config.width,
             quantise=config.noise == 0, disparity_offset=config.disparity_offset,
         )
-        pixels, depth, moving = np.asarray(image), np.asarray(depth), np.asarray(moving)
+        pixels, depth, moving = np.asarray(image), np.asarray(depth_map), np.asarray(moving_map)
         if config.noise > 0:
             rng = np.random.default_rng(np.random.SeedSequence([config.seed, 0x1015E, i]))
             noisy = pixels + rng.standard_normal(pixels.shape, np.float32) * np.float32(config.noise)

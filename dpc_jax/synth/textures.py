@@ -30,7 +30,7 @@ _M4 = 0x85EBCA6B
 _M5 = 0xC2B2AE35
 
 
-def hash3(ix: Array, iy: Array, seed: Array | int) -> Array:
+def hash3(ix: Array | int, iy: Array | int, seed: Array | int) -> Array:
     """Uniform float32 in [0, 1) from three integers (int32 arrays, any sign; broadcast)."""
     h = (
         jnp.asarray(ix).astype(jnp.uint32) * jnp.uint32(_M1)
@@ -118,7 +118,7 @@ def pulse(x: Array, period: Array | float, lo: Array | float, hi: Array | float,
     return duty + fade(period, ppm) * (band(y, lo, hi, ppm) - duty)
 
 
-Colour = tuple[Array, Array, Array]
+Colour = tuple[Array | float, Array | float, Array | float]
 """Colours are planar (three arrays or floats): applying a scalar field to an interleaved
 ``[..., 3]`` array would make XLA evaluate the field's whole expression once per channel."""
 
@@ -133,13 +133,13 @@ def scale(c: Colour, f: Array | float) -> Colour:
 
 def mix(a: Colour, b: Colour, w: Array) -> Colour:
     """``a (1 − w) + b w``."""
-    return tuple(x + (y - x) * w for x, y in zip(a, b, strict=True))
+    return (a[0] + (b[0] - a[0]) * w, a[1] + (b[1] - a[1]) * w, a[2] + (b[2] - a[2]) * w)
 
 
 def palette(table: Array, h: Array) -> Colour:
     """Row of ``table [P, 3]`` picked by uniforms ``h`` in [0, 1)."""
     idx = jnp.minimum((h * table.shape[0]).astype(jnp.int32), table.shape[0] - 1)
-    return tuple(jnp.take(table[:, c], idx) for c in range(3))
+    return (jnp.take(table[:, 0], idx), jnp.take(table[:, 1], idx), jnp.take(table[:, 2], idx))
 
 
 FACADE_COLOURS = jnp.array(

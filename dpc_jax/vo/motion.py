@@ -180,7 +180,7 @@ def refine_pose(
     increment = 0.0
     base_points, base_right = points, right
     prior = 0.0
-    if with_offset:
+    if offset_prior is not None:  # = with_offset, spelled out so the type checker narrows it
         r, _ = _stacked_residuals(T, points, left, right, right_valid, K, baseline)
         observations = 2 * len(points) + 2 * int(right_valid.sum())
         noise = float(np.einsum("n,nk->", weights, r**2)) / max(observations - size, 1)

@@ -25,6 +25,7 @@ import enum
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
+from typing import TypedDict
 
 import numpy as np
 from tqdm import tqdm
@@ -329,7 +330,20 @@ def run_vo(
     )
 
 
-def summary(result: VOResult) -> dict[str, object]:
+class VOSummary(TypedDict):
+    """The counts of a VO run (:func:`summary`)."""
+
+    frames: int
+    pairs: int
+    fallbacks: int
+    fallback_share: float
+    median_inliers: float
+    disparity_offset_px: float
+    disparity_offset_median_px: float
+    warning: str | None
+
+
+def summary(result: VOResult) -> VOSummary:
     """Counts of a VO run: frames, fallbacks and their share, median inliers, the final disparity
     offset and its median over the second half of the run (the online estimate settles within tens
     of pairs: the rig's calibration residual as measured), and ``warning`` (a sentence, or None)
