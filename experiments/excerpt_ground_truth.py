@@ -197,7 +197,7 @@ def main(argv: Sequence[str] | None = None) -> int:
              "", "## 1. Each step checked against the images (full resolution, StereoSGBM depth)", "",
              "Mean L1 error (grey, 0–1) of each candidate step, and in brackets the share of pairs on "
              "which it beats our VO's step, for each disparity offset added to SGBM's disparities "
-             f"(our VO measures {measured:+.3f} px; the lowest errors, marked *, are at "
+             f"(our VO measures {measured:+.3f} px; the candidates' mean error is lowest, marked *, at "
              f"{offsets[best]:+.3f} px).", "",
              "| step | " + " | ".join(f"offset {o:+.2f} px{' *' if k == best else ''}"
                                       for k, o in enumerate(offsets)) + " |",
