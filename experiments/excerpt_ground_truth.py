@@ -225,10 +225,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     keys = ("seg_trans_pct", "seg_rot_deg_per_100m", "m_ate_trans_m", "m_ate_rot_deg")
     for name, poses in (("our VO", vo), ("libviso2-s", libviso2)):
         perfect = compose(exchange(steps["ground truth"], steps[name]), gt[0])
-        labels = ("prior", "perfect rotation-only correction")
-        scores = evaluate(gt, dict(zip(labels, (poses, perfect), strict=True)))["estimates"]
-        for label in labels:
-            m = {key: scores[label][key] for key in keys}
+        scores = evaluate(gt, {"prior": poses, "perfect": perfect})["estimates"]
+        for label, key_ in (("prior", "prior"), ("perfect rotation-only correction", "perfect")):
+            m = {key: scores[key_][key] for key in keys}
             lines.append(f"| {name} | {label} | " + " | ".join(f"{m[key]:.4g}" for key in keys) + " |")
             rows += [{"section": f"rotation_only/{label}", "item": f"{name} {key}", "value": value,
                       "extra": ""} for key, value in m.items()]
