@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import os
 import statistics
 import time
@@ -40,6 +41,7 @@ from flax import nnx
 
 from dpc_jax.hugepages import reexec_with_huge_pages
 from dpc_jax.nn.batch import Batch
+from dpc_jax.nn.conv import compiler_options
 from dpc_jax.nn.losses import SSDPCLossConfig, StereoDPCLossConfig, ss_dpc_loss, stereo_dpc_loss
 from dpc_jax.nn.models import PRESETS, create_model
 
@@ -92,28 +94,30 @@ def build(method: str, preset: str, hw: tuple[int, int]) -> dict[str, Callable]:
     model = create_model(method, config, seed=0)
     graphdef, params, stats = nnx.split(model, nnx.Param, ...)
     loss = loss_fn(method)
+    # The library's jitted steps compile the network with these options too.
+    jit = functools.partial(jax.jit, compiler_options=compiler_options(method))
 
-    @jax.jit
+    @jit
     def infer(params: nnx.State, stats: nnx.State, batch: Batch):
         m = nnx.merge(graphdef, params, stats)
         m.eval()
         return m(batch)
 
-    @jax.jit
+    @jit
     def forward_train(params: nnx.State, stats: nnx.State, batch: Batch, key: jax.Array):
         m = nnx.merge(graphdef, params, stats)
         m.train()
         return m(batch, key=key)
 
-    @jax.jit
+    @jit
     def loss_only(outputs, batch: Batch):
         return loss(outputs, batch)[0]
 
-    @jax.jit
+    @jit
     def loss_grad(outputs, batch: Batch):
         return jax.grad(lambda o: loss(o, batch)[0])(outputs)
 
-    @jax.jit
+    @jit
     def grad_only(params: nnx.State, stats: nnx.State, batch: Batch, key: jax.Array):
         # As the library's step differentiates: with respect to the merged model, in train mode.
         m = nnx.merge(graphdef, params, stats)

@@ -31,6 +31,7 @@ from tqdm.auto import tqdm
 
 from dpc_jax.data.pipeline import SequenceCache, iterate_sequence, load_cache
 from dpc_jax.nn.batch import Batch
+from dpc_jax.nn.conv import compiler_options
 from dpc_jax.nn.losses import correction_deltas, dpc_loss
 from dpc_jax.training import parallel
 from dpc_jax.training.config import TrainConfig
@@ -140,8 +141,9 @@ class SequencePrediction:
 
 
 @functools.cache
-def _predict_step(mesh: Mesh | None) -> Any:
-    """The jitted ``step(graphdef, state, batch, config, depth) -> dict`` (evaluation mode)."""
+def _predict_step(mesh: Mesh | None, method: str) -> Any:
+    """The jitted ``step(graphdef, state, batch, config, depth) -> dict`` (evaluation mode) for
+    ``method``'s network."""
 
     def step(graphdef: nnx.GraphDef, state: nnx.State, batch: Batch, config: Any,
              depth: tuple[jax.Array, jax.Array] | None) -> dict[str, jax.Array]:
@@ -160,7 +162,7 @@ def _predict_step(mesh: Mesh | None) -> Any:
         deltas = correction_deltas(outputs, batch, config, valid)
         return {"xi_corr": outputs.xi_corr, "loss": loss, **deltas}
 
-    kwargs: dict[str, Any] = {}
+    kwargs: dict[str, Any] = {"compiler_options": compiler_options(method)}
     if mesh is not None:
         kwargs["out_shardings"] = parallel.replicated(mesh)
     return jax.jit(step, static_argnums=(0, 3), **kwargs)
@@ -201,7 +203,7 @@ def predict_sequence(
     cache = cache if isinstance(cache, SequenceCache) else load_cache(cache)
     pairs = len(cache) - 1
     size = max(1, min(batch_size, pairs)) if mesh is None else batch_size
-    step = _predict_step(mesh)
+    step = _predict_step(mesh, loss_config.method)
     depths = _pair_depths(stereo_depth, size, pairs) if stereo_depth is not None else None
     share = parallel.process_slice(size) if mesh is not None else slice(None)
     keys = ("xi_corr", "none", "full", "rotation")

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dpc_jax.nn.conv import NHWC, conv3x3_few_outputs, conv_s2, upconv3x3_s2
+from dpc_jax.nn.conv import NHWC, compiler_options, conv3x3_few_outputs, conv_s2, upconv3x3_s2
 
 
 def _reference_s2(x: jax.Array, kernel: jax.Array) -> jax.Array:
@@ -71,3 +71,19 @@ def test_kernel_shape_errors() -> None:
         conv_s2(x, jnp.ones((4, 4, 2, 3)))
     with pytest.raises(ValueError, match="3x3 kernel"):
         conv3x3_few_outputs(x, jnp.ones((5, 5, 2, 1)))
+
+
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="the options concern XLA's CPU backend")
+def test_compiler_options_move_ss_dpc_convolutions_off_ynnpack() -> None:
+    # 32 channels: a convolution XLA's default hands to YNNPACK. With ss-DPC-Net's options it must
+    # compile (the option exists in this jaxlib), run on another library, and give the same values.
+    rng = np.random.default_rng(5)
+    x = jnp.asarray(rng.normal(size=(2, 12, 10, 32)), jnp.float32)
+    kernel = jnp.asarray(rng.normal(size=(3, 3, 32, 32)), jnp.float32)
+    assert compiler_options("stereo_dpc") == {}
+    default = jax.jit(_reference_same3x3).lower(x, kernel).compile()
+    options = compiler_options("ss_dpc")
+    eigen = jax.jit(_reference_same3x3, compiler_options=options).lower(x, kernel).compile()
+    assert "ynn_fusion" in default.as_text()
+    assert "ynn_fusion" not in eigen.as_text() and "convolution(" in eigen.as_text()
+    np.testing.assert_allclose(eigen(x, kernel), default(x, kernel), rtol=1e-5, atol=1e-4)

@@ -16,6 +16,14 @@ that carry the most pixels:
   evaluates them as a matrix product with the nine taps followed by nine shifted adds, and the
   input gradient as nine shifted multiply-adds.
 
+Which library runs the remaining convolutions is a compiler option, chosen per network
+(:func:`compiler_options`): for ss-DPC-Net the jitted training step and inference hand *every*
+convolution to Eigen. YNNPACK computes the weight gradients of the transposed convolutions (8–64
+channels, phases at 4× the output channels) much more slowly than Eigen, and at 240×376
+ss-DPC-Net's step is faster without it (measured alternating with the default; the README's
+performance section has the figures). Stereo DPC keeps XLA's default: at the demo's size the two
+were equal, and the demo's published figures stay bit for bit what they are.
+
 ``benchmarks/bench_models.py`` measures the effect on the training step (figures are not kept here:
 they depend on the machine and go stale).
 """
@@ -28,6 +36,19 @@ import jax
 import jax.numpy as jnp
 
 NHWC = ("NHWC", "HWIO", "NHWC")
+
+
+# YNNPACK's fusions restricted to matrix products: the convolutions fall back to Eigen.
+EIGEN_CONVOLUTIONS = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_INDIVIDUAL_DOT"}
+
+
+def compiler_options(method: str) -> dict[str, str]:
+    """XLA compiler options for a jitted function that runs ``method``'s network (``jax.jit``'s
+    ``compiler_options``): :data:`EIGEN_CONVOLUTIONS` for ``"ss_dpc"`` on the CPU backend, none
+    otherwise (see the module docstring)."""
+    if method == "ss_dpc" and jax.default_backend() == "cpu":
+        return dict(EIGEN_CONVOLUTIONS)
+    return {}
 
 
 def _promote(x: jax.Array, kernel: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -95,23 +116,29 @@ def conv_s2(x: jax.Array, kernel: jax.Array) -> jax.Array:
 # ------------------------------------------------------------------ transposed convolution, ×2
 
 
-def _phase_taps(k: jax.Array, axis: int) -> jax.Array:
-    """Split the 3 taps of ``k`` along ``axis`` into [phase, offset] (new leading axes 0, 1).
-
-    Output position 2m (phase 0) takes tap 1 at input m; 2m+1 (phase 1) takes tap 0 at m and tap 2
-    at m+1. Pure data movement (an einsum with a 0/1 matrix would cost a badly shaped matmul).
-    """
-    tap = [jax.lax.index_in_dim(k, t, axis, keepdims=False) for t in range(3)]
-    zero = jnp.zeros_like(tap[0])
-    return jnp.stack([jnp.stack([tap[1], zero]), jnp.stack([tap[0], tap[2]])])
+# Along each axis, output phase q (position 2m + q) at input offset a (input m + a) takes tap
+# _PHASE_TAP[q][a] of the 3×3 kernel, or nothing.
+_PHASE_TAP = ((1, None), (0, 2))
 
 
 def _phase_kernel(kernel: jax.Array) -> jax.Array:
-    """``[3, 3, C_in, C_out]`` → ``[2, 2, C_in, 2, 2, C_out]`` = [row offset, col offset, C_in,
-    row phase, col phase, C_out]: the 2×2 stride-1 kernel of every output phase."""
-    rows = _phase_taps(kernel, 0)  # [a, q, 3 (col taps), C_in, C_out]
-    both = _phase_taps(rows, 2)  # [b, r, a, q, C_in, C_out]
-    return both.transpose(3, 1, 4, 2, 0, 5)
+    """``[3, 3, C_in, C_out]`` → ``[2, 2, C_in, 4·C_out]`` = [row offset, col offset, C_in,
+    (row phase, col phase, C_out)]: the 2×2 stride-1 kernel of every output phase.
+
+    Pure data movement, written as one concatenation in the final layout (a stack and a transpose
+    cost a second pass over the largest kernels on every call).
+    """
+    zero = jnp.zeros(kernel.shape[2:], kernel.dtype)
+
+    def taps(a: int, b: int) -> list[jax.Array]:
+        blocks = []
+        for q in (0, 1):
+            for r in (0, 1):
+                ty, tx = _PHASE_TAP[q][a], _PHASE_TAP[r][b]
+                blocks.append(zero if ty is None or tx is None else kernel[ty, tx])
+        return blocks
+
+    return jnp.stack([jnp.stack([jnp.concatenate(taps(a, b), axis=-1) for b in (0, 1)]) for a in (0, 1)])
 
 
 def upconv3x3_s2(x: jax.Array, kernel: jax.Array) -> jax.Array:
@@ -123,8 +150,8 @@ def upconv3x3_s2(x: jax.Array, kernel: jax.Array) -> jax.Array:
     then interleaved (depth-to-space).
     """
     x, kernel = _promote(x, kernel)
-    cin, cout = kernel.shape[2:]
-    phases = _phase_kernel(kernel).reshape(2, 2, cin, 4 * cout)
+    cout = kernel.shape[3]
+    phases = _phase_kernel(kernel)
     y = jax.lax.conv_general_dilated(x, phases, (1, 1), ((0, 1), (0, 1)), dimension_numbers=NHWC)
     b, h, w, _ = y.shape
     return y.reshape(b, h, w, 2, 2, cout).transpose(0, 1, 3, 2, 4, 5).reshape(b, 2 * h, 2 * w, cout)

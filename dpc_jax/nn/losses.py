@@ -21,7 +21,7 @@ frame t+1 from frame t therefore needs ``T_{t,t+1} = inv(T*)``, computed exactly
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import cast
+from typing import ClassVar, cast
 
 import jax.numpy as jnp
 from jax import Array
@@ -54,6 +54,8 @@ class SSDPCLossConfig:
     * ``depth_eps``: points closer than this (m) to the source camera plane are invalid.
     """
 
+    method: ClassVar[str] = "ss_dpc"
+
     exp_weight: float = 0.23
     rot_weight: float = 4.0
     rot_threshold: float = 0.005
@@ -73,6 +75,8 @@ class StereoDPCLossConfig:
     * ``rotation_only``, ``grad_threshold``, ``mask_floor``, ``depth_eps``: as in
       :class:`SSDPCLossConfig`.
     """
+
+    method: ClassVar[str] = "stereo_dpc"
 
     alpha: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 0.08)
     ssim_weight: float = 0.85
