@@ -117,6 +117,11 @@ def run(args: argparse.Namespace) -> int:
         return _error(problem)
     try:
         gt, estimates = _inputs(args)
+        if not 1 <= args.rpe_delta < gt.shape[0]:
+            # Checked here too (evaluate checks it after static-frame removal) so that the mistake
+            # is reported before JAX is imported.
+            raise ValueError(f"--rpe-delta must be in [1, {gt.shape[0] - 1}] for {gt.shape[0]} poses, "
+                             f"got {args.rpe_delta}")
         import_jax(x64=True)
         from dpc_jax._io import OutputSet, atomic_write
         from dpc_jax.eval.evaluation import evaluate, export_trajectories, format_table, write_report
