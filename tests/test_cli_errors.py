@@ -325,8 +325,8 @@ def test_bad_inputs_fail_before_jax_is_imported(data: dict[str, Path], tmp_path:
     correct = ["correct", "--checkpoint", data["run"], "--out", out / "c.txt"]
     cases = {
         "--mat {m}/a.mat: no such file": ["evaluate", "--mat", missing / "a.mat"],
-        "--rpe-delta must be in [1, ": ["evaluate", "--gt", data["gt"], "--est", data["prior"],
-                                        "--rpe-delta", "0"],
+        "--rpe-delta must be in [1, 29] for 30 poses, got 30": [
+            "evaluate", "--gt", data["gt"], "--est", data["gt"], "--label", "same", "--rpe-delta", "30"],
         "random.mat: not a readable MATLAB .mat file": ["evaluate", "--gt", data["gt"], "--est",
                                                         tmp_path / "random.mat"],
         "--data {m}: not a folder": [*correct, "--data", missing],
