@@ -273,8 +273,67 @@ def prepare_sequence(
     if size[0] < 8 or size[1] < 8:
         raise ValueError(f"image size {size} too small; expected (H, W) of at least 8×8")
 
+    inputs = _load_inputs(sequence, prior, prior_format, ground_truth, frames, mono_rescale)
+    parameters = {
+        "size": list(size), "remove_static": remove_static, "flow": flow, "flow_augment": flow_augment,
+        "mono_rescale": mono_rescale, "frames": [inputs.start, inputs.stop], "prior_format": prior_format,
+        "farneback": FARNEBACK if flow else None, "interpolation": "INTER_AREA",
+        "disparity_offset": float(disparity_offset),
+        "half_pixel_intrinsics": bool(half_pixel_intrinsics),
+    }
+    extra = [inputs.gt_source] if isinstance(inputs.gt_source, np.ndarray) else []
+    digest = input_hash(inputs.sequence, prior, parameters, extra)
+    target = out_dir / name
+    existing = read_manifest(target)
+    if not force and existing is not None and existing.get("input_hash") == digest:
+        log.info("%s: up to date (input hash %s)", target, digest[:12])
+        return target
+
+    kept = _kept_frames(inputs, remove_static)
+    tmp = _new_temp_folder(out_dir, name)
+    try:
+        _write_images_and_flows(
+            tmp, inputs.sequence, kept, size, disparity_offset=disparity_offset, flow=flow,
+            flow_augment=flow_augment, label=name, workers=workers, progress=progress,
+        )
+        K = _resized_intrinsics(inputs.sequence, size, half_pixel_intrinsics)
+        _write_poses_and_calibration(tmp, inputs, kept, K)
+        _write_manifest(tmp, _manifest(tmp, name, inputs, prior, digest, parameters, kept, size, K))
+        install_folder(tmp, target)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return target
+
+
+@dataclasses.dataclass(frozen=True)
+class _Inputs:
+    """The selected frames of a sequence with their poses, as :func:`_load_inputs` returns them."""
+
+    sequence: StereoSequence  # frames [start, stop); sources include the ground-truth file if any
+    prior_poses: np.ndarray  # float64 [N, 4, 4] camera-to-world, rescaled when mono_rescale
+    gt: np.ndarray | None  # float64 [N, 4, 4], None when unknown
+    gt_source: str | Path | np.ndarray | None  # None: the sequence's own poses (or none)
+    start: int
+    stop: int
+
+
+def _load_inputs(
+    sequence: StereoSequence,
+    prior: str | Path | np.ndarray,
+    prior_format: str | None,
+    ground_truth: str | Path | np.ndarray | None,
+    frames: tuple[int, int] | None,
+    mono_rescale: bool,
+) -> _Inputs:
+    """Prior and ground truth of the frames ``[start, stop)``, the prior rescaled with ``mono_rescale``.
+
+    Both are loaded and checked for every source frame before the cut, so a file of the wrong
+    length is reported as such rather than silently sliced.
+    """
     n_all = len(sequence)
     gt_source = ground_truth
+    # ss-DPC-Net .mat priors carry the ground truth too (poses_gt); use it when nothing else has one.
     if gt_source is None and sequence.poses is None and not isinstance(prior, np.ndarray):
         if (prior_format or Path(prior).suffix.lstrip(".").lower()) == "mat":
             gt_source = prior
@@ -291,101 +350,140 @@ def prepare_sequence(
         if gt is None:
             raise ValueError(f"{sequence.name}: mono_rescale needs ground truth, and none was given")
         prior_poses = rescale_monocular(prior_poses, gt)
-
-    parameters = {
-        "size": list(size), "remove_static": remove_static, "flow": flow, "flow_augment": flow_augment,
-        "mono_rescale": mono_rescale, "frames": [start, stop], "prior_format": prior_format,
-        "farneback": FARNEBACK if flow else None, "interpolation": "INTER_AREA",
-        "disparity_offset": float(disparity_offset),
-        "half_pixel_intrinsics": bool(half_pixel_intrinsics),
-    }
-    extra = [gt_source] if isinstance(gt_source, np.ndarray) else []
+    # A ground-truth file is an input like the calibration: hashed by content and listed in the manifest.
     if gt_source is not None and not isinstance(gt_source, np.ndarray):
         sequence = dataclasses.replace(sequence, sources=(*sequence.sources, Path(gt_source)))
-    digest = input_hash(sequence, prior, parameters, extra)
-    target = out_dir / name
-    existing = read_manifest(target)
-    if not force and existing is not None and existing.get("input_hash") == digest:
-        log.info("%s: up to date (input hash %s)", target, digest[:12])
-        return target
+    return _Inputs(sequence, prior_poses, gt, gt_source, start, stop)
 
-    kept = np.arange(len(sequence))
+
+def _kept_frames(inputs: _Inputs, remove_static: bool) -> np.ndarray:
+    """Indices into the selected frames that the cache stores, int64 ``[N]`` (at least 2)."""
+    kept = np.arange(len(inputs.sequence))
     if remove_static:
-        kept = np.asarray(remove_static_frames(prior_poses), dtype=np.int64)
+        kept = np.asarray(remove_static_frames(inputs.prior_poses), dtype=np.int64)
         if kept.size < 2:
-            raise ValueError(f"{sequence.name}: static-frame removal left {kept.size} frame(s); need 2")
+            raise ValueError(
+                f"{inputs.sequence.name}: static-frame removal left {kept.size} frame(s); need 2"
+            )
+    return kept
 
+
+def _new_temp_folder(out_dir: Path, name: str) -> Path:
+    """A new empty hidden folder in ``out_dir`` to build the cache ``name`` in (module docstring)."""
     out_dir.mkdir(parents=True, exist_ok=True)
+    # Leftovers of killed prepares into this root would otherwise pile up; running ones are spared.
     for kind in ("tmp", "old"):
         remove_stale(out_dir, f".{name}.{kind}-")
     tmp = out_dir / temp_name(f".{name}.tmp-")
     tmp.mkdir()
-    try:
-        n = kept.size
-        shape = (n, *size, 3)
-        arrays = {}
-        shifts = {"left": 0.0, "right": float(disparity_offset)}
-        for camera, paths in (("left", sequence.left_paths), ("right", sequence.right_paths)):
-            shift = shifts[camera]
-            out = np.lib.format.open_memmap(tmp / f"{camera}.npy", mode="w+", dtype=np.uint8, shape=shape)
-            frames_iter = _ordered_map(
-                lambda p, s=shift: _resized_frame(p, sequence.image_size, size, s), [paths[i] for i in kept],
-                workers,
-            )
-            with progress_bar(n, f"{name} {camera}", progress) as bar:
-                for k, image in enumerate(frames_iter):
-                    out[k] = image
-                    bar.update(1)
-            out.flush()
-            arrays[camera] = out
-        if flow:
-            _write_flows(tmp, arrays["left"], arrays["right"], flow_augment, workers, progress)
-        del arrays
-        (h0, w0), (h1, w1) = sequence.image_size, size
-        with jax.enable_x64(True):
-            K = np.asarray(scale_intrinsics(np.asarray(sequence.K, np.float64), w1 / w0, h1 / h0,
-                                            half_pixel=half_pixel_intrinsics), np.float64)
-        np.save(tmp / "prior.npy", prior_poses[kept])
-        if gt is not None:
-            np.save(tmp / "gt.npy", gt[kept])
-        np.save(tmp / "K.npy", K)
-        np.save(tmp / "baseline.npy", np.float64(sequence.baseline))
-        np.save(tmp / "indices.npy", kept + start)
-        np.save(tmp / "times.npy", sequence.times[kept])
-        manifest = {
-            "version": CACHE_VERSION,
-            "name": name,
-            "sequence": sequence.name,
-            "input_hash": digest,
-            "hash_method": "sha256: parameters, text/pose/prior files by content, images by path+size+mtime",
-            "parameters": parameters,
-            "sources": {
-                "left_images": str(sequence.left_paths[0].parent.resolve()),
-                "right_images": str(sequence.right_paths[0].parent.resolve()),
-                "files": [str(Path(p).resolve()) for p in sequence.sources],
-                "prior": "array" if isinstance(prior, np.ndarray) else str(Path(prior).resolve()),
-                "ground_truth": (
-                    None if gt is None else "array" if isinstance(gt_source, np.ndarray)
-                    else str(Path(gt_source).resolve()) if gt_source is not None else "sequence poses"
-                ),
-            },
-            "source_image_size": list(sequence.image_size),
-            "n_frames": int(n),
-            "n_source_frames": len(sequence),
-            "image_size": list(size),
-            "baseline": float(sequence.baseline),
-            "K": K.tolist(),
-            "has_gt": gt is not None,
-            "flows": [k for k, f in FLOW_FILES.items() if (tmp / f).exists()],
-        }
-        manifest_tmp = tmp / (MANIFEST + ".part")
-        manifest_tmp.write_text(json.dumps(manifest, indent=2))
-        os.replace(manifest_tmp, tmp / MANIFEST)
-        install_folder(tmp, target)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return target
+    return tmp
+
+
+def _write_images_and_flows(
+    tmp: Path,
+    sequence: StereoSequence,
+    kept: np.ndarray,
+    size: tuple[int, int],
+    *,
+    disparity_offset: float,
+    flow: bool,
+    flow_augment: bool,
+    label: str,
+    workers: int,
+    progress: Progress,
+) -> None:
+    """Write ``left.npy``/``right.npy``, uint8 ``[N, H, W, 3]`` with ``size = (H, W)``, of the ``kept``
+    frames into ``tmp``; with ``flow``, the flows of the stored images too (:func:`_write_flows`).
+
+    ``disparity_offset`` (px at the source resolution) shifts the right images before resizing.
+    """
+    n = kept.size
+    shape = (n, *size, 3)
+    arrays: dict[str, np.ndarray] = {}
+    shifts = {"left": 0.0, "right": float(disparity_offset)}
+    for camera, paths in (("left", sequence.left_paths), ("right", sequence.right_paths)):
+        shift = shifts[camera]
+        out = np.lib.format.open_memmap(tmp / f"{camera}.npy", mode="w+", dtype=np.uint8, shape=shape)
+        frames_iter = _ordered_map(
+            lambda p, s=shift: _resized_frame(p, sequence.image_size, size, s), [paths[i] for i in kept],
+            workers,
+        )
+        with progress_bar(n, f"{label} {camera}", progress) as bar:
+            for k, image in enumerate(frames_iter):
+                out[k] = image
+                bar.update(1)
+        out.flush()
+        arrays[camera] = out
+    if flow:
+        _write_flows(tmp, arrays["left"], arrays["right"], flow_augment, workers, progress)
+
+
+def _resized_intrinsics(sequence: StereoSequence, size: tuple[int, int], half_pixel: bool) -> np.ndarray:
+    """float64 ``[3, 3]`` intrinsics of ``sequence``'s images resized to ``size = (H, W)`` px."""
+    (h0, w0), (h1, w1) = sequence.image_size, size
+    # scale_intrinsics is JAX code, which computes in float32 unless x64 is on.
+    with jax.enable_x64(True):
+        return np.asarray(scale_intrinsics(np.asarray(sequence.K, np.float64), w1 / w0, h1 / h0,
+                                           half_pixel=half_pixel), np.float64)
+
+
+def _write_poses_and_calibration(tmp: Path, inputs: _Inputs, kept: np.ndarray, K: np.ndarray) -> None:
+    """Write the ``kept`` frames' poses, source frame numbers and times, and K and baseline, into ``tmp``."""
+    np.save(tmp / "prior.npy", inputs.prior_poses[kept])
+    if inputs.gt is not None:
+        np.save(tmp / "gt.npy", inputs.gt[kept])
+    np.save(tmp / "K.npy", K)
+    np.save(tmp / "baseline.npy", np.float64(inputs.sequence.baseline))
+    np.save(tmp / "indices.npy", kept + inputs.start)
+    np.save(tmp / "times.npy", inputs.sequence.times[kept])
+
+
+def _manifest(
+    tmp: Path,
+    name: str,
+    inputs: _Inputs,
+    prior: str | Path | np.ndarray,
+    digest: str,
+    parameters: dict,
+    kept: np.ndarray,
+    size: tuple[int, int],
+    K: np.ndarray,
+) -> dict:
+    """The manifest of the cache being built in ``tmp``; its ``flows`` are the flow files found there."""
+    sequence, gt, gt_source = inputs.sequence, inputs.gt, inputs.gt_source
+    return {
+        "version": CACHE_VERSION,
+        "name": name,
+        "sequence": sequence.name,
+        "input_hash": digest,
+        "hash_method": "sha256: parameters, text/pose/prior files by content, images by path+size+mtime",
+        "parameters": parameters,
+        "sources": {
+            "left_images": str(sequence.left_paths[0].parent.resolve()),
+            "right_images": str(sequence.right_paths[0].parent.resolve()),
+            "files": [str(Path(p).resolve()) for p in sequence.sources],
+            "prior": "array" if isinstance(prior, np.ndarray) else str(Path(prior).resolve()),
+            "ground_truth": (
+                None if gt is None else "array" if isinstance(gt_source, np.ndarray)
+                else str(Path(gt_source).resolve()) if gt_source is not None else "sequence poses"
+            ),
+        },
+        "source_image_size": list(sequence.image_size),
+        "n_frames": int(kept.size),
+        "n_source_frames": len(sequence),
+        "image_size": list(size),
+        "baseline": float(sequence.baseline),
+        "K": K.tolist(),
+        "has_gt": gt is not None,
+        "flows": [k for k, f in FLOW_FILES.items() if (tmp / f).exists()],
+    }
+
+
+def _write_manifest(tmp: Path, manifest: dict) -> None:
+    """Write ``manifest.json`` into ``tmp``, via a rename so that it is never seen half-written."""
+    manifest_tmp = tmp / (MANIFEST + ".part")
+    manifest_tmp.write_text(json.dumps(manifest, indent=2))
+    os.replace(manifest_tmp, tmp / MANIFEST)
 
 
 def _load_ground_truth(source: str | Path | np.ndarray, n: int) -> np.ndarray:
