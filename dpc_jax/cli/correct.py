@@ -10,6 +10,7 @@ import os
 import sys
 import tempfile
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from dpc_jax.cli._common import (
     Formatter,
@@ -19,6 +20,12 @@ from dpc_jax.cli._common import (
     output_problem,
     restore_problem,
 )
+
+if TYPE_CHECKING:
+    from dpc_jax.adapt import Adaptation
+    from dpc_jax.correct import Correction
+    from dpc_jax.data.pipeline import SequenceCache
+    from dpc_jax.inference import TrainedRun
 
 HELP = "Correct a VO trajectory with a trained network (T* = Exp(xi_corr) T_vo); evaluate it against GT."
 # Restart with huge-page malloc (dpc_jax.hugepages): the network runs about a quarter faster.
@@ -157,23 +164,11 @@ def run(args: argparse.Namespace) -> int:
     import_jax()
     # Orbax logs a warning per read-only checkpoint manager; they say nothing useful here.
     logging.getLogger("absl").setLevel(logging.ERROR)
-    from dpc_jax._io import OutputSet, remove_stale
-    from dpc_jax.correct import (
-        choose,
-        correct_cache,
-        prior_for_cache,
-        write_correction_report,
-        write_trajectory,
-    )
-    from dpc_jax.data.cache import prepare_sequence
-    from dpc_jax.data.kitti import open_odometry, open_raw
-    from dpc_jax.data.pipeline import SequenceCache, load_cache
-    from dpc_jax.eval.evaluation import format_table
+    from dpc_jax.data.pipeline import load_cache
     from dpc_jax.inference import load_run
     from dpc_jax.training.checkpoints import CheckpointError
 
-    progress = False if args.no_progress else None
-    show = sys.stderr.isatty() and not args.no_progress
+    # The stack holds the temporary cache of raw inputs, removed before the outputs are written.
     with contextlib.ExitStack() as stack:
         try:
             # The cache is checked before the network is restored and run.
@@ -182,44 +177,81 @@ def run(args: argparse.Namespace) -> int:
                 run_ = load_run(args.checkpoint, args.select)
             except CheckpointError as error:
                 return _error(restore_problem(error.folder, error.__cause__ or error))
-            cache: SequenceCache | Path
-            if args.data is not None:
-                assert checked is not None  # loaded above whenever --data is given
-                cache, prior = checked, args.prior
-            else:
-                if args.kitti_odometry is not None:
-                    sequence = open_odometry(args.kitti_odometry, args.sequence)
-                else:
-                    sequence = open_raw(args.kitti_raw, args.date, args.drive)
-                # The pid in the name lets a later run remove the folder of a killed one.
-                remove_stale(tempfile.gettempdir(), "dpc-correct-")
-                cache_root = args.cache or Path(
-                    stack.enter_context(tempfile.TemporaryDirectory(prefix=f"dpc-correct-{os.getpid()}-"))
-                )
-                cache = prepare_sequence(
-                    sequence, args.prior, cache_root, size=run_.image_size, flow=run_.use_flow,
-                    remove_static=args.remove_static, mono_rescale=args.mono_rescale, frames=args.frames,
-                    prior_format=args.prior_format, ground_truth=args.gt, progress=progress,
-                )
-                prior = None
-            adaptation = adapted = None
-            options = {"rotation_only": args.rotation_only, "batch_size": args.batch_size,
-                       "acceptance_depth": args.acceptance_depth, "alpha": args.alpha, "force": args.force}
-            if args.adapt:
-                from dpc_jax.adapt import AdaptConfig, adapt_and_correct
-
-                cache = load_cache(cache) if not isinstance(cache, SequenceCache) else cache
-                if prior is not None:
-                    cache = dataclasses.replace(cache, prior=prior_for_cache(cache, prior, args.prior_format))
-                how = AdaptConfig(args.adapt, holdout_every=args.holdout_every, learning_rate=args.adapt_lr)
-                trained = correct_cache(run_, cache, progress=show, **options)
-                adaptation, adapted = adapt_and_correct(run_, cache, how, progress=show, **options)
-                _, correction = choose(trained, adapted)
-            else:
-                correction = correct_cache(run_, cache, prior, prior_format=args.prior_format, progress=show,
-                                           **options)
+            cache, prior = _sequence(args, run_, checked, stack)
+            correction, adaptation, adapted = _correct(args, run_, cache, prior)
         except (OSError, ValueError, KeyError) as error:
             return _error(str(error))
+    written = _write_outputs(args, correction, adaptation, adapted)
+    _print_summary(args, run_, correction, adaptation, written)
+    return 0
+
+
+def _sequence(
+    args: argparse.Namespace, run_: TrainedRun, checked: SequenceCache | None, stack: contextlib.ExitStack
+) -> tuple[SequenceCache | Path, str | None]:
+    """The sequence to correct and the prior to correct instead of its own (None: the cache's).
+
+    ``checked``: the ``--data`` cache, loaded; else the raw inputs are prepared at the run's image size
+    into ``--cache`` or a temporary folder that ``stack`` removes, with ``--prior`` as the cache's prior.
+    """
+    if checked is not None:
+        return checked, args.prior
+    from dpc_jax._io import remove_stale
+    from dpc_jax.data.cache import prepare_sequence
+    from dpc_jax.data.kitti import open_odometry, open_raw
+
+    if args.kitti_odometry is not None:
+        sequence = open_odometry(args.kitti_odometry, args.sequence)
+    else:
+        sequence = open_raw(args.kitti_raw, args.date, args.drive)
+    # The pid in the name lets a later run remove the folder of a killed one.
+    remove_stale(tempfile.gettempdir(), "dpc-correct-")
+    cache_root = args.cache or Path(
+        stack.enter_context(tempfile.TemporaryDirectory(prefix=f"dpc-correct-{os.getpid()}-"))
+    )
+    cache = prepare_sequence(
+        sequence, args.prior, cache_root, size=run_.image_size, flow=run_.use_flow,
+        remove_static=args.remove_static, mono_rescale=args.mono_rescale, frames=args.frames,
+        prior_format=args.prior_format, ground_truth=args.gt, progress=False if args.no_progress else None,
+    )
+    return cache, None
+
+
+def _correct(
+    args: argparse.Namespace, run_: TrainedRun, cache: SequenceCache | Path, prior: str | None
+) -> tuple[Correction, Adaptation | None, Correction | None]:
+    """The correction to write, with ``--adapt`` also the adaptation and the adapted network's correction
+    (the one written only if :func:`~dpc_jax.correct.choose` prefers it to the trained network's)."""
+    from dpc_jax.correct import choose, correct_cache, prior_for_cache
+    from dpc_jax.data.pipeline import SequenceCache, load_cache
+
+    show = sys.stderr.isatty() and not args.no_progress
+    options = {"rotation_only": args.rotation_only, "batch_size": args.batch_size,
+               "acceptance_depth": args.acceptance_depth, "alpha": args.alpha, "force": args.force}
+    if not args.adapt:
+        correction = correct_cache(run_, cache, prior, prior_format=args.prior_format, progress=show,
+                                   **options)
+        return correction, None, None
+    from dpc_jax.adapt import AdaptConfig, adapt_and_correct
+
+    cache = load_cache(cache) if not isinstance(cache, SequenceCache) else cache
+    if prior is not None:
+        cache = dataclasses.replace(cache, prior=prior_for_cache(cache, prior, args.prior_format))
+    how = AdaptConfig(args.adapt, holdout_every=args.holdout_every, learning_rate=args.adapt_lr)
+    trained = correct_cache(run_, cache, progress=show, **options)
+    adaptation, adapted = adapt_and_correct(run_, cache, how, progress=show, **options)
+    _, correction = choose(trained, adapted)
+    return correction, adaptation, adapted
+
+
+def _write_outputs(
+    args: argparse.Namespace, correction: Correction, adaptation: Adaptation | None,
+    adapted: Correction | None,
+) -> list[Path]:
+    """Write ``--out`` (and its frame list), ``--report`` and the adapted network; the trajectory files."""
+    from dpc_jax._io import OutputSet
+    from dpc_jax.correct import write_correction_report, write_trajectory
+
     # The corrected trajectory (with its frame list) and the report are written all or nothing.
     with OutputSet() as outputs:
         staged = write_trajectory(outputs.file(args.out), correction, args.format)
@@ -232,7 +264,16 @@ def run(args: argparse.Namespace) -> int:
             save_adapted(outputs.folder(adapted_path(args.out)), adaptation,
                          {"delta": adapted.acceptance.mean_delta})
         outputs.commit()
-    written = [args.out.parent / path.name for path in staged]
+    return [args.out.parent / path.name for path in staged]
+
+
+def _print_summary(
+    args: argparse.Namespace, run_: TrainedRun, correction: Correction, adaptation: Adaptation | None,
+    written: list[Path],
+) -> None:
+    """Print what was applied and written, the metrics against ground truth and the adaptation's outcome."""
+    from dpc_jax.eval.evaluation import format_table
+
     criterion = {"delta": "most negative validation Δ", "gradient": "best gradient loss",
                  "loop": "most loop closures", "last": "newest"}[args.select]
     if correction.applied == "none":
@@ -256,4 +297,3 @@ def run(args: argparse.Namespace) -> int:
         print(f"final: {correction.choice['final']} ({correction.choice['reason']})")
     if args.report is not None:
         print(f"report: {args.report / 'report.md'}")
-    return 0
