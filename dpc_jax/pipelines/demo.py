@@ -44,7 +44,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -52,6 +52,14 @@ from dpc_jax import config as config_lib
 from dpc_jax._io import atomic_write
 from dpc_jax.inference import SELECTIONS
 from dpc_jax.vo.odometry import FALLBACK_WARNING_SHARE
+
+if TYPE_CHECKING:
+    from dpc_jax.adapt import Adaptation
+    from dpc_jax.correct import Correction
+    from dpc_jax.data.kitti import StereoSequence
+    from dpc_jax.data.pipeline import SequenceCache
+    from dpc_jax.eval.evaluation import Evaluation
+    from dpc_jax.training.config import TrainConfig
 
 # Training defaults of the demo (``TrainConfig`` fields); ``DemoConfig.training`` overrides them.
 TRAINING: dict[str, Any] = {
@@ -279,11 +287,10 @@ def _results_table(summary: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _write_report(out: Path, config: DemoConfig, train_config: Any, evaluation: Any, summary: dict[str, Any],
-                  run_dir: Path) -> Path:
-    """``OUT/report.md`` with the tables, the per-length errors, the records and the plots."""
+def _write_evaluation_files(out: Path, evaluation: Evaluation) -> None:
+    """The plots and the metric files (``metrics.csv``, ``segment_errors.csv``, ``metrics.json``)."""
     from dpc_jax.eval import plots
-    from dpc_jax.eval.evaluation import format_segment_table, metrics_csv, segment_csv
+    from dpc_jax.eval.evaluation import metrics_csv, segment_csv
 
     plots.plot_trajectories(out / "trajectory.png", evaluation.gt, evaluation.trajectories)
     plots.plot_segment_errors(out / "segment_errors.png", evaluation.metrics)
@@ -292,20 +299,12 @@ def _write_report(out: Path, config: DemoConfig, train_config: Any, evaluation: 
     atomic_write(out / "segment_errors.csv", segment_csv(evaluation))
     atomic_write(out / "metrics.json", evaluation.to_json())
 
-    prior, corrected = (summary["test"][k] for k in ("prior", "corrected"))
-    change = {k: summary["change_pct"][k] for k in ("seg_trans_pct", "seg_rot_deg_per_100m")}
+
+def _overview(config: DemoConfig, train_config: TrainConfig, summary: dict[str, Any]) -> list[str]:
+    """The report's title and its paragraph on the data, the prior and the network."""
     lengths = ", ".join(f"{n}: {summary['lengths_m'][n]:.0f} m" for n in config.sequences)
     size = train_config.resolved_image_size
-    stages = ", ".join(f"{k} {v:.0f} s" for k, v in summary["seconds"].items())
-    adaptation = summary.get("adaptation")
-    adapted = (
-        f"Adaptation: {adaptation['steps']} steps on the test sequence's own pairs "
-        f"({adaptation['seconds']:.0f} s), every {adaptation['holdout_every']}th pair "
-        f"({adaptation['held_out']} pairs) kept out for its "
-        "acceptance test; the adapted network is in `adapted/`."
-        if adaptation else "No adaptation (adapt_steps = 0)."
-    )
-    text = "\n".join([
+    return [
         "# dpc_jax synthetic demo: Stereo DPC corrects a classical stereo VO",
         "",
         f"Synthetic stereo sequences ({config.render_size[0]}×{config.render_size[1]}, 10 Hz) with moving "
@@ -320,6 +319,12 @@ def _write_report(out: Path, config: DemoConfig, train_config: Any, evaluation: 
         f"{train_config.epochs} epoch(s) of {summary['steps_per_epoch']} steps (batch "
         f"{train_config.batch_size}); epoch {summary['selected_epoch']} selected by `{config.select}`.",
         "",
+    ]
+
+
+def _composition_section(summary: dict[str, Any]) -> list[str]:
+    """The report's section on what each sequence's prior error consists of."""
+    return [
         "## What the prior's error consists of (ground truth, for this report only)",
         "",
         "Per sequence: constant-velocity fallbacks of the prior's VO, the disparity offset our VO measured, "
@@ -327,6 +332,29 @@ def _write_report(out: Path, config: DemoConfig, train_config: Any, evaluation: 
         "and its spread (random: it averages out over a segment).",
         "",
         _composition_table(summary["sequences"]),
+    ]
+
+
+def _adaptation_paragraph(adaptation: dict[str, Any] | None) -> str:
+    """What the adaptation to the test sequence did, or that there was none."""
+    if not adaptation:
+        return "No adaptation (adapt_steps = 0)."
+    return (
+        f"Adaptation: {adaptation['steps']} steps on the test sequence's own pairs "
+        f"({adaptation['seconds']:.0f} s), every {adaptation['holdout_every']}th pair "
+        f"({adaptation['held_out']} pairs) kept out for its "
+        "acceptance test; the adapted network is in `adapted/`."
+    )
+
+
+def _test_section(evaluation: Evaluation, summary: dict[str, Any]) -> list[str]:
+    """The report's test section: the table, the final trajectory against the prior, the adaptation, the
+    per-length errors and the plots."""
+    from dpc_jax.eval.evaluation import format_segment_table
+
+    prior, corrected = (summary["test"][k] for k in ("prior", "corrected"))
+    change = {k: summary["change_pct"][k] for k in ("seg_trans_pct", "seg_rot_deg_per_100m")}
+    return [
         "## Test sequence",
         "",
         _results_table(summary),
@@ -336,7 +364,7 @@ def _write_report(out: Path, config: DemoConfig, train_config: Any, evaluation: 
         f"({change['seg_rot_deg_per_100m']:+.1f} %). The acceptance test decides without ground truth "
         "(docs/method.md §8); the network rows show each network's proposal whatever its test said.",
         "",
-        adapted,
+        _adaptation_paragraph(summary.get("adaptation")),
         "",
         "Segment errors per length (translation % / rotation °/100 m):",
         "",
@@ -347,6 +375,13 @@ def _write_report(out: Path, config: DemoConfig, train_config: Any, evaluation: 
         "",
         "![cumulative errors](c_ate.png)",
         "",
+    ]
+
+
+def _training_section(summary: dict[str, Any], run_dir: Path) -> list[str]:
+    """The report's training section (per-epoch validation figures), the wall time and the list of files."""
+    stages = ", ".join(f"{k} {v:.0f} s" for k, v in summary["seconds"].items())
+    return [
         "## Training (validation sequence; ground-truth errors logged, never used)",
         "",
         _epoch_table(run_dir / "metrics.csv", summary["selected_epoch"]),
@@ -357,6 +392,18 @@ def _write_report(out: Path, config: DemoConfig, train_config: Any, evaluation: 
         "TensorBoard), `adapted/` (the adapted network, its log), `vo/` (priors and calibration runs), "
         "`data/` (rendered sequences), `cache/`.",
         "",
+    ]
+
+
+def _write_report(out: Path, config: DemoConfig, train_config: TrainConfig, evaluation: Evaluation,
+                  summary: dict[str, Any], run_dir: Path) -> Path:
+    """``OUT/report.md`` with the tables, the per-length errors, the records and the plots."""
+    _write_evaluation_files(out, evaluation)
+    text = "\n".join([
+        *_overview(config, train_config, summary),
+        *_composition_section(summary),
+        *_test_section(evaluation, summary),
+        *_training_section(summary, run_dir),
     ])
     atomic_write(out / "report.md", text)
     return out / "report.md"
@@ -367,6 +414,157 @@ def _change(prior: float | None, corrected: float | None) -> float:
     if prior is None or corrected is None or prior == 0:
         return math.nan
     return 100.0 * (corrected - prior) / prior
+
+
+def _vo_prior(config: DemoConfig, name: str, sequence: StereoSequence, first_pose: np.ndarray, vo_dir: Path,
+              progress: bool) -> tuple[dict[str, Any], float]:
+    """Sequence ``name``'s VO prior (refused if it is not VO) and the disparity offset our VO measures."""
+    from dpc_jax.vo import VOConfig
+    from dpc_jax.vo.prior import vo_prior
+
+    libviso2_like = VOConfig(estimate_offset=config.vo_estimate_offset)
+    prior = vo_prior(sequence, vo_dir / f"{name}.txt", libviso2_like, first_pose=first_pose,
+                     progress=progress)
+    if prior["fallbacks"] > config.max_fallback_share * prior["pairs"]:
+        raise DemoError(
+            f"{name}: our VO fell back to constant velocity on {prior['fallbacks']} of {prior['pairs']} "
+            f"pairs (more than {config.max_fallback_share:.0%}); a correction trained on such a prior "
+            "shows nothing. Render larger images (render_size) or with less noise"
+        )
+    calibration = vo_prior(sequence, vo_dir / f"{name}.calibration.txt", VOConfig(estimate_offset=True),
+                           first_pose=first_pose, progress=progress)
+    return prior, calibration["disparity_offset_median_px"]
+
+
+def _prepare_sequences(config: DemoConfig, out: Path, size: tuple[int, int], seconds: dict[str, float],
+                       progress: bool, say: ProgressFn) -> tuple[dict[str, dict[str, Any]], dict[str, float]]:
+    """Render every sequence, run its VO prior and calibration, and prepare its cache, one sequence at a
+    time; return each sequence's prior record (fallbacks, pairs, offset, error) and its length (m)."""
+    from dpc_jax.data.cache import prepare_sequence
+    from dpc_jax.data.kitti import open_odometry
+    from dpc_jax.data.poses_io import read_kitti_poses
+
+    data_root, vo_dir, cache_root = out / "data", out / "vo", out / "cache"
+    records: dict[str, dict[str, Any]] = {}
+    lengths = {}
+    for name in config.sequences:
+        t = time.perf_counter()
+        rendered = _render(config, data_root, name, progress)
+        seconds["render"] += time.perf_counter() - t
+        sequence = open_odometry(data_root, name)
+        if sequence.poses is None:  # every rendered sequence has its poses; a reused folder might not
+            raise DemoError(f"{name}: no ground-truth poses in {data_root}")
+        t = time.perf_counter()
+        prior, offset = _vo_prior(config, name, sequence, sequence.poses[0], vo_dir, progress)
+        seconds["vo"] += time.perf_counter() - t
+        t = time.perf_counter()
+        prepare_sequence(sequence, prior["path"], cache_root, size=size,
+                         disparity_offset=offset if config.rectify_offset else 0.0, progress=progress)
+        seconds["prepare"] += time.perf_counter() - t
+        records[name] = {"fallbacks": prior["fallbacks"], "pairs": prior["pairs"], "offset": offset,
+                         "error": prior_error(sequence.poses, read_kitti_poses(prior["path"]))}
+        lengths[name] = float(np.linalg.norm(np.diff(sequence.poses[:, :3, 3], axis=0), axis=1).sum())
+        say(f"{name}: {len(sequence)} frames, {lengths[name]:.0f} m"
+            + (" (rendered)" if rendered else " (reused)")
+            + f"; prior: {prior['fallbacks']} fallbacks, measured disparity offset {offset:+.3f} px")
+    return records, lengths
+
+
+def _train(train_config: TrainConfig, run_dir: Path, seconds: dict[str, float], progress: bool,
+           say: ProgressFn) -> dict[str, Any]:
+    """Train the network in ``run_dir`` (resuming an interrupted run, restoring a finished one)."""
+    from dpc_jax.training.loop import train
+
+    t = time.perf_counter()
+    trained = train(train_config, run_dir, resume=True, progress=progress)
+    seconds["train"] = time.perf_counter() - t
+    say(f"trained: {trained['epochs']} epochs, {trained['step']} steps")
+    return trained
+
+
+@dataclass(frozen=True)
+class _TestCorrections:
+    """The test sequence's corrections (``trained``, ``adapted`` if adapted), the adaptation, and the
+    final one (``result``, chosen as ``final``) with the epoch the network was restored at."""
+
+    epoch: int
+    cache: SequenceCache
+    corrections: dict[str, Correction]
+    adaptation: Adaptation | None
+    final: str
+    result: Correction
+
+
+def _correct_test(config: DemoConfig, out: Path, seconds: dict[str, float], progress: bool,
+                  say: ProgressFn) -> _TestCorrections:
+    """Correct the test sequence with the network as trained and, unless ``adapt_steps`` is 0, adapted to
+    it; choose the final correction and write it to ``corrected.txt``."""
+    from dpc_jax.adapt import AdaptConfig, adapt_and_correct, save_adapted
+    from dpc_jax.correct import choose, correct_cache, write_trajectory
+    from dpc_jax.data.pipeline import load_cache
+    from dpc_jax.inference import load_run
+
+    t = time.perf_counter()
+    run = load_run(out / "run", config.select)
+    test_cache = load_cache(out / "cache" / "test")
+    corrections = {"trained": correct_cache(run, test_cache, force=not config.acceptance, progress=progress)}
+    seconds["correct"] = time.perf_counter() - t
+    say(f"network as trained (epoch {run.epoch}): {_decision(corrections['trained'])} on the test sequence")
+    adaptation: Adaptation | None = None
+    if config.adapt_steps:
+        t = time.perf_counter()
+        how = AdaptConfig(config.adapt_steps, holdout_every=config.holdout_every)
+        adaptation, corrections["adapted"] = adapt_and_correct(
+            run, test_cache, how, force=not config.acceptance, progress=progress)
+        save_adapted(out / "adapted", adaptation, {"delta": corrections["adapted"].acceptance.mean_delta})
+        seconds["adapt"] = time.perf_counter() - t
+        say(f"adapted ({config.adapt_steps} steps): {_decision(corrections['adapted'])} on held-out pairs")
+    final, result = choose(corrections["trained"], corrections.get("adapted"))
+    write_trajectory(out / "corrected.txt", result)
+    return _TestCorrections(run.epoch, test_cache, corrections, adaptation, final, result)
+
+
+def _evaluate_test(config: DemoConfig, tested: _TestCorrections,
+                   trained: dict[str, Any]) -> tuple[Evaluation, dict[str, Any]]:
+    """Evaluate the test trajectories against the ground truth (read here only); return the evaluation and
+    the summary's entries on the test sequence and the network."""
+    import jax
+
+    from dpc_jax.eval.evaluation import evaluate
+
+    gt = np.asarray(tested.cache.gt, np.float64)
+    proposals = {k: c.proposed for k, c in tested.corrections.items()}
+    estimates = {"prior": tested.result.prior, **proposals, "corrected": tested.result.corrected}
+    with jax.enable_x64(True):
+        evaluation = evaluate(gt, estimates)
+    test_metrics = {label: dict(evaluation.estimates[label]) for label in estimates}
+    change = {k: _change(test_metrics["prior"][k], test_metrics["corrected"][k])
+              for k in ("seg_trans_pct", "seg_rot_deg_per_100m")}
+    return evaluation, {
+        "test": test_metrics,
+        "decisions": {k: _decision(c) for k, c in tested.corrections.items()},
+        "acceptance": {k: c.acceptance.to_dict() for k, c in tested.corrections.items()},
+        "final": tested.final,
+        "choice": tested.result.choice,
+        "change_pct": change,
+        "corrected_better": all(v < 0 for v in change.values()),
+        "selected_epoch": tested.epoch,
+        "select": config.select,
+        "steps_per_epoch": trained["step"] // max(1, trained["epochs"]),
+    }
+
+
+def _write_results(out: Path, config: DemoConfig, train_config: TrainConfig, evaluation: Evaluation,
+                   summary: dict[str, Any], began: float) -> None:
+    """Write ``report.md`` (with its plots and metric files), then ``summary.json``."""
+    t = time.perf_counter()
+    # The report states the wall time up to itself; summary.json then gets the total with the report's time.
+    summary["seconds_total"] = time.perf_counter() - began
+    report = _write_report(out, config, train_config, evaluation, summary, out / "run")
+    summary["seconds"]["report"] = time.perf_counter() - t
+    summary["seconds_total"] = time.perf_counter() - began
+    summary["report"] = str(report)
+    config_lib.save_json(out / "summary.json", summary)
 
 
 def run_demo(config: DemoConfig, out: str | os.PathLike, progress: bool = False,
@@ -382,117 +580,26 @@ def run_demo(config: DemoConfig, out: str | os.PathLike, progress: bool = False,
     """
     import jax
 
-    from dpc_jax.adapt import AdaptConfig, adapt_and_correct, save_adapted
-    from dpc_jax.correct import choose, correct_cache, write_trajectory
-    from dpc_jax.data.cache import prepare_sequence
-    from dpc_jax.data.kitti import open_odometry
-    from dpc_jax.data.pipeline import load_cache
-    from dpc_jax.eval.evaluation import evaluate
-    from dpc_jax.inference import load_run
-    from dpc_jax.training.loop import train
-    from dpc_jax.vo import VOConfig
-    from dpc_jax.vo.prior import vo_prior
-
     say = log or (lambda line: None)
     out = Path(out).absolute()
     out.mkdir(parents=True, exist_ok=True)
-    data_root, vo_dir, cache_root, run_dir = out / "data", out / "vo", out / "cache", out / "run"
-    train_config = config.train_config(cache_root)
+    train_config = config.train_config(out / "cache")
     size = train_config.resolved_image_size
     seconds = dict.fromkeys(("render", "vo", "prepare"), 0.0)
     began = time.perf_counter()
 
-    records: dict[str, dict[str, Any]] = {}
-    lengths = {}
-    for name in config.sequences:
-        t = time.perf_counter()
-        rendered = _render(config, data_root, name, progress)
-        seconds["render"] += time.perf_counter() - t
-        sequence = open_odometry(data_root, name)
-        if sequence.poses is None:  # every rendered sequence has its poses; a reused folder might not
-            raise DemoError(f"{name}: no ground-truth poses in {data_root}")
-        t = time.perf_counter()
-        libviso2_like = VOConfig(estimate_offset=config.vo_estimate_offset)
-        prior = vo_prior(sequence, vo_dir / f"{name}.txt", libviso2_like, first_pose=sequence.poses[0],
-                         progress=progress)
-        if prior["fallbacks"] > config.max_fallback_share * prior["pairs"]:
-            raise DemoError(
-                f"{name}: our VO fell back to constant velocity on {prior['fallbacks']} of {prior['pairs']} "
-                f"pairs (more than {config.max_fallback_share:.0%}); a correction trained on such a prior "
-                "shows nothing. Render larger images (render_size) or with less noise"
-            )
-        calibration = vo_prior(sequence, vo_dir / f"{name}.calibration.txt", VOConfig(estimate_offset=True),
-                               first_pose=sequence.poses[0], progress=progress)
-        offset = calibration["disparity_offset_median_px"]
-        seconds["vo"] += time.perf_counter() - t
-        t = time.perf_counter()
-        prepare_sequence(sequence, prior["path"], cache_root, size=size,
-                         disparity_offset=offset if config.rectify_offset else 0.0, progress=progress)
-        seconds["prepare"] += time.perf_counter() - t
-        from dpc_jax.data.poses_io import read_kitti_poses
-
-        records[name] = {"fallbacks": prior["fallbacks"], "pairs": prior["pairs"], "offset": offset,
-                         "error": prior_error(sequence.poses, read_kitti_poses(prior["path"]))}
-        lengths[name] = float(np.linalg.norm(np.diff(sequence.poses[:, :3, 3], axis=0), axis=1).sum())
-        say(f"{name}: {len(sequence)} frames, {lengths[name]:.0f} m"
-            + (" (rendered)" if rendered else " (reused)")
-            + f"; prior: {prior['fallbacks']} fallbacks, measured disparity offset {offset:+.3f} px")
-
-    t = time.perf_counter()
-    trained = train(train_config, run_dir, resume=True, progress=progress)
-    seconds["train"] = time.perf_counter() - t
-    say(f"trained: {trained['epochs']} epochs, {trained['step']} steps")
-
-    t = time.perf_counter()
-    run = load_run(run_dir, config.select)
-    test_cache = load_cache(cache_root / "test")
-    corrections = {"trained": correct_cache(run, test_cache, force=not config.acceptance, progress=progress)}
-    seconds["correct"] = time.perf_counter() - t
-    say(f"network as trained (epoch {run.epoch}): {_decision(corrections['trained'])} on the test sequence")
-    adaptation = None
-    if config.adapt_steps:
-        t = time.perf_counter()
-        how = AdaptConfig(config.adapt_steps, holdout_every=config.holdout_every)
-        adaptation, corrections["adapted"] = adapt_and_correct(
-            run, test_cache, how, force=not config.acceptance, progress=progress)
-        save_adapted(out / "adapted", adaptation, {"delta": corrections["adapted"].acceptance.mean_delta})
-        seconds["adapt"] = time.perf_counter() - t
-        say(f"adapted ({config.adapt_steps} steps): {_decision(corrections['adapted'])} on held-out pairs")
-    final, result = choose(corrections["trained"], corrections.get("adapted"))
-    write_trajectory(out / "corrected.txt", result)
-
-    gt = np.asarray(test_cache.gt, np.float64)
-    proposals = {k: c.proposed for k, c in corrections.items()}
-    estimates = {"prior": result.prior, **proposals, "corrected": result.corrected}
-    with jax.enable_x64(True):
-        evaluation = evaluate(gt, estimates)
-    test_metrics = {label: dict(evaluation.estimates[label]) for label in estimates}
-    change = {k: _change(test_metrics["prior"][k], test_metrics["corrected"][k])
-              for k in ("seg_trans_pct", "seg_rot_deg_per_100m")}
-    summary: dict[str, Any] = {
-        "test": test_metrics,
-        "decisions": {k: _decision(c) for k, c in corrections.items()},
-        "acceptance": {k: c.acceptance.to_dict() for k, c in corrections.items()},
-        "final": final,
-        "choice": result.choice,
-        "change_pct": change,
-        "corrected_better": all(v < 0 for v in change.values()),
-        "selected_epoch": run.epoch,
-        "select": config.select,
-        "steps_per_epoch": trained["step"] // max(1, trained["epochs"]),
+    records, lengths = _prepare_sequences(config, out, size, seconds, progress, say)
+    trained = _train(train_config, out / "run", seconds, progress, say)
+    tested = _correct_test(config, out, seconds, progress, say)
+    evaluation, summary = _evaluate_test(config, tested, trained)
+    summary.update({
         "sequences": records,
         "lengths_m": lengths,
-        "seconds": seconds,
+        "seconds": seconds,  # the same dict: the report stage adds its time after the report is written
         "devices": [str(d) for d in jax.devices()],
         "config": config_lib.to_dict(config),
-    }
-    if adaptation is not None:
-        summary["adaptation"] = adaptation.summary()
-    t = time.perf_counter()
-    summary["seconds_total"] = time.perf_counter() - began
-    report = _write_report(out, config, train_config, evaluation, summary, run_dir)
-    seconds["report"] = time.perf_counter() - t
-    summary["seconds_total"] = time.perf_counter() - began
-    summary["report"] = str(report)
-    config_lib.save_json(out / "summary.json", summary)
+    })
+    if tested.adaptation is not None:
+        summary["adaptation"] = tested.adaptation.summary()
+    _write_results(out, config, train_config, evaluation, summary, began)
     return summary
