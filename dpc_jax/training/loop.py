@@ -35,7 +35,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import numpy as np
@@ -55,6 +55,11 @@ from dpc_jax.training.checkpoints import Checkpoints
 from dpc_jax.training.config import TrainConfig
 from dpc_jax.training.optim import create_train_state, learning_rate_schedule, make_optimizer
 from dpc_jax.training.steps import NonFiniteLossError, make_train_step
+
+if TYPE_CHECKING:
+    import optax
+
+    from dpc_jax.training.checkpoints import Record
 
 # --------------------------------------------------------------------------- data
 
@@ -422,6 +427,111 @@ def _check_finite_validation(val: dict[str, Any], epoch: int) -> None:
         )
 
 
+@dataclass(frozen=True)
+class _Run:
+    """What the epochs of one ``train`` call share (the state, step and best records they advance are passed
+    from one to the next)."""
+
+    config: TrainConfig
+    data: TrainData
+    mesh: Mesh
+    model_graphdef: nnx.GraphDef
+    graphdef: nnx.GraphDef
+    train_step: Callable[..., tuple[nnx.State, dict[str, jax.Array]]]
+    schedule: optax.Schedule
+    checkpoints: Checkpoints
+    log: MetricsLog
+    progress: bool
+    is_main: bool
+
+
+def _open_run(
+    config: TrainConfig,
+    workdir: Path,
+    resume: bool,
+    distributed: dict[str, Any] | None,
+    workers: int,
+) -> tuple[bool, TrainData, Mesh]:
+    """Check the workdir, join the distributed run, open the data and make the mesh; return whether
+    there is a run to resume, the data and the mesh. Raises ``ConfigError`` before any compute."""
+    has_run = check_workdir(config, workdir, resume)
+    if config.distributed:
+        parallel.initialize_distributed(**(distributed or {}))
+    data = open_data(config, workers=workers)
+    if has_run:
+        _check_split(workdir, data.split)
+    mesh = parallel.make_mesh()
+    try:
+        parallel.check_batch_size(config.batch_size, mesh)
+    except ValueError as error:
+        raise ConfigError(str(error)) from None
+    return has_run, data, mesh
+
+
+def _start_run(
+    config: TrainConfig, workdir: Path, data: TrainData, mesh: Mesh, has_run: bool, progress: bool
+) -> tuple[_Run, nnx.State, dict[str, Any] | None]:
+    """Build the model, optimizer and train state, restore the newest epoch checkpoint of a run being
+    resumed (else record the new run's config and split), make the schedule and the train step and
+    open the metrics log. Returns the run, the state and the restored checkpoint's meta (or None)."""
+    is_main = jax.process_index() == 0
+    model_graphdef, graphdef, state = _initial_state(config, data, mesh)
+    checkpoints = Checkpoints(workdir, keep_last=config.keep_checkpoints)
+    meta: dict[str, Any] | None = None
+    if has_run and checkpoints.latest_epoch() is not None:
+        abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, state)
+        state, meta = checkpoints.restore(abstract)
+    elif is_main:
+        config_lib.save_json(checkpoints.root / "config.json", config)
+        config_lib.save_json(checkpoints.root / "split.json", data.split)
+    schedule = learning_rate_schedule(config.learning_rate, config.lr_halving_epochs, data.steps_per_epoch)
+    train_step = make_train_step(config.loss_config(), config.warmup_steps(data.steps_per_epoch), mesh)
+    log = MetricsLog(workdir, meta["epoch"] if meta else 0, meta["step"] if meta else 0, enabled=is_main)
+    run = _Run(config, data, mesh, model_graphdef, graphdef, train_step, schedule, checkpoints, log, progress,
+               is_main)
+    return run, state, meta
+
+
+def _run_epoch(
+    run: _Run, epoch: int, state: nnx.State, step: int, best: dict[str, Record]
+) -> tuple[nnx.State, int, dict[str, Any], dict[str, Record]]:
+    """Train epoch ``epoch`` from optimizer step ``step``, validate, log its metrics row, save its
+    checkpoint and print its line; return the new state, step, row and best records."""
+    config, data = run.config, run.data
+    began = time.perf_counter()
+    learning_rate = float(run.schedule(step))
+    state, train_means = _train_epoch(
+        epoch, run.graphdef, state, run.train_step, data, config, run.mesh, step, run.log, run.progress
+    )
+    step += data.steps_per_epoch
+    val = validate(run.model_graphdef, state[0], data, config, run.mesh)
+    _check_finite_validation(val, epoch)
+    row = {
+        "epoch": epoch,
+        "step": step,
+        "learning_rate": learning_rate,
+        **train_means,
+        **val,
+        "epoch_time_s": time.perf_counter() - began,
+    }
+    run.log.epoch(row)
+    # ``data`` is where a resume picks up: the next epoch, from its first batch, in the same order.
+    meta = {
+        "step": step,
+        "metrics": row,
+        "data": {
+            "next_epoch": epoch + 1,
+            "next_batch": 0,
+            "data_seed": config.data_seed,
+            "steps_per_epoch": data.steps_per_epoch,
+        },
+    }
+    best = run.checkpoints.save(epoch, state, meta, best)
+    if run.is_main:
+        print(_epoch_line(row), file=sys.stderr if run.progress else sys.stdout, flush=True)
+    return state, step, row, best
+
+
 def train(
     config: TrainConfig,
     workdir: str | os.PathLike,
@@ -448,76 +558,20 @@ def train(
     or a workdir holding another run. ``NonFiniteLossError`` when a loss becomes NaN/inf.
     """
     workdir = Path(workdir).absolute()
-    has_run = check_workdir(config, workdir, resume)
-    if config.distributed:
-        parallel.initialize_distributed(**(distributed or {}))
+    has_run, data, mesh = _open_run(config, workdir, resume, distributed, workers)
     progress = sys.stderr.isatty() if progress is None else progress
-    data = open_data(config, workers=workers)
-    if has_run:
-        _check_split(workdir, data.split)
-    mesh = parallel.make_mesh()
-    try:
-        parallel.check_batch_size(config.batch_size, mesh)
-    except ValueError as error:
-        raise ConfigError(str(error)) from None
-    is_main = jax.process_index() == 0
-
-    model_graphdef, graphdef, state = _initial_state(config, data, mesh)
-    checkpoints = Checkpoints(workdir, keep_last=config.keep_checkpoints)
-    meta: dict[str, Any] | None = None
-    if has_run and checkpoints.latest_epoch() is not None:
-        abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, state)
-        state, meta = checkpoints.restore(abstract)
-    elif is_main:
-        config_lib.save_json(checkpoints.root / "config.json", config)
-        config_lib.save_json(checkpoints.root / "split.json", data.split)
+    run, state, meta = _start_run(config, workdir, data, mesh, has_run, progress)
     start_epoch = meta["epoch"] if meta else 0
     step = meta["step"] if meta else 0
     best = Checkpoints.best_records(meta)
-    schedule = learning_rate_schedule(config.learning_rate, config.lr_halving_epochs, data.steps_per_epoch)
-
-    train_step = make_train_step(config.loss_config(), config.warmup_steps(data.steps_per_epoch), mesh)
-    log = MetricsLog(workdir, start_epoch, step, enabled=is_main)
+    # A resumed run with no epoch left to do reports the metrics of its last checkpoint.
     row: dict[str, Any] = meta["metrics"] if meta else {}
     try:
         for epoch in range(start_epoch + 1, config.epochs + 1):
-            began = time.perf_counter()
-            learning_rate = float(schedule(step))
-            state, train_means = _train_epoch(
-                epoch, graphdef, state, train_step, data, config, mesh, step, log, progress
-            )
-            step += data.steps_per_epoch
-            val = validate(model_graphdef, state[0], data, config, mesh)
-            _check_finite_validation(val, epoch)
-            row = {
-                "epoch": epoch,
-                "step": step,
-                "learning_rate": learning_rate,
-                **train_means,
-                **val,
-                "epoch_time_s": time.perf_counter() - began,
-            }
-            log.epoch(row)
-            best = checkpoints.save(
-                epoch,
-                state,
-                {
-                    "step": step,
-                    "metrics": row,
-                    "data": {
-                        "next_epoch": epoch + 1,
-                        "next_batch": 0,
-                        "data_seed": config.data_seed,
-                        "steps_per_epoch": data.steps_per_epoch,
-                    },
-                },
-                best,
-            )
-            if is_main:
-                print(_epoch_line(row), file=sys.stderr if progress else sys.stdout, flush=True)
+            state, step, row, best = _run_epoch(run, epoch, state, step, best)
     finally:
-        log.close()
-        checkpoints.close()
+        run.log.close()
+        run.checkpoints.close()
     return {
         "workdir": str(workdir),
         "epochs": config.epochs,
