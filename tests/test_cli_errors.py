@@ -319,6 +319,7 @@ def test_bad_inputs_fail_before_jax_is_imported(data: dict[str, Path], tmp_path:
     """Every command checks its inputs (and options and outputs) before it imports JAX, so a mistake
     costs a fraction of a second: run in a fresh interpreter, JAX is still not imported afterwards."""
     (tmp_path / "empty").mkdir()
+    (tmp_path / "taken" / "sequences" / "00").mkdir(parents=True)
     (tmp_path / "random.mat").write_bytes(bytes(range(256)))
     (tmp_path / "no_config.py").write_text("X = 1\n")
     missing, out = tmp_path / "missing", tmp_path / "out"
@@ -346,6 +347,8 @@ def test_bad_inputs_fail_before_jax_is_imported(data: dict[str, Path], tmp_path:
         "--kitti-odometry {m}: no such folder": ["vo", "--kitti-odometry", missing, "--sequence", "00",
                                                  "--out", out / "t.txt"],
         "frames must be at least 2": ["synth", "--out", out / "synth", "--frames", "1"],
+        "taken/sequences already holds sequence(s) 00; pass --overwrite": [
+            "synth", "--out", tmp_path / "taken", "--frames", "2", "--sequences", "1"],
         "missing/c.py: config file not found": ["train", "--config", missing / "c.py", "--workdir",
                                                 out / "run"],
         "no_config.py: defines no CONFIG": ["train", "--config", tmp_path / "no_config.py", "--workdir",

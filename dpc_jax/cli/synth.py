@@ -65,11 +65,14 @@ def run(args: argparse.Namespace) -> int:
     if problem is not None:
         return _error(problem)
     from dpc_jax.synth import SynthConfig, write_sequences  # the renderer imports JAX when it starts
+    from dpc_jax.synth.writer import check_sequences_free
 
     try:
         config = SynthConfig(frames=args.frames, height=args.size[0], width=args.size[1], seed=args.seed,
                              moving_objects=args.moving_objects, illumination_drift=args.illumination_drift,
                              noise=args.noise, disparity_offset=args.disparity_offset)
+        if not args.overwrite:
+            check_sequences_free(args.out, args.sequences)
         import_jax()
         paths = write_sequences(args.out, config, sequences=args.sequences, overwrite=args.overwrite,
                                 progress=progress_mode(args.no_progress))

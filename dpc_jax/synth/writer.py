@@ -102,6 +102,21 @@ def write_sequence(out: Path | str, name: str, config: SynthConfig, overwrite: b
     return seq_dir
 
 
+def _sequence_names(sequences: int) -> list[str]:
+    if sequences < 1:
+        raise ValueError(f"sequences must be >= 1, got {sequences}")
+    return [f"{i:02d}" for i in range(sequences)]
+
+
+def check_sequences_free(out: Path | str, sequences: int) -> None:
+    """Raise ``FileExistsError`` naming those of the sequences ``00, 01, ...`` (``sequences`` of them)
+    that already exist under ``out``, as :func:`write_sequences` does without ``overwrite``; the
+    command line calls it before it imports JAX."""
+    existing = [n for n in _sequence_names(sequences) if (Path(out) / "sequences" / n).exists()]
+    if existing:
+        raise FileExistsError(f"{Path(out) / 'sequences'} already holds sequence(s) {', '.join(existing)}")
+
+
 def write_sequences(out: Path | str, config: SynthConfig, sequences: int = 4, overwrite: bool = False,
                     progress: Progress = None) -> list[Path]:
     """Write ``sequences`` sequences ``00, 01, ...`` (seeds ``config.seed + i``) under ``out``.
@@ -109,14 +124,10 @@ def write_sequences(out: Path | str, config: SynthConfig, sequences: int = 4, ov
     ``progress``: a tqdm bar over all frames (default: only when stderr is a terminal), or
     ``"lines"`` for plain progress lines (see :mod:`dpc_jax._progress`).
     """
-    if sequences < 1:
-        raise ValueError(f"sequences must be >= 1, got {sequences}")
     out = Path(out)
-    names = [f"{i:02d}" for i in range(sequences)]
+    names = _sequence_names(sequences)
     if not overwrite:
-        existing = [n for n in names if (out / "sequences" / n).exists()]
-        if existing:
-            raise FileExistsError(f"{out / 'sequences'} already holds sequence(s) {', '.join(existing)}")
+        check_sequences_free(out, sequences)
     paths = []
     with progress_bar(sequences * config.frames, "synth", progress) as bar:
         for i, name in enumerate(names):
