@@ -56,7 +56,7 @@ import cv2
 import jax
 import numpy as np
 
-from dpc_jax._io import install_folder, remove_stale, temp_name
+from dpc_jax._io import atomic_write, install_folder, remove_stale, temp_name
 from dpc_jax._progress import Progress, progress_bar
 from dpc_jax.data.kitti import StereoSequence, load_image, read_ground_truth
 from dpc_jax.data.poses_io import validate_poses
@@ -298,7 +298,8 @@ def prepare_sequence(
         )
         K = _resized_intrinsics(inputs.sequence, size, half_pixel_intrinsics)
         _write_poses_and_calibration(tmp, inputs, kept, K)
-        _write_manifest(tmp, _manifest(tmp, name, inputs, prior, digest, parameters, kept, size, K))
+        manifest = _manifest(tmp, name, inputs, prior, digest, parameters, kept, size, K)
+        atomic_write(tmp / MANIFEST, json.dumps(manifest, indent=2))
         install_folder(tmp, target)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -477,13 +478,6 @@ def _manifest(
         "has_gt": gt is not None,
         "flows": [k for k, f in FLOW_FILES.items() if (tmp / f).exists()],
     }
-
-
-def _write_manifest(tmp: Path, manifest: dict) -> None:
-    """Write ``manifest.json`` into ``tmp``, via a rename so that it is never seen half-written."""
-    manifest_tmp = tmp / (MANIFEST + ".part")
-    manifest_tmp.write_text(json.dumps(manifest, indent=2))
-    os.replace(manifest_tmp, tmp / MANIFEST)
 
 
 def _load_ground_truth(source: str | Path | np.ndarray, n: int) -> np.ndarray:

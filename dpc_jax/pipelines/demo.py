@@ -74,6 +74,8 @@ TRAINING: dict[str, Any] = {
 }
 # The demo sets these itself (paths and split).
 _MANAGED = ("cache_root", "train_sequences", "validation_sequences", "test_sequences")
+# The run and the caches inside OUT (the report lists them as `run/` and `cache/`).
+_RUN_DIR, _CACHE_DIR = "run", "cache"
 
 
 class DemoError(ValueError):
@@ -444,7 +446,7 @@ def _prepare_sequences(config: DemoConfig, out: Path, size: tuple[int, int], sec
     from dpc_jax.data.kitti import open_odometry
     from dpc_jax.data.poses_io import read_kitti_poses
 
-    data_root, vo_dir, cache_root = out / "data", out / "vo", out / "cache"
+    data_root, vo_dir, cache_root = out / "data", out / "vo", out / _CACHE_DIR
     records: dict[str, dict[str, Any]] = {}
     lengths = {}
     for name in config.sequences:
@@ -505,8 +507,8 @@ def _correct_test(config: DemoConfig, out: Path, seconds: dict[str, float], prog
     from dpc_jax.inference import load_run
 
     t = time.perf_counter()
-    run = load_run(out / "run", config.select)
-    test_cache = load_cache(out / "cache" / "test")
+    run = load_run(out / _RUN_DIR, config.select)
+    test_cache = load_cache(out / _CACHE_DIR / "test")
     corrections = {"trained": correct_cache(run, test_cache, force=not config.acceptance, progress=progress)}
     seconds["correct"] = time.perf_counter() - t
     say(f"network as trained (epoch {run.epoch}): {_decision(corrections['trained'])} on the test sequence")
@@ -560,7 +562,7 @@ def _write_results(out: Path, config: DemoConfig, train_config: TrainConfig, eva
     t = time.perf_counter()
     # The report states the wall time up to itself; summary.json then gets the total with the report's time.
     summary["seconds_total"] = time.perf_counter() - began
-    report = _write_report(out, config, train_config, evaluation, summary, out / "run")
+    report = _write_report(out, config, train_config, evaluation, summary, out / _RUN_DIR)
     summary["seconds"]["report"] = time.perf_counter() - t
     summary["seconds_total"] = time.perf_counter() - began
     summary["report"] = str(report)
@@ -583,13 +585,13 @@ def run_demo(config: DemoConfig, out: str | os.PathLike, progress: bool = False,
     say = log or (lambda line: None)
     out = Path(out).absolute()
     out.mkdir(parents=True, exist_ok=True)
-    train_config = config.train_config(out / "cache")
+    train_config = config.train_config(out / _CACHE_DIR)
     size = train_config.resolved_image_size
     seconds = dict.fromkeys(("render", "vo", "prepare"), 0.0)
     began = time.perf_counter()
 
     records, lengths = _prepare_sequences(config, out, size, seconds, progress, say)
-    trained = _train(train_config, out / "run", seconds, progress, say)
+    trained = _train(train_config, out / _RUN_DIR, seconds, progress, say)
     tested = _correct_test(config, out, seconds, progress, say)
     evaluation, summary = _evaluate_test(config, tested, trained)
     summary.update({
