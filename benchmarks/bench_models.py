@@ -94,10 +94,10 @@ def build(method: str, preset: str, hw: tuple[int, int]) -> dict[str, Callable]:
     model = create_model(method, config, seed=0)
     graphdef, params, stats = nnx.split(model, nnx.Param, ...)
     loss = loss_fn(method)
-    # The library's jitted steps compile the network with these options too.
-    jit = functools.partial(jax.jit, compiler_options=compiler_options(method))
+    # The library's jitted inference and training step compile the network with these options too.
+    jit = functools.partial(jax.jit, compiler_options=compiler_options(method, training=True))
 
-    @jit
+    @functools.partial(jax.jit, compiler_options=compiler_options(method, training=False))
     def infer(params: nnx.State, stats: nnx.State, batch: Batch):
         m = nnx.merge(graphdef, params, stats)
         m.eval()

@@ -162,7 +162,7 @@ def _predict_step(mesh: Mesh | None, method: str) -> Any:
         deltas = correction_deltas(outputs, batch, config, valid)
         return {"xi_corr": outputs.xi_corr, "loss": loss, **deltas}
 
-    kwargs: dict[str, Any] = {"compiler_options": compiler_options(method)}
+    kwargs: dict[str, Any] = {"compiler_options": compiler_options(method, training=False)}
     if mesh is not None:
         kwargs["out_shardings"] = parallel.replicated(mesh)
     return jax.jit(step, static_argnums=(0, 3), **kwargs)

@@ -74,15 +74,18 @@ def test_kernel_shape_errors() -> None:
 
 
 @pytest.mark.skipif(jax.default_backend() != "cpu", reason="the options concern XLA's CPU backend")
-def test_compiler_options_move_ss_dpc_convolutions_off_ynnpack() -> None:
-    # 32 channels: a convolution XLA's default hands to YNNPACK. With ss-DPC-Net's options it must
-    # compile (the option exists in this jaxlib), run on another library, and give the same values.
+def test_compiler_options_move_convolutions_off_ynnpack() -> None:
+    # 32 channels: a convolution XLA's default hands to YNNPACK. With the Eigen options (ss-DPC-Net's
+    # training step, both networks' inference) it must compile (the option exists in this jaxlib),
+    # run on another library, and give the same values; Stereo DPC's training step keeps the default.
     rng = np.random.default_rng(5)
     x = jnp.asarray(rng.normal(size=(2, 12, 10, 32)), jnp.float32)
     kernel = jnp.asarray(rng.normal(size=(3, 3, 32, 32)), jnp.float32)
-    assert compiler_options("stereo_dpc") == {}
+    assert compiler_options("stereo_dpc", training=True) == {}
+    options = compiler_options("ss_dpc", training=True)
+    for method in ("ss_dpc", "stereo_dpc"):
+        assert compiler_options(method, training=False) == options
     default = jax.jit(_reference_same3x3).lower(x, kernel).compile()
-    options = compiler_options("ss_dpc")
     eigen = jax.jit(_reference_same3x3, compiler_options=options).lower(x, kernel).compile()
     assert "ynn_fusion" in default.as_text()
     assert "ynn_fusion" not in eigen.as_text() and "convolution(" in eigen.as_text()

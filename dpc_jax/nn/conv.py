@@ -16,13 +16,15 @@ that carry the most pixels:
   evaluates them as a matrix product with the nine taps followed by nine shifted adds, and the
   input gradient as nine shifted multiply-adds.
 
-Which library runs the remaining convolutions is a compiler option, chosen per network
-(:func:`compiler_options`): for ss-DPC-Net the jitted training step and inference hand *every*
-convolution to Eigen. YNNPACK computes the weight gradients of the transposed convolutions (8–64
-channels, phases at 4× the output channels) much more slowly than Eigen, and at 240×376
-ss-DPC-Net's step is faster without it (measured alternating with the default; the README's
-performance section has the figures). Stereo DPC keeps XLA's default: at the demo's size the two
-were equal, and the demo's published figures stay bit for bit what they are.
+Which library runs the remaining convolutions is a compiler option, chosen per network and per
+use (:func:`compiler_options`): Eigen runs *every* convolution of ss-DPC-Net's training step, and
+of both networks' inference. YNNPACK computes the weight gradients of the transposed convolutions
+(8–64 channels, phases at 4× the output channels) much more slowly than Eigen, and its forward
+convolutions at these channel counts are no faster: at 240×376 ss-DPC-Net's step and both
+networks' inference are faster without it (measured alternating with the default; the README's
+performance section has the figures). Stereo DPC's training step keeps XLA's default: there the
+two were equal at the demo's size and the default slightly faster at 240×376, and the demo's
+trained networks stay bit for bit what they are.
 
 ``benchmarks/bench_models.py`` measures the effect on the training step (figures are not kept here:
 they depend on the machine and go stale).
@@ -42,11 +44,12 @@ NHWC = ("NHWC", "HWIO", "NHWC")
 EIGEN_CONVOLUTIONS = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_INDIVIDUAL_DOT"}
 
 
-def compiler_options(method: str) -> dict[str, str]:
+def compiler_options(method: str, *, training: bool) -> dict[str, str]:
     """XLA compiler options for a jitted function that runs ``method``'s network (``jax.jit``'s
-    ``compiler_options``): :data:`EIGEN_CONVOLUTIONS` for ``"ss_dpc"`` on the CPU backend, none
-    otherwise (see the module docstring)."""
-    if method == "ss_dpc" and jax.default_backend() == "cpu":
+    ``compiler_options``): on the CPU backend :data:`EIGEN_CONVOLUTIONS` for inference and for
+    ``"ss_dpc"``'s training step, none for ``"stereo_dpc"``'s training step or on other backends
+    (see the module docstring)."""
+    if jax.default_backend() == "cpu" and (method == "ss_dpc" or not training):
         return dict(EIGEN_CONVOLUTIONS)
     return {}
 

@@ -57,7 +57,7 @@ def make_train_step(loss_config: Any, warmup_steps: int = 0, mesh: Mesh | None =
         metrics = {"loss": loss, **terms, "grad_norm": optax.tree.norm(grads)}
         return nnx.state((model, optimizer)), metrics
 
-    kwargs: dict[str, Any] = {"compiler_options": compiler_options(loss_config.method)}
+    kwargs: dict[str, Any] = {"compiler_options": compiler_options(loss_config.method, training=True)}
     if mesh is not None:
         kwargs["out_shardings"] = parallel.replicated(mesh)
     return jax.jit(step, static_argnums=0, donate_argnums=1, **kwargs)
