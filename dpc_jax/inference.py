@@ -34,12 +34,7 @@ from dpc_jax.nn.batch import Batch
 from dpc_jax.nn.conv import compiler_options
 from dpc_jax.nn.losses import correction_deltas, dpc_loss
 from dpc_jax.training import parallel
-from dpc_jax.training.config import TrainConfig
-
-# Selection criterion → checkpoint folder (see dpc_jax.training.checkpoints).
-SELECTIONS = {
-    "delta": "best_delta", "gradient": "best_gradient_loss", "loop": "best_loop_closures", "last": "epochs",
-}
+from dpc_jax.training.config import SELECTIONS, TrainConfig
 
 
 @dataclass(frozen=True)

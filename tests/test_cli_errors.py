@@ -322,6 +322,7 @@ def test_bad_inputs_fail_before_jax_is_imported(data: dict[str, Path], tmp_path:
     (tmp_path / "taken" / "sequences" / "00").mkdir(parents=True)
     (tmp_path / "random.mat").write_bytes(bytes(range(256)))
     (tmp_path / "no_config.py").write_text("X = 1\n")
+    (tmp_path / "bad_demo.py").write_text('CONFIG = {"select": "best"}\n')
     missing, out = tmp_path / "missing", tmp_path / "out"
     correct = ["correct", "--checkpoint", data["run"], "--out", out / "c.txt"]
     cases = {
@@ -354,6 +355,7 @@ def test_bad_inputs_fail_before_jax_is_imported(data: dict[str, Path], tmp_path:
         "no_config.py: defines no CONFIG": ["train", "--config", tmp_path / "no_config.py", "--workdir",
                                             out / "run"],
         "--config {m}/c.py: no such file": ["demo", "--config", missing / "c.py", "--out", out / "demo"],
+        "select must be one of": ["demo", "--config", tmp_path / "bad_demo.py", "--out", out / "demo"],
     }
     argvs = [[str(a) for a in argv] for argv in cases.values()]
     code = ("import json, sys; from dpc_jax.cli import main; "

@@ -39,16 +39,19 @@ def run(args: argparse.Namespace) -> int:
     if problem is not None:
         print(f"dpc-jax demo: error: {problem}", file=sys.stderr)
         return 2
-    import_jax()
+    # The config is checked before JAX is imported: a bad one fails at once.
     from dpc_jax.config import ConfigError, load_file
-    from dpc_jax.pipelines.demo import DemoConfig, DemoError, run_demo
-    from dpc_jax.training.checkpoints import CheckpointError
+    from dpc_jax.pipelines.demo import DemoConfig
 
     try:
         config = load_file(args.config, DemoConfig) if args.config is not None else DemoConfig()
     except ConfigError as error:
         print(f"dpc-jax demo: error: {error}", file=sys.stderr)
         return 2
+    import_jax()
+    from dpc_jax.pipelines.demo import DemoError, run_demo
+    from dpc_jax.training.checkpoints import CheckpointError
+
     progress = not args.no_progress and sys.stderr.isatty()
     # orbax logs a warning for every read-only checkpoint directory it opens when restoring the run.
     logging.getLogger("absl").setLevel(logging.ERROR)

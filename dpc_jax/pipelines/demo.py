@@ -50,7 +50,7 @@ import numpy as np
 
 from dpc_jax import config as config_lib
 from dpc_jax._io import atomic_write
-from dpc_jax.inference import SELECTIONS
+from dpc_jax.training.config import SELECTIONS
 from dpc_jax.vo.odometry import FALLBACK_WARNING_SHARE
 
 if TYPE_CHECKING:

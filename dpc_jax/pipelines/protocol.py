@@ -348,7 +348,7 @@ def write_fake_odometry(
 
 def add_common_arguments(parser: Any, config: Path) -> None:
     """Options every entry point has: work folder, config, epoch selection, overrides, smoke, progress."""
-    from dpc_jax.inference import SELECTIONS
+    from dpc_jax.training.config import SELECTIONS
 
     parser.add_argument("--workdir", required=True, type=Path, metavar="DIR", help="everything goes here")
     parser.add_argument("--config", type=Path, default=config, metavar="FILE", help="experiment config")

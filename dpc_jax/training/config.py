@@ -51,6 +51,11 @@ from dpc_jax.config import ConfigError, unknown_key_error
 METHODS = ("ss_dpc", "stereo_dpc")
 PRIOR_NORMALIZATIONS = ("none", "train_statistics")
 ACCEPTANCE_DEPTHS = ("network", "sgbm")
+# Epoch selection criterion (``dpc-jax correct --select``) → the run's checkpoint folder holding
+# that epoch (see dpc_jax.training.checkpoints).
+SELECTIONS = {
+    "delta": "best_delta", "gradient": "best_gradient_loss", "loop": "best_loop_closures", "last": "epochs",
+}
 
 # The published choices of the correction head (see the module docstring).
 REFERENCE: dict[str, Any] = {
