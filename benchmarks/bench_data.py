@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dpc_jax.data.cache import FLOW_FILES, MANIFEST
-from dpc_jax.data.pipeline import PAIR_KINDS, TrainLoader, load_cache
+from dpc_jax.data.pipeline import TrainLoader
+from dpc_jax.data.sequence_cache import FLOW_FILES, MANIFEST, PAIR_KINDS, load_cache
 
 
 def synthetic_cache(root: Path, frames: int, size: tuple[int, int], seed: int = 0) -> Path:

@@ -41,9 +41,10 @@ from flax import nnx
 
 from dpc_jax.hugepages import reexec_with_huge_pages
 from dpc_jax.nn.batch import Batch
+from dpc_jax.nn.config import PRESETS, SSDPCLossConfig, StereoDPCLossConfig
 from dpc_jax.nn.conv import compiler_options
-from dpc_jax.nn.losses import SSDPCLossConfig, StereoDPCLossConfig, ss_dpc_loss, stereo_dpc_loss
-from dpc_jax.nn.models import PRESETS, create_model
+from dpc_jax.nn.losses import ss_dpc_loss, stereo_dpc_loss
+from dpc_jax.nn.models import create_model
 
 
 def timeit(fn: Callable[..., object], args: tuple, repeats: int) -> tuple[float, float, float, float]:

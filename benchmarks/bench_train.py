@@ -24,7 +24,8 @@ import numpy as np
 
 from dpc_jax.hugepages import reexec_with_huge_pages
 from dpc_jax.nn.batch import Batch
-from dpc_jax.nn.models import PRESETS, create_model
+from dpc_jax.nn.config import PRESETS
+from dpc_jax.nn.models import create_model
 from dpc_jax.training import parallel
 from dpc_jax.training.config import REFERENCE, TrainConfig
 from dpc_jax.training.optim import create_train_state, make_optimizer

@@ -19,8 +19,9 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "dpc_jax.geometry.warp": ("bilinear_sample", "inverse_warp", "stereo_warp", "disparity_consistency"),
     "dpc_jax.geometry.ssim": ("ssim_loss",),
     "dpc_jax.geometry.correction": ("apply_correction", "corrected_trajectory"),
+    "dpc_jax.nn.config": ("ModelConfig", "PRESETS", "SSDPCLossConfig", "StereoDPCLossConfig"),
     "dpc_jax.nn.losses": (
-        "SSDPCLossConfig", "StereoDPCLossConfig", "ss_dpc_loss", "stereo_dpc_loss", "dpc_loss",
+        "ss_dpc_loss", "stereo_dpc_loss", "dpc_loss",
         "gradient_loss", "temporal_pair_errors", "correction_deltas",
     ),
     "dpc_jax.nn.batch": ("Batch",),
@@ -36,14 +37,15 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     ),
     "dpc_jax.eval.evaluation": ("evaluate", "Evaluation", "write_report", "export_trajectories"),
     "dpc_jax.data": (
-        "StereoSequence", "open_odometry", "open_raw", "load_image", "prepare_sequence", "load_cache",
+        "StereoSequence", "open_odometry", "open_raw", "load_image", "prepare_sequence",
         "TrainLoader", "iterate_sequence", "leave_one_out",
     ),
+    "dpc_jax.data.sequence_cache": ("load_cache",),
     "dpc_jax.synth": ("SynthConfig", "render_sequence", "write_sequences"),
     "dpc_jax.vo": ("StereoVO", "VOConfig", "VOResult", "VOStatus", "run_vo", "run_vo_frames"),
     "dpc_jax.nn.conv": ("conv_s2", "upconv3x3_s2", "conv3x3_few_outputs"),
     "dpc_jax.nn.models": (
-        "ModelConfig", "PRESETS", "MonoDPC", "StereoDPC", "create_model", "count_parameters",
+        "MonoDPC", "StereoDPC", "create_model", "count_parameters",
     ),
     "dpc_jax.training.config": ("TrainConfig", "REFERENCE"),
     "dpc_jax.training.optim": ("make_optimizer", "create_train_state", "learning_rate_schedule"),

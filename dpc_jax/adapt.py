@@ -35,7 +35,8 @@ from flax import nnx
 from tqdm.auto import tqdm
 
 from dpc_jax._io import atomic_write
-from dpc_jax.data.pipeline import SequenceCache, TrainLoader
+from dpc_jax.data.pipeline import TrainLoader
+from dpc_jax.data.sequence_cache import SequenceCache
 from dpc_jax.inference import TrainedRun
 from dpc_jax.training.optim import create_train_state, make_optimizer
 from dpc_jax.training.steps import NonFiniteLossError, make_train_step

@@ -41,8 +41,8 @@ from dpc_jax.acceptance import (
     component_test,
     forced,
 )
-from dpc_jax.data.pipeline import SequenceCache, load_cache
 from dpc_jax.data.poses_io import WRITE_FORMATS, write_kitti_poses, write_tum
+from dpc_jax.data.sequence_cache import SequenceCache, load_cache
 from dpc_jax.eval.evaluation import Evaluation
 from dpc_jax.inference import SequencePrediction, TrainedRun, run_prediction
 

@@ -29,7 +29,8 @@ from flax import nnx
 from jax.sharding import Mesh
 from tqdm.auto import tqdm
 
-from dpc_jax.data.pipeline import SequenceCache, iterate_sequence, load_cache
+from dpc_jax.data.pipeline import iterate_sequence
+from dpc_jax.data.sequence_cache import SequenceCache, load_cache
 from dpc_jax.nn.batch import Batch
 from dpc_jax.nn.conv import compiler_options
 from dpc_jax.nn.losses import correction_deltas, dpc_loss

@@ -39,7 +39,7 @@ def evaluate_folder(folder: Path) -> list[dict[str, Any]]:
     import numpy as np
 
     from dpc_jax.correct import correct_cache
-    from dpc_jax.data.pipeline import load_cache
+    from dpc_jax.data.sequence_cache import load_cache
     from dpc_jax.inference import load_run
 
     cache = load_cache(folder / "cache" / "test")

@@ -12,7 +12,8 @@ from dpc_jax.data.priors import log_poses
 from dpc_jax.geometry.lie import se3_exp
 from dpc_jax.geometry.poses import relative_poses
 from dpc_jax.nn.batch import Batch
-from dpc_jax.nn.losses import SSDPCLossConfig, StereoDPCLossConfig, correction_deltas, temporal_pair_errors
+from dpc_jax.nn.config import SSDPCLossConfig, StereoDPCLossConfig
+from dpc_jax.nn.losses import correction_deltas, temporal_pair_errors
 from dpc_jax.nn.outputs import BranchOutputs, DPCOutputs
 from dpc_jax.synth import SynthConfig, render_sequence
 

@@ -12,7 +12,7 @@ from flax import nnx
 from dpc_jax.adapt import AdaptConfig, adapt, held_out_pairs, save_adapted
 from dpc_jax.data.cache import prepare_sequence
 from dpc_jax.data.kitti import open_odometry
-from dpc_jax.data.pipeline import load_cache
+from dpc_jax.data.sequence_cache import load_cache
 from dpc_jax.geometry.lie import se3_exp
 from dpc_jax.geometry.poses import compose, relative_poses
 from dpc_jax.inference import TrainedRun, load_run, run_prediction

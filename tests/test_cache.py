@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -16,7 +18,7 @@ from test_kitti import write_odometry
 from dpc_jax.cli import main
 from dpc_jax.data.cache import prepare_sequence
 from dpc_jax.data.kitti import open_odometry, open_raw
-from dpc_jax.data.pipeline import load_cache
+from dpc_jax.data.sequence_cache import MANIFEST, load_cache, training_sequences
 from dpc_jax.geometry.warp import stereo_warp
 
 RAW = SHARED / "data" / "kitti-raw"
@@ -230,3 +232,26 @@ def test_cli_prepares_fixture_and_reports_bad_input(tmp_path: Path, capsys: pyte
     assert main(args) == 1
     err = capsys.readouterr().err
     assert "prior_00.txt: 3 prior poses for 5 frames" in err and "Traceback" not in err
+
+
+def test_the_cache_reader_imports_neither_jax_nor_opencv() -> None:
+    # The command line loads and checks a cache before it starts JAX.
+    code = ("import sys, dpc_jax.data.sequence_cache; "
+            "print([m for m in ('jax', 'jaxlib', 'flax', 'cv2') if m in sys.modules])")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+
+def test_training_sequences_default_to_every_cached_one_but_validation_and_test(tmp_path: Path) -> None:
+    for name in ("00", "02", "05", "07"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / MANIFEST).write_text("{}")
+    (tmp_path / "08").mkdir()  # no manifest: not a cache (an interrupted prepare)
+    assert training_sequences(tmp_path, (), ("05",), ("07",)) == ["00", "02"]
+    assert training_sequences(tmp_path, ("02",), ("05",), ()) == ["02"]
+    with pytest.raises(ValueError, match=r"train_sequences \['08'\] are not prepared under"):
+        training_sequences(tmp_path, ("08",), ("05",), ())
+    with pytest.raises(ValueError, match="no training sequence under"):
+        training_sequences(tmp_path, (), ("00", "02"), ("05", "07"))
+    with pytest.raises(ValueError, match="is not a directory"):
+        training_sequences(tmp_path / "missing", (), ("05",), ())

@@ -34,8 +34,8 @@ from dpc_jax.cli import build_parser, main
 from dpc_jax.cli._common import Formatter, progress_mode, restore_problem
 from dpc_jax.data.cache import prepare_sequence
 from dpc_jax.data.kitti import open_odometry
-from dpc_jax.data.pipeline import CacheError, load_cache
 from dpc_jax.data.poses_io import read_trajectory, write_kitti_poses, write_tum
+from dpc_jax.data.sequence_cache import CacheError, load_cache
 
 ROOT = Path(__file__).resolve().parents[1]
 N_POSES = 30
@@ -324,6 +324,14 @@ def test_bad_inputs_fail_before_jax_is_imported(data: dict[str, Path], tmp_path:
     (tmp_path / "no_config.py").write_text("X = 1\n")
     (tmp_path / "bad_demo.py").write_text('CONFIG = {"select": "best"}\n')
     missing, out = tmp_path / "missing", tmp_path / "out"
+    shutil.copytree(data["cache"], tmp_path / "damaged")
+    _damage(tmp_path / "damaged", "broken manifest")
+    for name in ("00", "05", "07"):
+        shutil.copytree(data["cache"], tmp_path / "caches" / name)
+    # train_sequences is empty: 07 is a training sequence (every cached one but the validation one).
+    _damage(tmp_path / "caches" / "07", "manifest without n_frames")
+    _train_config(tmp_path / "no_cache.py", missing / "cache")
+    _train_config(tmp_path / "damaged_cache.py", tmp_path / "caches")
     correct = ["correct", "--checkpoint", data["run"], "--out", out / "c.txt"]
     cases = {
         "--mat {m}/a.mat: no such file": ["evaluate", "--mat", missing / "a.mat"],
@@ -333,6 +341,7 @@ def test_bad_inputs_fail_before_jax_is_imported(data: dict[str, Path], tmp_path:
                                                         tmp_path / "random.mat"],
         "--data {m}: not a folder": [*correct, "--data", missing],
         "not a prepared cache (no manifest.json)": [*correct, "--data", tmp_path / "empty"],
+        "damaged/manifest.json: not valid JSON": [*correct, "--data", tmp_path / "damaged"],
         "--checkpoint {m}: not a training run": ["correct", "--checkpoint", missing, "--data", data["cache"],
                                                  "--out", out / "c.txt"],
         "--prior {m}/p.txt: no such file": [*correct, "--kitti-odometry", data["kitti"], "--sequence", "00",
@@ -354,6 +363,10 @@ def test_bad_inputs_fail_before_jax_is_imported(data: dict[str, Path], tmp_path:
                                                 out / "run"],
         "no_config.py: defines no CONFIG": ["train", "--config", tmp_path / "no_config.py", "--workdir",
                                             out / "run"],
+        "cache_root '{m}/cache' is not a directory": ["train", "--config", tmp_path / "no_cache.py",
+                                                       "--workdir", out / "run"],
+        "caches/07/manifest.json: field 'n_frames' is missing": [
+            "train", "--config", tmp_path / "damaged_cache.py", "--workdir", out / "run"],
         "--config {m}/c.py: no such file": ["demo", "--config", missing / "c.py", "--out", out / "demo"],
         "select must be one of": ["demo", "--config", tmp_path / "bad_demo.py", "--out", out / "demo"],
     }
@@ -369,6 +382,13 @@ def test_bad_inputs_fail_before_jax_is_imported(data: dict[str, Path], tmp_path:
     for needle, line in zip(cases, lines, strict=True):
         assert needle.format(m=missing, k=data["kitti"]) in line, (needle, line)
     assert not out.exists()
+
+
+def _train_config(path: Path, cache_root: Path, **fields: object) -> None:
+    """Write a valid training config file (a dict CONFIG) reading the caches under ``cache_root``."""
+    config = {"method": "stereo_dpc", "preset": "small", "image_size": (32, 48), "batch_size": 2, "epochs": 1,
+              "cache_root": str(cache_root), "validation_sequences": ("05",), **fields}
+    path.write_text(f"CONFIG = {config!r}\n")
 
 
 def _damage(cache: Path, how: str) -> str:
@@ -444,6 +464,27 @@ def test_train_on_a_truncated_cache_is_one_line(
     assert main(["train", "--config", str(config), "--workdir", str(tmp_path / "run"), "--no-progress"]) == 2
     _one_line(capsys.readouterr().err, f"{root / '00' / 'left.npy'}: unreadable or truncated .npy file")
     assert not (tmp_path / "run" / "checkpoints").exists()
+
+
+def test_train_checks_the_caches_it_reads_and_only_those(data: dict[str, Path], tmp_path: Path) -> None:
+    from dpc_jax.cli.train import _cache_problem
+    from dpc_jax.config import load_file
+    from dpc_jax.training.config import TrainConfig
+
+    root = tmp_path / "cache"
+    for name in ("00", "05", "07", "09"):
+        shutil.copytree(data["cache"], root / name)
+    _damage(root / "09", "broken manifest")  # the test sequence: training never reads it
+    _train_config(tmp_path / "all.py", root, test_sequences=("09",))
+    _train_config(tmp_path / "only_00.py", root, train_sequences=("00",), test_sequences=("09",))
+    every, only_00 = (load_file(tmp_path / f, TrainConfig) for f in ("all.py", "only_00.py"))
+    assert _cache_problem(every) is None and _cache_problem(only_00) is None
+    # train_sequences empty: every cached sequence but the validation and test ones is read.
+    needle = _damage(root / "07", "truncated left.npy")
+    assert f"{root / '07'}/{needle}" in str(_cache_problem(every))
+    assert _cache_problem(only_00) is None
+    needle = _damage(root / "05", "NaN in K")  # the validation sequence
+    assert f"{root / '05'}/{needle}" in str(_cache_problem(only_00))
 
 
 def test_damaged_checkpoint_is_one_line_naming_its_folder(

@@ -138,7 +138,7 @@ def _compose(xi: np.ndarray, prior: np.ndarray, first: np.ndarray, rotation_only
 @pytest.mark.parametrize("rotation_only", [False, True])
 def test_corrected_trajectory_equals_float64_reference(setup: dict, run, rotation_only: bool) -> None:
     from dpc_jax.correct import correct_cache
-    from dpc_jax.data.pipeline import load_cache
+    from dpc_jax.data.sequence_cache import load_cache
 
     cache = load_cache(setup["cache"] / "05")
     # 9 pairs in batches of 4: the last batch is padded; the padding must be dropped.
@@ -176,7 +176,7 @@ def test_composes_from_the_first_prior_pose_without_ground_truth(setup: dict, ru
     import dataclasses
 
     from dpc_jax.correct import correct_cache
-    from dpc_jax.data.pipeline import load_cache
+    from dpc_jax.data.sequence_cache import load_cache
 
     cache = load_cache(setup["cache"] / "05")
     shifted = cache.prior.copy()
@@ -219,8 +219,8 @@ def test_cli_writes_trajectory_that_reads_back_and_a_report(setup: dict, tmp_pat
 def test_cli_prepares_raw_input_and_writes_kept_frames(setup: dict, tmp_path: Path) -> None:
     """Odometry input with static-frame removal: the trajectory has the kept frames, listed beside it."""
     from dpc_jax.cli import main
-    from dpc_jax.data.pipeline import load_cache
     from dpc_jax.data.poses_io import read_trajectory
+    from dpc_jax.data.sequence_cache import load_cache
 
     out = tmp_path / "corrected.txt"
     argv = ["correct", "--checkpoint", str(setup["run"]), "--kitti-odometry", str(setup["kitti"]),
@@ -289,7 +289,7 @@ def test_an_untrained_network_leaves_the_prior_unchanged(setup: dict) -> None:
     """Zero-initialised output layer (the default): ξ_corr = 0 exactly, corrected trajectory = prior."""
     from flax import nnx
 
-    from dpc_jax.data.pipeline import load_cache
+    from dpc_jax.data.sequence_cache import load_cache
     from dpc_jax.geometry.correction import corrected_trajectory
     from dpc_jax.inference import predict_sequence
     from dpc_jax.nn.models import create_model, set_prior_statistics
@@ -316,8 +316,8 @@ def test_cli_keeps_the_prior_when_no_epoch_beats_it_and_applies_with_force(
 
     from dpc_jax.cli import main
     from dpc_jax.correct import correct_cache
-    from dpc_jax.data.pipeline import load_cache
     from dpc_jax.data.poses_io import read_trajectory
+    from dpc_jax.data.sequence_cache import load_cache
     from dpc_jax.inference import load_run
 
     cache = load_cache(setup["cache"] / "05")
@@ -344,7 +344,7 @@ def test_cli_keeps_the_prior_when_no_epoch_beats_it_and_applies_with_force(
 def test_the_decision_follows_the_test_on_the_sequence(setup: dict, run) -> None:
     """Whatever the test decides, the final trajectory is the prior, the rotations or the full proposal."""
     from dpc_jax.correct import correct_cache
-    from dpc_jax.data.pipeline import load_cache
+    from dpc_jax.data.sequence_cache import load_cache
 
     cache = load_cache(setup["cache"] / "05")
     for alpha in (1e-9, 0.999):

@@ -33,3 +33,22 @@ def test_data_package_reexports_lazily_and_its_file_readers_are_light() -> None:
     code = "import sys, dpc_jax.data.poses_io; print('jax' in sys.modules, 'cv2' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.split() == ["False", "False"]
+
+
+def test_training_configs_are_checked_without_jax() -> None:
+    # The command line checks a training config before it imports JAX: the checks of the model and
+    # loss overrides must not pull in the networks.
+    code = (
+        "import sys\n"
+        "from dpc_jax.config import ConfigError\n"
+        "from dpc_jax.training.config import TrainConfig\n"
+        "for fields in ({'preset': 'tiny'}, {'model': {'encoder_kernels': [2]}}, {'loss': {'beta': 1}}):\n"
+        "    try:\n"
+        "        TrainConfig(cache_root='c', validation_sequences=('v',), **fields)\n"
+        "    except ConfigError as error:\n"
+        "        print(str(error).split(':')[0])\n"
+        "print([m for m in ('jax', 'flax', 'cv2') if m in sys.modules])\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    preset = "preset must be one of ['reference', 'small'], got 'tiny'"
+    assert out.splitlines() == [preset, "model", "loss", "[]"]

@@ -13,9 +13,8 @@ from test_warp import pose as make_pose
 from dpc_jax.geometry.lie import se3_log
 from dpc_jax.geometry.ssim import ssim_loss
 from dpc_jax.nn.batch import Batch
+from dpc_jax.nn.config import SSDPCLossConfig, StereoDPCLossConfig
 from dpc_jax.nn.losses import (
-    SSDPCLossConfig,
-    StereoDPCLossConfig,
     explainability_loss,
     gradient_loss,
     gradient_mask,

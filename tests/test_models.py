@@ -13,8 +13,9 @@ import pytest
 from flax import nnx
 
 from dpc_jax.nn.batch import Batch
-from dpc_jax.nn.losses import StereoDPCLossConfig, stereo_dpc_loss
-from dpc_jax.nn.models import PRESETS, ModelConfig, UpConv, create_model, upsample2x_bilinear
+from dpc_jax.nn.config import PRESETS, ModelConfig, StereoDPCLossConfig
+from dpc_jax.nn.losses import stereo_dpc_loss
+from dpc_jax.nn.models import UpConv, create_model, upsample2x_bilinear
 
 TINY = (24, 40)
 SMALL = dataclasses.replace(PRESETS["small"], image_size=TINY)

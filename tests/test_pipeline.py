@@ -18,9 +18,9 @@ from dpc_jax.data.pipeline import (
     TrainLoader,
     iterate_sequence,
     leave_one_out,
-    load_cache,
     prefetch,
 )
+from dpc_jax.data.sequence_cache import load_cache
 
 RAW = SHARED / "data" / "kitti-raw"
 STEREO_MAT = RAW / "libviso2" / "stereo_2011_09_26_drive_0001.mat"

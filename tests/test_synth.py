@@ -142,7 +142,7 @@ def test_prepare_removes_a_disparity_offset(tmp_path: Path, static):
     """``prepare_sequence(disparity_offset=o)`` resamples the right images at u + o: with o = −δ the
     residual δ of the rendering is gone, the right images match a perfectly calibrated rig's."""
     from dpc_jax.data.cache import prepare_sequence
-    from dpc_jax.data.pipeline import load_cache
+    from dpc_jax.data.sequence_cache import load_cache
 
     offset = 1.0
     write_sequences(tmp_path / "kitti", dataclasses.replace(BASE, disparity_offset=offset), 1)

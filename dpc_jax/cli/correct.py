@@ -24,7 +24,7 @@ from dpc_jax.cli._common import (
 if TYPE_CHECKING:
     from dpc_jax.adapt import Adaptation
     from dpc_jax.correct import Correction
-    from dpc_jax.data.pipeline import SequenceCache
+    from dpc_jax.data.sequence_cache import SequenceCache
     from dpc_jax.inference import TrainedRun
 
 HELP = "Correct a VO trajectory with a trained network (T* = Exp(xi_corr) T_vo); evaluate it against GT."
@@ -161,18 +161,22 @@ def run(args: argparse.Namespace) -> int:
     problem = _check_arguments(args)
     if problem is not None:
         return _error(problem)
+    from dpc_jax.data.sequence_cache import load_cache
+
+    # The cache is checked before JAX starts (the reader imports none) and the network is restored.
+    try:
+        checked = load_cache(args.data) if args.data is not None else None
+    except (OSError, ValueError) as error:
+        return _error(str(error))
     import_jax()
     # Orbax logs a warning per read-only checkpoint manager; they say nothing useful here.
     logging.getLogger("absl").setLevel(logging.ERROR)
-    from dpc_jax.data.pipeline import load_cache
     from dpc_jax.inference import load_run
     from dpc_jax.training.checkpoints import CheckpointError
 
     # The stack holds the temporary cache of raw inputs, removed before the outputs are written.
     with contextlib.ExitStack() as stack:
         try:
-            # The cache is checked before the network is restored and run.
-            checked = load_cache(args.data) if args.data is not None else None
             try:
                 run_ = load_run(args.checkpoint, args.select)
             except CheckpointError as error:
@@ -223,7 +227,7 @@ def _correct(
     """The correction to write, with ``--adapt`` also the adaptation and the adapted network's correction
     (the one written only if :func:`~dpc_jax.correct.choose` prefers it to the trained network's)."""
     from dpc_jax.correct import choose, correct_cache, prior_for_cache
-    from dpc_jax.data.pipeline import SequenceCache, load_cache
+    from dpc_jax.data.sequence_cache import SequenceCache, load_cache
 
     show = sys.stderr.isatty() and not args.no_progress
     options = {"rotation_only": args.rotation_only, "batch_size": args.batch_size,

@@ -6,8 +6,12 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from dpc_jax.cli._common import Formatter, import_jax, output_problem, restore_problem
+
+if TYPE_CHECKING:
+    from dpc_jax.training.config import TrainConfig
 
 HELP = "Train ss-DPC-Net or Stereo DPC on prepared sequences (checkpoints, metrics.csv, TensorBoard)."
 # Restart with huge-page malloc (dpc_jax.hugepages): the training step is a fifth faster.
@@ -61,8 +65,12 @@ def run(args: argparse.Namespace) -> int:
     except ConfigError as error:
         print(f"dpc-jax train: error: {error}", file=sys.stderr)
         return 2
+    problem = _cache_problem(config)
+    if problem is not None:
+        print(f"dpc-jax train: error: {problem}", file=sys.stderr)
+        return 2
     import_jax()
-    from dpc_jax.data.pipeline import CacheError
+    from dpc_jax.data.sequence_cache import CacheError
     from dpc_jax.training.checkpoints import CheckpointError
     from dpc_jax.training.loop import train
     from dpc_jax.training.steps import NonFiniteLossError
@@ -93,3 +101,20 @@ def run(args: argparse.Namespace) -> int:
         return 1
     print(json.dumps(summary, indent=2, default=float))
     return 0
+
+
+def _cache_problem(config: TrainConfig) -> str | None:
+    """The first problem of the caches the run reads (its training and validation sequences, chosen as
+    :func:`~dpc_jax.training.loop.open_data` does; a resumed run reads the same), or None. Checked
+    without JAX, so a missing or damaged cache costs no JAX start-up."""
+    from dpc_jax.data.sequence_cache import load_cache, training_sequences
+
+    try:
+        train = training_sequences(
+            config.cache_root, config.train_sequences, config.validation_sequences, config.test_sequences
+        )
+        for name in [*train, *config.validation_sequences]:
+            load_cache(Path(config.cache_root) / name)
+    except (OSError, ValueError) as error:
+        return str(error)
+    return None

@@ -1,7 +1,9 @@
 """Preprocessing cache: decoded, resized stereo frames, flow and poses as memory-mappable arrays.
 
 ``prepare_sequence`` turns a :class:`~dpc_jax.data.kitti.StereoSequence` and its VO prior into a
-folder ``OUT/NAME/`` that the input pipeline memory-maps, so an epoch never decodes a PNG:
+folder ``OUT/NAME/`` that the input pipeline memory-maps, so an epoch never decodes a PNG (the file
+names and the reader, :func:`~dpc_jax.data.sequence_cache.load_cache`, are in
+:mod:`dpc_jax.data.sequence_cache`):
 
 ====================  ===================  ==================================================
 file                  array                meaning
@@ -34,7 +36,7 @@ changes its mtime. Re-running with the same hash finds the complete cache and do
 Atomicity: everything is written into a hidden temporary folder beside the target
 (``.NAME.tmp-<pid>-<random>``), the manifest last, and the folder is renamed into place; a failure
 removes the temporary folder, so an interrupted or failed prepare never leaves a folder that
-:func:`~dpc_jax.data.pipeline.load_cache` accepts (it requires ``manifest.json``). The temporary
+:func:`~dpc_jax.data.sequence_cache.load_cache` accepts (it requires ``manifest.json``). The temporary
 folders of a killed prepare (``kill -9``) are removed by the next prepare into the same root; those
 of a prepare still running are left alone (see :func:`dpc_jax._io.remove_stale`).
 """
@@ -61,6 +63,7 @@ from dpc_jax._progress import Progress, progress_bar
 from dpc_jax.data.kitti import StereoSequence, load_image, read_ground_truth
 from dpc_jax.data.poses_io import validate_poses
 from dpc_jax.data.priors import load_prior, rescale_monocular
+from dpc_jax.data.sequence_cache import FLOW_FILES, MANIFEST
 from dpc_jax.geometry.camera import scale_intrinsics
 from dpc_jax.geometry.poses import remove_static_frames
 
@@ -68,13 +71,6 @@ log = logging.getLogger(__name__)
 
 CACHE_VERSION = 1
 DEFAULT_SIZE = (240, 376)
-MANIFEST = "manifest.json"
-FLOW_FILES = {
-    "forward": "flow.npy",
-    "reverse": "flow_reverse.npy",
-    "skip": "flow_skip.npy",
-    "skip_reverse": "flow_skip_reverse.npy",
-}
 
 
 class FarnebackParams(TypedDict):

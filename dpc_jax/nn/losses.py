@@ -20,8 +20,7 @@ frame t+1 from frame t therefore needs ``T_{t,t+1} = inv(T*)``, computed exactly
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import ClassVar, cast
+from typing import cast
 
 import jax.numpy as jnp
 from jax import Array
@@ -32,58 +31,11 @@ from dpc_jax.geometry.lie import se3_exp, se3_inverse
 from dpc_jax.geometry.ssim import ssim_loss
 from dpc_jax.geometry.warp import disparity_consistency, inverse_warp, stereo_warp
 from dpc_jax.nn.batch import Batch
+from dpc_jax.nn.config import SSDPCLossConfig, StereoDPCLossConfig
 from dpc_jax.nn.outputs import BranchOutputs, DPCOutputs
 
 # ITU-R BT.601 luma weights, as in cv2.cvtColor(..., COLOR_RGB2GRAY).
 _GREY_WEIGHTS = (0.299, 0.587, 0.114)
-
-
-@dataclass(frozen=True)
-class SSDPCLossConfig:
-    """ss-DPC-Net loss (Wagstaff et al. 2020, eq. 7–11).
-
-    * ``exp_weight``: λ_exp of the explainability-mask regulariser (paper 0.23; the reference
-      scripts default to 0.18).
-    * ``rot_weight``, ``rot_threshold``: a sample whose prior rotation ``‖Log(R_vo)‖ ≥ γ``
-      (rad) has its photometric term multiplied by ``1 + λ_rot``.
-    * ``rotation_only``: apply only the rotation part of ``ξ_corr`` (ss-DPC-Net on libviso2-s).
-    * ``ssim_weight``: λ_s of :func:`photometric_error`; the paper's loss is pure L1 (0). A
-      model that learns λ_s (``outputs.ssim_weight`` not None) overrides it.
-    * ``grad_threshold``: γ_grad of the gradient mask (epoch selection only).
-    * ``mask_floor``: clamp of the mask inside ``−log W``.
-    * ``depth_eps``: points closer than this (m) to the source camera plane are invalid.
-    """
-
-    method: ClassVar[str] = "ss_dpc"
-
-    exp_weight: float = 0.23
-    rot_weight: float = 4.0
-    rot_threshold: float = 0.005
-    rotation_only: bool = False
-    ssim_weight: float = 0.0
-    grad_threshold: float = 0.03
-    mask_floor: float = 1e-6
-    depth_eps: float = 1e-3
-
-
-@dataclass(frozen=True)
-class StereoDPCLossConfig:
-    """Stereo DPC loss (Zhang et al. 2021, eq. 14).
-
-    * ``alpha``: (α1 spatial, α2 disparity consistency, α3 temporal, α4 mask regulariser).
-    * ``ssim_weight``: fixed λ_s; a model that learns λ_s (``outputs.ssim_weight``) overrides it.
-    * ``rotation_only``, ``grad_threshold``, ``mask_floor``, ``depth_eps``: as in
-      :class:`SSDPCLossConfig`.
-    """
-
-    method: ClassVar[str] = "stereo_dpc"
-
-    alpha: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 0.08)
-    ssim_weight: float = 0.85
-    rotation_only: bool = False
-    grad_threshold: float = 0.03
-    mask_floor: float = 1e-6
-    depth_eps: float = 1e-3
 
 
 # --- building blocks --------------------------------------------------------------------------

@@ -57,7 +57,7 @@ if TYPE_CHECKING:
     from dpc_jax.adapt import Adaptation
     from dpc_jax.correct import Correction
     from dpc_jax.data.kitti import StereoSequence
-    from dpc_jax.data.pipeline import SequenceCache
+    from dpc_jax.data.sequence_cache import SequenceCache
     from dpc_jax.eval.evaluation import Evaluation
     from dpc_jax.training.config import TrainConfig
 
@@ -503,7 +503,7 @@ def _correct_test(config: DemoConfig, out: Path, seconds: dict[str, float], prog
     it; choose the final correction and write it to ``corrected.txt``."""
     from dpc_jax.adapt import AdaptConfig, adapt_and_correct, save_adapted
     from dpc_jax.correct import choose, correct_cache, write_trajectory
-    from dpc_jax.data.pipeline import load_cache
+    from dpc_jax.data.sequence_cache import load_cache
     from dpc_jax.inference import load_run
 
     t = time.perf_counter()

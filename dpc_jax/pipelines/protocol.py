@@ -197,7 +197,7 @@ def correct_and_evaluate(
     its test and beats the trained one, else the trained one if it passes, else the prior). Writes
     the final trajectory, the reports and (adapting) the adapted network."""
     from dpc_jax.correct import choose, correct_cache, write_correction_report, write_trajectory
-    from dpc_jax.data.pipeline import load_cache
+    from dpc_jax.data.sequence_cache import load_cache
     from dpc_jax.inference import load_run
 
     run = load_run(run_dir, select)

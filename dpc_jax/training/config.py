@@ -47,6 +47,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from dpc_jax.config import ConfigError, unknown_key_error
+from dpc_jax.nn.config import PRESETS, ModelConfig, SSDPCLossConfig, StereoDPCLossConfig, uses_flow
 
 METHODS = ("ss_dpc", "stereo_dpc")
 PRIOR_NORMALIZATIONS = ("none", "train_statistics")
@@ -77,7 +78,7 @@ class TrainConfig:
 
     Model
         * ``method``: ``"ss_dpc"`` (ss-DPC-Net, mono + flow) or ``"stereo_dpc"`` (Zhang et al.).
-        * ``preset``: a key of ``dpc_jax.nn.models.PRESETS`` (``"reference"``, ``"small"``).
+        * ``preset``: a key of ``dpc_jax.nn.config.PRESETS`` (``"reference"``, ``"small"``).
         * ``model``: overrides of ``ModelConfig`` fields on top of the preset.
         * ``image_size``: ``(H, W)`` of the cached images and the network input; None = the
           preset's.
@@ -212,10 +213,8 @@ class TrainConfig:
         self.model_config()
         self.loss_config()
 
-    def model_config(self) -> Any:
+    def model_config(self) -> ModelConfig:
         """The ``ModelConfig``: the preset, the ``model`` overrides and the top-level model keys."""
-        from dpc_jax.nn.models import PRESETS
-
         if self.preset not in PRESETS:
             raise ConfigError(f"preset must be one of {sorted(PRESETS)}, got {self.preset!r}")
         base = PRESETS[self.preset]
@@ -228,11 +227,9 @@ class TrainConfig:
             overrides["image_size"] = tuple(self.image_size)
         return _replace(base, overrides, "model")
 
-    def loss_config(self) -> Any:
+    def loss_config(self) -> SSDPCLossConfig | StereoDPCLossConfig:
         """The method's loss config dataclass with the ``loss`` overrides (and ``rotation_only``)."""
-        from dpc_jax.nn import losses
-
-        base = losses.SSDPCLossConfig() if self.method == "ss_dpc" else losses.StereoDPCLossConfig()
+        base = SSDPCLossConfig() if self.method == "ss_dpc" else StereoDPCLossConfig()
         overrides = dict(self.loss)
         if "rotation_only" in overrides:
             raise ConfigError("loss.rotation_only duplicates the top-level key 'rotation_only'; set it there")
@@ -242,13 +239,12 @@ class TrainConfig:
 
     @property
     def resolved_image_size(self) -> tuple[int, int]:
-        return tuple(self.model_config().image_size)
+        h, w = self.model_config().image_size
+        return h, w
 
     @property
     def use_flow(self) -> bool:
         """Whether the network reads optical flow (the method's default unless ``model`` says)."""
-        from dpc_jax.nn.models import uses_flow
-
         return uses_flow(self.method, self.model_config())
 
     def warmup_steps(self, steps_per_epoch: int) -> int:

@@ -89,39 +89,22 @@ class TrainData:
     prior_statistics: np.ndarray
 
 
-def cached_sequences(cache_root: str | os.PathLike) -> list[str]:
-    """Names of the prepared sequences (folders with a manifest) under ``cache_root``."""
-    from dpc_jax.data.cache import MANIFEST
-
-    root = Path(cache_root)
-    if not root.is_dir():
-        raise ConfigError(
-            f"cache_root {str(root)!r} is not a directory; prepare the data with `dpc-jax prepare`"
-        )
-    return sorted(d.name for d in root.iterdir() if (d / MANIFEST).is_file())
-
-
 def open_data(config: TrainConfig, workers: int = 2) -> TrainData:
     """Open the cache of ``config``: check the split and the image size, build the loaders.
 
     Raises ``ConfigError`` for a sequence that is not cached, an empty training set or an image
     size different from the model's, before any compute.
     """
-    from dpc_jax.data.pipeline import TrainLoader, load_cache
+    from dpc_jax.data.pipeline import TrainLoader
+    from dpc_jax.data.sequence_cache import load_cache, training_sequences
 
-    available = cached_sequences(config.cache_root)
-    for role in ("train", "validation", "test"):
-        missing = [s for s in getattr(config, f"{role}_sequences") if s not in available]
-        if missing:
-            raise ConfigError(
-                f"{role}_sequences {missing} are not prepared under {config.cache_root} (found {available})"
-            )
-    held_out = set(config.validation_sequences) | set(config.test_sequences)
-    train_names = list(config.train_sequences) or [s for s in available if s not in held_out]
-    if not train_names:
-        raise ConfigError(
-            f"no training sequence under {config.cache_root} besides the validation and test ones"
+    try:
+        # The command line checks the same caches before it starts JAX (dpc_jax.cli.train).
+        train_names = training_sequences(
+            config.cache_root, config.train_sequences, config.validation_sequences, config.test_sequences
         )
+    except ValueError as error:
+        raise ConfigError(str(error)) from None
     root = Path(config.cache_root)
     size = config.resolved_image_size
     caches = {name: load_cache(root / name) for name in [*train_names, *config.validation_sequences]}
