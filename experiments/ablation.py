@@ -7,7 +7,7 @@ applied) to ours. Per row: the test sequence's segment errors of the prior and o
 trajectory, Δ of the correction on the test sequence (mean over its pairs, the network's depth),
 what the acceptance test decided, and the minutes the row took (training and correction; the data
 are made once, by the first row). The table goes to ``WORKDIR/ablation.md`` (and ``.csv``); the
-README / docs/ablation.md show it.
+README ("Ablation and acceptance depth") shows it.
 
     python experiments/ablation.py --workdir runs/ablation                 # every row, seed 0
     python experiments/ablation.py --workdir runs/ablation --seed 1 --rows 0 5

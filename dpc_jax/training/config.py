@@ -9,7 +9,7 @@ The defaults of the correction head are the *improved* ones (``IMPROVED``); ``RE
 the published choices (ss-DPC-Net's released code: PyTorch initialisation of the pose layer, no
 warm-up, the prior fed unscaled, dropout 0.5 on the whole pose head). Each improvement is a
 separate field, so a config can take any subset (``experiments/ablation.py`` adds them one by
-one; its table in ``docs/ablation.md`` is the measurement behind them):
+one; its table in the README, "Ablation and acceptance depth", is the measurement behind them):
 
 * ``pose_init="zero"``: the output FC layer starts at zero, so an untrained network's corrected
   trajectory *is* the prior (with the reference initialisation it outputs an almost constant
