@@ -7,7 +7,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dpc_jax.nn.conv import NHWC, compiler_options, conv3x3_few_outputs, conv_s2, upconv3x3_s2
+from dpc_jax.nn.conv import (
+    NHWC,
+    compiler_options,
+    conv3x3_few_outputs,
+    conv3x3_planar,
+    conv_s2,
+    upconv3x3_s2,
+)
 
 
 def _reference_s2(x: jax.Array, kernel: jax.Array) -> jax.Array:
@@ -58,11 +65,43 @@ def test_upconv3x3_s2_matches_conv_transpose(hw: tuple[int, int]) -> None:
     _check(upconv3x3_s2, _reference_up, (2, *hw, 3), (3, 3, 3, 4), seed=hw[1])
 
 
+@pytest.mark.parametrize(("hw", "cin", "f"), [((6, 7), 8, 2), ((5, 4), 10, 8), ((1, 2), 2, 1)])
+def test_conv3x3_planar_matches_conv(hw: tuple[int, int], cin: int, f: int) -> None:
+    """Values only: inference is its one use (training differentiates the NHWC convolutions)."""
+    rng = np.random.default_rng(cin * f)
+    x, kernel = jnp.asarray(rng.normal(size=(2, *hw, cin))), jnp.asarray(rng.normal(size=(3, 3, cin, f)))
+    planes = jnp.pad(jnp.moveaxis(x, -1, 1), ((0, 0), (0, 0), (1, 1), (1, 1)))
+    got = jax.jit(conv3x3_planar)(planes, kernel)
+    assert got.dtype == jnp.float64
+    want = jnp.moveaxis(_reference_same3x3(x, kernel), -1, 1)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+
+
+def test_conv3x3_planar_is_a_valid_convolution() -> None:
+    """No padding of its own: [B, C, H, W] → [B, F, H − 2, W − 2], each output a 3×3 window."""
+    rng = np.random.default_rng(3)
+    x, kernel = rng.normal(size=(1, 2, 5, 6)), rng.normal(size=(3, 3, 2, 3))
+    got = np.asarray(conv3x3_planar(jnp.asarray(x), jnp.asarray(kernel)))
+    assert got.shape == (1, 3, 3, 4)
+    i, j, f = 1, 2, 2
+    window = x[0, :, i : i + 3, j : j + 3]  # [C, 3, 3]
+    assert got[0, f, i, j] == pytest.approx(np.einsum("cab,abc->", window, kernel[..., f]), abs=1e-12)
+
+
+@pytest.mark.parametrize("hw", [(5, 7), (1, 1)])
+def test_upconv3x3_s2_channels_first_is_the_same_map(hw: tuple[int, int]) -> None:
+    rng = np.random.default_rng(hw[1])
+    x, kernel = jnp.asarray(rng.normal(size=(2, *hw, 3))), jnp.asarray(rng.normal(size=(3, 3, 3, 4)))
+    want = jnp.moveaxis(_reference_up(x, kernel), -1, 1)
+    np.testing.assert_allclose(upconv3x3_s2(x, kernel, channels_first=True), want, rtol=1e-12, atol=1e-12)
+
+
 def test_float32_inputs_stay_float32() -> None:
     x = jnp.ones((1, 4, 4, 2), jnp.float32)
     assert conv_s2(x, jnp.ones((3, 3, 2, 3), jnp.float32)).dtype == jnp.float32
     assert conv3x3_few_outputs(x, jnp.ones((3, 3, 2, 1), jnp.float32)).dtype == jnp.float32
     assert upconv3x3_s2(x, jnp.ones((3, 3, 2, 3), jnp.float32)).dtype == jnp.float32
+    assert conv3x3_planar(x, jnp.ones((3, 3, 4, 1), jnp.float32)).dtype == jnp.float32
 
 
 def test_kernel_shape_errors() -> None:
@@ -71,6 +110,8 @@ def test_kernel_shape_errors() -> None:
         conv_s2(x, jnp.ones((4, 4, 2, 3)))
     with pytest.raises(ValueError, match="3x3 kernel"):
         conv3x3_few_outputs(x, jnp.ones((5, 5, 2, 1)))
+    with pytest.raises(ValueError, match=r"\[3, 3, 4, F\] kernel"):
+        conv3x3_planar(x, jnp.ones((3, 3, 2, 1)))
 
 
 @pytest.mark.skipif(jax.default_backend() != "cpu", reason="the options concern XLA's CPU backend")

@@ -15,7 +15,7 @@ from flax import nnx
 from dpc_jax.nn.batch import Batch
 from dpc_jax.nn.config import PRESETS, ModelConfig, StereoDPCLossConfig
 from dpc_jax.nn.losses import stereo_dpc_loss
-from dpc_jax.nn.models import UpConv, create_model, upsample2x_bilinear
+from dpc_jax.nn.models import Branch, UpConv, create_model, upsample2x_bilinear
 
 TINY = (24, 40)
 SMALL = dataclasses.replace(PRESETS["small"], image_size=TINY)
@@ -279,6 +279,39 @@ def test_eval_deterministic_and_uses_running_averages(stereo_split) -> None:
     alone = _forward_eval(*stereo_split, jax.tree.map(lambda x: x[:1], batch), jax.random.key(0))
     np.testing.assert_allclose(alone.xi_corr, a.xi_corr[:1], rtol=1e-4, atol=1e-9)
     np.testing.assert_allclose(alone.left.inv_depth, a.left.inv_depth[:1], rtol=1e-4, atol=1e-7)
+
+
+@pytest.mark.parametrize("method", ["ss_dpc", "stereo_dpc"])
+def test_inference_on_channel_planes_equals_the_convolutions(method: str) -> None:
+    """Eval mode runs the full-resolution layers with ``conv3x3_planar``: the same dense outputs
+    as the NHWC convolutions that training uses (to float32 rounding), the same ξ_corr."""
+    model = create_model(method, SMALL, 0)
+    rng = np.random.default_rng(5)
+    for _, module in nnx.iter_modules(model):
+        if isinstance(module, nnx.BatchNorm):  # running averages that matter
+            n = module.num_features
+            for var, value in ((module.mean, rng.normal(0, 0.2, n)), (module.var, rng.uniform(0.3, 3, n)),
+                               (module.scale, rng.uniform(0.5, 2, n)), (module.bias, rng.normal(0, 0.2, n))):
+                assert var is not None
+                var.set_value(jnp.asarray(value, jnp.float32))
+    model.eval()
+    branches = [module for _, module in nnx.iter_modules(model) if isinstance(module, Branch)]
+    assert all(branch.planar_inference for branch in branches)
+    batch = make_batch(2, TINY)
+    planar = _forward_eval(*nnx.split(model), batch, jax.random.key(0))
+    for branch in branches:
+        branch.planar_inference = False
+    convolutions = _forward_eval(*nnx.split(model), batch, jax.random.key(0))
+    np.testing.assert_array_equal(planar.xi_corr, convolutions.xi_corr)
+    for got, want in zip(jax.tree.leaves(planar.left), jax.tree.leaves(convolutions.left), strict=True):
+        assert got.shape == want.shape
+        np.testing.assert_allclose(got, want, rtol=2e-6, atol=1e-7)
+
+
+def test_wide_networks_keep_the_convolutions_in_inference() -> None:
+    """A sum of 9·C_in·C_out terms per pixel stops paying, and compiling, for wide layers."""
+    wide = nnx.eval_shape(lambda: create_model("ss_dpc", dataclasses.replace(SMALL, width_multiplier=4.0), 0))
+    assert not wide.branch.planar_inference
 
 
 def test_train_dropout_depends_on_key(stereo_split) -> None:

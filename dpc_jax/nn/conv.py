@@ -14,7 +14,10 @@ that carry the most pixels:
   stride-1 convolution producing the four output phases, then interleaves them;
 * the inverse-depth and mask heads map 8–32 channels to one or two: ``conv3x3_few_outputs``
   evaluates them as a matrix product with the nine taps followed by nine shifted adds, and the
-  input gradient as nine shifted multiply-adds.
+  input gradient as nine shifted multiply-adds;
+* in inference, the full-resolution layers (8–10 channels to 8, and the heads to the channel-first
+  ``[B, F, H, W]`` maps the networks return) run on channel-first planes: ``conv3x3_planar``
+  evaluates each output plane as 9·C shifted multiply-adds, vectorised along the image rows.
 
 Which library runs the remaining convolutions is a compiler option, chosen per network and per
 use (:func:`compiler_options`): Eigen runs *every* convolution of ss-DPC-Net's training step, and
@@ -144,8 +147,9 @@ def _phase_kernel(kernel: jax.Array) -> jax.Array:
     return jnp.stack([jnp.stack([jnp.concatenate(taps(a, b), axis=-1) for b in (0, 1)]) for a in (0, 1)])
 
 
-def upconv3x3_s2(x: jax.Array, kernel: jax.Array) -> jax.Array:
-    """Transposed convolution 3×3, stride 2: ``[B, h, w, C_in] -> [B, 2h, 2w, C_out]``.
+def upconv3x3_s2(x: jax.Array, kernel: jax.Array, *, channels_first: bool = False) -> jax.Array:
+    """Transposed convolution 3×3, stride 2: ``[B, h, w, C_in] -> [B, 2h, 2w, C_out]``, or
+    ``[B, C_out, 2h, 2w]`` with ``channels_first`` (the same interleaving pass, another order).
 
     Equals ``lax.conv_transpose(x, kernel, (2, 2), ((1, 2), (1, 2)))`` (Flax's ``ConvTranspose``
     with that padding; PyTorch's ``ConvTranspose2d(3, stride=2, padding=1, output_padding=1)`` up
@@ -157,7 +161,10 @@ def upconv3x3_s2(x: jax.Array, kernel: jax.Array) -> jax.Array:
     phases = _phase_kernel(kernel)
     y = jax.lax.conv_general_dilated(x, phases, (1, 1), ((0, 1), (0, 1)), dimension_numbers=NHWC)
     b, h, w, _ = y.shape
-    return y.reshape(b, h, w, 2, 2, cout).transpose(0, 1, 3, 2, 4, 5).reshape(b, 2 * h, 2 * w, cout)
+    phases = y.reshape(b, h, w, 2, 2, cout)
+    if channels_first:
+        return phases.transpose(0, 5, 1, 3, 2, 4).reshape(b, cout, 2 * h, 2 * w)
+    return phases.transpose(0, 1, 3, 2, 4, 5).reshape(b, 2 * h, 2 * w, cout)
 
 
 # ------------------------------------------------------ 3×3 convolution to a few output channels
@@ -217,3 +224,32 @@ def conv3x3_few_outputs(x: jax.Array, kernel: jax.Array) -> jax.Array:
     if kernel.shape[:2] != (3, 3):
         raise ValueError(f"conv3x3_few_outputs needs a 3x3 kernel, got {kernel.shape[:2]}")
     return _conv3x3_few(*_promote(x, kernel))
+
+
+# ------------------------------------------------------------- 3×3 convolution on channel planes
+
+
+def conv3x3_planar(x: jax.Array, kernel: jax.Array) -> jax.Array:
+    """3×3 convolution, stride 1, *no* padding, on channel-first planes: ``x [B, C, H, W]``,
+    ``kernel [3, 3, C, F]`` → ``[B, F, H − 2, W − 2]``; the caller pads (or produces ``x``
+    padded).
+
+    Each output plane is the sum of the 9·C shifted input planes times their kernel taps: one
+    elementwise pass per output plane, vectorised along W, with no matrix product and no
+    intermediate. Meant for a few channels (the networks' full-resolution layers in inference:
+    ``C·F`` ≤ 80), where it beats XLA's convolutions.
+    """
+    if kernel.shape[:2] != (3, 3) or kernel.shape[2] != x.shape[1]:
+        raise ValueError(f"conv3x3_planar needs a [3, 3, {x.shape[1]}, F] kernel, got {kernel.shape}")
+    x, kernel = _promote(x, kernel)
+    h, w = x.shape[2] - 2, x.shape[3] - 2
+    planes = [
+        sum(
+            x[:, c, a : a + h, b : b + w] * kernel[a, b, c, j]
+            for a in range(3)
+            for b in range(3)
+            for c in range(kernel.shape[2])
+        )
+        for j in range(kernel.shape[3])
+    ]
+    return jnp.stack(cast(list[jax.Array], planes), axis=1)

@@ -64,7 +64,7 @@ from flax import nnx
 
 from dpc_jax.nn.batch import Batch
 from dpc_jax.nn.config import Method, ModelConfig, uses_flow
-from dpc_jax.nn.conv import conv3x3_few_outputs, conv_s2, upconv3x3_s2
+from dpc_jax.nn.conv import conv3x3_few_outputs, conv3x3_planar, conv_s2, upconv3x3_s2
 from dpc_jax.nn.outputs import BranchOutputs, DPCOutputs
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -104,6 +104,22 @@ def _crop(x: jax.Array, size: tuple[int, ...]) -> jax.Array:
     return x[:, : size[0], : size[1], :]
 
 
+def _planar_pad(x: jax.Array, pad: int) -> jax.Array:
+    """Zero-pad channel-first planes ``[B, C, H, W]`` by ``pad`` on each side of ``H`` and ``W``."""
+    return jnp.pad(x, ((0, 0), (0, 0), (pad, pad), (pad, pad)))
+
+
+def _per_channel(v: jax.Array) -> jax.Array:
+    """``[C]`` → ``[C, 1, 1]``, to broadcast over channel-first planes."""
+    return v[:, None, None]
+
+
+# Inference runs the full-resolution layers on channel planes (conv3x3_planar) when the last
+# decoder block maps at most this many (input, output) channel pairs: the reference's 10·8 and
+# the small preset's 6·4; a wider network keeps XLA's convolutions (one sum of 9·pairs terms).
+PLANAR_MAX_CHANNEL_PAIRS = 128
+
+
 class _ConvBlock(nnx.Module):
     """conv(k, stride s, padding (k−1)//2) → ReLU → BatchNorm (stride 2 via ``conv_s2``)."""
 
@@ -125,6 +141,16 @@ class _ConvBlock(nnx.Module):
             y = self.conv(x)
         return self.norm(jax.nn.relu(y))
 
+    def planar(self, x: jax.Array) -> jax.Array:
+        """Inference (running averages) of a 3×3 stride-1 block on channel planes: ``x [B, C_in,
+        H + 2, W + 2]`` (zero-padded) → ``[B, C_out, H, W]``; BatchNorm as ``nnx.BatchNorm``
+        computes it."""
+        norm = self.norm
+        assert self.conv.bias is not None and norm.scale is not None and norm.bias is not None
+        y = jax.nn.relu(conv3x3_planar(x, self.conv.kernel[...]) + _per_channel(self.conv.bias[...]))
+        gain = norm.scale[...] * jax.lax.rsqrt(norm.var[...] + norm.epsilon)
+        return (y - _per_channel(norm.mean[...])) * _per_channel(gain) + _per_channel(norm.bias[...])
+
 
 class UpConv(nnx.Module):
     """Transposed conv 3×3 stride 2 → ReLU, ``[B, h, w, C_in] -> [B, 2h, 2w, C_out]``.
@@ -140,9 +166,11 @@ class UpConv(nnx.Module):
         self.kernel = nnx.Param(init(rngs.params(), (3, 3, cin, cout), jnp.float32))
         self.bias = nnx.Param(jnp.zeros((cout,), jnp.float32))
 
-    def __call__(self, x: jax.Array) -> jax.Array:
-        y = upconv3x3_s2(x, self.kernel[...])
-        return jax.nn.relu(y + self.bias[...].astype(y.dtype))
+    def __call__(self, x: jax.Array, *, channels_first: bool = False) -> jax.Array:
+        """``[B, h, w, C_in]`` → ``[B, 2h, 2w, C_out]``, or ``[B, C_out, 2h, 2w]``."""
+        y = upconv3x3_s2(x, self.kernel[...], channels_first=channels_first)
+        bias = self.bias[...].astype(y.dtype)
+        return jax.nn.relu(y + (_per_channel(bias) if channels_first else bias))
 
 
 class _Head(nnx.Module):
@@ -157,12 +185,23 @@ class _Head(nnx.Module):
         y = conv3x3_few_outputs(x, self.conv.kernel[...])
         return y + self.conv.bias[...].astype(y.dtype)
 
+    def planar(self, x: jax.Array) -> jax.Array:
+        """The head on channel planes: ``x [B, C, H + 2, W + 2]`` (zero-padded) → ``[B, F, H, W]``."""
+        assert self.conv.bias is not None
+        return conv3x3_planar(x, self.conv.kernel[...]) + _per_channel(self.conv.bias[...])
+
 
 class Branch(nnx.Module):
     """One encoder with its depth and mask decoders (docs/method.md §3, shared building blocks).
 
-    ``__call__(x [B, H, W, C_in]) -> (bottleneck [B, h, w, C], inv_depth [B, H, W, F],
-    mask [B, H, W, F])``; ``H, W`` may be any size.
+    ``__call__(x [B, H, W, C_in], *, training) -> (bottleneck [B, h, w, C], inv_depth [B, F, H,
+    W], mask [B, F, H, W])``; ``H, W`` may be any size.
+
+    Outside ``training`` the full-resolution layers (the last transposed convolutions, the last
+    block and the two heads) run on channel planes (``conv3x3_planar``; see
+    :data:`PLANAR_MAX_CHANNEL_PAIRS`): the same function summed in another order, faster, and
+    straight to the channel-first maps returned. Training keeps XLA's convolutions, so its
+    numerics stay what they were.
     """
 
     def __init__(self, config: ModelConfig, in_channels: int, frames: int, rngs: nnx.Rngs):
@@ -196,8 +235,11 @@ class Branch(nnx.Module):
         mask_stages = zip(mask_cins, mask_planes, strict=True)
         self.mask_upconvs = nnx.List([UpConv(ci, co, rngs) for ci, co in mask_stages])
         self.mask_head = _Head(mask_planes[-1], frames, rngs)
+        last = self.iconvs[-1].conv.kernel
+        self.planar_inference = last.shape[2] * last.shape[3] <= PLANAR_MAX_CHANNEL_PAIRS
 
-    def __call__(self, x: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    def __call__(self, x: jax.Array, *, training: bool) -> tuple[jax.Array, jax.Array, jax.Array]:
+        planar = self.planar_inference and not training
         features = [x]
         for block in self.encoder:
             features.append(block(features[-1]))
@@ -207,7 +249,7 @@ class Branch(nnx.Module):
         inv_depth_up: jax.Array | None = None
         inv_depth: jax.Array | None = None
         head_index = 0
-        for i, s in enumerate(range(self.depth, 0, -1)):
+        for i, s in enumerate(range(self.depth, 1 if planar else 0, -1)):
             y = _crop(self.upconvs[i](y), sizes[s - 1])
             parts = [y]
             if s >= 2:
@@ -220,14 +262,38 @@ class Branch(nnx.Module):
                 head_index += 1
                 if s >= 2:
                     inv_depth_up = _crop(upsample2x_bilinear(inv_depth), sizes[s - 2])
-        assert inv_depth is not None  # the last stage s = 1 has a head (ModelConfig: depth_scales >= 1)
+        if planar:
+            inv_depth = jax.nn.relu(self._last_stage_planar(y, inv_depth_up, sizes[0])) + INV_DEPTH_OFFSET
+        else:
+            assert inv_depth is not None  # the last stage s = 1 has a head (ModelConfig: depth_scales >= 1)
+            inv_depth = jnp.moveaxis(inv_depth, -1, 1)
         inv_depth = 0.5 * inv_depth
 
         m = features[self.mask_source]
+        last = len(self.mask_upconvs) - 1
         for j, upconv in enumerate(self.mask_upconvs):
-            m = _crop(upconv(m), sizes[self.mask_source - 1 - j])
-        mask = jax.nn.sigmoid(self.mask_head(m))
+            if planar and j == last:
+                h, w = sizes[0]
+                m = _planar_pad(upconv(m, channels_first=True)[:, :, :h, :w], 1)
+            else:
+                m = _crop(upconv(m), sizes[self.mask_source - 1 - j])
+        mask = jax.nn.sigmoid(self.mask_head.planar(m) if planar else jnp.moveaxis(self.mask_head(m), -1, 1))
         return features[-1], inv_depth, mask
+
+    def _last_stage_planar(
+        self, y: jax.Array, inv_depth_up: jax.Array | None, size: tuple[int, ...]
+    ) -> jax.Array:
+        """Stage s = 1 of the depth decoder in inference, on channel planes: ``y [B, h, w, C]``
+        from stage 2 (and its upsampled inverse depth ``[B, H, W, F]``) → the full-resolution
+        head's output before its ReLU, ``[B, F, H, W]``."""
+        h, w = size
+        u = self.upconvs[-1](y, channels_first=True)[:, :, :h, :w]
+        parts = [u] if inv_depth_up is None else [u, jnp.moveaxis(inv_depth_up, -1, 1)]
+        x = _planar_pad(jnp.concatenate(parts, axis=1), 2)
+        # The block's output over the head's padded domain with its border zeroed, instead of a
+        # pad of it: XLA fuses an expensive producer into a pad and runs that fusion unvectorised.
+        interior = np.pad(np.ones((h, w), np.float32), 1)
+        return self.heads[-1].planar(self.iconvs[-1].planar(x) * interior)
 
 
 class FCReduction(nnx.Module):
@@ -286,11 +352,6 @@ def _branch_input(images: jax.Array | np.ndarray, flow: jax.Array | np.ndarray |
     return jnp.concatenate(parts, axis=-1)
 
 
-def _dense_outputs(inv_depth: jax.Array, mask: jax.Array) -> BranchOutputs:
-    """NHWF → ``BranchOutputs`` with ``[B, F, H, W]``."""
-    return BranchOutputs(jnp.moveaxis(inv_depth, -1, 1), jnp.moveaxis(mask, -1, 1))
-
-
 def _ssim_logit(config: ModelConfig) -> jax.Array:
     """Initial λ_s parameter: sigmoid⁻¹(ssim_weight_init)."""
     p = config.ssim_weight_init
@@ -341,12 +402,17 @@ class _DPCBase(nnx.Module):
         if tuple(batch.xi_vo.shape) != (batch.left.shape[0], 6):
             raise ValueError(f"{name}: batch.xi_vo must have shape [B, 6], got {tuple(batch.xi_vo.shape)}")
         rates = (self.config.dropout, self.prior.dropout.rate)
-        training_dropout = not self.prior.dropout.deterministic and max(rates) > 0
+        training_dropout = self._training and max(rates) > 0
         if training_dropout and key is None:
             raise ValueError(f"{name}: training mode applies dropout and needs key=jax.random.key(...)")
 
+    @property
+    def _training(self) -> bool:
+        """Training mode (``model.train()``), as opposed to ``model.eval()``."""
+        return not self.prior.dropout.deterministic
+
     def _keys(self, key: jax.Array | None, n: int) -> list[jax.Array | None]:
-        if key is None or self.prior.dropout.deterministic:
+        if key is None or not self._training:
             return [None] * n
         return list(jax.random.split(key, n))
 
@@ -384,12 +450,12 @@ class MonoDPC(_DPCBase):
         self._check(batch, key)
         # _check raised if the model reads flow and the batch has none.
         flow = batch.flow[:, 0] if self.use_flow and batch.flow is not None else None
-        bottleneck, inv_depth, mask = self.branch(_branch_input(batch.left, flow))
+        bottleneck, inv_depth, mask = self.branch(_branch_input(batch.left, flow), training=self._training)
         k_reduce, k_prior = self._keys(key, 2)
         flat = bottleneck.reshape(bottleneck.shape[0], -1)
         reduced = [] if self.reduce is None else [self.reduce(flat, k_reduce)]
         xi_corr = self._pose(reduced, batch.xi_vo, k_prior)
-        return DPCOutputs(xi_corr, _dense_outputs(inv_depth, mask), None, self._ssim_weight())
+        return DPCOutputs(xi_corr, BranchOutputs(inv_depth, mask), None, self._ssim_weight())
 
 
 class StereoDPC(_DPCBase):
@@ -415,8 +481,8 @@ class StereoDPC(_DPCBase):
         # _check raised if the model reads flow and the batch has none.
         left_flow = batch.flow[:, 0] if self.use_flow and batch.flow is not None else None
         right_flow = batch.flow[:, 1] if self.use_flow and batch.flow is not None else None
-        bl, dl, ml = self.left_branch(_branch_input(batch.left, left_flow))
-        br, dr, mr = self.right_branch(_branch_input(batch.right, right_flow))
+        bl, dl, ml = self.left_branch(_branch_input(batch.left, left_flow), training=self._training)
+        br, dr, mr = self.right_branch(_branch_input(batch.right, right_flow), training=self._training)
         k_left, k_right, k_prior = self._keys(key, 3)
         # Both reductions exist, or neither (_reduction).
         reduced = [] if self.left_reduce is None or self.right_reduce is None else [
@@ -424,7 +490,7 @@ class StereoDPC(_DPCBase):
             self.right_reduce(br.reshape(br.shape[0], -1), k_right),
         ]
         xi_corr = self._pose(reduced, batch.xi_vo, k_prior)
-        return DPCOutputs(xi_corr, _dense_outputs(dl, ml), _dense_outputs(dr, mr), self._ssim_weight())
+        return DPCOutputs(xi_corr, BranchOutputs(dl, ml), BranchOutputs(dr, mr), self._ssim_weight())
 
 
 def _init_like_pytorch(model: nnx.Module, seed: int) -> None:
