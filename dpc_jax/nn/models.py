@@ -32,7 +32,8 @@ multiples of ``2**depth``).
 
 Inputs (see ``dpc_jax.nn.batch.Batch``): uint8 images are converted to [0, 1] and whitened with the
 ImageNet statistics inside the model; optical flow (pixels) is appended unscaled, as in the
-reference. Everything is NHWC inside; dense outputs are returned as ``[B, F, H, W]``.
+reference. Everything is NHWC inside, except that in ``model.eval()`` the full-resolution
+layers run on channel planes (``Branch``); dense outputs are returned as ``[B, F, H, W]``.
 
 Modes: ``model.train()`` uses batch statistics in BatchNorm (and updates the running averages)
 and applies dropout, for which ``model(batch, key=...)`` needs an explicit PRNG key;
