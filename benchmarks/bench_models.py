@@ -6,7 +6,8 @@ Usage::
         [--methods ss_dpc stereo_dpc] [--infer-batches 1 8] [--train-batches 4 8]
         [--repeats 10] [--breakdown] [--profile DIR]
 
-* ``inference``: jitted eval-mode forward of ``(state, batch)``.
+* ``inference``: jitted eval-mode forward of a batch by the model prepared once
+  (``dpc_jax.nn.models.prepare_inference``), as ``dpc_jax.inference.predict_sequence`` runs one.
 * ``train step``: the library's own jitted, state-donating step (``dpc_jax.training.steps``, the
   ``REFERENCE`` settings, as ``bench_train.py`` runs it): train-mode forward, the loss with its
   warps, backward, the optimizer update, new parameters and BatchNorm statistics.
@@ -44,7 +45,7 @@ from dpc_jax.nn.batch import Batch
 from dpc_jax.nn.config import PRESETS, SSDPCLossConfig, StereoDPCLossConfig
 from dpc_jax.nn.conv import compiler_options
 from dpc_jax.nn.losses import ss_dpc_loss, stereo_dpc_loss
-from dpc_jax.nn.models import create_model
+from dpc_jax.nn.models import create_model, prepare_inference
 
 
 def timeit(fn: Callable[..., object], args: tuple, repeats: int) -> tuple[float, float, float, float]:
@@ -98,11 +99,12 @@ def build(method: str, preset: str, hw: tuple[int, int]) -> dict[str, Callable]:
     # The library's jitted inference and training step compile the network with these options too.
     jit = functools.partial(jax.jit, compiler_options=compiler_options(method, training=True))
 
+    # As dpc_jax.inference.predict_sequence runs a sequence: the model prepared once, then batches.
+    inference_graphdef, prepared = prepare_inference(graphdef, nnx.merge_state(params, stats))
+
     @functools.partial(jax.jit, compiler_options=compiler_options(method, training=False))
-    def infer(params: nnx.State, stats: nnx.State, batch: Batch):
-        m = nnx.merge(graphdef, params, stats)
-        m.eval()
-        return m(batch)
+    def infer(prepared: nnx.State, batch: Batch):
+        return nnx.merge(inference_graphdef, prepared)(batch)
 
     @jit
     def forward_train(params: nnx.State, stats: nnx.State, batch: Batch, key: jax.Array):
@@ -127,6 +129,7 @@ def build(method: str, preset: str, hw: tuple[int, int]) -> dict[str, Callable]:
 
     return {
         "state": (params, stats),
+        "prepared": prepared,
         "infer": infer,
         "forward_train": forward_train,
         "loss_only": loss_only,
@@ -173,7 +176,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         params, stats = fns["state"]
         for b in args.infer_batches:
             batch = jax.device_put(make_batch(b, *hw))
-            row(method, "inference (eval)", b, fns["infer"], params, stats, batch)
+            row(method, "inference (eval)", b, fns["infer"], fns["prepared"], batch)
         for b in args.train_batches:
             batch = jax.device_put(make_batch(b, *hw))
             if args.breakdown:

@@ -10,16 +10,17 @@ a Markdown table: each pair's median step times, the per-pair ratio PyTorch time
     python benchmarks/bench_vs_torch.py --torch-python PY --only mono-train-8 stereo-train-8 --pairs 3
 
 Both sides run the published architecture at the same image size and batch: ``infer`` is the
-eval-mode forward with pose, inverse depth and masks; ``train`` is the train-mode forward (dropout
-0.5), the method's loss, backward and an Adam step (ours: the ``dpc-jax train`` step,
-``dpc_jax.training.steps``, with the ``REFERENCE`` settings, as ``bench_train.py`` runs it). Our
-process restarts itself with huge pages as ``dpc-jax`` does; PyTorch uses ``TORCH_THREADS``
-(default 2) threads. Load: ``foreign`` is the share of the machine's CPU time that other
-processes used while a run was timing (each side measures its own, from ``/proc/stat``), ``load``
-the 1-minute load average when the run started. A ratio from a run with much foreign load mostly
-measures the other processes (PyTorch's OpenMP threads suffer far more from a stolen core than
-ours): such pairs are marked ``*`` and left out of the median. Before each run the script waits
-(``--wait-quiet``) for the other processes to go quiet.
+eval-mode forward with pose, inverse depth and masks (ours: by the model prepared once,
+``dpc_jax.nn.models.prepare_inference``, as ``dpc-jax correct`` runs a sequence); ``train`` is the
+train-mode forward (dropout 0.5), the method's loss, backward and an Adam step (ours: the
+``dpc-jax train`` step, ``dpc_jax.training.steps``, with the ``REFERENCE`` settings, as ``bench_train.py``
+runs it). Our process restarts itself with huge pages as ``dpc-jax`` does; PyTorch uses
+``TORCH_THREADS`` (default 2) threads. Load: ``foreign`` is the share of the machine's CPU time
+that other processes used while a run was timing (each side measures its own, from ``/proc/stat``),
+``load`` the 1-minute load average when the run started. A ratio from a run with much foreign load
+mostly measures the other processes (PyTorch's OpenMP threads suffer far more from a stolen core
+than ours): such pairs are marked ``*`` and left out of the median. Before each run the script
+waits (``--wait-quiet``) for the other processes to go quiet.
 
 ``--ours VARIANT MODE BATCH REPS WARMUP`` is the worker: one configuration of ours in this process,
 one JSON line on stdout, the interface of ``bench_torch.py``.
@@ -106,9 +107,8 @@ def run_ours(variant: str, mode: str, batch: int, reps: int, warmup: int, size: 
         fn, _ = bench_train.train_step_runner(method, "reference", batch, size)
     else:
         fns = bench_models.build(method, "reference", size)
-        params, stats = fns["state"]
         inputs = jax.device_put(bench_models.make_batch(batch, *size))
-        fn = lambda: fns["infer"](params, stats, inputs)
+        fn = lambda: fns["infer"](fns["prepared"], inputs)
     jax.block_until_ready(fn())
     record = {"variant": variant, "mode": mode, "batch": batch, "reps": reps, "warmup": warmup,
               "jax": jax.__version__, "compile_s": time.perf_counter() - began}

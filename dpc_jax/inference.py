@@ -34,6 +34,7 @@ from dpc_jax.data.sequence_cache import SequenceCache, load_cache
 from dpc_jax.nn.batch import Batch
 from dpc_jax.nn.conv import compiler_options
 from dpc_jax.nn.losses import correction_deltas, dpc_loss
+from dpc_jax.nn.models import prepare_inference
 from dpc_jax.training import parallel
 from dpc_jax.training.config import SELECTIONS, TrainConfig
 
@@ -187,7 +188,8 @@ def predict_sequence(
     mesh: Mesh | None = None,
     progress: bool = False,
 ) -> SequencePrediction:
-    """Run the model ``(graphdef, state)`` in evaluation mode over every pair of ``cache``.
+    """Run the model ``(graphdef, state)`` in evaluation mode over every pair of ``cache``
+    (prepared once: ``dpc_jax.nn.models.prepare_inference``).
 
     ``loss_config``: the run's loss config (``TrainConfig.loss_config()``). ``stereo_depth``:
     ``(inverse depth, valid)`` ``[N, camera, H, W]`` of every frame (``dpc_jax.data.stereo_depth``)
@@ -197,6 +199,7 @@ def predict_sequence(
     batch k are fetched.
     """
     cache = cache if isinstance(cache, SequenceCache) else load_cache(cache)
+    graphdef, state = prepare_inference(graphdef, state)
     pairs = len(cache) - 1
     size = max(1, min(batch_size, pairs)) if mesh is None else batch_size
     step = _predict_step(mesh, loss_config.method)

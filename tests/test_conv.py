@@ -13,7 +13,9 @@ from dpc_jax.nn.conv import (
     conv3x3_few_outputs,
     conv3x3_planar,
     conv_s2,
+    phase_kernel,
     upconv3x3_s2,
+    upconv3x3_s2_phases,
 )
 
 
@@ -94,6 +96,32 @@ def test_upconv3x3_s2_channels_first_is_the_same_map(hw: tuple[int, int]) -> Non
     x, kernel = jnp.asarray(rng.normal(size=(2, *hw, 3))), jnp.asarray(rng.normal(size=(3, 3, 3, 4)))
     want = jnp.moveaxis(_reference_up(x, kernel), -1, 1)
     np.testing.assert_allclose(upconv3x3_s2(x, kernel, channels_first=True), want, rtol=1e-12, atol=1e-12)
+
+
+def test_phase_kernel_places_every_tap_once() -> None:
+    """Each of the nine taps sits in exactly one (offset, phase) block; the seven others are zero.
+    (That these are the right blocks, the transposed convolution tests check.)"""
+    kernel = jnp.arange(9.0).reshape(3, 3, 1, 1) + 1.0
+    phases = np.asarray(phase_kernel(kernel)).reshape(2, 2, 2, 2)  # [a, b, q, r]
+    # Along one axis: phase 0 at offset 0 is tap 1; phase 1 at offsets 0 and 1 are taps 0 and 2.
+    tap = {(0, 0): 1, (1, 0): 0, (1, 1): 2}
+    for a, b, q, r in np.ndindex(2, 2, 2, 2):
+        want = 0.0 if (q, a) not in tap or (r, b) not in tap else 3 * tap[q, a] + tap[r, b] + 1.0
+        assert phases[a, b, q, r] == want, (a, b, q, r)
+    assert sorted(phases[phases > 0].tolist()) == list(range(1, 10))
+
+
+def test_upconv3x3_s2_phases_is_upconv3x3_s2_bit_for_bit() -> None:
+    rng = np.random.default_rng(3)
+    x = jnp.asarray(rng.normal(size=(2, 5, 7, 3)), jnp.float32)
+    kernel = jnp.asarray(rng.normal(size=(3, 3, 3, 4)), jnp.float32)
+    for channels_first in (False, True):
+        np.testing.assert_array_equal(
+            upconv3x3_s2_phases(x, phase_kernel(kernel), channels_first=channels_first),
+            upconv3x3_s2(x, kernel, channels_first=channels_first),
+        )
+    with pytest.raises(ValueError, match="4\\*C_out"):
+        upconv3x3_s2_phases(x, kernel)
 
 
 def test_float32_inputs_stay_float32() -> None:

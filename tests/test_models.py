@@ -15,7 +15,7 @@ from flax import nnx
 from dpc_jax.nn.batch import Batch
 from dpc_jax.nn.config import PRESETS, ModelConfig, StereoDPCLossConfig
 from dpc_jax.nn.losses import stereo_dpc_loss
-from dpc_jax.nn.models import Branch, UpConv, create_model, upsample2x_bilinear
+from dpc_jax.nn.models import Branch, UpConv, create_model, prepare_inference, upsample2x_bilinear
 
 TINY = (24, 40)
 SMALL = dataclasses.replace(PRESETS["small"], image_size=TINY)
@@ -306,6 +306,23 @@ def test_inference_on_channel_planes_equals_the_convolutions(method: str) -> Non
     for got, want in zip(jax.tree.leaves(planar.left), jax.tree.leaves(convolutions.left), strict=True):
         assert got.shape == want.shape
         np.testing.assert_allclose(got, want, rtol=2e-6, atol=1e-7)
+
+
+@pytest.mark.parametrize("method", ["ss_dpc", "stereo_dpc"])
+def test_prepared_inference_is_the_model_bit_for_bit(method: str) -> None:
+    """prepare_inference only computes the phase kernels ahead: the same outputs bit for bit; the
+    source model keeps none; the prepared one refuses to train (its kernels would go stale)."""
+    graphdef, state = nnx.split(create_model(method, SMALL, 0))
+    prepared = prepare_inference(graphdef, state)
+    batch, key = make_batch(2, TINY), jax.random.key(0)
+    jax.tree.map(np.testing.assert_array_equal, _forward_eval(*prepared, batch, key),
+                 _forward_eval(graphdef, state, batch, key))
+    upconvs = [[m for _, m in nnx.iter_modules(nnx.merge(*split)) if isinstance(m, UpConv)]
+               for split in (prepared, (graphdef, state))]
+    assert upconvs[0] and all(m.phases is not None for m in upconvs[0])
+    assert all(m.phases is None for m in upconvs[1])
+    with pytest.raises(ValueError, match="prepared for inference"):
+        _forward_train(*prepared, batch, key)
 
 
 def test_wide_networks_keep_the_convolutions_in_inference() -> None:

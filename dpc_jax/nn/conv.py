@@ -127,12 +127,14 @@ def conv_s2(x: jax.Array, kernel: jax.Array) -> jax.Array:
 _PHASE_TAP = ((1, None), (0, 2))
 
 
-def _phase_kernel(kernel: jax.Array) -> jax.Array:
+def phase_kernel(kernel: jax.Array) -> jax.Array:
     """``[3, 3, C_in, C_out]`` → ``[2, 2, C_in, 4·C_out]`` = [row offset, col offset, C_in,
-    (row phase, col phase, C_out)]: the 2×2 stride-1 kernel of every output phase.
+    (row phase, col phase, C_out)]: the 2×2 stride-1 kernel of every output phase of
+    :func:`upconv3x3_s2`.
 
     Pure data movement, written as one concatenation in the final layout (a stack and a transpose
-    cost a second pass over the largest kernels on every call).
+    cost a second pass over the largest kernels on every call). Inference computes it once per
+    sequence (``dpc_jax.nn.models.prepare_inference``) and calls :func:`upconv3x3_s2_phases`.
     """
     zero = jnp.zeros(kernel.shape[2:], kernel.dtype)
 
@@ -147,24 +149,32 @@ def _phase_kernel(kernel: jax.Array) -> jax.Array:
     return jnp.stack([jnp.stack([jnp.concatenate(taps(a, b), axis=-1) for b in (0, 1)]) for a in (0, 1)])
 
 
+def upconv3x3_s2_phases(x: jax.Array, phases: jax.Array, *, channels_first: bool = False) -> jax.Array:
+    """:func:`upconv3x3_s2` with the kernel given as its :func:`phase_kernel` ``[2, 2, C_in,
+    4·C_out]``: ``[B, h, w, C_in] -> [B, 2h, 2w, C_out]`` (or ``[B, C_out, 2h, 2w]``)."""
+    if phases.shape[:2] != (2, 2) or phases.shape[3] % 4:
+        raise ValueError(f"upconv3x3_s2_phases needs a [2, 2, C_in, 4*C_out] kernel, got {phases.shape}")
+    x, phases = _promote(x, phases)
+    cout = phases.shape[3] // 4
+    y = jax.lax.conv_general_dilated(x, phases, (1, 1), ((0, 1), (0, 1)), dimension_numbers=NHWC)
+    b, h, w, _ = y.shape
+    planes = y.reshape(b, h, w, 2, 2, cout)
+    if channels_first:
+        return planes.transpose(0, 5, 1, 3, 2, 4).reshape(b, cout, 2 * h, 2 * w)
+    return planes.transpose(0, 1, 3, 2, 4, 5).reshape(b, 2 * h, 2 * w, cout)
+
+
 def upconv3x3_s2(x: jax.Array, kernel: jax.Array, *, channels_first: bool = False) -> jax.Array:
     """Transposed convolution 3×3, stride 2: ``[B, h, w, C_in] -> [B, 2h, 2w, C_out]``, or
     ``[B, C_out, 2h, 2w]`` with ``channels_first`` (the same interleaving pass, another order).
 
     Equals ``lax.conv_transpose(x, kernel, (2, 2), ((1, 2), (1, 2)))`` (Flax's ``ConvTranspose``
     with that padding; PyTorch's ``ConvTranspose2d(3, stride=2, padding=1, output_padding=1)`` up
-    to a kernel flip), evaluated as one stride-1 2×2 convolution producing the four output phases,
-    then interleaved (depth-to-space).
+    to a kernel flip), evaluated as one stride-1 2×2 convolution producing the four output phases
+    (:func:`phase_kernel`), then interleaved (depth-to-space).
     """
     x, kernel = _promote(x, kernel)
-    cout = kernel.shape[3]
-    phases = _phase_kernel(kernel)
-    y = jax.lax.conv_general_dilated(x, phases, (1, 1), ((0, 1), (0, 1)), dimension_numbers=NHWC)
-    b, h, w, _ = y.shape
-    phases = y.reshape(b, h, w, 2, 2, cout)
-    if channels_first:
-        return phases.transpose(0, 5, 1, 3, 2, 4).reshape(b, cout, 2 * h, 2 * w)
-    return phases.transpose(0, 1, 3, 2, 4, 5).reshape(b, 2 * h, 2 * w, cout)
+    return upconv3x3_s2_phases(x, phase_kernel(kernel), channels_first=channels_first)
 
 
 # ------------------------------------------------------ 3×3 convolution to a few output channels

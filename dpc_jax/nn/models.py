@@ -65,7 +65,7 @@ from flax import nnx
 
 from dpc_jax.nn.batch import Batch
 from dpc_jax.nn.config import Method, ModelConfig, uses_flow
-from dpc_jax.nn.conv import conv3x3_few_outputs, conv3x3_planar, conv_s2, upconv3x3_s2
+from dpc_jax.nn.conv import conv3x3_few_outputs, conv3x3_planar, conv_s2, phase_kernel, upconv3x3_s2_phases
 from dpc_jax.nn.outputs import BranchOutputs, DPCOutputs
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -153,23 +153,32 @@ class _ConvBlock(nnx.Module):
         return (y - _per_channel(norm.mean[...])) * _per_channel(gain) + _per_channel(norm.bias[...])
 
 
+class PhaseKernel(nnx.Variable):
+    """A transposed convolution's kernel in the layout it is evaluated in
+    (``dpc_jax.nn.conv.phase_kernel``), derived from its ``kernel`` by :func:`prepare_inference`:
+    not a parameter, never trained or saved."""
+
+
 class UpConv(nnx.Module):
     """Transposed conv 3×3 stride 2 → ReLU, ``[B, h, w, C_in] -> [B, 2h, 2w, C_out]``.
 
     Mathematically ``lax.conv_transpose(x, kernel, (2, 2), ((1, 2), (1, 2)))`` (Flax's
     ``ConvTranspose`` with that padding, i.e. PyTorch's ``ConvTranspose2d(3, stride=2, padding=1,
     output_padding=1)`` up to a kernel flip), with the same ``[3, 3, C_in, C_out]`` kernel,
-    evaluated by ``dpc_jax.nn.conv.upconv3x3_s2``.
+    evaluated by ``dpc_jax.nn.conv.upconv3x3_s2``. ``phases`` holds the kernel's phase layout in
+    a model made by :func:`prepare_inference` (else None: it is computed on every call).
     """
 
     def __init__(self, cin: int, cout: int, rngs: nnx.Rngs):
         init = nnx.initializers.lecun_normal()
         self.kernel = nnx.Param(init(rngs.params(), (3, 3, cin, cout), jnp.float32))
         self.bias = nnx.Param(jnp.zeros((cout,), jnp.float32))
+        self.phases: PhaseKernel | None = nnx.data(None)
 
     def __call__(self, x: jax.Array, *, channels_first: bool = False) -> jax.Array:
         """``[B, h, w, C_in]`` → ``[B, 2h, 2w, C_out]``, or ``[B, C_out, 2h, 2w]``."""
-        y = upconv3x3_s2(x, self.kernel[...], channels_first=channels_first)
+        phases = phase_kernel(self.kernel[...]) if self.phases is None else self.phases[...]
+        y = upconv3x3_s2_phases(x, phases, channels_first=channels_first)
         bias = self.bias[...].astype(y.dtype)
         return jax.nn.relu(y + (_per_channel(bias) if channels_first else bias))
 
@@ -409,6 +418,9 @@ class _DPCBase(nnx.Module):
                 )
         if tuple(batch.xi_vo.shape) != (batch.left.shape[0], 6):
             raise ValueError(f"{name}: batch.xi_vo must have shape [B, 6], got {tuple(batch.xi_vo.shape)}")
+        prepared = any(isinstance(m, UpConv) and m.phases is not None for _, m in nnx.iter_modules(self))
+        if self._training and prepared:
+            raise ValueError(f"{name}: a model prepared for inference (prepare_inference) cannot train")
         rates = (self.config.dropout, self.prior.dropout.rate)
         training_dropout = self._training and max(rates) > 0
         if training_dropout and key is None:
@@ -560,6 +572,26 @@ def create_model(method: str, config: ModelConfig, seed: int) -> MonoDPC | Stere
     if leftover:
         raise RuntimeError(f"create_model left {len(leftover)} variables uninitialised")
     return model
+
+
+# One compiled function for all the kernels of a model (op by op, every shape compiles its own ops).
+_phase_kernels = jax.jit(lambda kernels: [phase_kernel(k) for k in kernels])
+
+
+def prepare_inference(graphdef: nnx.GraphDef, state: nnx.State) -> tuple[nnx.GraphDef, nnx.State]:
+    """The model ``(graphdef, state)`` (from ``nnx.split``) in evaluation mode with every transposed
+    convolution's phase kernel computed once, as ``nnx.split`` returns it: for a sequence of
+    batches. The same outputs bit for bit as the model itself in evaluation mode, without
+    rearranging the largest kernels (up to 2.4 MB) on every call. The prepared model refuses to
+    train (its phase kernels would go stale); ``graphdef, state`` are not modified.
+    """
+    model = nnx.merge(graphdef, state)
+    model.eval()
+    upconvs = [m for _, m in nnx.iter_modules(model) if isinstance(m, UpConv)]
+    phases = _phase_kernels([m.kernel[...] for m in upconvs])
+    for module, value in zip(upconvs, phases, strict=True):
+        module.phases = PhaseKernel(value)
+    return nnx.split(model)
 
 
 def count_parameters(model: nnx.Module) -> int:
