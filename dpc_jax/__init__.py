@@ -45,7 +45,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "dpc_jax.vo": ("StereoVO", "VOConfig", "VOResult", "VOStatus", "run_vo", "run_vo_frames"),
     "dpc_jax.nn.conv": ("conv_s2", "upconv3x3_s2", "conv3x3_few_outputs"),
     "dpc_jax.nn.models": (
-        "MonoDPC", "StereoDPC", "create_model", "count_parameters",
+        "MonoDPC", "StereoDPC", "create_model", "count_parameters", "prepare_inference",
     ),
     "dpc_jax.training.config": ("TrainConfig", "REFERENCE"),
     "dpc_jax.training.optim": ("make_optimizer", "create_train_state", "learning_rate_schedule"),
