@@ -173,7 +173,6 @@ def upconv3x3_s2(x: jax.Array, kernel: jax.Array, *, channels_first: bool = Fals
     to a kernel flip), evaluated as one stride-1 2×2 convolution producing the four output phases
     (:func:`phase_kernel`), then interleaved (depth-to-space).
     """
-    x, kernel = _promote(x, kernel)
     return upconv3x3_s2_phases(x, phase_kernel(kernel), channels_first=channels_first)
 
 

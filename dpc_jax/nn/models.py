@@ -290,7 +290,7 @@ class Branch(nnx.Module):
         if planar:
             # The head over a border of 2, cropped to 1: with a border of 1, XLA reads the centre
             # tap straight from the unpadded planes and fuses their transposition from NHWC into
-            # the head, which then runs unvectorised (3× slower at batch 8).
+            # the head, which then runs unvectorised.
             logits = self.mask_head.planar(m)[:, :, 1:-1, 1:-1]
         else:
             logits = jnp.moveaxis(self.mask_head(m), -1, 1)
@@ -418,8 +418,9 @@ class _DPCBase(nnx.Module):
                 )
         if tuple(batch.xi_vo.shape) != (batch.left.shape[0], 6):
             raise ValueError(f"{name}: batch.xi_vo must have shape [B, 6], got {tuple(batch.xi_vo.shape)}")
-        prepared = any(isinstance(m, UpConv) and m.phases is not None for _, m in nnx.iter_modules(self))
-        if self._training and prepared:
+        if self._training and any(
+            isinstance(m, UpConv) and m.phases is not None for _, m in nnx.iter_modules(self)
+        ):
             raise ValueError(f"{name}: a model prepared for inference (prepare_inference) cannot train")
         rates = (self.config.dropout, self.prior.dropout.rate)
         training_dropout = self._training and max(rates) > 0
