@@ -29,6 +29,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from machine import this_cpu
+
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_MAT = ROOT.parent / "shared" / "data" / "kitti-libviso2" / "stereo_00.mat"
 
@@ -97,7 +99,7 @@ def main() -> None:
     ours, loops = outputs["cold"] | outputs["warm"], outputs["loop"]
     same = len(ours) == 1 and len(loops) == 1 and agree(next(iter(ours)), next(iter(loops)))
     n = json.loads(next(iter(ours)))["num_poses"]
-    print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}), {os.cpu_count()} cores, "
+    print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}), {this_cpu()}, "
           f"load average {min(load):.1f}-{max(load):.1f}; {args.mat.name}: {n} poses; "
           f"median of {args.repeats} rounds after one unmeasured round, whole processes")
     print(f"{'command':<44} {'wall s':>8} {'runs':>28} {'vs loop':>8}")

@@ -15,6 +15,7 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
+from machine import this_cpu
 
 from dpc_jax.geometry.lie import se3_exp, se3_log
 from dpc_jax.geometry.ssim import ssim_loss
@@ -75,7 +76,7 @@ def main() -> int:
         ("ssim_loss fwd+bwd", f"[{b}, {h}, {w}, 3]", lambda: ssim_bwd(source)),
     ]
     device = jax.devices()[0]
-    print(f"device: {device.platform} ({device.device_kind}), jax {jax.__version__}, float32, "
+    print(f"device: {device.platform} ({device.device_kind}), {this_cpu()}, jax {jax.__version__}, float32, "
           f"{args.repeats} repeats")
     print(f"| {'function':<22} | {'shape':<18} | {'median ms':>10} | {'min ms':>10} |")
     print(f"|{'-' * 24}|{'-' * 20}|{'-' * 12}|{'-' * 12}|")

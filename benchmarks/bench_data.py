@@ -17,13 +17,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+from machine import this_cpu
 
 from dpc_jax.data.pipeline import TrainLoader
 from dpc_jax.data.sequence_cache import FLOW_FILES, MANIFEST, PAIR_KINDS, load_cache
@@ -91,7 +91,7 @@ def main() -> None:
         cache = load_cache(path)
         print(f"cache: {path} ({len(cache)} frames, {cache.image_size[0]}×{cache.image_size[1]}, "
               f"flows: {', '.join(cache.flows) or 'none'})")
-        print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
+        print(f"machine: {this_cpu()}, "
               f"load average {os.getloadavg()[0]:.1f}")
         rows = []
         configs = [

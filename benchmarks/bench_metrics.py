@@ -24,6 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
 import reference_metrics as ref  # noqa: E402
+from machine import this_cpu  # noqa: E402
 
 from dpc_jax.data.poses_io import read_mat  # noqa: E402
 from dpc_jax.eval import metrics  # noqa: E402
@@ -67,7 +68,7 @@ def main() -> None:
         lambda: [reference() for reference in references],
     ))
 
-    print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}), float64, "
+    print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}), {this_cpu()}, float64, "
           f"trajectory {args.mat.name}: N = {n} poses, 8 segment lengths")
     print(f"{'metric':<26} {'compile s':>10} {'ours ms':>10} {'loop s':>10} {'speed-up':>10}")
     for name, ours, reference in cases:

@@ -39,6 +39,7 @@ import jax
 import numpy as np
 from bench_train import train_step_runner
 from flax import nnx
+from machine import this_cpu
 
 from dpc_jax.hugepages import reexec_with_huge_pages
 from dpc_jax.nn.batch import Batch
@@ -154,7 +155,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     hw = (args.height, args.width)
     device = jax.devices()[0]
     print(
-        f"device: {device.platform} ({device.device_kind}), {os.cpu_count()} CPUs, jax {jax.__version__}, "
+        f"device: {device.platform} ({device.device_kind}), {this_cpu()}, jax {jax.__version__}, "
         f"float32, preset {args.preset}, {hw[0]}x{hw[1]}, {args.repeats} repeats"
     )
     env = {name: os.environ.get(name, "") for name in ("XLA_FLAGS", "GLIBC_TUNABLES")}

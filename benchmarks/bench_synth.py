@@ -17,6 +17,7 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+from machine import this_cpu
 
 from dpc_jax.hugepages import reexec_with_huge_pages
 from dpc_jax.synth import SynthConfig, iter_frames, write_sequence
@@ -82,7 +83,7 @@ def main() -> None:
         wall, cpu = _timed(fn, 5 * args.repeats)
         rows.append((name, wall, cpu))
 
-    print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}), {os.cpu_count()} CPUs, "
+    print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}), {this_cpu()}, "
           f"load average {load:.1f}; image {h}x{w}, {args.moving_objects} moving cars, "
           f"{args.frames} frames x {args.repeats} repeats (median)")
     print(f"| {'stage':<18} | {'wall ms/frame':>13} | {'CPU ms/frame':>12} | {'frames/s (wall)':>15} |")

@@ -14,13 +14,13 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import statistics
 import time
 from collections.abc import Callable
 
 import jax
 import numpy as np
+from machine import this_cpu
 
 from dpc_jax.hugepages import reexec_with_huge_pages
 from dpc_jax.nn.batch import Batch
@@ -106,7 +106,7 @@ def main() -> None:
     args = parser.parse_args()
     devices = jax.devices()
     print(f"device: {len(devices)} x {devices[0].device_kind} ({jax.default_backend()}), "
-          f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
+          f"{this_cpu()}, "
           f"load average {os.getloadavg()[0]:.1f} at start")
     print("| method | preset | image HxW | batch | compile (s) | step median (ms) | min–max (ms) "
           "| samples/s |")

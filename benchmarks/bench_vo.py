@@ -13,13 +13,13 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import statistics
 import time
 from pathlib import Path
 
 import cv2
 import numpy as np
+from machine import this_cpu
 
 from dpc_jax.data.kitti import load_image, open_raw
 from dpc_jax.vo import STAGES, VOConfig, run_vo_frames
@@ -58,7 +58,7 @@ def main() -> None:
     height, width = frames[0][0].shape
     per_frame = statistics.median(totals)
     print(f"stereo VO, {n} frames of {width}x{height} grey pairs, {args.repeats} repeats (median)")
-    print(f"device: CPU {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+    print(f"device: {this_cpu()}, "
           f"OpenCV {cv2.__version__} with {cv2.getNumThreads()} threads, load average "
           f"{' '.join(f'{v:.1f}' for v in os.getloadavg())}")
     print(f"{'stage':<10}{'ms/frame':>10}{'share':>8}")

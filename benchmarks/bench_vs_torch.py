@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -39,6 +38,8 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+
+from machine import this_cpu
 
 ROOT = Path(__file__).resolve().parents[1]
 TORCH_BENCH = ROOT.parent / "shared" / "bench" / "torch_reference" / "bench_torch.py"
@@ -255,8 +256,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
 
     chosen = [c for c in CONFIGURATIONS if args.only is None or config_name(*c) in args.only]
-    print(f"`python benchmarks/bench_vs_torch.py {' '.join(sys.argv[1:])}`: {platform.machine()}, "
-          f"{os.cpu_count()} CPUs, {args.size[0]}×{args.size[1]}, {args.pairs} alternating pairs, "
+    print(f"`python benchmarks/bench_vs_torch.py {' '.join(sys.argv[1:])}`: {this_cpu()}, "
+          f"{args.size[0]}×{args.size[1]}, {args.pairs} alternating pairs, "
           f"{time.strftime('%Y-%m-%d %H:%M')}", flush=True)
     rows, versions = [], {}
     for variant, mode, batch in chosen:
