@@ -91,8 +91,7 @@ def main() -> None:
         cache = load_cache(path)
         print(f"cache: {path} ({len(cache)} frames, {cache.image_size[0]}×{cache.image_size[1]}, "
               f"flows: {', '.join(cache.flows) or 'none'})")
-        print(f"machine: {this_cpu()}, "
-              f"load average {os.getloadavg()[0]:.1f}")
+        print(f"machine: {this_cpu()}, load average {os.getloadavg()[0]:.1f}")
         rows = []
         configs = [
             ("inline (workers=0)", {"workers": 0}, None),

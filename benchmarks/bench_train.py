@@ -106,8 +106,7 @@ def main() -> None:
     args = parser.parse_args()
     devices = jax.devices()
     print(f"device: {len(devices)} x {devices[0].device_kind} ({jax.default_backend()}), "
-          f"{this_cpu()}, "
-          f"load average {os.getloadavg()[0]:.1f} at start")
+          f"{this_cpu()}, load average {os.getloadavg()[0]:.1f} at start")
     print("| method | preset | image HxW | batch | compile (s) | step median (ms) | min–max (ms) "
           "| samples/s |")
     print("|---|---|---|---|---|---|---|---|")

@@ -58,8 +58,7 @@ def main() -> None:
     height, width = frames[0][0].shape
     per_frame = statistics.median(totals)
     print(f"stereo VO, {n} frames of {width}x{height} grey pairs, {args.repeats} repeats (median)")
-    print(f"device: {this_cpu()}, "
-          f"OpenCV {cv2.__version__} with {cv2.getNumThreads()} threads, load average "
+    print(f"device: {this_cpu()}, OpenCV {cv2.__version__} with {cv2.getNumThreads()} threads, load average "
           f"{' '.join(f'{v:.1f}' for v in os.getloadavg())}")
     print(f"{'stage':<10}{'ms/frame':>10}{'share':>8}")
     for name, values in stages.items():
