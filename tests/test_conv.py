@@ -67,7 +67,9 @@ def test_upconv3x3_s2_matches_conv_transpose(hw: tuple[int, int]) -> None:
     _check(upconv3x3_s2, _reference_up, (2, *hw, 3), (3, 3, 3, 4), seed=hw[1])
 
 
-@pytest.mark.parametrize(("hw", "cin", "f"), [((6, 7), 8, 2), ((5, 4), 10, 8), ((1, 2), 2, 1)])
+@pytest.mark.parametrize(
+    ("hw", "cin", "f"), [((6, 7), 8, 2), ((5, 4), 10, 8), ((1, 2), 2, 1), ((3, 3), 1, 1)]
+)
 def test_conv3x3_planar_matches_conv(hw: tuple[int, int], cin: int, f: int) -> None:
     """Values only: inference is its one use (training differentiates the NHWC convolutions)."""
     rng = np.random.default_rng(cin * f)
