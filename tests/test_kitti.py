@@ -203,3 +203,69 @@ def test_raw_ground_truth_of_wrong_length() -> None:
         open_raw(RAW, "2011_09_26", "0001", poses=np.tile(np.eye(4), (10, 1, 1)))
     with pytest.raises(FileNotFoundError, match="drive_0002_sync"):
         open_raw(RAW, "2011_09_26", 2)
+
+
+RAW_MAT_0005 = RAW / "libviso2" / "stereo_2011_09_26_drive_0005.mat"
+
+
+def _calibration_row(key: str) -> np.ndarray:
+    """``key``'s 12 numbers parsed here independently of the reader."""
+    for line in (RAW / "2011_09_26" / "calib_cam_to_cam.txt").read_text().splitlines():
+        if line.startswith(f"{key}:"):
+            return np.array(line.split(":", 1)[1].split(), dtype=np.float64).reshape(3, 4)
+    raise AssertionError(f"{key} not in the calibration file")
+
+
+def test_real_raw_grey_pair_of_drive_0005() -> None:
+    from dpc_jax.data.kitti import read_ground_truth
+
+    gt = read_ground_truth(RAW_MAT_0005)[:91]  # README: the first 91 of 154 poses belong to the images
+    seq = open_raw(RAW, "2011_09_26", 5, poses=gt)  # auto: the drive holds only its grey pair
+    assert seq.name == "2011_09_26_drive_0005" and len(seq) == 91 == len(seq.right_paths)
+    assert seq.left_paths[0].parts[-3] == "image_00" and seq.right_paths[0].parts[-3] == "image_01"
+    assert seq.image_size == (375, 1242)
+    p0, p1 = _calibration_row("P_rect_00"), _calibration_row("P_rect_01")
+    np.testing.assert_array_equal(seq.K, p0[:, :3])
+    assert seq.baseline == pytest.approx((p0[0, 3] - p1[0, 3]) / p0[0, 0], rel=1e-12)
+    assert seq.baseline == pytest.approx(0.537, abs=0.002)  # README: ≈ 0.54 m
+    assert seq.times[0] == 0.0 and np.all(np.diff(seq.times) > 0.09) and np.all(np.diff(seq.times) < 0.12)
+    length = np.linalg.norm(np.diff(seq.poses[:, :3, 3], axis=0), axis=1).sum()
+    assert 30 < length < 38  # README: about 34 m
+    # Grey PNGs enter every colour consumer as three equal channels (the network sees replicated grey).
+    image = load_image(seq.left_paths[0])
+    reference = cv2.imread(str(seq.left_paths[0]), cv2.IMREAD_UNCHANGED)
+    assert reference.ndim == 2 and image.shape == (375, 1242, 3)
+    for c in range(3):
+        np.testing.assert_array_equal(image[..., c], reference)
+    np.testing.assert_array_equal(load_image(seq.right_paths[5], grey=True),
+                                  cv2.imread(str(seq.right_paths[5]), cv2.IMREAD_UNCHANGED))
+    assert open_raw(RAW, "2011_09_26", 5, cameras="grey").left_paths == seq.left_paths
+
+
+def test_raw_pair_choice_and_missing_cameras(tmp_path: Path) -> None:
+    colour = open_raw(RAW, "2011_09_26", 1)  # auto: the colour pair when the drive has it
+    assert colour.left_paths[0].parts[-3] == "image_02"
+    missing = r"drive_000{}_sync: the {} pair \(image_0{}/, image_0{}/\) is missing"
+    with pytest.raises(ValueError, match=missing.format(5, "colour", 2, 3)):
+        open_raw(RAW, "2011_09_26", 5, cameras="colour")
+    with pytest.raises(ValueError, match=missing.format(1, "grey", 0, 1)):
+        open_raw(RAW, "2011_09_26", 1, cameras="grey")
+    with pytest.raises(ValueError, match="cameras must be one of"):
+        open_raw(RAW, "2011_09_26", 1, cameras="rgb")
+    (tmp_path / "2011_09_26" / "2011_09_26_drive_0009_sync" / "image_00").mkdir(parents=True)
+    with pytest.raises(ValueError, match="drive_0009_sync: no stereo pair"):
+        open_raw(tmp_path, "2011_09_26", 9)
+
+
+@pytest.mark.parametrize("command", ["vo", "prepare"])
+def test_cli_names_the_missing_grey_pair_in_one_line(command: str, tmp_path: Path, capsys) -> None:
+    from dpc_jax.cli import main
+
+    extra = {"vo": [], "prepare": ["--prior", str(RAW_MAT)]}[command]
+    out = tmp_path / ("cache" if command == "prepare" else "out.txt")
+    status = main([command, "--kitti-raw", str(RAW), "--date", "2011_09_26", "--drive", "1", "--grey",
+                   "--out", str(out), *extra])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert status in (1, 2) and len(err) == 1, err
+    assert "the grey pair (image_00/, image_01/) is missing" in err[0]
+    assert not out.exists()

@@ -67,6 +67,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sequence", metavar="XX", help="odometry sequence")
     parser.add_argument("--date", metavar="YYYY_MM_DD", help="raw: recording date, e.g. 2011_09_26")
     parser.add_argument("--drive", metavar="NNNN", help="raw: drive number")
+    parser.add_argument("--grey", action="store_true",
+                        help="raw inputs: the grey pair (odometry: image_0/image_1; raw: image_00/image_01); "
+                        "default: the colour pair, or for a raw drive without one its grey pair")
     parser.add_argument("--prior", metavar="FILE",
                         help="VO estimate to correct (KITTI/TUM text or .mat); required with raw inputs")
     parser.add_argument("--prior-format", choices=("kitti", "tum", "mat"), help="override the extension")
@@ -112,7 +115,8 @@ def _error(message: str) -> int:
 def _check_arguments(args: argparse.Namespace) -> str | None:
     """The first problem of the options, input paths and outputs (all checked without JAX), or None."""
     raw_only = {"--gt": args.gt, "--cache": args.cache, "--frames": args.frames,
-                "--remove-static": args.remove_static or None, "--mono-rescale": args.mono_rescale or None}
+                "--remove-static": args.remove_static or None, "--mono-rescale": args.mono_rescale or None,
+                "--grey": args.grey or None}
     if args.data is not None:
         given = [name for name, value in raw_only.items() if value is not None]
         if given or args.sequence or args.date or args.drive:
@@ -205,9 +209,9 @@ def _sequence(
     from dpc_jax.data.kitti import open_odometry, open_raw
 
     if args.kitti_odometry is not None:
-        sequence = open_odometry(args.kitti_odometry, args.sequence)
+        sequence = open_odometry(args.kitti_odometry, args.sequence, grey=args.grey)
     else:
-        sequence = open_raw(args.kitti_raw, args.date, args.drive)
+        sequence = open_raw(args.kitti_raw, args.date, args.drive, cameras="grey" if args.grey else "auto")
     # The pid in the name lets a later run remove the folder of a killed one.
     remove_stale(tempfile.gettempdir(), "dpc-correct-")
     cache_root = args.cache or Path(

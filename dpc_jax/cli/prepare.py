@@ -40,7 +40,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="odometry layout root (holds sequences/ and poses/); also the synthetic layout")
     layout.add_argument("--kitti-raw", type=Path, metavar="ROOT", help="raw layout root (holds DATE/)")
     parser.add_argument("--sequence", nargs="+", default=[], metavar="XX", help="odometry sequence(s)")
-    parser.add_argument("--grey", action="store_true", help="odometry: use the grey pair image_0/image_1")
+    parser.add_argument("--grey", action="store_true",
+                        help="the grey pair (odometry: image_0/image_1; raw: image_00/image_01); default: "
+                        "the colour pair, or for a raw drive without one its grey pair")
     parser.add_argument("--date", metavar="YYYY_MM_DD", help="raw: recording date, e.g. 2011_09_26")
     parser.add_argument("--drive", nargs="+", default=[], metavar="NNNN", help="raw: drive number(s)")
     parser.add_argument("--prior", required=True, metavar="FILE",
@@ -108,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
             if args.kitti_odometry is not None:
                 sequence = open_odometry(args.kitti_odometry, key, grey=args.grey)
             else:
-                sequence = open_raw(args.kitti_raw, args.date, key)
+                sequence = open_raw(args.kitti_raw, args.date, key, cameras="grey" if args.grey else "auto")
         except (OSError, ValueError, KeyError) as error:
             return _error(f"{key}: {error}", status=1)
         prior = args.prior.replace("{seq}", sequence.name)

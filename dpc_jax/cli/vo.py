@@ -36,7 +36,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="odometry layout root (holds sequences/ and poses/); also the synthetic layout")
     layout.add_argument("--kitti-raw", type=Path, metavar="ROOT", help="raw layout root (holds DATE/)")
     parser.add_argument("--sequence", metavar="XX", help="odometry: sequence")
-    parser.add_argument("--grey", action="store_true", help="odometry: use the grey pair image_0/image_1")
+    parser.add_argument("--grey", action="store_true",
+                        help="the grey pair (odometry: image_0/image_1; raw: image_00/image_01); default: "
+                        "the colour pair, or for a raw drive without one its grey pair")
     parser.add_argument("--date", metavar="YYYY_MM_DD", help="raw: recording date, e.g. 2011_09_26")
     parser.add_argument("--drive", metavar="NNNN", help="raw: drive number")
     parser.add_argument("--gt", type=Path, metavar="FILE",
@@ -63,9 +65,10 @@ def _open(args: argparse.Namespace):  # -> StereoSequence (imported lazily)
         if not args.sequence or args.date or args.drive or args.gt:
             raise _UsageError("--kitti-odometry needs --sequence (and no --date/--drive/--gt)")
         return open_odometry(args.kitti_odometry, args.sequence, grey=args.grey)
-    if not args.date or not args.drive or args.sequence or args.grey:
-        raise _UsageError("--kitti-raw needs --date and --drive (and no --sequence/--grey)")
-    return open_raw(args.kitti_raw, args.date, args.drive, poses=args.gt)
+    if not args.date or not args.drive or args.sequence:
+        raise _UsageError("--kitti-raw needs --date and --drive (and no --sequence)")
+    return open_raw(args.kitti_raw, args.date, args.drive, poses=args.gt,
+                    cameras="grey" if args.grey else "auto")
 
 
 class _UsageError(Exception):

@@ -12,7 +12,8 @@ Layouts (docs/method.md §6):
   time in seconds per line), and ground truth ``ROOT/poses/XX.txt`` when it exists.
 * raw: ``ROOT/DATE/DATE_drive_NNNN_sync/image_0{2,3}/data/NNNNNNNNNN.png`` with
   ``ROOT/DATE/calib_cam_to_cam.txt`` (``P_rect_02``, ``P_rect_03``) and
-  ``image_02/timestamps.txt``; ground truth from a pose file or a ``.mat`` file given by the caller.
+  ``image_02/timestamps.txt``; the grey pair ``image_0{0,1}`` with ``P_rect_00``, ``P_rect_01`` and
+  ``image_00/timestamps.txt``; ground truth from a pose file or a ``.mat`` file given by the caller.
 
 Poses are used as the files give them (camera-to-world, docs/method.md §1). The odometry ground truth
 and the ss-DPC-Net ``.mat`` files describe camera 0 (grey left); the colour pair's left camera
@@ -281,27 +282,59 @@ def read_ground_truth(source: str | Path, format: str | None = None) -> np.ndarr
     return poses_io.read_trajectory(source, format, mat_key="poses_gt")
 
 
+RAW_CAMERAS = ("auto", "colour", "grey")
+# The rectified pairs of the raw layout: (left folder, right folder, left key, right key).
+_RAW_PAIRS = {"colour": ("image_02", "image_03", "P_rect_02", "P_rect_03"),
+              "grey": ("image_00", "image_01", "P_rect_00", "P_rect_01")}
+
+
+def raw_cameras(drive_dir: Path, cameras: str = "auto") -> str:
+    """Which pair of a raw drive folder to read: ``colour`` (``image_02``/``image_03``) or ``grey``
+    (``image_00``/``image_01``). ``auto`` takes the colour pair when both of its folders exist, else the
+    grey pair; ``ValueError`` (one line naming the folder) when the asked pair is not there."""
+    if cameras not in RAW_CAMERAS:
+        raise ValueError(f"cameras must be one of {RAW_CAMERAS}, got {cameras!r}")
+    present = [c for c, (a, b, _, _) in _RAW_PAIRS.items()
+               if (drive_dir / a).is_dir() and (drive_dir / b).is_dir()]
+    if cameras == "auto":
+        if not present:
+            raise ValueError(f"{drive_dir}: no stereo pair (expected image_02/ and image_03/, or "
+                             "image_00/ and image_01/)")
+        return present[0]
+    if cameras not in present:
+        a, b = _RAW_PAIRS[cameras][:2]
+        others = f"; it holds the {present[0]} pair" if present else ""
+        raise ValueError(f"{drive_dir}: the {cameras} pair ({a}/, {b}/) is missing{others}")
+    return cameras
+
+
 def open_raw(
     root: str | Path,
     date: str,
     drive: str | int,
     poses: str | Path | np.ndarray | None = None,
+    cameras: str = "auto",
 ) -> StereoSequence:
-    """Open KITTI raw drive ``DATE_drive_NNNN_sync`` (colour pair ``image_02``/``image_03``).
+    """Open KITTI raw drive ``DATE_drive_NNNN_sync``.
 
+    ``cameras``: ``colour`` (``image_02``/``image_03`` with ``P_rect_02``/``P_rect_03``), ``grey``
+    (``image_00``/``image_01`` with ``P_rect_00``/``P_rect_01``) or ``auto`` (the colour pair when the
+    drive has it, else the grey one; :func:`raw_cameras`). Grey images are read as 3 equal channels by
+    :func:`load_image`, so every consumer of colour images takes them unchanged.
     ``poses``: ground truth as an array ``[N, 4, 4]``, or a pose file (KITTI or TUM text, or the
-    ``.mat`` layout whose ``poses_gt`` is used), or None. Times come from
-    ``image_02/timestamps.txt`` in seconds since the first frame.
+    ``.mat`` layout whose ``poses_gt`` is used), or None. Times come from the left camera's
+    ``timestamps.txt`` in seconds since the first frame.
     """
     root = Path(root)
     drive_name = f"{date}_drive_{int(drive):04d}"
     drive_dir = root / date / f"{drive_name}_sync"
     if not drive_dir.is_dir():
         raise FileNotFoundError(f"{drive_dir}: raw drive folder not found")
-    left, right = _pair_files(drive_dir / "image_02" / "data", drive_dir / "image_03" / "data")
+    left_dir, right_dir, left_key, right_key = _RAW_PAIRS[raw_cameras(drive_dir, cameras)]
+    left, right = _pair_files(drive_dir / left_dir / "data", drive_dir / right_dir / "data")
     calib_path = root / date / "calib_cam_to_cam.txt"
-    K, baseline = stereo_calibration(calib_path, "P_rect_02", "P_rect_03")
-    times_path = drive_dir / "image_02" / "timestamps.txt"
+    K, baseline = stereo_calibration(calib_path, left_key, right_key)
+    times_path = drive_dir / left_dir / "timestamps.txt"
     times = _read_timestamps(times_path, len(left))
     sources = [calib_path, times_path]
     gt = None
