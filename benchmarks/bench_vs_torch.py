@@ -22,6 +22,18 @@ mostly measures the other processes (PyTorch's OpenMP threads suffer far more fr
 than ours): such pairs are marked ``*`` and left out of the median. Before each run the script
 waits (``--wait-quiet``) for the other processes to go quiet.
 
+On a GPU machine (``--torch-device cuda``; JAX takes its default device, the GPU) each PyTorch
+step is synchronised; ``--torch-variants eager compiled`` also times PyTorch with ``torch.compile``
+(``TORCH_COMPILE=1``; its compilation happens in the warm-up steps, bounded by ``--torch-timeout``)
+and adds a summary table: each configuration's median PyTorch eager, PyTorch compiled and dpc_jax
+times, and the ratio to the faster PyTorch. On a GPU the foreign CPU share says little; pass
+``--wait-quiet 0`` there.
+
+    python benchmarks/bench_vs_torch.py --torch-python python3 --torch-device cuda --wait-quiet 0 \
+        --torch-variants eager compiled --pairs 1 --reps 20 --warmup 3
+
+``--only`` takes any ``VARIANT-MODE-BATCH`` (e.g. ``stereo-train-32``), not only the defaults.
+
 ``--ours VARIANT MODE BATCH REPS WARMUP`` is the worker: one configuration of ours in this process,
 one JSON line on stdout, the interface of ``bench_torch.py``.
 """
@@ -53,10 +65,21 @@ CONFIGURATIONS = [
     for batch in batches
 ]
 DEFAULT_REPS = {"infer": 20, "train": 5}
+TORCH_VARIANTS = ("eager", "compiled")
 
 
 def config_name(variant: str, mode: str, batch: int) -> str:
     return f"{variant}-{mode}-{batch}"
+
+
+def parse_config_name(name: str) -> tuple[str, str, int]:
+    """``VARIANT-MODE-BATCH`` (e.g. ``stereo-train-32``) as its parts; ValueError with one line."""
+    parts = name.split("-")
+    if (len(parts) != 3 or parts[0] not in METHODS or parts[1] not in DEFAULT_REPS
+            or not parts[2].isdigit() or int(parts[2]) < 1):
+        raise ValueError(f"configuration {name!r}: expected VARIANT-MODE-BATCH with VARIANT in "
+                         f"{sorted(METHODS)}, MODE in {sorted(DEFAULT_REPS)}, BATCH ≥ 1")
+    return parts[0], parts[1], int(parts[2])
 
 
 # ------------------------------------------------------------------------------------------ worker
@@ -112,7 +135,8 @@ def run_ours(variant: str, mode: str, batch: int, reps: int, warmup: int, size: 
         fn = lambda: fns["infer"](fns["prepared"], inputs)
     jax.block_until_ready(fn())
     record = {"variant": variant, "mode": mode, "batch": batch, "reps": reps, "warmup": warmup,
-              "jax": jax.__version__, "compile_s": time.perf_counter() - began}
+              "jax": jax.__version__, "device": jax.devices()[0].device_kind,
+              "compile_s": time.perf_counter() - began}
     record.update(time_calls(fn, reps, warmup))
     return record
 
@@ -133,8 +157,16 @@ class BenchError(RuntimeError):
     """A run failed; the message is one line for the user."""
 
 
-def _json_line(command: list[str], env: dict[str, str], what: str) -> dict:
-    done = subprocess.run(command, env=env, capture_output=True, text=True, check=False)
+class BenchTimeout(BenchError):
+    """A run outlasted its time limit (``--torch-timeout``)."""
+
+
+def _json_line(command: list[str], env: dict[str, str], what: str, timeout_s: float | None = None) -> dict:
+    try:
+        done = subprocess.run(command, env=env, capture_output=True, text=True, check=False,
+                              timeout=timeout_s)
+    except subprocess.TimeoutExpired as error:
+        raise BenchTimeout(f"{what} did not finish within {timeout_s:g} s") from error
     lines = [line for line in done.stdout.splitlines() if line.startswith("{")]
     if done.returncode != 0 or not lines:
         tail = (done.stderr.strip().splitlines() or ["no output"])[-1]
@@ -160,12 +192,15 @@ def check_torch_python(torch_python: str | None) -> str | None:
     return None
 
 
-def torch_run(args: argparse.Namespace, variant: str, mode: str, batch: int, reps: int) -> tuple[Run, dict]:
-    env = dict(os.environ, BENCH_H=str(args.size[0]), BENCH_W=str(args.size[1]))
+def torch_run(args: argparse.Namespace, variant: str, mode: str, batch: int, reps: int,
+              torch_variant: str = "eager") -> tuple[Run, dict]:
+    env = dict(os.environ, BENCH_H=str(args.size[0]), BENCH_W=str(args.size[1]),
+               TORCH_DEVICE=args.torch_device, TORCH_COMPILE="1" if torch_variant == "compiled" else "0")
     command = [args.torch_python, str(args.torch_bench), variant, mode, str(batch), str(reps),
                str(args.warmup)]
     load = os.getloadavg()[0]
-    record = _json_line(command, env, f"PyTorch {config_name(variant, mode, batch)}")
+    record = _json_line(command, env, f"PyTorch {torch_variant} {config_name(variant, mode, batch)}",
+                        args.torch_timeout)
     return Run(1e3 * record["median_s"], record["foreign_cpu_frac"], load), record
 
 
@@ -204,6 +239,24 @@ TABLE_HEADER = (
     "| configuration | PyTorch ms | dpc_jax ms | ratio per pair | median ratio "
     "| foreign CPU (PyTorch / ours) | load avg |\n|---|---|---|---|---|---|---|"
 )
+SUMMARY_HEADER = (
+    "| configuration | PyTorch eager ms | PyTorch compiled ms | dpc_jax ms | ratio to the faster PyTorch |"
+    "\n|---|---|---|---|---|"
+)
+
+
+def summary_row(label: str, eager: Sequence[Run], compiled: Sequence[Run] | None, ours: Sequence[Run],
+                compiled_note: str = "—") -> str:
+    """One row of the summary table: the median of each side's runs and the ratio of the faster
+    PyTorch variant to ours (``compiled_note`` stands where the compiled variant gave no time)."""
+    eager_ms = statistics.median(r.median_ms for r in eager)
+    ours_ms = statistics.median(r.median_ms for r in ours)
+    compiled_ms = statistics.median(r.median_ms for r in compiled) if compiled else None
+    faster = min(eager_ms, compiled_ms) if compiled_ms is not None else eager_ms
+    which = "compiled" if compiled_ms is not None and compiled_ms < eager_ms else "eager"
+    compiled_cell = f"{compiled_ms:.2f}" if compiled_ms is not None else compiled_note
+    return (f"| {label} | {eager_ms:.2f} | {compiled_cell} | {ours_ms:.2f} "
+            f"| **{faster / ours_ms:.2f}×** ({which}) |")
 
 
 def wait_until_quiet(limit_s: float, max_busy: float) -> None:
@@ -223,10 +276,16 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--torch-python", help="Python of an environment with PyTorch (required)")
     parser.add_argument("--torch-bench", type=Path, default=TORCH_BENCH, help="bench_torch.py to run")
     parser.add_argument("--pairs", type=int, default=2, help="alternating PyTorch/ours pairs per row")
+    parser.add_argument("--torch-device", choices=("cpu", "cuda"), default="cpu",
+                        help="PyTorch's device (TORCH_DEVICE; default cpu); ours: JAX's default device")
+    parser.add_argument("--torch-variants", nargs="+", choices=TORCH_VARIANTS, default=["eager"],
+                        help="PyTorch variants timed in each pair (default eager; compiled: torch.compile)")
+    parser.add_argument("--torch-timeout", type=float, metavar="SECONDS",
+                        help="give up on a PyTorch run after this long (its cell then says so)")
     parser.add_argument("--reps", type=int, help="timed calls per run (default: 20 inference, 5 training)")
     parser.add_argument("--warmup", type=int, default=2, help="untimed calls per run after the first")
-    parser.add_argument("--only", nargs="+", choices=names, metavar="NAME",
-                        help=f"configurations to run (default all: {' '.join(names)})")
+    parser.add_argument("--only", nargs="+", metavar="NAME",
+                        help=f"configurations VARIANT-MODE-BATCH to run (default: {' '.join(names)})")
     parser.add_argument("--max-foreign", type=float, default=0.1,
                         help="foreign CPU share above which a pair counts as loaded (default 0.1)")
     parser.add_argument("--wait-quiet", type=float, default=120, metavar="SECONDS",
@@ -238,6 +297,13 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     args = parser.parse_args(argv)
     if args.pairs < 1 or (args.reps is not None and args.reps < 1) or args.warmup < 0:
         parser.error("--pairs and --reps must be at least 1, --warmup at least 0")
+    try:
+        args.configurations = ([parse_config_name(n) for n in args.only] if args.only
+                               else list(CONFIGURATIONS))
+    except ValueError as error:
+        parser.error(f"--only: {error}")
+    if "eager" not in args.torch_variants:
+        parser.error("--torch-variants: eager is always timed (the per-pair table); add compiled")
     return args
 
 
@@ -255,18 +321,27 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"bench_vs_torch: {problem}", file=sys.stderr)
         return 2
 
-    chosen = [c for c in CONFIGURATIONS if args.only is None or config_name(*c) in args.only]
     print(f"`python benchmarks/bench_vs_torch.py {' '.join(sys.argv[1:])}`: {this_cpu()}, "
           f"{args.size[0]}×{args.size[1]}, {args.pairs} alternating pairs, "
           f"{time.strftime('%Y-%m-%d %H:%M')}", flush=True)
-    rows, versions = [], {}
-    for variant, mode, batch in chosen:
+    rows, summary, versions = [], [], {}
+    for variant, mode, batch in args.configurations:
         reps = args.reps or DEFAULT_REPS[mode]
-        pairs = []
+        label = f"{NAMES[variant]} {'inference' if mode == 'infer' else 'train step'}, b{batch}"
+        pairs, compiled_runs, compiled_note = [], [], "—"
         try:
             for _ in range(args.pairs):
                 wait_until_quiet(args.wait_quiet, 0.2)
                 theirs, torch_record = torch_run(args, variant, mode, batch, reps)
+                if "compiled" in args.torch_variants and compiled_note == "—":
+                    wait_until_quiet(args.wait_quiet, 0.2)
+                    try:
+                        compiled_runs.append(torch_run(args, variant, mode, batch, reps, "compiled")[0])
+                    except BenchTimeout:
+                        compiled_note = f"did not compile within {args.torch_timeout:g} s"
+                    except BenchError as error:
+                        compiled_note = "failed"
+                        print(f"bench_vs_torch: {error}", file=sys.stderr, flush=True)
                 wait_until_quiet(args.wait_quiet, 0.2)
                 ours, our_record = our_run(args, variant, mode, batch, reps)
                 pairs.append((theirs, ours))
@@ -274,16 +349,25 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"bench_vs_torch: {error}", file=sys.stderr)
             return 1
         versions = {"torch": torch_record["torch"], "threads": torch_record["threads"],
-                    "jax": our_record["jax"]}
-        label = f"{NAMES[variant]} {'inference' if mode == 'infer' else 'train step'}, b{batch}"
+                    "jax": our_record["jax"], "torch_device": torch_record.get("device", args.torch_device),
+                    "our_device": our_record.get("device", "?")}
         rows.append(table_row(label, pairs, args.max_foreign))
         print(f"  {rows[-1]}", file=sys.stderr, flush=True)
-    print(f"PyTorch {versions['torch']} ({versions['threads']} threads), jax {versions['jax']}; "
+        if "compiled" in args.torch_variants:
+            summary.append(summary_row(label, [t for t, _ in pairs], compiled_runs, [o for _, o in pairs],
+                                       compiled_note))
+            print(f"  {summary[-1]}", file=sys.stderr, flush=True)
+    print(f"PyTorch {versions['torch']} on {versions['torch_device']} ({versions['threads']} threads), "
+          f"jax {versions['jax']} on {versions['our_device']}; "
           f"median step time of each run ({args.reps or '20 inference / 5 training'} timed calls, "
           f"{args.warmup} warm-up); "
           "ratio = PyTorch time / ours (> 1: dpc_jax faster)\n")
     print(TABLE_HEADER)
     print("\n".join(rows))
+    if summary:
+        print("\nMedians over the pairs; PyTorch compiled: `torch.compile` of the forward and loss.\n")
+        print(SUMMARY_HEADER)
+        print("\n".join(summary))
     return 0
 
 

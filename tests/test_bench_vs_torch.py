@@ -69,6 +69,27 @@ def test_row_has_each_pair_its_ratio_and_the_median() -> None:
     assert "| 2.00*, 1.50* | 1.75× (loaded) |" in bench.table_row("x", pairs, max_foreign=0.0)
 
 
+def test_summary_row_takes_the_faster_pytorch_variant() -> None:
+    bench = _module()
+    eager = [bench.Run(16.0, 0.0, 0.1), bench.Run(15.0, 0.0, 0.1), bench.Run(15.8, 0.0, 0.1)]
+    compiled = [bench.Run(14.0, 0.0, 0.1)]
+    ours = [bench.Run(8.0, 0.0, 0.1), bench.Run(7.0, 0.0, 0.1), bench.Run(9.0, 0.0, 0.1)]
+    row = bench.summary_row("ss-DPC-Net train step, b8", eager, compiled, ours)
+    assert row == "| ss-DPC-Net train step, b8 | 15.80 | 14.00 | 8.00 | **1.75×** (compiled) |"
+    assert row.count("|") == bench.SUMMARY_HEADER.splitlines()[0].count("|")
+    # No compiled time: the eager one is the reference and the note stands in its cell.
+    row = bench.summary_row("x", eager, [], ours, "did not compile within 110 s")
+    assert row == "| x | 15.80 | did not compile within 110 s | 8.00 | **1.98×** (eager) |"
+
+
+def test_configuration_names_beyond_the_defaults() -> None:
+    bench = _module()
+    assert bench.parse_config_name("stereo-train-32") == ("stereo", "train", 32)
+    for bad in ("stereo-train", "mono-fly-8", "mono-infer-0", "rgb-infer-1", "mono-infer-x"):
+        with pytest.raises(ValueError, match="VARIANT-MODE-BATCH"):
+            bench.parse_config_name(bad)
+
+
 @pytest.mark.slow
 def test_end_to_end_against_a_stand_in(tmp_path: Path) -> None:
     fake = _fake_torch_python(tmp_path, 0.5)
