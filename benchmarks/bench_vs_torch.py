@@ -280,6 +280,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
                         help="PyTorch's device (TORCH_DEVICE; default cpu); ours: JAX's default device")
     parser.add_argument("--torch-variants", nargs="+", choices=TORCH_VARIANTS, default=["eager"],
                         help="PyTorch variants timed in each pair (default eager; compiled: torch.compile)")
+    parser.add_argument("--compiled-only", nargs="+", metavar="NAME",
+                        help="with --torch-variants compiled: time the compiled variant only for these "
+                             "configurations (default: all chosen)")
     parser.add_argument("--torch-timeout", type=float, metavar="SECONDS",
                         help="give up on a PyTorch run after this long (its cell then says so)")
     parser.add_argument("--reps", type=int, help="timed calls per run (default: 20 inference, 5 training)")
@@ -329,11 +332,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         reps = args.reps or DEFAULT_REPS[mode]
         label = f"{NAMES[variant]} {'inference' if mode == 'infer' else 'train step'}, b{batch}"
         pairs, compiled_runs, compiled_note = [], [], "—"
+        if args.compiled_only and config_name(variant, mode, batch) not in args.compiled_only:
+            compiled_note = "not run"
         try:
             for _ in range(args.pairs):
                 wait_until_quiet(args.wait_quiet, 0.2)
                 theirs, torch_record = torch_run(args, variant, mode, batch, reps)
-                if "compiled" in args.torch_variants and compiled_note == "—":
+                if "compiled" in args.torch_variants and compiled_note == "—":  # not given up on
                     wait_until_quiet(args.wait_quiet, 0.2)
                     try:
                         compiled_runs.append(torch_run(args, variant, mode, batch, reps, "compiled")[0])
