@@ -1,0 +1,281 @@
+"""Loop efficiency: the real training epoch and the real correction against their isolated jitted steps.
+
+    python benchmarks/bench_train_loop.py              # both methods, reference preset, 240x376, batch 8
+    python benchmarks/bench_train_loop.py --method ss_dpc --steps 10 --rounds 2
+    python benchmarks/bench_train_loop.py --cache CACHE_ROOT --train 00 --validation 01 --json out.json
+
+Training: samples/s of one epoch as ``dpc-jax train`` runs it (``dpc_jax.training.loop``: the
+prepared cache read by ``TrainLoader`` with its background workers, frame-skip augmentation on,
+flow for ss-DPC-Net, the per-step metrics fetched, checked and logged to TensorBoard), against
+samples/s of the same jitted train step called back to back on one batch already on the device
+(the most the loop could reach). Both run on the same state, alternating epoch and isolated
+steps ``--rounds`` times after a warm-up; the medians and their ratio (the loop efficiency) are
+printed. Validation and checkpoints are not part of the epoch measured.
+
+Correction: frames/s of ``dpc_jax.correct.correct_cache`` over a whole sequence (reading the cache,
+the prediction, Δ, the acceptance test, the trajectories and their evaluation) against frames/s of
+the isolated inference step on one device-resident batch, alternating likewise.
+
+Without ``--cache`` the script writes a synthetic cache (random frames and flow with the layout of
+a prepared one; content does not change the cost of a step) in a temporary folder, sized for
+``--steps`` steps per epoch, and removes it at the end. The network is the preset's with the
+training defaults. The device and the CPU are named in the header; ``--json FILE`` (``-``: stdout)
+writes the figures as one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import shutil
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+from machine import this_cpu
+
+from dpc_jax.hugepages import reexec_with_huge_pages
+
+METHODS = ("stereo_dpc", "ss_dpc")
+
+
+def write_cache(
+    path: Path, frames: int, size: tuple[int, int], flow_kinds: tuple[str, ...], seed: int
+) -> Path:
+    """A cache folder of random frames and flows with the layout ``dpc_jax.data.cache`` writes."""
+    from dpc_jax.data.sequence_cache import FLOW_FILES, MANIFEST, PAIR_KINDS
+
+    rng = np.random.default_rng(seed)
+    path.mkdir(parents=True)
+    h, w = size
+    for camera in ("left", "right"):
+        np.save(path / f"{camera}.npy", rng.integers(0, 256, (frames, h, w, 3), dtype=np.uint8))
+    for kind in flow_kinds:
+        count = frames - PAIR_KINDS[kind][0]
+        flow = np.lib.format.open_memmap(path / FLOW_FILES[kind], "w+", np.float32, (count, 2, h, w, 2))
+        for k in range(count):
+            flow[k] = rng.standard_normal((2, h, w, 2), dtype=np.float32)
+        flow.flush()
+        del flow
+    # A straight drive at 1.2 m per frame with a small sway, so priors and corrections are not all equal.
+    poses = np.tile(np.eye(4), (frames, 1, 1))
+    poses[:, 2, 3] = np.arange(frames) * 1.2
+    poses[:, 0, 3] = 0.1 * np.sin(np.arange(frames) / 5.0)
+    for name in ("prior", "gt"):
+        np.save(path / f"{name}.npy", poses)
+    np.save(path / "K.npy", np.array([[0.58 * w, 0, w / 2], [0, 1.92 * h, h / 2], [0, 0, 1]]))
+    np.save(path / "baseline.npy", np.float64(0.54))
+    np.save(path / "indices.npy", np.arange(frames))
+    np.save(path / "times.npy", np.arange(frames) * 0.1)
+    manifest = {"name": path.name, "n_frames": frames, "image_size": [h, w], "has_gt": True,
+                "flows": list(flow_kinds)}
+    (path / MANIFEST).write_text(json.dumps(manifest))
+    return path
+
+
+def synthetic_root(root: Path, steps: int, batch: int, size: tuple[int, int], flow: bool) -> Path:
+    """Training sequence ``00`` with enough pairs (forward and frame-skip) for ``steps`` batches, and a
+    short validation sequence ``01``."""
+    kinds = ("forward", "skip") if flow else ()
+    # forward + skip pairs of n frames: 2n - 3 samples.
+    frames = math.ceil((steps * batch + 3) / 2)
+    write_cache(root / "00", frames, size, kinds, seed=0)
+    write_cache(root / "01", 4, size, kinds, seed=1)
+    return root
+
+
+def median_rate(values: list[float]) -> float:
+    return statistics.median(values) if values else float("nan")
+
+
+def bench_method(
+    args: argparse.Namespace, method: str, root: Path, train: str, validation: str
+) -> dict[str, Any]:
+    from flax import nnx
+
+    from dpc_jax.correct import correct_cache
+    from dpc_jax.data.pipeline import iterate_sequence
+    from dpc_jax.data.sequence_cache import load_cache
+    from dpc_jax.inference import TrainedRun, _predict_step
+    from dpc_jax.nn.models import prepare_inference
+    from dpc_jax.training import loop, parallel
+    from dpc_jax.training.config import TrainConfig
+    from dpc_jax.training.steps import make_train_step
+
+    config = TrainConfig(
+        method=method, preset=args.preset, image_size=args.size, batch_size=args.batch,
+        cache_root=str(root), train_sequences=(train,), validation_sequences=(validation,),
+        steps_per_epoch=args.steps, epochs=args.rounds + 1, log_every=1,
+    )
+    data = loop.open_data(config, workers=args.workers)
+    mesh = parallel.make_mesh()
+    _, graphdef, state = loop._initial_state(config, data, mesh)
+    train_step = make_train_step(config.loss_config(), config.warmup_steps(data.steps_per_epoch), mesh)
+    steps = data.steps_per_epoch
+    record: dict[str, Any] = {"method": method, "steps_per_epoch": steps}
+    with tempfile.TemporaryDirectory(prefix="dpc_loop_log_") as logdir:
+        log = loop.MetricsLog(Path(logdir), 0, 0, enabled=True)
+        # Isolated: the first batch of epoch 0, on the device once; keys made before the clock starts.
+        batch = parallel.shard_batch(next(iter(data.loader.epoch(0))), mesh)
+        base = jax.random.key(config.seed)
+        keys = [jax.random.fold_in(base, s) for s in range(steps)]
+        began = time.perf_counter()
+        state, metrics = train_step(graphdef, state, batch, keys[0])
+        jax.block_until_ready(metrics)
+        record["compile_s"] = time.perf_counter() - began
+
+        def isolated(state: Any) -> tuple[Any, float]:
+            began = time.perf_counter()
+            for key in keys:
+                state, metrics = train_step(graphdef, state, batch, key)
+            jax.block_until_ready((state, metrics))
+            return state, steps * args.batch / (time.perf_counter() - began)
+
+        def epoch(state: Any, number: int, data: Any = data) -> tuple[Any, float]:
+            began = time.perf_counter()
+            state, _ = loop._train_epoch(
+                number, graphdef, state, train_step, data, config, mesh, 0, log, False
+            )
+            jax.block_until_ready(state)
+            return state, data.steps_per_epoch * args.batch / (time.perf_counter() - began)
+
+        # Warm-up: a short epoch (threads, files, logging) and a few isolated steps.
+        state, _ = epoch(state, 0, dataclasses.replace(data, steps_per_epoch=min(2, steps)))
+        for _ in range(min(2, steps)):
+            state, metrics = train_step(graphdef, state, batch, keys[0])
+        jax.block_until_ready(state)
+        loop_rates, step_rates = [], []
+        for r in range(args.rounds):
+            state, rate = epoch(state, r + 1)
+            loop_rates.append(rate)
+            state, rate = isolated(state)
+            step_rates.append(rate)
+            print(f"  {method} round {r + 1}: epoch {loop_rates[-1]:.2f}, isolated step {step_rates[-1]:.2f} "
+                  "samples/s", file=sys.stderr, flush=True)
+        log.close()
+    record["train"] = {"loop_samples_s": loop_rates, "step_samples_s": step_rates,
+                       "loop_median": median_rate(loop_rates), "step_median": median_rate(step_rates)}
+    record["train"]["efficiency"] = record["train"]["loop_median"] / record["train"]["step_median"]
+
+    # Correction: the trained state as a restored run would hold it (model only, evaluation mode).
+    model, _ = nnx.merge(graphdef, state)
+    model.eval()
+    run_graphdef, run_state = nnx.split(model)
+    del state
+    run = TrainedRun(root, config, "last", 1, run_graphdef, run_state)
+    cache = load_cache(root / train)
+    pairs = len(cache) - 1
+    size = min(args.batch, pairs)
+    prepared = prepare_inference(run_graphdef, run_state)
+    predict = _predict_step(None, method)
+    loss_config = config.loss_config()
+    one = jax.device_put(next(iter(iterate_sequence(cache, size, flow=config.use_flow))))
+    calls = math.ceil(pairs / size)
+
+    def predict_isolated() -> float:
+        began = time.perf_counter()
+        out = None
+        for _ in range(calls):
+            out = predict(*prepared, one, loss_config, None)
+        jax.block_until_ready(out)
+        return calls * size / (time.perf_counter() - began)
+
+    def correct_whole() -> float:
+        began = time.perf_counter()
+        correct_cache(run, cache, batch_size=args.batch)
+        return pairs / (time.perf_counter() - began)
+
+    correct_whole()  # warm-up: compiles the prediction and the evaluation
+    predict_isolated()
+    correct_rates, infer_rates = [], []
+    for r in range(args.rounds):
+        correct_rates.append(correct_whole())
+        infer_rates.append(predict_isolated())
+        print(f"  {method} round {r + 1}: correct {correct_rates[-1]:.2f}, isolated inference "
+              f"{infer_rates[-1]:.2f} frames/s", file=sys.stderr, flush=True)
+    record["correct"] = {"pairs": pairs, "loop_frames_s": correct_rates, "step_frames_s": infer_rates,
+                         "loop_median": median_rate(correct_rates), "step_median": median_rate(infer_rates)}
+    record["correct"]["efficiency"] = record["correct"]["loop_median"] / record["correct"]["step_median"]
+    return record
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    try:
+        h, w = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--size: expected HxW (e.g. 240x376), got {text!r}") from None
+    return h, w
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--method", nargs="+", default=list(METHODS), choices=METHODS)
+    parser.add_argument("--preset", default="reference", choices=("reference", "small"))
+    parser.add_argument("--size", type=parse_size, default=(240, 376), metavar="HxW")
+    parser.add_argument("--batch", type=int, default=8)
+    parser.add_argument("--steps", type=int, default=12, help="steps per measured epoch (default 12)")
+    parser.add_argument("--rounds", type=int, default=3, help="alternating measurements (default 3)")
+    parser.add_argument("--workers", type=int, default=2, help="data-loading threads, as dpc-jax train")
+    parser.add_argument("--cache", type=Path, help="a cache root with --train and --validation sequences")
+    parser.add_argument("--train", default="00")
+    parser.add_argument("--validation", default="01")
+    parser.add_argument("--json", metavar="FILE", help="write the figures as JSON (- for stdout)")
+    args = parser.parse_args()
+    devices = jax.devices()
+    header = {
+        "device": f"{len(devices)} x {devices[0].device_kind} ({jax.default_backend()})",
+        "cpu": this_cpu(),
+        "jax": jax.__version__,
+        "preset": args.preset, "size": list(args.size), "batch": args.batch,
+        "load_start": os.getloadavg()[0],
+    }
+    print(f"device: {header['device']}, {header['cpu']}, jax {jax.__version__}, "
+          f"load average {header['load_start']:.1f} at start", flush=True)
+    records = []
+    temporary = None
+    try:
+        for method in args.method:
+            if args.cache is not None:
+                root = args.cache
+            else:
+                temporary = Path(tempfile.mkdtemp(prefix="dpc_loop_cache_"))
+                root = synthetic_root(temporary, args.steps, args.batch, args.size, method == "ss_dpc")
+            records.append(bench_method(args, method, root, args.train, args.validation))
+            if temporary is not None:
+                shutil.rmtree(temporary)
+                temporary = None
+    finally:
+        if temporary is not None:
+            shutil.rmtree(temporary, ignore_errors=True)
+    h, w = args.size
+    print(f"\npreset {args.preset}, {h}x{w}, batch {args.batch}; medians of {args.rounds} alternating rounds")
+    print("| method | what | real loop | isolated step | efficiency |")
+    print("|---|---|---|---|---|")
+    for r in records:
+        t, c = r["train"], r["correct"]
+        print(f"| {r['method']} | train ({r['steps_per_epoch']} steps/epoch), samples/s | "
+              f"{t['loop_median']:.2f} | "
+              f"{t['step_median']:.2f} | {t['efficiency']:.3f} |")
+        print(f"| {r['method']} | correct ({c['pairs']} pairs), frames/s | {c['loop_median']:.2f} | "
+              f"{c['step_median']:.2f} | {c['efficiency']:.3f} |")
+    header["load_end"] = os.getloadavg()[0]
+    print(f"load average {header['load_end']:.1f} at end", flush=True)
+    if args.json:
+        text = json.dumps({**header, "results": records}, indent=2) + "\n"
+        if args.json == "-":
+            sys.stdout.write(text)
+        else:
+            Path(args.json).write_text(text)
+
+
+if __name__ == "__main__":
+    reexec_with_huge_pages()
+    main()
