@@ -8,6 +8,11 @@ output-path checks, and the removal of temporary folders that killed runs left b
   trajectory and its report) are written into hidden staging folders inside their destination
   folders, then moved into place together; if a move fails (or Ctrl-C arrives) the moves already
   made are undone and the files they replaced are put back.
+* :func:`output_target`: where an output path leads. A regular file, or a new one, is written
+  atomically as above; a symbolic link to one is followed and its target replaced the same way (the
+  link stays). A character device (``/dev/null``), a FIFO (``>(gzip > x)``) or a link into
+  ``/proc`` (``/dev/stdout``, ``/dev/fd/N``) cannot be replaced: the bytes are streamed into it,
+  once complete (:func:`stream_write`). Anything else (a block device, a socket) is refused.
 * :func:`output_problem`: what is wrong with an output path, checked before any work starts.
   The rule for folders, the same for every command: missing parent folders are created when the
   outputs are written (never when the run fails before), and the nearest existing one must be a
@@ -23,9 +28,13 @@ import errno
 import os
 import secrets
 import shutil
+import stat
+import sys
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 from types import TracebackType
+from typing import Literal
 
 STAGING_PREFIX = ".dpc-jax-staging-"
 # A process that started this long after a temporary folder was last modified cannot own it; the
@@ -43,12 +52,108 @@ def temp_name(prefix: str) -> str:
     return f"{prefix}{os.getpid()}-{secrets.token_hex(4)}"
 
 
+# ----------------------------------------------------------------------------- output targets
+
+OutputKind = Literal["file", "stream", "folder", "block device", "socket", "special file"]
+_MAX_LINKS = 40  # as the kernel's ELOOP limit
+
+
+def _follow(path: str | os.PathLike[str]) -> tuple[Path, bool]:
+    """``path`` with its symbolic links followed, and whether they led into ``/proc``.
+
+    The links are followed one by one rather than with ``realpath``: ``/dev/stdout`` leads to
+    ``/proc/self/fd/1``, whose link text names whatever file descriptor 1 is open on (``pipe:[N]``,
+    or a regular file that a shell redirection opened); that is to be written through the
+    descriptor's link, never replaced.
+    """
+    current = os.path.join(os.getcwd(), os.fspath(path))
+    for _ in range(_MAX_LINKS):
+        # The folders on the way resolved, so that /dev/fd/1 is seen as /proc/<pid>/fd/1.
+        current = os.path.join(os.path.realpath(os.path.dirname(current)), os.path.basename(current))
+        if current.startswith("/proc/"):
+            return Path(current), True
+        if not os.path.islink(current):
+            return Path(current), False
+        current = os.path.join(os.path.dirname(current), os.readlink(current))
+    raise OSError(errno.ELOOP, "too many levels of symbolic links", os.fspath(path))
+
+
+def output_target(path: str | os.PathLike[str]) -> tuple[OutputKind, Path]:
+    """What an output written to ``path`` is written into, and where: ``(kind, target)``.
+
+    ``"file"``: a regular file or a new one at ``target`` (``path`` with its symbolic links
+    followed), replaced atomically. ``"stream"``: a character device, a FIFO or a link into
+    ``/proc`` such as ``/dev/stdout``, written directly (:func:`stream_write`). ``"folder"``, a
+    block device, a socket or another special file cannot receive a file output.
+    """
+    target, through_proc = _follow(path)
+    try:
+        mode = os.stat(target).st_mode
+    except (FileNotFoundError, NotADirectoryError):
+        return "file", target
+    if stat.S_ISDIR(mode):
+        return "folder", target
+    if through_proc or stat.S_ISCHR(mode) or stat.S_ISFIFO(mode):
+        return "stream", target
+    if stat.S_ISREG(mode):
+        return "file", target
+    if stat.S_ISBLK(mode):
+        return "block device", target
+    return ("socket" if stat.S_ISSOCK(mode) else "special file"), target
+
+
+def stream_write(path: str | os.PathLike[str], data: str | bytes) -> None:
+    """Write ``data`` into the stream ``path`` (a character device, a FIFO, ``/dev/stdout``).
+
+    The process's own standard output or error (``/dev/stdout``, or any path to the same file) is
+    written through its file descriptor, after what the process printed there, so that both keep
+    their order in a file the shell redirected them to (a second descriptor would write from the
+    file's start, over them). Anything else is opened without creating or truncating it, in append
+    mode; a FIFO blocks until a reader opens it, as for any writer.
+    """
+    payload = data.encode("utf-8") if isinstance(data, str) else data
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError, AttributeError):
+            stream.flush()
+    status = os.stat(path)
+    for fd in (1, 2):
+        try:
+            same = os.path.samestat(status, os.fstat(fd))
+        except OSError:
+            continue
+        if same:
+            _write_all(fd, payload)
+            return
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_NOCTTY)
+    try:
+        _write_all(fd, payload)
+    finally:
+        os.close(fd)
+
+
+def _write_all(fd: int, payload: bytes) -> None:
+    view = memoryview(payload)
+    while view:
+        view = view[os.write(fd, view):]
+
+
 def atomic_write(path: str | os.PathLike[str], data: str | bytes) -> None:
     """Write ``data`` to ``path`` atomically (temporary file in the same folder, then ``os.replace``).
 
     The parent folder must exist. Text is written as UTF-8. The file gets mode ``0666 & ~umask``.
+    A symbolic link is followed (its target is replaced); a stream (:func:`output_target`) is
+    written directly; any other non-regular file raises OSError.
     """
-    path = Path(path)
+    kind, target = output_target(path)
+    if kind == "stream":
+        stream_write(path, data)
+        return
+    if kind == "folder":
+        raise IsADirectoryError(errno.EISDIR, "is a folder; expected a file", os.fspath(path))
+    if kind != "file":
+        raise OSError(errno.EINVAL, f"is a {kind}; expected a regular file, a character device or a FIFO",
+                      os.fspath(path))
+    path = target
     payload = data.encode("utf-8") if isinstance(data, str) else data
     while True:
         tmp = path.parent / f"{temp_name(f'.{path.name}.')}.tmp"
@@ -179,12 +284,22 @@ def output_problem(path: str | os.PathLike[str], option: str, *, folder: bool = 
     """
     path = Path(path)
     label = f"{option} {path}"
-    if path.exists():
-        if folder and not path.is_dir():
+    if folder:
+        if path.exists() and not path.is_dir():
             return f"{label}: exists and is not a folder"
-        if not folder and path.is_dir():
+        destination = path
+    else:
+        try:
+            kind, target = output_target(path)
+        except OSError as error:
+            return f"{label}: {error.strerror}"
+        if kind == "stream":
+            return None if os.access(target, os.W_OK) else f"{label}: not writable"
+        if kind == "folder":
             return f"{label}: is a folder; expected a file name"
-    destination = path if folder else path.parent
+        if kind != "file":
+            return f"{label}: is a {kind}; expected a regular file, a character device or a FIFO"
+        destination = target.parent
     existing = _nearest_existing(destination)
     if not existing.is_dir():
         return f"{label}: {existing} is a file, not a folder"
@@ -216,6 +331,23 @@ def _remove_empty(folders: list[Path]) -> None:
             path.rmdir()
 
 
+@contextlib.contextmanager
+def new_folders_removed_on_failure(folder: str | os.PathLike[str]) -> Iterator[None]:
+    """Around the writing of outputs under ``folder``: if the block fails (or Ctrl-C arrives), the
+    folders on the way to ``folder`` that did not exist before it are removed again where empty, so
+    that folders are made only when an output is written."""
+    missing = []
+    current = Path(os.path.abspath(folder))
+    while not current.exists() and current != current.parent:
+        missing.append(current)
+        current = current.parent
+    try:
+        yield
+    except BaseException:
+        _remove_empty(missing[::-1])
+        raise
+
+
 class OutputSet:
     """Outputs that belong together, written all or nothing.
 
@@ -230,7 +362,11 @@ class OutputSet:
     return where to write instead: inside a hidden staging folder in the destination, so every
     final move is a rename within one file system. Anything written into a staging folder lands
     at the same relative place in its destination (a writer may add files beside the one asked
-    for). :meth:`commit` moves every staged file into place, replacing existing files; if a move
+    for). A file whose path is a symbolic link is staged beside the link's target, which it
+    replaces; one whose path is a stream (:func:`output_target`: a character device, a FIFO,
+    ``/dev/stdout``) is staged in a private temporary folder and streamed into place last, once
+    every other file has been moved (a stream cannot be taken back). :meth:`commit` moves every
+    staged file into place, replacing existing files; if a move or a stream
     fails, the moves made so far are undone, the replaced files restored, and the error re-raised.
     Leaving the ``with`` block removes the staging folders, and without a commit also the
     destination folders this set created. Staging folders of killed runs are removed when a later
@@ -239,6 +375,8 @@ class OutputSet:
 
     def __init__(self) -> None:
         self._staging: dict[Path, Path] = {}  # destination folder -> its staging folder
+        self._streams: list[tuple[Path, Path]] = []  # (staged file, the stream it goes to)
+        self._private: Path | None = None  # the staging folder of streams
         self._created: list[Path] = []
         self._committed = False
 
@@ -254,8 +392,14 @@ class OutputSet:
 
     def file(self, path: str | os.PathLike[str]) -> Path:
         """Where to write the file that is to end up at ``path``."""
-        path = Path(path)
-        return self._stage(path.parent) / path.name
+        kind, target = output_target(path)
+        if kind == "stream":
+            if self._private is None:
+                self._private = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX))
+            staged = self._private / f"{len(self._streams)}-{target.name}"
+            self._streams.append((staged, Path(path)))
+            return staged
+        return self._stage(target.parent) / target.name
 
     def folder(self, path: str | os.PathLike[str]) -> Path:
         """A folder whose contents are to end up in the folder ``path``."""
@@ -281,6 +425,8 @@ class OutputSet:
                     os.replace(final, backup)
                 done.append((final, backup, created))
                 os.replace(staged, final)
+            for staged, stream in self._streams:
+                stream_write(stream, staged.read_bytes())
         except BaseException:
             for final, backup, created in reversed(done):
                 with contextlib.suppress(OSError):
@@ -291,7 +437,7 @@ class OutputSet:
                 _remove_empty(created)
             raise
         self._committed = True
-        return [final for _, final in moves]
+        return [final for _, final in moves] + [stream for _, stream in self._streams]
 
     def __enter__(self) -> OutputSet:
         return self
@@ -299,7 +445,7 @@ class OutputSet:
     def __exit__(
         self, kind: type[BaseException] | None, error: BaseException | None, trace: TracebackType | None
     ) -> None:
-        for staging in self._staging.values():
+        for staging in [*self._staging.values(), *filter(None, [self._private])]:
             shutil.rmtree(staging, ignore_errors=True)
         if not self._committed:
             _remove_empty(self._created)

@@ -25,8 +25,11 @@ again in the main thread (``console_main``).
 from __future__ import annotations
 
 import argparse
+import atexit
+import contextlib
 import importlib
 import logging
+import os
 import pkgutil
 import signal
 import sys
@@ -119,7 +122,33 @@ def console_main() -> None:
     except KeyboardInterrupt:  # before a subcommand was chosen (while the parser is built)
         print("dpc-jax: interrupted; nothing half-written", file=sys.stderr)
         status = 130
+    if status == 130:
+        _exit_interrupted()
     sys.exit(status)
+
+
+def _exit_interrupted() -> None:
+    """End an interrupted process without freeing XLA's client under a compilation still running.
+
+    jaxlib compiles on its own thread pool while the main thread waits, and the wait gives way to
+    Ctrl-C: the KeyboardInterrupt unwinds the command (outputs rolled back, temporaries removed)
+    while the compilation goes on. An ordinary exit then frees the PjRt client, first in JAX's
+    ``atexit`` handler, otherwise in the interpreter's final garbage collection, and the client's
+    destructor frees the devices before it joins the thread pool whose compilation still uses
+    them: a segmentation fault. So, once JAX is loaded, the other exit handlers run (logging,
+    multiprocessing's), the standard streams are flushed, and the process ends with ``os._exit``,
+    which skips JAX's handler and the interpreter's teardown; the kernel stops the threads.
+    """
+    if "jaxlib" not in sys.modules:
+        return
+    api = sys.modules.get("jax._src.api")
+    if api is not None and hasattr(api, "clean_up"):
+        atexit.unregister(api.clean_up)
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError):
+            stream.flush()
+    os._exit(130)
 
 
 if __name__ == "__main__":

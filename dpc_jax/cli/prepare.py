@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from dpc_jax.cli._common import (
     Formatter,
@@ -16,6 +17,9 @@ from dpc_jax.cli._common import (
     progress_mode,
     size_problem,
 )
+
+if TYPE_CHECKING:
+    from dpc_jax._progress import Progress
 
 HELP = "Decode, resize and cache stereo sequences with their VO prior (and optical flow) for training."
 # No huge-page restart (dpc_jax.hugepages): decoding, resizing and flow gain nothing from it.
@@ -88,13 +92,16 @@ def _manifest_identity(folder: Path) -> tuple[int, int] | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import time
-
     if args.kitti_odometry is not None:
         if not args.sequence or args.date or args.drive:
             return _error("--kitti-odometry needs --sequence (and no --date/--drive)")
     elif not args.date or not args.drive or args.sequence:
         return _error("--kitti-raw needs --date and --drive (and no --sequence)")
+    keys = args.sequence or args.drive
+    for option, value in (("--prior", args.prior), ("--gt", args.gt)):
+        if len(keys) > 1 and value is not None and "{seq}" not in value:
+            return _error(f"{option} {value}: {len(keys)} sequences would share this one file; "
+                          "put {seq} in the path where the sequence name goes")
     problem = (input_problem(args.kitti_odometry, "--kitti-odometry", folder=True)
                or input_problem(args.kitti_raw, "--kitti-raw", folder=True)
                or output_problem(args.out, "--out", folder=True) or size_problem(args.size, args.allow_large))
@@ -120,9 +127,18 @@ def run(args: argparse.Namespace) -> int:
             return _error(f"{key}: {problem}", status=1)
         sequences.append((key, sequence, prior, gt))
     import_jax()
-    from dpc_jax.data.cache import prepare_sequence
+    from dpc_jax._io import new_folders_removed_on_failure
 
     progress = progress_mode(args.no_progress)
+    with new_folders_removed_on_failure(args.out):  # Ctrl-C leaves no empty --out behind
+        return _prepare_all(args, sequences, progress)
+
+
+def _prepare_all(args: argparse.Namespace, sequences: list, progress: Progress) -> int:
+    import time
+
+    from dpc_jax.data.cache import prepare_sequence
+
     for key, sequence, prior, gt in sequences:
         try:
             before = _manifest_identity(args.out / sequence.name)

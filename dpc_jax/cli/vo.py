@@ -75,6 +75,24 @@ class _UsageError(Exception):
     pass
 
 
+def _same_file_problem(out: Path, csv_path: Path, json_path: Path) -> str | None:
+    """Why the trajectory, the CSV and the summary would not be three files (one overwriting
+    another), or None. Symbolic links are followed; a stream (``/dev/stdout``) may take several."""
+    from dpc_jax._io import output_target
+
+    targets = {name: output_target(path) for name, path in (("--out", out), ("csv", csv_path),
+                                                             ("json", json_path))}
+    if targets["--out"][0] != "stream" and targets["--out"][1] == targets["json"][1]:
+        return (f"--out {out}: the run summary goes to OUT with suffix .json, the same file; "
+                "give the trajectory another suffix, such as .txt")
+    if targets["csv"][0] != "stream" and targets["csv"][1] == targets["--out"][1]:
+        return f"--csv {csv_path}: the same file as --out; give the CSV another name"
+    if targets["csv"][0] != "stream" and targets["csv"][1] == targets["json"][1]:
+        return (f"--csv {csv_path}: the same file as the run summary {json_path} (--out with suffix "
+                ".json); give the CSV another name")
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
     csv_path = args.csv if args.csv is not None else args.out.with_suffix(".csv")
     json_path = args.out.with_suffix(".json")
@@ -82,8 +100,8 @@ def run(args: argparse.Namespace) -> int:
                or input_problem(args.kitti_raw, "--kitti-raw", folder=True) or input_problem(args.gt, "--gt")
                or output_problem(args.out, "--out") or output_problem(csv_path, "--csv")
                or output_problem(json_path, "--out"))
-    if csv_path.resolve() == args.out.resolve():
-        problem = f"--csv {csv_path}: the same file as --out; give the CSV another name"
+    if problem is None:
+        problem = _same_file_problem(args.out, csv_path, json_path)
     if problem is not None:
         print(f"dpc-jax vo: error: {problem}", file=sys.stderr)
         return 2

@@ -20,11 +20,13 @@ grey pair is written identical (``P0 = P2``, ``P1 = P3``) because the images are
 seed ``seed + XX``. Every sequence is rendered into a temporary directory beside its final place
 (``sequences/.XX.tmp-<pid>-<random>``) and renamed when complete; ``poses/XX.txt`` is written
 atomically too. The temporary folders of a killed run are removed by the next run writing into
-the same ``OUT`` (those of a run still going are left alone).
+the same ``OUT`` (those of a run still going are left alone); an interrupted or failed run removes
+the folders it made that are still empty.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import shutil
@@ -34,7 +36,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from dpc_jax._io import atomic_write, install_folder, remove_stale, temp_name
+from dpc_jax._io import atomic_write, install_folder, new_folders_removed_on_failure, remove_stale, temp_name
 from dpc_jax._progress import Progress, progress_bar
 from dpc_jax.synth.sequence import SynthConfig, iter_frames, kitti_intrinsics, sequence_poses
 
@@ -68,6 +70,7 @@ def write_sequence(out: Path | str, name: str, config: SynthConfig, overwrite: b
     seq_dir = out / "sequences" / name
     if seq_dir.exists() and not overwrite:
         raise FileExistsError(f"{seq_dir} already exists (use overwrite to replace it)")
+    made = [folder for folder in (out / "sequences", out / "poses") if not folder.is_dir()]
     (out / "sequences").mkdir(parents=True, exist_ok=True)
     (out / "poses").mkdir(parents=True, exist_ok=True)
     for kind in ("tmp", "old"):
@@ -97,6 +100,9 @@ def write_sequence(out: Path | str, name: str, config: SynthConfig, overwrite: b
         install_folder(tmp, seq_dir)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
+        for folder in made:
+            with contextlib.suppress(OSError):
+                folder.rmdir()  # only where still empty
         raise
     atomic_write(out / "poses" / f"{name}.txt", "".join(_fmt(p[:3]) + "\n" for p in poses))
     return seq_dir
@@ -129,7 +135,9 @@ def write_sequences(out: Path | str, config: SynthConfig, sequences: int = 4, ov
     if not overwrite:
         check_sequences_free(out, sequences)
     paths = []
-    with progress_bar(sequences * config.frames, "synth", progress) as bar:
+    # Interrupted before a sequence is complete, the run leaves no folder it made behind.
+    total = sequences * config.frames
+    with new_folders_removed_on_failure(out), progress_bar(total, "synth", progress) as bar:
         for i, name in enumerate(names):
             bar.set_postfix(sequence=name)
             cfg = dataclasses.replace(config, seed=config.seed + i)
