@@ -122,3 +122,78 @@ def test_deltas_per_component_and_rotation_only(rendered) -> None:
                             right=None, xi_corr=5 * _yaw(n))
     mono_deltas = correction_deltas(mono, batch, SSDPCLossConfig(), (valid[0][:, 1:], None))
     assert np.all(np.asarray(mono_deltas["full"]) > 0)
+
+
+REAL_SIZE = (96, 320)  # H, W: about the aspect of KITTI's 375 × 1242
+REAL_FRAMES = 20  # the harmful command of issue 30 corrected frames 0:20 of drive 0001
+
+
+@pytest.fixture(scope="module")
+def real_pairs() -> tuple[Batch, DPCOutputs, tuple[np.ndarray, np.ndarray], np.ndarray]:
+    """Frames 0–19 of real drive 0001 as 19 pairs, resized here with OpenCV, with StereoSGBM depth as the
+    depth Δ is measured with, and libviso2-s's steps (the images' best motion known without a network)."""
+    import cv2
+    from conftest import SHARED
+
+    from dpc_jax.data.kitti import load_image, open_raw
+    from dpc_jax.data.poses_io import read_trajectory
+    from dpc_jax.data.stereo_depth import sgbm_inverse_depth
+
+    raw = SHARED / "data" / "kitti-raw"
+    seq = open_raw(raw, "2011_09_26", 1).select(0, REAL_FRAMES)
+    libviso2 = read_trajectory(raw / "libviso2" / "stereo_2011_09_26_drive_0001.mat")
+    steps = relative_poses(libviso2[:REAL_FRAMES])
+    h, w = REAL_SIZE
+    scale = np.diag([w / seq.image_size[1], h / seq.image_size[0], 1.0])
+    K = scale @ seq.K
+    # The pixel-centre convention of a resize: u' = (u + 0.5)·s − 0.5.
+    K[0, 2] = (seq.K[0, 2] + 0.5) * w / seq.image_size[1] - 0.5
+    K[1, 2] = (seq.K[1, 2] + 0.5) * h / seq.image_size[0] - 0.5
+    left, right = ([cv2.resize(load_image(p), (w, h), interpolation=cv2.INTER_AREA) for p in paths]
+                   for paths in (seq.left_paths, seq.right_paths))
+    depth = [sgbm_inverse_depth(a, b, K[0, 0], seq.baseline) for a, b in zip(left, right, strict=True)]
+    left_arr, right_arr = np.stack(left), np.stack(right)
+    inv_l, ok_l = np.stack([d[0] for d in depth]), np.stack([d[1] for d in depth])
+    inv_r, ok_r = np.stack([d[2] for d in depth]), np.stack([d[3] for d in depth])
+    n = REAL_FRAMES - 1
+
+    def pairs(a: np.ndarray) -> np.ndarray:
+        return np.stack([a[:-1], a[1:]], axis=1)
+
+    valid = (pairs(ok_l), pairs(ok_r))
+    inverse = [np.where(v, pairs(i), 1.0) for v, i in zip(valid, (inv_l, inv_r), strict=True)]
+    batch = Batch(left=pairs(left_arr), right=pairs(right_arr), xi_vo=np.asarray(log_poses(steps)),
+                  intrinsics=np.tile(K, (n, 1, 1)), baseline=np.full(n, seq.baseline), weight=np.ones(n))
+    outputs = DPCOutputs(np.zeros((n, 6)), BranchOutputs(inverse[0], np.ones_like(inverse[0])),
+                         BranchOutputs(inverse[1], np.ones_like(inverse[1])))
+    return batch, outputs, valid, steps
+
+
+def _planted_rotations(n: int, mrad: float, seed: int = 0) -> np.ndarray:
+    """``[n, 6]`` corrections: rotations of ``mrad`` about random axes, no translation."""
+    axes = np.random.default_rng(seed).normal(size=(n, 3))
+    xi = np.zeros((n, 6))
+    xi[:, 3:] = mrad * 1e-3 * axes / np.linalg.norm(axes, axis=1, keepdims=True)
+    return xi
+
+
+@pytest.mark.parametrize("mrad", [1.0, 3.0])
+def test_on_real_frames_a_planted_correction_is_accepted_when_it_helps_and_refused_when_it_hurts(
+    real_pairs, mrad: float
+) -> None:
+    """19 real pairs, SGBM depth: the short sequence of the harmful command has the power to accept a
+    correction that undoes a planted rotation error, and refuses the same rotations planted on a prior
+    that lacks them (what a network from another domain proposing spurious rotations does)."""
+    batch, outputs, valid, steps = real_pairs
+    n = len(steps)
+    config = StereoDPCLossConfig()
+    xi = _planted_rotations(n, mrad)
+    proposal = outputs._replace(xi_corr=xi)
+    hurts = {k: np.asarray(v) for k, v in correction_deltas(proposal, batch, config, valid).items()}
+    refused = acceptance_test(hurts)
+    assert refused.decision == "none", refused.reason
+    biased = np.asarray(se3_exp(-xi)) @ steps  # a prior with the planted error; ξ undoes it exactly
+    helped_batch = batch._replace(xi_vo=np.asarray(log_poses(biased)))
+    helps = {k: np.asarray(v) for k, v in correction_deltas(proposal, helped_batch, config, valid).items()}
+    accepted = acceptance_test(helps)
+    assert accepted.decision == "full", accepted.reason
