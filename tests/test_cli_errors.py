@@ -688,6 +688,50 @@ def test_ctrl_c_in_synth_subprocess(tmp_path: Path) -> None:
     assert _files(out) == ["sequences"]
 
 
+# Ctrl-C while XLA compiles: the signal is sent from a timer the first compilation starts, so it
+# lands while jaxlib's thread pool is still compiling (the compilation cache is off: conftest).
+_INTERRUPT_COMPILE = """
+import os, runpy, signal, sys, threading
+from jax._src import compiler
+signal.signal(signal.SIGINT, signal.default_int_handler)
+compile_and_load, started = compiler.backend_compile_and_load, []
+def interrupted(*args, **kwargs):
+    if not started:
+        started.append(threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGINT)))
+        started[0].start()
+    return compile_and_load(*args, **kwargs)
+compiler.backend_compile_and_load = interrupted
+sys.argv = ["dpc-jax", *sys.argv[1:]]
+runpy.run_module("dpc_jax", run_name="__main__")
+"""
+
+
+@pytest.mark.parametrize("attempt", range(3))
+def test_ctrl_c_during_compilation_exits_130_without_a_crash(
+    attempt: int, data: dict[str, Path], tmp_path: Path
+) -> None:
+    """Before the fix the interpreter's teardown freed XLA's client under the running compilation:
+    exit status 139 (a segmentation fault) after the one line, every time."""
+    argv = ["evaluate", "--gt", str(data["gt"]), "--est", str(data["est"]),
+            "--json", str(tmp_path / "m.json")]
+    done = subprocess.run([sys.executable, "-c", _INTERRUPT_COMPILE, *argv], capture_output=True, text=True,
+                          env={**os.environ, "DPC_JAX_COMPILATION_CACHE": "0"}, cwd=ROOT, timeout=300)
+    assert done.returncode == 130, done.stderr
+    _one_line(done.stderr, "dpc-jax evaluate: interrupted; nothing half-written")
+    assert _files(tmp_path) == []
+
+
+def test_ctrl_c_during_synth_compilation_exits_130_and_leaves_nothing(tmp_path: Path) -> None:
+    out = tmp_path / "synth"
+    argv = ["synth", "--out", str(out), "--sequences", "1", "--frames", "50", "--size", "48x72"]
+    done = subprocess.run([sys.executable, "-c", _INTERRUPT_COMPILE, *argv], capture_output=True, text=True,
+                          env={**os.environ, "DPC_JAX_COMPILATION_CACHE": "0", "DPC_JAX_HUGE_PAGES": "0"},
+                          cwd=ROOT, timeout=300)
+    assert done.returncode == 130, done.stderr
+    assert done.stderr.splitlines()[-1] == "dpc-jax synth: interrupted; nothing half-written"
+    assert "Traceback" not in done.stderr and not out.exists()
+
+
 # ----------------------------------------------------------------------------- help, progress, config
 
 
