@@ -36,6 +36,8 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
         "trajectory_metrics",
     ),
     "dpc_jax.eval.evaluation": ("evaluate", "Evaluation", "write_report", "export_trajectories"),
+    "dpc_jax.eval.diagnosis": ("diagnose", "Diagnosis"),
+    "dpc_jax.eval.linear_baseline": ("LinearCorrection", "fit_linear_correction", "apply_linear_correction"),
     "dpc_jax.data": (
         "StereoSequence", "open_odometry", "open_raw", "load_image", "prepare_sequence",
         "TrainLoader", "iterate_sequence", "leave_one_out",

@@ -60,6 +60,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--align", choices=("none", "se3", "sim3"), default="none",
                         help="alignment for ATE (the other metrics and the plots are not aligned)")
     parser.add_argument("--rpe-delta", type=int, default=1, metavar="N", help="frame offset of RPE")
+    parser.add_argument(
+        "--diagnose", action="store_true",
+        help="also print what each estimate's error is made of: per-step mean (systematic) and spread "
+        "(random) per axis, the share of the end-point drift the mean alone explains",
+    )
+    parser.add_argument(
+        "--focal", type=float, default=None, metavar="PX",
+        help="with --diagnose: focal length (px) for the mean rotation's image shift per step",
+    )
     parser.add_argument("--json", metavar="PATH", help="write the metrics as JSON to PATH ('-': stdout)")
     parser.add_argument(
         "--report", type=Path, metavar="DIR", help="write report.md, CSV tables and PNG plots"
@@ -117,6 +126,10 @@ def run(args: argparse.Namespace) -> int:
         return _error(problem)
     try:
         gt, estimates = _inputs(args)
+        if args.focal is not None and not (args.focal > 0 and args.focal < float("inf")):
+            raise ValueError(f"--focal must be a positive focal length in pixels, got {args.focal}")
+        if args.focal is not None and not args.diagnose:
+            raise ValueError("--focal is used only with --diagnose")
         if not 1 <= args.rpe_delta < gt.shape[0]:
             # Checked here too (evaluate checks it after static-frame removal) so that the mistake
             # is reported before JAX is imported.
@@ -127,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
         from dpc_jax.eval.evaluation import evaluate, export_trajectories, format_table, write_report
 
         result = evaluate(gt, estimates, remove_static=args.remove_static, align=args.align,
-                          rpe_delta=args.rpe_delta)
+                          rpe_delta=args.rpe_delta, diagnose=args.diagnose, focal_px=args.focal)
     except (ValueError, OSError) as error:
         return _error(str(error))
 
@@ -144,4 +157,8 @@ def run(args: argparse.Namespace) -> int:
         sys.stdout.write(result.to_json())
     else:
         sys.stdout.write(format_table(result))
+        if result.diagnoses:
+            from dpc_jax.eval.diagnosis import format_diagnosis
+
+            sys.stdout.write("\n" + format_diagnosis(result.diagnoses))
     return 0

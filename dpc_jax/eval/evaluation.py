@@ -33,6 +33,7 @@ import numpy as np
 
 from dpc_jax._io import atomic_write
 from dpc_jax.data.poses_io import write_kitti_poses, write_tum
+from dpc_jax.eval.diagnosis import Diagnosis, format_diagnosis
 from dpc_jax.geometry.poses import compose, invert_poses, relative_poses, remove_static_frames
 
 SUMMARY_KEYS: tuple[str, ...] = (
@@ -86,13 +87,17 @@ class Evaluation(Mapping[str, object]):
     align: str = "none"
     rpe_delta: int = 1
     remove_static: bool = False
+    # label -> error composition (dpc_jax.eval.diagnosis); empty unless evaluate(diagnose=True)
+    diagnoses: dict[str, Diagnosis] = field(default_factory=dict)
     _summary: dict[str, object] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        summary = {
+        summary: dict[str, object] = {
             "num_poses": int(self.gt.shape[0]),
             "estimates": {label: dict(m.summary) for label, m in self.metrics.items()},
         }
+        if self.diagnoses:
+            summary["diagnosis"] = {label: d.to_dict() for label, d in self.diagnoses.items()}
         object.__setattr__(self, "_summary", summary)
 
     def __getitem__(self, key: str) -> object:
@@ -138,12 +143,17 @@ def evaluate(
     align: str = "none",
     rpe_delta: int = 1,
     static_prior: str | None = None,
+    diagnose: bool = False,
+    focal_px: float | None = None,
 ) -> Evaluation:
     """Evaluate estimates ``{label: [N, 4, 4]}`` (or one array, labelled ``est``) against ``gt``.
 
     ``align`` (``none | se3 | sim3``) applies to ATE only; ``rpe_delta`` is the RPE frame offset;
-    ``remove_static`` and ``static_prior`` are described in the module docstring. Raises
-    ``ValueError`` for mismatched lengths (both counts named), bad labels or shapes.
+    ``remove_static`` and ``static_prior`` are described in the module docstring. ``diagnose`` adds
+    each estimate's error composition (:func:`dpc_jax.eval.diagnosis.diagnose`, on the evaluated
+    frames; ``focal_px`` for the pixel shift) as ``result.diagnoses`` and the summary's
+    ``"diagnosis"``. Raises ``ValueError`` for mismatched lengths (both counts named), bad labels or
+    shapes.
     """
     import jax
 
@@ -195,9 +205,14 @@ def evaluate(
             c_ate_trans_m=np.asarray(out["c_ate_trans_m"], np.float64),
             c_ate_rot_deg=np.asarray(out["c_ate_rot_deg"], np.float64),
         )
+    diagnoses: dict[str, Diagnosis] = {}
+    if diagnose:
+        from dpc_jax.eval.diagnosis import diagnose as diagnose_estimate
+
+        diagnoses = {label: diagnose_estimate(gt, est, focal_px) for label, est in prepared.items()}
     return Evaluation(
         gt=gt, trajectories=prepared, frames=frames, metrics=results, align=align, rpe_delta=rpe_delta,
-        remove_static=remove_static,
+        remove_static=remove_static, diagnoses=diagnoses,
     )
 
 
@@ -284,6 +299,8 @@ def write_report(
     report = "\n".join([
         f"# {title}", "", "; ".join(settings) + ".", "", format_table(result),
         "Segment errors per length (translation % / rotation °/100 m):", "", format_segment_table(result),
+        *(["## What the error is made of", "", format_diagnosis(result.diagnoses)]
+          if result.diagnoses else []),
         "![trajectories](trajectory.png)", "", "![segment errors](segment_errors.png)", "",
         "![cumulative error](c_ate.png)", "",
     ])

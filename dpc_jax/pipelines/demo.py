@@ -238,17 +238,16 @@ def _epoch_table(metrics_csv: Path, selected: int) -> str:
     return "\n".join(lines) + "\n"
 
 
-def prior_error(gt: np.ndarray, prior: np.ndarray) -> dict[str, list[float]]:
-    """What a prior's error consists of: the mean per frame (systematic) and the standard deviation
-    (random) of the correction each step needs (``dpc_jax.eval.metrics.step_corrections``), per axis,
-    translation in mm and rotation in mrad."""
-    import jax
+def prior_error(gt: np.ndarray, prior: np.ndarray, focal_px: float | None = None) -> dict[str, Any]:
+    """What a prior's error consists of (:func:`dpc_jax.eval.diagnosis.diagnose`, the same as
+    ``dpc-jax evaluate --diagnose``): the mean per frame (systematic) and the standard deviation
+    (``std``, random) of the correction each step needs, per axis, translation in mm and rotation in
+    mrad; the share of the end-point drift the mean explains; the mean rotation's image shift."""
+    from dpc_jax.eval.diagnosis import diagnose
 
-    from dpc_jax.eval.metrics import step_corrections
-
-    with jax.enable_x64(True):
-        need = 1e3 * np.asarray(step_corrections(np.asarray(gt, np.float64), np.asarray(prior, np.float64)))
-    return {"mean": need.mean(axis=0).tolist(), "std": need.std(axis=0).tolist()}
+    record = diagnose(gt, prior, focal_px).to_dict()
+    record["std"] = record.pop("spread")
+    return record
 
 
 def _composition_table(records: dict[str, dict[str, Any]]) -> str:
@@ -258,10 +257,18 @@ def _composition_table(records: dict[str, dict[str, Any]]) -> str:
         + " | ".join(f"{a} mean ± std ({'mm' if a[0] == 'ρ' else 'mrad'})" for a in axes) + " |",
         "|---" * (3 + len(axes)) + "|",
     ]
+    lines[0] += " end-point drift the mean explains (position / heading) | mean rotation per step (px) |"
+    lines[1] += "---|---|"
     for name, r in records.items():
-        cells = [f"{m:+.2f} ± {s:.2f}" for m, s in zip(r["error"]["mean"], r["error"]["std"], strict=True)]
+        error = r["error"]
+        cells = [f"{m:+.2f} ± {s:.2f}" for m, s in zip(error["mean"], error["std"], strict=True)]
+        shares = " / ".join(
+            "n/a" if error.get(k) is None else f"{100 * error[k]:.0f} %"
+            for k in ("drift_trans_explained", "drift_rot_explained")
+        )
+        px = "n/a" if error.get("mean_rot_px_norm") is None else f"{error['mean_rot_px_norm']:.3f}"
         head = f"| {name} | {r['fallbacks']}/{r['pairs']} | {r['offset']:+.3f} | "
-        lines.append(head + " | ".join(cells) + " |")
+        lines.append(head + " | ".join(cells) + f" | {shares} | {px} |")
     return "\n".join(lines) + "\n"
 
 
@@ -331,7 +338,10 @@ def _composition_section(summary: dict[str, Any]) -> list[str]:
         "",
         "Per sequence: constant-velocity fallbacks of the prior's VO, the disparity offset our VO measured, "
         "and the correction each step needs — its mean per frame (systematic: what a correction can learn) "
-        "and its spread (random: it averages out over a segment).",
+        "and its spread (random: it averages out over a segment); the share of the end-point drift that the "
+        "mean alone produces (the bias-only trajectory's drift projected on the prior's); the mean "
+        "rotation's image shift at the principal point at the rendered images' focal length "
+        "(`dpc-jax evaluate --diagnose`).",
         "",
         _composition_table(summary["sequences"]),
     ]
@@ -464,7 +474,8 @@ def _prepare_sequences(config: DemoConfig, out: Path, size: tuple[int, int], sec
                          disparity_offset=offset if config.rectify_offset else 0.0, progress=progress)
         seconds["prepare"] += time.perf_counter() - t
         records[name] = {"fallbacks": prior["fallbacks"], "pairs": prior["pairs"], "offset": offset,
-                         "error": prior_error(sequence.poses, read_kitti_poses(prior["path"]))}
+                         "error": prior_error(sequence.poses, read_kitti_poses(prior["path"]),
+                                              focal_px=float(sequence.K[0, 0]))}
         lengths[name] = float(np.linalg.norm(np.diff(sequence.poses[:, :3, 3], axis=0), axis=1).sum())
         say(f"{name}: {len(sequence)} frames, {lengths[name]:.0f} m"
             + (" (rendered)" if rendered else " (reused)")
