@@ -133,13 +133,13 @@ def real_pairs() -> tuple[Batch, DPCOutputs, tuple[np.ndarray, np.ndarray], np.n
     """Frames 0–19 of real drive 0001 as 19 pairs, resized here with OpenCV, with StereoSGBM depth as the
     depth Δ is measured with, and libviso2-s's steps (the images' best motion known without a network)."""
     import cv2
-    from conftest import SHARED
+    from conftest import DATA
 
     from dpc_jax.data.kitti import load_image, open_raw
     from dpc_jax.data.poses_io import read_trajectory
     from dpc_jax.data.stereo_depth import sgbm_inverse_depth
 
-    raw = SHARED / "data" / "kitti-raw"
+    raw = DATA / "kitti-raw"
     seq = open_raw(raw, "2011_09_26", 1).select(0, REAL_FRAMES)
     libviso2 = read_trajectory(raw / "libviso2" / "stereo_2011_09_26_drive_0001.mat")
     steps = relative_poses(libviso2[:REAL_FRAMES])

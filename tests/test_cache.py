@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 import scipy.io
-from conftest import SHARED
+from conftest import DATA
 from test_kitti import write_odometry
 
 from dpc_jax.cli import main
@@ -21,7 +21,7 @@ from dpc_jax.data.kitti import open_odometry, open_raw
 from dpc_jax.data.sequence_cache import MANIFEST, load_cache, training_sequences
 from dpc_jax.geometry.warp import stereo_warp
 
-RAW = SHARED / "data" / "kitti-raw"
+RAW = DATA / "kitti-raw"
 STEREO_MAT = RAW / "libviso2" / "stereo_2011_09_26_drive_0001.mat"
 FRAMES = (3, 12)
 SIZE = (240, 376)

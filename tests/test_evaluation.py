@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import reference_metrics as ref
 import scipy.io
-from conftest import SHARED
+from conftest import DATA
 from scipy.spatial.transform import Rotation
 
 from dpc_jax.cli import main
@@ -20,7 +20,7 @@ from dpc_jax.data.poses_io import read_kitti_poses, read_mat, read_tum, write_ki
 from dpc_jax.eval.evaluation import SUMMARY_KEYS, evaluate
 from dpc_jax.geometry.poses import compose
 
-MAT = SHARED / "data" / "kitti-libviso2" / "stereo_00.mat"
+MAT = DATA / "kitti-libviso2" / "stereo_00.mat"
 N = 300
 
 

@@ -7,12 +7,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import SHARED
+from conftest import DATA
 from scipy.spatial.transform import Rotation
 
 from dpc_jax.data.kitti import load_image, open_odometry, open_raw
 
-RAW = SHARED / "data" / "kitti-raw"
+RAW = DATA / "kitti-raw"
 RAW_MAT = RAW / "libviso2" / "stereo_2011_09_26_drive_0001.mat"
 
 FU, CU, FV, CV = 50.0, 15.5, 48.0, 9.5

@@ -8,14 +8,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import reference_metrics as ref
-from conftest import SHARED
+from conftest import DATA
 from scipy.spatial.transform import Rotation
 
 from dpc_jax.data.poses_io import read_mat
 from dpc_jax.eval import metrics
 from dpc_jax.geometry.poses import compose
 
-LIBVISO2 = SHARED / "data" / "kitti-libviso2"
+LIBVISO2 = DATA / "kitti-libviso2"
 TOL = {"rtol": 1e-9, "atol": 1e-12}
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import scipy.linalg
-from conftest import SHARED
+from conftest import DATA
 from test_kitti import write_odometry
 
 from dpc_jax.data.cache import prepare_sequence
@@ -22,7 +22,7 @@ from dpc_jax.data.pipeline import (
 )
 from dpc_jax.data.sequence_cache import load_cache
 
-RAW = SHARED / "data" / "kitti-raw"
+RAW = DATA / "kitti-raw"
 STEREO_MAT = RAW / "libviso2" / "stereo_2011_09_26_drive_0001.mat"
 N = 8
 SIZE = (30, 47)

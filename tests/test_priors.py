@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import scipy.io
 import scipy.linalg
-from conftest import SHARED
+from conftest import DATA
 
 from dpc_jax.data.poses_io import validate_poses
 from dpc_jax.data.priors import load_prior, relative_xi, rescale_monocular
 
-LIBVISO = SHARED / "data" / "kitti-raw" / "libviso2"
+LIBVISO = DATA / "kitti-raw" / "libviso2"
 STEREO = LIBVISO / "stereo_2011_09_26_drive_0001.mat"
 MONO = LIBVISO / "mono_2011_09_26_drive_0001.mat"
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import reference_metrics as ref
 import scipy.io
-from conftest import SHARED
+from conftest import DATA
 from scipy.spatial.transform import Rotation
 
 from dpc_jax.data.poses_io import (
@@ -22,7 +22,7 @@ from dpc_jax.data.poses_io import (
 )
 from dpc_jax.geometry.poses import compose, invert_poses, relative_poses, remove_static_frames
 
-LIBVISO2 = SHARED / "data" / "kitti-libviso2"
+LIBVISO2 = DATA / "kitti-libviso2"
 
 
 def random_trajectory(n: int, seed: int = 0) -> np.ndarray:

@@ -9,7 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import SHARED
+from conftest import DATA
 
 from dpc_jax.data.kitti import StereoSequence, open_raw
 from dpc_jax.vo import StereoVO, VOConfig, VOStatus, run_vo, run_vo_frames
@@ -316,7 +316,7 @@ def test_real_excerpt_within_125_percent_of_libviso2() -> None:
     from dpc_jax.data.poses_io import read_mat
     from dpc_jax.eval.metrics import m_ate
 
-    root = SHARED / "data" / "kitti-raw"
+    root = DATA / "kitti-raw"
     mat = root / "libviso2" / "stereo_2011_09_26_drive_0001.mat"
     gt, libviso2 = read_mat(mat)
     sequence = open_raw(root, "2011_09_26", "0001", poses=mat)
