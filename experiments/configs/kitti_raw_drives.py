@@ -1,0 +1,63 @@
+"""Two real KITTI raw drives, learn on one and correct the other (``experiments/kitti_raw_drives.py``).
+
+Drives (``../shared/data/kitti-raw``): ``2011_09_26_drive_0001`` (108 frames, about 107 m, the colour
+pair) and ``2011_09_26_drive_0005`` (frames 0–90 of the drive, about 34 m, the grey pair, read as three
+equal channels so one network takes both drives). Priors: our classical stereo VO (run on each drive,
+started at its first ground-truth pose, its disparity offset estimated online) and libviso2-s
+(``libviso2/stereo_*.mat``; of drive 0005's 154 poses the first 91 belong to the images).
+
+For every training drive and training prior a Stereo DPC network is trained on that drive (its
+``train_frames``; epoch by validation Δ on its ``validation_frames``, no ground truth) and then
+corrects the *other* drive: our VO's prior with the network trained on our VO, libviso2-s's prior with
+the network trained on our VO *and* with the one trained on libviso2-s (the papers' setting: the prior
+they correct is the prior they learn from). Each correction runs with the network as trained and as
+adapted to the test drive (``adapt_steps``; its ground truth never read), behind the acceptance test;
+``dpc_jax.correct.choose`` keeps the final. Every network's images are rectified by the disparity offset
+our VO measured on that drive (no ground truth). Only the rotation of the correction is applied (see
+``rotation_only`` in ``configs/kitti_raw_excerpt.py``).
+
+Command:
+
+    python experiments/kitti_raw_drives.py --workdir runs/kitti_raw_drives
+
+Produces in WORKDIR: ``results.md`` (the table: per test drive, prior and training prior, the rows
+prior, trained, adapted, final) and ``results.csv`` (long form, one row per test drive, prior, training
+prior and estimate), plus ``priors/``, ``cache/``, ``runs/``, ``reports/``, ``corrected/``, ``adapted/``.
+"""
+
+PROTOCOL = {
+    "date": "2011_09_26",
+    "drives": {
+        "0001": {"libviso2": "libviso2/stereo_2011_09_26_drive_0001.mat",
+                 "train_frames": (0, 80), "validation_frames": (80, 108)},
+        "0005": {"libviso2": "libviso2/stereo_2011_09_26_drive_0005.mat",
+                 "train_frames": (0, 68), "validation_frames": (68, 91)},
+    },
+    # (test prior, training prior) pairs: every test drive is corrected by networks of the other drive.
+    "tests": (("vo", "vo"), ("libviso2", "vo"), ("libviso2", "libviso2")),
+    "select": "delta",
+    "rectify_offset": True,
+    "adapt_steps": 300,
+    "holdout_every": 5,
+    "rotation_only": True,
+}
+
+CONFIG = {
+    "method": "stereo_dpc",
+    "preset": "small",
+    "image_size": (64, 96),
+    "batch_size": 8,
+    "epochs": 4,
+    "learning_rate": 1e-3,
+    "lr_halving_epochs": 2,
+    "weight_decay": 4e-6,
+    "loss": {"alpha": (1.0, 1.0, 1.0, 0.08), "ssim_weight": 0.85},
+    "rotation_only": False,
+    "frame_skip": True,
+    "cache_root": "runs/kitti_raw_drives/cache",
+    "train_sequences": ("train",),
+    "validation_sequences": ("validation",),
+    "test_sequences": ("test",),
+    # Δ with OpenCV StereoSGBM depth, independent of the network (configs/kitti_raw_excerpt.py).
+    "acceptance_depth": "sgbm",
+}
