@@ -354,3 +354,130 @@ def test_stereo_needs_right_branch(analytic: tuple[DPCOutputs, Batch]) -> None:
         stereo_dpc_loss(outputs._replace(right=None), batch, StereoDPCLossConfig())
     with pytest.raises(ValueError, match=r"outputs\.left\.inv_depth has shape"):
         ss_dpc_loss(outputs, batch, SSDPCLossConfig())
+
+
+# --- DPC-Net's supervised loss ---------------------------------------------------------------------
+
+
+def _se3_vee_log(matrix: np.ndarray) -> np.ndarray:
+    """``[ρ, φ]`` of a rigid transform by scipy's matrix logarithm (the float64 reference)."""
+    import scipy.linalg
+
+    log = np.real(scipy.linalg.logm(matrix))
+    return np.array([log[0, 3], log[1, 3], log[2, 3], log[2, 1], log[0, 2], log[1, 0]])
+
+
+def _se3_expm(xi: np.ndarray) -> np.ndarray:
+    import scipy.linalg
+
+    rho, phi = xi[:3], xi[3:]
+    twist = np.array([[0.0, -phi[2], phi[1], rho[0]], [phi[2], 0.0, -phi[0], rho[1]],
+                      [-phi[1], phi[0], 0.0, rho[2]], [0.0, 0.0, 0.0, 0.0]])
+    return scipy.linalg.expm(twist)
+
+
+def _supervised_case(seed: int, b: int = 5) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    rho = [0.0, 0.0, -1.0] + 0.1 * rng.normal(size=(b, 3))
+    xi_vo = np.concatenate([rho, 0.02 * rng.normal(size=(b, 3))], 1)
+    xi_gt = xi_vo + np.concatenate([0.02 * rng.normal(size=(b, 3)), 2e-3 * rng.normal(size=(b, 3))], 1)
+    xi_corr = np.concatenate([0.01 * rng.normal(size=(b, 3)), 1e-3 * rng.normal(size=(b, 3))], 1)
+    weight = np.ones(b)
+    weight[-1] = 0.0  # a padding sample counts for nothing
+    return xi_vo, xi_gt, xi_corr, weight
+
+
+def _supervised_batch(xi_vo: np.ndarray, xi_gt: np.ndarray | None, weight: np.ndarray) -> Batch:
+    b = xi_vo.shape[0]
+    return Batch(left=np.zeros((b, 2, 1, 1, 3), np.uint8), right=np.zeros((b, 2, 1, 1, 3), np.uint8),
+                 xi_vo=xi_vo, intrinsics=np.tile(np.eye(3), (b, 1, 1)), baseline=np.ones(b), weight=weight,
+                 xi_gt=xi_gt)
+
+
+@pytest.mark.parametrize("rotation_only", [False, True])
+def test_supervised_loss_matches_a_float64_reference(rotation_only: bool) -> None:
+    from dpc_jax.nn.config import SupervisedLossConfig
+    from dpc_jax.nn.losses import supervised_dpc_loss
+
+    xi_vo, xi_gt, xi_corr, weight = _supervised_case(0)
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=(6, 6))
+    precision = a @ a.T + 6 * np.eye(6)
+    config = SupervisedLossConfig(precision=tuple(precision.ravel()), rotation_only=rotation_only)
+    with jax.enable_x64(True):
+        loss, metrics = supervised_dpc_loss(
+            DPCOutputs(xi_corr=jnp.asarray(xi_corr), left=None),  # type: ignore[arg-type]
+            _supervised_batch(xi_vo, xi_gt, weight), config,
+        )
+    corrected, uncorrected = [], []
+    for k in range(xi_vo.shape[0]):
+        target = _se3_expm(xi_gt[k]) @ np.linalg.inv(_se3_expm(xi_vo[k]))
+        correction = _se3_expm(xi_corr[k])
+        if rotation_only:
+            correction = np.eye(4)
+            correction[:3, :3] = _se3_expm(np.concatenate([[0, 0, 0], xi_corr[k, 3:]]))[:3, :3]
+            target = target.copy()
+            target[:3, 3] = 0.0
+            p = precision[3:, 3:]
+            g = _se3_vee_log(correction @ np.linalg.inv(target))[3:]
+            g0 = _se3_vee_log(np.linalg.inv(target))[3:]
+        else:
+            p = precision
+            g = _se3_vee_log(correction @ np.linalg.inv(target))
+            g0 = _se3_vee_log(np.linalg.inv(target))
+        corrected.append(0.5 * g @ p @ g)
+        uncorrected.append(0.5 * g0 @ p @ g0)
+    expected_c = np.sum(weight * np.array(corrected)) / weight.sum()
+    expected_u = np.sum(weight * np.array(uncorrected)) / weight.sum()
+    np.testing.assert_allclose(float(metrics["supervised_error"]), expected_c, rtol=1e-9)
+    np.testing.assert_allclose(float(metrics["no_correction"]), expected_u, rtol=1e-9)
+    np.testing.assert_allclose(float(loss), expected_c - expected_u, rtol=1e-8, atol=1e-15)
+
+
+def test_supervised_loss_is_minimal_at_the_ground_truth_correction() -> None:
+    from dpc_jax.nn.config import SupervisedLossConfig
+    from dpc_jax.nn.losses import supervised_dpc_loss, target_corrections
+
+    xi_vo, xi_gt, _, weight = _supervised_case(2)
+    batch = _supervised_batch(xi_vo, xi_gt, weight)
+    config = SupervisedLossConfig(precision=(1.0, 1.0, 1.0, 100.0, 100.0, 100.0))
+    with jax.enable_x64(True):
+        perfect = se3_log(target_corrections(xi_vo, xi_gt))
+
+        def loss_of(xi: jax.Array) -> jax.Array:
+            return supervised_dpc_loss(DPCOutputs(xi_corr=xi, left=None), batch, config)[0]  # type: ignore[arg-type]
+
+        at_truth, metrics = supervised_dpc_loss(
+            DPCOutputs(xi_corr=perfect, left=None), batch, config  # type: ignore[arg-type]
+        )
+        gradient = np.asarray(jax.grad(loss_of)(perfect))
+        at_zero = loss_of(jnp.zeros_like(perfect))
+    # The corrected pose equals the ground truth: T* = Exp(ξ) · T_vo = T_gt.
+    corrected = _se3_expm(np.asarray(perfect)[0]) @ _se3_expm(xi_vo[0])
+    np.testing.assert_allclose(corrected, _se3_expm(xi_gt[0]), atol=1e-12)
+    assert float(metrics["supervised_error"]) < 1e-20
+    assert float(at_truth) == pytest.approx(-float(metrics["no_correction"]))
+    assert float(at_zero) == pytest.approx(0.0, abs=1e-15)  # no correction: no improvement
+    np.testing.assert_allclose(gradient, 0.0, atol=1e-12)
+
+
+def test_supervised_loss_needs_ground_truth_and_dpc_loss_dispatches() -> None:
+    from dpc_jax.nn.config import SupervisedLossConfig
+    from dpc_jax.nn.losses import dpc_loss, target_precision
+
+    xi_vo, xi_gt, xi_corr, weight = _supervised_case(3)
+    outputs = DPCOutputs(xi_corr=jnp.asarray(xi_corr), left=None)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="needs ground truth"):
+        dpc_loss(outputs, _supervised_batch(xi_vo, None, weight), SupervisedLossConfig())
+    loss, metrics = dpc_loss(outputs, _supervised_batch(xi_vo, xi_gt, weight), SupervisedLossConfig())
+    assert set(metrics) == {"loss", "supervised_error", "no_correction"} and np.isfinite(float(loss))
+    with pytest.raises(ValueError, match="precision"):
+        SupervisedLossConfig(precision=(1.0, 2.0))
+    rng = np.random.default_rng(4)
+    targets = rng.normal(size=(200, 6)) * [0.02, 0.01, 0.04, 1e-3, 2e-3, 1e-3]
+    with jax.enable_x64(True):
+        np.testing.assert_allclose(np.asarray(target_precision(targets)), np.linalg.inv(np.cov(targets.T)),
+                                   rtol=1e-9)
+        rotation = np.asarray(target_precision(targets, rotation_only=True))
+    np.testing.assert_allclose(rotation[3:, 3:], np.linalg.inv(np.cov(targets[:, 3:].T)), rtol=1e-9)
+    assert np.all(rotation[:3] == 0.0) and np.all(rotation[:, :3] == 0.0)

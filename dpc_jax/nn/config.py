@@ -1,7 +1,8 @@
 """The networks' and losses' configurations, as frozen dataclasses (no JAX).
 
 :class:`ModelConfig` and its :data:`PRESETS` describe both networks (:mod:`dpc_jax.nn.models`);
-:class:`SSDPCLossConfig` and :class:`StereoDPCLossConfig` their losses (:mod:`dpc_jax.nn.losses`).
+:class:`SSDPCLossConfig` and :class:`StereoDPCLossConfig` their losses (:mod:`dpc_jax.nn.losses`);
+:class:`SupervisedLossConfig` DPC-Net's supervised loss, which either network can be trained with.
 They import no JAX, so a training config (:mod:`dpc_jax.training.config`) is checked, and a mistake
 in it reported, before the command line starts JAX. They are hashable: the losses take them as
 static arguments under ``jax.jit``.
@@ -9,6 +10,7 @@ static arguments under ``jax.jit``.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import ClassVar, Literal
 
@@ -202,3 +204,42 @@ class StereoDPCLossConfig:
     grad_threshold: float = 0.03
     mask_floor: float = 1e-6
     depth_eps: float = 1e-3
+
+
+@dataclass(frozen=True)
+class SupervisedLossConfig:
+    """DPC-Net's supervised loss (Peretroukhin & Kelly 2018; docs/method.md, "The supervised loss").
+
+    It regresses ``ξ_corr`` on the ground-truth correction of each pair, so it reads ground truth
+    (``batch.xi_gt``); either network can be trained with it.
+
+    * ``precision``: the 6 × 6 weight ``Σ⁻¹`` of the SE(3) error, row-major (36 numbers), or its
+      diagonal (6 numbers), in the units of ``[ρ (m), φ (rad)]``. DPC-Net uses the inverse
+      covariance of the training set's target corrections
+      (:func:`dpc_jax.nn.losses.target_precision`). None weighs every component by 1.
+    * ``rotation_only``: regress the rotation only, on SO(3), with the rotation block of
+      ``precision`` (DPC-Net's rotation-only variant; ss-DPC-Net's setting for stereo priors).
+    """
+
+    method: ClassVar[str] = "supervised"
+
+    precision: tuple[float, ...] | None = None
+    rotation_only: bool = False
+
+    def __post_init__(self) -> None:
+        if self.precision is not None:
+            values = tuple(float(v) for v in self.precision)
+            if len(values) not in (6, 36) or not all(math.isfinite(v) for v in values):
+                raise ValueError(
+                    "precision must be 6 (diagonal) or 36 (6 × 6, row-major) finite numbers, "
+                    f"got {self.precision!r}"
+                )
+            object.__setattr__(self, "precision", values)
+
+    def precision_matrix(self) -> list[list[float]]:
+        """``Σ⁻¹`` as a 6 × 6 nested list (identity when ``precision`` is None)."""
+        if self.precision is None:
+            return [[1.0 if i == j else 0.0 for j in range(6)] for i in range(6)]
+        if len(self.precision) == 6:
+            return [[self.precision[i] if i == j else 0.0 for j in range(6)] for i in range(6)]
+        return [list(self.precision[6 * i:6 * i + 6]) for i in range(6)]
