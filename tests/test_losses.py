@@ -481,3 +481,51 @@ def test_supervised_loss_needs_ground_truth_and_dpc_loss_dispatches() -> None:
         rotation = np.asarray(target_precision(targets, rotation_only=True))
     np.testing.assert_allclose(rotation[3:, 3:], np.linalg.inv(np.cov(targets[:, 3:].T)), rtol=1e-9)
     assert np.all(rotation[:3] == 0.0) and np.all(rotation[:, :3] == 0.0)
+
+
+def test_only_supervised_training_reads_ground_truth(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Self-supervised training: no training batch carries ground truth; ``supervision: supervised``:
+    every batch does (the ground truth of its pairs) and the step minimises DPC-Net's loss."""
+    from test_train import _cheap_loss, _logs, make_caches, tiny_config
+
+    from dpc_jax.config import ConfigError
+    from dpc_jax.data.sequence_cache import load_cache
+    from dpc_jax.nn.config import SupervisedLossConfig
+    from dpc_jax.training import steps as steps_lib
+    from dpc_jax.training.loop import open_data, train
+
+    root = make_caches(tmp_path / "data", ["00", "01", "02"])
+    seen: list[tuple[str, bool]] = []
+    supervised = steps_lib.dpc_loss
+
+    def recording(outputs: DPCOutputs, batch: Batch, config: object) -> tuple[jax.Array, dict]:
+        seen.append((type(config).__name__, batch.xi_gt is not None))  # at trace time
+        if isinstance(config, SupervisedLossConfig):
+            return supervised(outputs, batch, config)
+        return _cheap_loss(outputs, batch, config)
+
+    monkeypatch.setattr(steps_lib, "dpc_loss", recording)
+    self_data = open_data(tiny_config(root), workers=0)
+    assert self_data.loader.table.xi_gt is None
+    assert all(b.xi_gt is None for b in self_data.loader.epoch(0))
+    train(tiny_config(root, epochs=1), tmp_path / "self", progress=False, workers=0)
+    assert seen and all(name == "StereoDPCLossConfig" and not has_gt for name, has_gt in seen)
+
+    seen.clear()
+    config = tiny_config(root, epochs=1, supervision="supervised", precision=[1, 1, 1, 100, 100, 100])
+    assert config.train_loss_config() == SupervisedLossConfig(
+        precision=(1.0, 1.0, 1.0, 100.0, 100.0, 100.0), method="stereo_dpc"
+    )
+    data = open_data(config, workers=0)
+    table = data.loader.table
+    assert table.xi_gt is not None
+    forward = (table.cache == 0) & (table.kind == 0)
+    gt = load_cache(root / "00").gt
+    pairs = table.xi_gt[forward][np.argsort(table.source[forward])]
+    np.testing.assert_allclose(pairs, _logs(gt, 1), atol=1e-6)
+    summary = train(config, tmp_path / "supervised", progress=False, workers=0)
+    assert seen and all(name == "SupervisedLossConfig" and has_gt for name, has_gt in seen)
+    assert summary["epochs"] == 1
+
+    with pytest.raises(ConfigError, match="precision is used only"):
+        tiny_config(root, precision=[1, 1, 1, 1, 1, 1])

@@ -87,13 +87,18 @@ _KIND_NAMES = tuple(PAIR_KINDS)
 
 def _build_table(
     caches: list[SequenceCache], kinds: Sequence[str], use_flow: bool,
-    held_out: Sequence[np.ndarray] | None = None,
+    held_out: Sequence[np.ndarray] | None = None, ground_truth: bool | None = None,
 ) -> _SampleTable:
     """The samples of ``kinds`` of every cache; ``held_out[c]``: consecutive pairs ``(k, k+1)`` of
-    cache ``c`` (by ``k``) left out, in both directions."""
+    cache ``c`` (by ``k``) left out, in both directions. ``ground_truth``: see :class:`TrainLoader`."""
     keys = ("cache", "source", "target", "kind", "slot", "vo", "gt")
     parts: dict[str, list[np.ndarray]] = {k: [] for k in keys}
-    with_gt = all(c.gt is not None for c in caches)
+    with_gt = all(c.gt is not None for c in caches) if ground_truth is None else ground_truth
+    if ground_truth:
+        lacking = [str(c.path) for c in caches if c.gt is None]
+        if lacking:
+            raise ValueError(f"{lacking[0]}: no ground truth in the cache; the supervised loss needs it "
+                             "for every training sequence")
     for c_id, cache in enumerate(caches):
         for kind in kinds:
             if use_flow and kind not in cache.flows:
@@ -202,8 +207,10 @@ class TrainLoader:
     ``caches``: cache folders or loaded :class:`SequenceCache` s (same image size).
     ``frame_skip`` adds the ``(k, k+2)`` pairs, ``reverse`` the reversed pairs of every kind in
     use. ``flow``: include flow (None → when every cache holds the flow of every pair kind in
-    use; True → an error names a cache that lacks one). Batches hold ``xi_gt`` only
-    when every sequence has ground truth, so the batch structure is the same for every batch.
+    use; True → an error names a cache that lacks one). ``ground_truth``: True → batches hold
+    ``xi_gt`` (an error names a cache without ground truth; the supervised loss); False → they
+    never do (self-supervised training: no ground truth reaches a batch); None → only when every
+    sequence has ground truth (for reporting), so the batch structure is the same for every batch.
 
     ``held_out``: per cache, the consecutive pairs ``(k, k+1)`` (by ``k``) to leave out, both
     directions (frame-skip pairs stay: they are other motions).
@@ -227,6 +234,7 @@ class TrainLoader:
         flow: bool | None = None,
         shuffle: bool = True,
         held_out: Sequence[np.ndarray] | None = None,
+        ground_truth: bool | None = None,
         workers: int = 1,
         depth: int = 3,
     ) -> None:
@@ -243,7 +251,7 @@ class TrainLoader:
         if flow is None:
             flow = all(kind in c.flows for c in self.caches for kind in self.kinds)
         self.use_flow = flow
-        self.table = _build_table(self.caches, self.kinds, self.use_flow, held_out)
+        self.table = _build_table(self.caches, self.kinds, self.use_flow, held_out, ground_truth)
         self.batch_size = batch_size
         self.seed = seed
         self.shuffle = shuffle

@@ -219,14 +219,17 @@ class SupervisedLossConfig:
       (:func:`dpc_jax.nn.losses.target_precision`). None weighs every component by 1.
     * ``rotation_only``: regress the rotation only, on SO(3), with the rotation block of
       ``precision`` (DPC-Net's rotation-only variant; ss-DPC-Net's setting for stereo priors).
+    * ``method``: the network it trains (``"ss_dpc"`` or ``"stereo_dpc"``); the training step
+      compiles for that network, as with the self-supervised configs' ``method``.
     """
-
-    method: ClassVar[str] = "supervised"
 
     precision: tuple[float, ...] | None = None
     rotation_only: bool = False
+    method: str = "stereo_dpc"
 
     def __post_init__(self) -> None:
+        if self.method not in ("ss_dpc", "stereo_dpc"):
+            raise ValueError(f"method must be 'ss_dpc' or 'stereo_dpc', got {self.method!r}")
         if self.precision is not None:
             values = tuple(float(v) for v in self.precision)
             if len(values) not in (6, 36) or not all(math.isfinite(v) for v in values):

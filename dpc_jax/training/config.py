@@ -47,11 +47,21 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from dpc_jax.config import ConfigError, unknown_key_error
-from dpc_jax.nn.config import PRESETS, ModelConfig, SSDPCLossConfig, StereoDPCLossConfig, uses_flow
+from dpc_jax.nn.config import (
+    PRESETS,
+    ModelConfig,
+    SSDPCLossConfig,
+    StereoDPCLossConfig,
+    SupervisedLossConfig,
+    uses_flow,
+)
 
 METHODS = ("ss_dpc", "stereo_dpc")
 PRIOR_NORMALIZATIONS = ("none", "train_statistics")
 ACCEPTANCE_DEPTHS = ("network", "sgbm")
+# "self": the method's self-supervised loss (no ground truth is read for training); "supervised":
+# DPC-Net's supervised loss (nn.config.SupervisedLossConfig), which reads ground truth.
+SUPERVISIONS = ("self", "supervised")
 # Epoch selection criterion (``dpc-jax correct --select``) → the run's checkpoint folder holding
 # that epoch (see dpc_jax.training.checkpoints).
 SELECTIONS = {
@@ -102,6 +112,12 @@ class TrainConfig:
         * ``rotation_only``: apply only the rotation part of ξ_corr when composing corrected
           trajectories (ss-DPC-Net with a stereo prior); passed to the loss config too when it
           has such a field.
+        * ``supervision``: ``"self"`` (the method's self-supervised loss; training batches carry no
+          ground truth) or ``"supervised"`` (DPC-Net's supervised loss, ``SupervisedLossConfig``:
+          the training batches carry the ground truth, which every training sequence must have).
+          Validation, epoch selection and the acceptance test use the method's loss either way.
+        * ``precision``: with ``supervision: supervised``, the loss's ``Σ⁻¹`` (6 diagonal or 36
+          numbers; None = identity).
     Optimisation
         * ``batch_size`` (global, over all devices and hosts), ``epochs``.
         * ``learning_rate``, ``lr_halving_epochs``: initial rate, halved every that many epochs.
@@ -143,6 +159,8 @@ class TrainConfig:
     pose_features: str = "prior"
     loss: dict[str, Any] = field(default_factory=dict)
     rotation_only: bool = False
+    supervision: str = "self"
+    precision: tuple[float, ...] | None = None
     batch_size: int = 32
     epochs: int = 30
     learning_rate: float = 6e-3
@@ -190,6 +208,10 @@ class TrainConfig:
             )
         elif self.acceptance_depth == "sgbm" and self.method != "stereo_dpc":
             problems.append("acceptance_depth 'sgbm' needs the stereo method (stereo_dpc)")
+        if self.supervision not in SUPERVISIONS:
+            problems.append(f"supervision must be one of {SUPERVISIONS}, got {self.supervision!r}")
+        elif self.precision is not None and self.supervision != "supervised":
+            problems.append("precision is used only with supervision 'supervised'")
         if self.image_size is not None and min(self.image_size) < 1:
             problems.append(f"image_size must be positive, got {self.image_size}")
         top_level = ("image_size", "dropout", "prior_dropout", "pose_init", "pose_scale", "pose_features",
@@ -212,6 +234,7 @@ class TrainConfig:
         # Fail now, not after data loading, on bad model or loss overrides.
         self.model_config()
         self.loss_config()
+        self.train_loss_config()
 
     def model_config(self) -> ModelConfig:
         """The ``ModelConfig``: the preset, the ``model`` overrides and the top-level model keys."""
@@ -236,6 +259,19 @@ class TrainConfig:
         if any(f.name == "rotation_only" for f in dataclasses.fields(base)):
             overrides["rotation_only"] = self.rotation_only
         return _replace(base, overrides, "loss")
+
+    def train_loss_config(self) -> SSDPCLossConfig | StereoDPCLossConfig | SupervisedLossConfig:
+        """The loss the training step minimises: :meth:`loss_config`, or with ``supervision:
+        supervised`` DPC-Net's supervised loss for this method's network."""
+        if self.supervision != "supervised":
+            return self.loss_config()
+        try:
+            return SupervisedLossConfig(
+                precision=None if self.precision is None else tuple(self.precision),
+                rotation_only=self.rotation_only, method=self.method,
+            )
+        except ValueError as error:
+            raise ConfigError(f"invalid TrainConfig: {error}") from None
 
     @property
     def resolved_image_size(self) -> tuple[int, int]:

@@ -122,6 +122,8 @@ def open_data(config: TrainConfig, workers: int = 2) -> TrainData:
         frame_skip=config.frame_skip,
         reverse=config.reverse,
         flow=use_flow,
+        # Ground truth reaches the training batches only for the supervised loss.
+        ground_truth=config.supervision == "supervised",
         workers=workers,
     )
     steps = min(len(loader), config.steps_per_epoch or len(loader))
@@ -468,7 +470,7 @@ def _start_run(
         config_lib.save_json(checkpoints.root / "config.json", config)
         config_lib.save_json(checkpoints.root / "split.json", data.split)
     schedule = learning_rate_schedule(config.learning_rate, config.lr_halving_epochs, data.steps_per_epoch)
-    train_step = make_train_step(config.loss_config(), config.warmup_steps(data.steps_per_epoch), mesh)
+    train_step = make_train_step(config.train_loss_config(), config.warmup_steps(data.steps_per_epoch), mesh)
     log = MetricsLog(workdir, meta["epoch"] if meta else 0, meta["step"] if meta else 0, enabled=is_main)
     run = _Run(config, data, mesh, model_graphdef, graphdef, train_step, schedule, checkpoints, log, progress,
                is_main)
