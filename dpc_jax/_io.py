@@ -122,11 +122,13 @@ def stream_write(path: str | os.PathLike[str], data: str | bytes) -> None:
         except OSError:
             continue
         if same:
-            _write_all(fd, payload)
+            with _naming(path):
+                _write_all(fd, payload)
             return
     fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_NOCTTY)
     try:
-        _write_all(fd, payload)
+        with _naming(path):
+            _write_all(fd, payload)
     finally:
         os.close(fd)
 
@@ -164,12 +166,24 @@ def atomic_write(path: str | os.PathLike[str], data: str | bytes) -> None:
         except FileExistsError:
             continue
     try:
-        with os.fdopen(fd, "wb") as handle:
+        with _naming(path), os.fdopen(fd, "wb") as handle:
             handle.write(payload)
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+@contextlib.contextmanager
+def _naming(path: str | os.PathLike[str]) -> Iterator[None]:
+    """Give an OSError raised without a file name (a full disk fails the write, which names none)
+    the output's ``path``, so the command's one line says which file could not be written."""
+    try:
+        yield
+    except OSError as error:
+        if error.filename is not None or error.errno is None:
+            raise
+        raise type(error)(error.errno, error.strerror, os.fspath(path)) from error
 
 
 # ----------------------------------------------------------------------------- stale temporaries

@@ -17,6 +17,7 @@ import difflib
 import json
 import os
 import runpy
+import traceback
 import types
 import typing
 from collections.abc import Mapping
@@ -109,7 +110,12 @@ def from_dict(cls: type[T], data: Mapping[str, Any], where: str = "config") -> T
         if key not in names:
             raise unknown_key_error(str(key), names, where)
         values[key] = _check_value(value, hints[key], f"{where}.{key}")
-    return cls(**values)
+    try:
+        return cls(**values)
+    except ConfigError:
+        raise
+    except ValueError as error:  # a check of a nested dataclass built from the fields (not a ConfigError)
+        raise ConfigError(f"{where}: {error}") from None
 
 
 def to_dict(config: Any) -> dict[str, Any]:
@@ -128,7 +134,9 @@ def diff(a: Any, b: Any) -> list[str]:
 def load_file(path: str | os.PathLike, cls: type[T]) -> T:
     """Load ``CONFIG`` from the Python file ``path``: an instance of ``cls`` or a dict of its fields.
 
-    A ``.json`` file (as written by ``save_json``) is accepted too.
+    A ``.json`` file (as written by ``save_json``) is accepted too. A file that is not valid Python,
+    or whose code raises (a misspelt name, a failed import, a dataclass's own check), is a
+    ``ConfigError`` naming the file and the line.
     """
     path = Path(path)
     if not path.is_file():
@@ -143,6 +151,15 @@ def load_file(path: str | os.PathLike, cls: type[T]) -> T:
         namespace = runpy.run_path(str(path))
     except ConfigError as error:
         raise ConfigError(f"{path}: {error}") from None
+    except SyntaxError as error:
+        raise ConfigError(f"{path}, line {error.lineno}: not valid Python ({error.msg})") from None
+    except Exception as error:  # the file's own code failed (a NameError, a failed import, a check)
+        line = next((frame.lineno for frame in reversed(traceback.extract_tb(error.__traceback__))
+                     if Path(frame.filename) == path), None)
+        where = f"{path}, line {line}" if line is not None else str(path)
+        message = str(error).splitlines()[0] if str(error) else ""
+        raise ConfigError(f"{where}: running it raised {type(error).__name__}"
+                          + (f": {message}" if message else "")) from None
     if "CONFIG" not in namespace:
         raise ConfigError(f"{path}: defines no CONFIG (expected CONFIG = {cls.__name__}(...) or a dict)")
     config = namespace["CONFIG"]

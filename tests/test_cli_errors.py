@@ -384,6 +384,75 @@ def test_bad_inputs_fail_before_jax_is_imported(data: dict[str, Path], tmp_path:
     assert not out.exists()
 
 
+def test_silent_and_late_mistakes_are_one_line_and_exit_2_before_jax(
+    data: dict[str, Path], tmp_path: Path
+) -> None:
+    """Issue 33: what was accepted silently (a CSV overwritten by the summary, one prior for several
+    sequences, a NaN offset), failed late (a hold-out that keeps nothing out) or with a traceback (a
+    config file that is not valid Python or raises, demo fields checked by the renderer), and the
+    misleading messages, each end in one line and exit status 2, before JAX is imported."""
+    out = tmp_path / "out"
+    for name in ("00", "05"):
+        shutil.copytree(data["cache"], tmp_path / "caches" / name)
+    (tmp_path / "syntax.py").write_text('CONFIG = {"method": "stereo_dpc",\n    "preset": "small"\n')
+    (tmp_path / "raises.py").write_text("import json\nCONFIG = json.loads('{')\n")
+    _train_config(tmp_path / "ss_dpc.py", tmp_path / "caches", method="ss_dpc")
+    for name, field in (("size", '"render_size": (0, 0)'), ("noise", '"noise": -1'),
+                        ("cars", '"moving_objects": -3')):
+        (tmp_path / f"demo_{name}.py").write_text(f"CONFIG = {{{field}}}\n")
+    one_pose = tmp_path / "one.txt"
+    one_pose.write_text(data["gt"].read_text().splitlines()[0] + "\n")
+    odd_name = tmp_path / "my estimate (v2) é.txt"
+    shutil.copy(data["est"], odd_name)
+    vo = ["vo", "--kitti-odometry", data["kitti"], "--sequence", "00"]
+    prepare = ["prepare", "--kitti-odometry", data["kitti"], "--prior", data["prior"], "--out", out / "cache"]
+    cases = {
+        "--csv {o}/a.json: the same file as the run summary {o}/a.json": [
+            *vo, "--out", out / "a.txt", "--csv", out / "a.json"],
+        "--out {o}/a.json: the run summary goes to OUT with suffix .json, the same file": [
+            *vo, "--out", out / "a.json"],
+        "--disparity-offset nan: expected a finite number": [*vo, "--out", out / "a.txt",
+                                                             "--disparity-offset", "nan"],
+        "--frames 2:9: 00 has 6 frames (0 to 5); STOP must be at most 6": [
+            *vo, "--out", out / "a.txt", "--frames", "2:9"],
+        "--prior {p}: 2 sequences would share this one file; put {{seq}} in the path": [
+            *prepare, "--sequence", "00", "05"],
+        "--frames 0:7: 00 has 6 frames (0 to 5)": [*prepare, "--sequence", "00", "--frames", "0:7"],
+        "--noise nan: expected a finite number": ["synth", "--out", out / "s", "--noise", "nan"],
+        "--holdout-every 1000: keeps 0 of the 5 frame pairs of": [
+            "correct", "--checkpoint", data["run"], "--data", data["cache"], "--out", out / "c.txt",
+            "--adapt", "5", "--holdout-every", "1000"],
+        "syntax.py, line 1: not valid Python": ["train", "--config", tmp_path / "syntax.py",
+                                               "--workdir", out / "run"],
+        "raises.py, line 2: running it raised JSONDecodeError": [
+            "train", "--config", tmp_path / "raises.py", "--workdir", out / "run"],
+        "no forward or skip flow in the cache, which method 'ss_dpc' reads": [
+            "train", "--config", tmp_path / "ss_dpc.py", "--workdir", out / "run"],
+        "demo_size.py: image size must be at least 8": ["demo", "--config", tmp_path / "demo_size.py",
+                                                       "--out", out / "demo"],
+        "demo_noise.py: noise must be >= 0": ["demo", "--config", tmp_path / "demo_noise.py",
+                                             "--out", out / "demo"],
+        "demo_cars.py: moving_objects must be >= 0, got -3": [
+            "demo", "--config", tmp_path / "demo_cars.py", "--out", out / "demo"],
+        "one.txt: holds 1 pose; a trajectory to evaluate needs at least 2": [
+            "evaluate", "--gt", one_pose, "--est", one_pose],
+        "the label comes from the file name, so give one with --label NAME": [
+            "evaluate", "--gt", data["gt"], "--est", odd_name],
+    }
+    argvs = [[str(a) for a in argv] for argv in cases.values()]
+    code = ("import json, sys; from dpc_jax.cli import main; "
+            f"status = [main(argv) for argv in {argvs!r}]; "
+            "print(json.dumps([status, [m for m in ('jax', 'jaxlib', 'flax') if m in sys.modules]]))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
+    status, imported = json.loads(done.stdout)
+    lines = done.stderr.splitlines()
+    assert len(lines) == len(cases) and "Traceback" not in done.stderr, done.stderr
+    for needle, line in zip(cases, lines, strict=True):
+        assert needle.format(o=out, p=data["prior"]) in line, (needle, line)
+    assert imported == [] and status == [2] * len(cases), (status, imported)
+    assert not out.exists()
+
+
 def _train_config(path: Path, cache_root: Path, **fields: object) -> None:
     """Write a valid training config file (a dict CONFIG) reading the caches under ``cache_root``."""
     config = {"method": "stereo_dpc", "preset": "small", "image_size": (32, 48), "batch_size": 2, "epochs": 1,
@@ -656,7 +725,7 @@ def test_ctrl_c_in_prepare_is_one_line_and_leaves_no_temporary(
     assert main(["prepare", "--kitti-odometry", str(data["kitti"]), "--sequence", "00", "--prior",
                  str(data["prior"]), "--out", str(out), "--size", "10x16"]) == 130
     assert capsys.readouterr().err == "dpc-jax prepare: interrupted; nothing half-written\n"
-    assert _files(out) == []
+    assert not out.exists()  # made for the cache, removed with it
 
 
 def test_ctrl_c_in_synth_subprocess(tmp_path: Path) -> None:
@@ -754,6 +823,19 @@ def test_help_has_no_noise_and_examples() -> None:
             if action.option_strings and action.nargs != 0 and "_" in action.dest:
                 default = formatter._get_default_metavar_for_optional(action)
                 assert formatter._metavar_formatter(action, default)(1)[0] != action.dest.upper(), name
+
+
+def test_help_states_defaults_of_zero() -> None:
+    """0 equals False, and the formatter once took a default of 0 for "no default"."""
+    parsers = _subparsers()
+    cases = [("synth", "--seed", "0"), ("synth", "--moving-objects", "0"), ("synth", "--noise", "0.0"),
+             ("synth", "--illumination-drift", "0.0"), ("synth", "--disparity-offset", "0.0"),
+             ("vo", "--disparity-offset", "0.0")]
+    for command, option, default in cases:
+        parser = parsers[command]
+        action = next(a for a in parser._actions if option in a.option_strings)
+        text = parser._get_formatter()._expand_help(action)
+        assert text.endswith(f"(default: {default})"), (command, option, text)
 
 
 def test_train_help_cites_configs_that_exist() -> None:

@@ -1,6 +1,9 @@
 """dpc_jax._io: installing a finished folder over an older one; outputs that are links, FIFOs or devices."""
 
+import errno
+import io
 import os
+import re
 import socket
 import stat
 import subprocess
@@ -10,7 +13,9 @@ import threading
 from pathlib import Path
 
 import numpy as np
+import pytest
 
+from dpc_jax import _io
 from dpc_jax._io import STAGING_PREFIX, OutputSet, atomic_write, install_folder, output_problem, output_target
 from dpc_jax.data.poses_io import write_kitti_poses
 
@@ -143,3 +148,23 @@ def test_evaluate_json_to_a_fifo_a_link_and_redirected_stdout(tmp_path: Path) ->
     assert printed.startswith(expected) and b"| estimate |" in printed[len(expected):]
     assert sorted(p.name for p in tmp_path.iterdir()) == [
         "est.txt", "fifo", "gt.txt", "link.json", "plain.json", "real.json", "stdout.txt"]
+
+
+def test_a_full_disk_names_the_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The write that fails on a full disk names no file; the error the command prints must."""
+    with pytest.raises(OSError, match=r"No space left on device: '/dev/full'"):
+        atomic_write("/dev/full", "x")
+
+    class Full(io.BytesIO):
+        def write(self, data: object) -> int:
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    def full_disk(fd: int, mode: str) -> Full:
+        os.close(fd)
+        return Full()
+
+    monkeypatch.setattr(_io.os, "fdopen", full_disk)
+    target = tmp_path / "m.json"
+    with pytest.raises(OSError, match=re.escape(f"No space left on device: '{target}'")):
+        atomic_write(target, "x")
+    assert list(tmp_path.iterdir()) == []  # the temporary file is gone too

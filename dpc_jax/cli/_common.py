@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import math
 import signal
 import sys
 import threading
@@ -34,7 +35,9 @@ class Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsH
 
     def _get_help_string(self, action: argparse.Action) -> str | None:
         text = action.help or ""
-        if action.default in (None, False, [], argparse.SUPPRESS) or "default" in text.lower():
+        # By identity: 0 and 0.0 equal False, and a default of 0 is worth stating.
+        nothing = action.default is None or action.default is False or action.default == []
+        if nothing or action.default is argparse.SUPPRESS or "default" in text.lower():
             return text
         return super()._get_help_string(action)
 
@@ -72,6 +75,30 @@ def frame_range(text: str) -> tuple[int, int]:
     if not 0 <= start < stop:
         raise argparse.ArgumentTypeError(f"expected 0 <= START < STOP, got {text!r}")
     return start, stop
+
+
+def finite_problem(**options: float) -> str | None:
+    """Why one of the options (keyword ``disparity_offset`` for ``--disparity-offset``) is not a
+    finite number, or None: argparse's ``float`` takes ``nan`` and ``inf``, which no option means."""
+    for name, value in options.items():
+        if not math.isfinite(value):
+            return f"--{name.replace('_', '-')} {value}: expected a finite number"
+    return None
+
+
+def frames_problem(frames: tuple[int, int] | None, n_frames: int, name: str) -> str | None:
+    """Why ``--frames START:STOP`` does not select at least 2 of the ``n_frames`` frames of the
+    sequence ``name``, or None (no ``--frames``: all of them)."""
+    if frames is None:
+        return None
+    start, stop = frames
+    option = f"--frames {start}:{stop}"
+    if stop > n_frames:
+        return (f"{option}: {name} has {n_frames} frames (0 to {n_frames - 1}); STOP must be at most "
+                f"{n_frames}")
+    if stop - start < 2:
+        return f"{option}: selects {stop - start} frame; at least 2 are needed"
+    return None
 
 
 def output_problem(path: Path | str | None, option: str, *, folder: bool = False) -> str | None:

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 from dpc_jax.cli._common import (
     Formatter,
     frame_range,
+    frames_problem,
     import_jax,
     input_problem,
     output_problem,
@@ -156,6 +157,21 @@ def _check_arguments(args: argparse.Namespace) -> str | None:
     return None
 
 
+def _holdout_problem(args: argparse.Namespace, n_frames: int, where: Path | str) -> str | None:
+    """Why ``--adapt`` cannot keep pairs of the ``n_frames`` frames of ``where`` out for its test, or
+    None. The pairs kept out are ``K//2, K//2 + K, ...`` of the ``n_frames - 1`` consecutive pairs
+    (``dpc_jax.adapt.held_out_pairs``, which imports JAX); the test needs one, adaptation another."""
+    if not args.adapt:
+        return None
+    every, n_pairs = args.holdout_every, n_frames - 1
+    held = len(range(every // 2, n_pairs, every))
+    if 1 <= held < n_pairs:
+        return None
+    hint = f"; use --holdout-every {2 * n_pairs - 1} or less" if n_pairs >= 2 else ""
+    return (f"--holdout-every {every}: keeps {held} of the {n_pairs} frame pairs of {where} out of "
+            f"adaptation, but its test needs at least one kept out and one to adapt on{hint}")
+
+
 def adapted_path(out: Path) -> Path:
     """Where ``--adapt`` puts the adapted network: ``corrected.txt`` → ``corrected.adapted/``."""
     return out.with_name(f"{out.stem}.adapted")
@@ -172,6 +188,9 @@ def run(args: argparse.Namespace) -> int:
         checked = load_cache(args.data) if args.data is not None else None
     except (OSError, ValueError) as error:
         return _error(str(error))
+    problem = None if checked is None else _holdout_problem(args, len(checked), checked.path)
+    if problem is not None:
+        return _error(problem)
     import_jax()
     # Orbax logs a warning per read-only checkpoint manager; they say nothing useful here.
     logging.getLogger("absl").setLevel(logging.ERROR)
@@ -212,6 +231,9 @@ def _sequence(
         sequence = open_odometry(args.kitti_odometry, args.sequence, grey=args.grey)
     else:
         sequence = open_raw(args.kitti_raw, args.date, args.drive, cameras="grey" if args.grey else "auto")
+    problem = frames_problem(args.frames, len(sequence), sequence.name)
+    if problem is not None:
+        raise ValueError(problem)
     # The pid in the name lets a later run remove the folder of a killed one.
     remove_stale(tempfile.gettempdir(), "dpc-correct-")
     cache_root = args.cache or Path(
@@ -222,6 +244,11 @@ def _sequence(
         remove_static=args.remove_static, mono_rescale=args.mono_rescale, frames=args.frames,
         prior_format=args.prior_format, ground_truth=args.gt, progress=False if args.no_progress else None,
     )
+    from dpc_jax.data.sequence_cache import load_cache
+
+    problem = _holdout_problem(args, len(load_cache(cache)), sequence.name)
+    if problem is not None:
+        raise ValueError(problem)
     return cache, None
 
 
@@ -284,6 +311,9 @@ def _print_summary(
 
     criterion = {"delta": "most negative validation Δ", "gradient": "best gradient loss",
                  "loop": "most loop closures", "last": "newest"}[args.select]
+    if args.select == "delta" and not run_.improves_on_prior:
+        # load_run fell back to the newest epoch: the run holds no best-Δ checkpoint.
+        criterion = "the newest epoch, as the run holds no best-Δ checkpoint (best_delta/)"
     if correction.applied == "none":
         print(f"{correction.name}: correction NOT applied, the prior is written unchanged "
               f"({correction.acceptance.reason}); --force applies it anyway")

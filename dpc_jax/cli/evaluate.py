@@ -98,8 +98,15 @@ def _inputs(args: argparse.Namespace) -> tuple[np.ndarray, dict[str, np.ndarray]
     if args.label and len(args.label) != len(args.est):
         raise ValueError(f"{len(args.label)} --label for {len(args.est)} --est; give one label per estimate")
     labels = args.label or [Path(p).name.split(".")[0] for p in args.est]
-    for label in labels:
-        check_label(label)
+    for label, path in zip(labels, args.est, strict=True):
+        try:
+            check_label(label)
+        except ValueError as error:
+            if args.label:
+                raise
+            # The label came from the file name, which the user did not choose as a label.
+            raise ValueError(f"--est {path}: {error}; the label comes from the file name, so give "
+                             "one with --label NAME (one --label per --est)") from None
     if len(set(labels)) != len(labels):
         raise ValueError(f"estimate labels must be unique, got {labels}; use --label")
     gt = read_trajectory(args.gt, args.format, mat_key="poses_gt")
@@ -130,6 +137,9 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--focal must be a positive focal length in pixels, got {args.focal}")
         if args.focal is not None and not args.diagnose:
             raise ValueError("--focal is used only with --diagnose")
+        if gt.shape[0] < 2:
+            source = args.mat if args.mat is not None else args.gt
+            raise ValueError(f"{source}: holds {gt.shape[0]} pose; a trajectory to evaluate needs at least 2")
         if not 1 <= args.rpe_delta < gt.shape[0]:
             # Checked here too (evaluate checks it after static-frame removal) so that the mistake
             # is reported before JAX is imported.

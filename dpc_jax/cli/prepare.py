@@ -9,7 +9,9 @@ from typing import TYPE_CHECKING
 
 from dpc_jax.cli._common import (
     Formatter,
+    finite_problem,
     frame_range,
+    frames_problem,
     image_size,
     import_jax,
     input_problem,
@@ -104,7 +106,8 @@ def run(args: argparse.Namespace) -> int:
                           "put {seq} in the path where the sequence name goes")
     problem = (input_problem(args.kitti_odometry, "--kitti-odometry", folder=True)
                or input_problem(args.kitti_raw, "--kitti-raw", folder=True)
-               or output_problem(args.out, "--out", folder=True) or size_problem(args.size, args.allow_large))
+               or output_problem(args.out, "--out", folder=True) or size_problem(args.size, args.allow_large)
+               or finite_problem(disparity_offset=args.disparity_offset))
     if problem is not None:
         return _error(problem)
     # Every sequence is opened (its files listed, calibration and times read: OpenCV, no JAX) and
@@ -120,6 +123,9 @@ def run(args: argparse.Namespace) -> int:
                 sequence = open_raw(args.kitti_raw, args.date, key, cameras="grey" if args.grey else "auto")
         except (OSError, ValueError, KeyError) as error:
             return _error(f"{key}: {error}", status=1)
+        problem = frames_problem(args.frames, len(sequence), sequence.name)
+        if problem is not None:
+            return _error(problem)
         prior = args.prior.replace("{seq}", sequence.name)
         gt = None if args.gt is None else args.gt.replace("{seq}", sequence.name)
         problem = input_problem(prior, "--prior") or input_problem(gt, "--gt")

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from dpc_jax.cli._common import (
     Formatter,
+    finite_problem,
     image_size,
     import_jax,
     output_problem,
@@ -61,7 +62,9 @@ def _error(message: str) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    problem = output_problem(args.out, "--out", folder=True) or size_problem(args.size, args.allow_large)
+    problem = (output_problem(args.out, "--out", folder=True) or size_problem(args.size, args.allow_large)
+               or finite_problem(illumination_drift=args.illumination_drift, noise=args.noise,
+                                 disparity_offset=args.disparity_offset))
     if problem is not None:
         return _error(problem)
     from dpc_jax.synth import SynthConfig, write_sequences  # the renderer imports JAX when it starts

@@ -113,8 +113,24 @@ def _cache_problem(config: TrainConfig) -> str | None:
         train = training_sequences(
             config.cache_root, config.train_sequences, config.validation_sequences, config.test_sequences
         )
-        for name in [*train, *config.validation_sequences]:
-            load_cache(Path(config.cache_root) / name)
+        caches = {name: load_cache(Path(config.cache_root) / name)
+                  for name in [*train, *config.validation_sequences]}
     except (OSError, ValueError) as error:
         return str(error)
+    if not config.use_flow:
+        return None
+    # The flows the network reads, as the training loader asks for them: its pair kinds for a
+    # training sequence, consecutive pairs for a validation one.
+    kinds = ["forward"] + (["skip"] if config.frame_skip else [])
+    if config.reverse:
+        kinds += ["reverse"] + (["skip_reverse"] if config.frame_skip else [])
+    for name, cache in caches.items():
+        needed = kinds if name in train else ["forward"]
+        missing = [kind for kind in needed if kind not in cache.flows]
+        if missing:
+            how = "--flow" if missing == ["forward"] else "--flow-augment"
+            alternative = "" if how == "--flow" else ", or set frame_skip=False, reverse=False in the config"
+            return (f"{cache.path}: no {' or '.join(missing)} flow in the cache, which method "
+                    f"{config.method!r} reads (frame_skip={config.frame_skip}, reverse={config.reverse}); "
+                    f"prepare it with `dpc-jax prepare ... {how}`{alternative}")
     return None

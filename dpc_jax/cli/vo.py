@@ -7,7 +7,15 @@ import json
 import sys
 from pathlib import Path
 
-from dpc_jax.cli._common import Formatter, frame_range, import_jax, input_problem, output_problem
+from dpc_jax.cli._common import (
+    Formatter,
+    finite_problem,
+    frame_range,
+    frames_problem,
+    import_jax,
+    input_problem,
+    output_problem,
+)
 
 HELP = "Classical stereo visual odometry (libviso2-s-like): write the trajectory and a per-frame CSV."
 # Restart with huge-page malloc (dpc_jax.hugepages): the VO is about 6 % faster.
@@ -99,7 +107,8 @@ def run(args: argparse.Namespace) -> int:
     problem = (input_problem(args.kitti_odometry, "--kitti-odometry", folder=True)
                or input_problem(args.kitti_raw, "--kitti-raw", folder=True) or input_problem(args.gt, "--gt")
                or output_problem(args.out, "--out") or output_problem(csv_path, "--csv")
-               or output_problem(json_path, "--out"))
+               or output_problem(json_path, "--out")
+               or finite_problem(disparity_offset=args.disparity_offset))
     if problem is None:
         problem = _same_file_problem(args.out, csv_path, json_path)
     if problem is not None:
@@ -114,6 +123,8 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         sequence = _open(args)
+        if (problem := frames_problem(args.frames, len(sequence), sequence.name)) is not None:
+            raise _UsageError(problem)
         if args.frames is not None:
             sequence = sequence.select(*args.frames)
         if args.start == "gt" and sequence.poses is None:

@@ -346,6 +346,8 @@ def trajectory_metrics(
     """
     gt, est = _check_pair(gt, est)
     n, n_len = gt.shape[0], len(lengths)
+    if n < 2:
+        raise ValueError(f"a trajectory needs at least 2 poses, got {n}")
     if not 1 <= rpe_delta < n:
         raise ValueError(f"rpe_delta must be in [1, N − 1] = [1, {n - 1}], got {rpe_delta}")
     pose_err = se3_inverse(est) @ gt
