@@ -97,3 +97,17 @@ def test_bad_input() -> None:
         fit_linear_correction([])
     with pytest.raises(ValueError, match="shape"):
         sequence_steps(np.tile(np.eye(4), (5, 1, 1)), np.tile(np.eye(4), (4, 1, 1)))
+
+
+def test_script_reports_a_missing_folder_in_one_line(tmp_path, capsys: pytest.CaptureFixture[str]) -> None:
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "experiments" / "linear_baseline.py"
+    spec = importlib.util.spec_from_file_location("linear_baseline_script", path)
+    assert spec is not None and spec.loader is not None
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    assert script.main(["--data", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "stereo_00.mat not found" in err
