@@ -526,6 +526,39 @@ def test_only_supervised_training_reads_ground_truth(tmp_path, monkeypatch: pyte
     summary = train(config, tmp_path / "supervised", progress=False, workers=0)
     assert seen and all(name == "SupervisedLossConfig" and has_gt for name, has_gt in seen)
     assert summary["epochs"] == 1
+    # Without a precision the loop takes DPC-Net's from the training pairs; these tiny sequences'
+    # priors err in one direction only, so it does not exist, and training says so before a step.
+    with pytest.raises(ValueError, match="no spread"):
+        train(tiny_config(root, epochs=1, supervision="supervised"), tmp_path / "default", progress=False,
+              workers=0)
 
     with pytest.raises(ConfigError, match="precision is used only"):
         tiny_config(root, precision=[1, 1, 1, 1, 1, 1])
+
+
+def test_training_precision_is_the_inverse_covariance_of_the_targets() -> None:
+    from dpc_jax.nn.config import StereoDPCLossConfig, SupervisedLossConfig
+    from dpc_jax.nn.losses import with_target_precision
+
+    xi_vo, xi_gt, _, _ = _supervised_case(6, b=300)
+    targets = np.stack([
+        _se3_vee_log(_se3_expm(g) @ np.linalg.inv(_se3_expm(v))) for v, g in zip(xi_vo, xi_gt, strict=True)
+    ])
+    with jax.enable_x64(True):
+        config = with_target_precision(SupervisedLossConfig(), xi_vo, xi_gt)
+        rotation = with_target_precision(SupervisedLossConfig(rotation_only=True), xi_vo, xi_gt)
+        given = SupervisedLossConfig(precision=(1.0,) * 6)
+        assert with_target_precision(given, xi_vo, xi_gt) is given
+        assert with_target_precision(StereoDPCLossConfig(), xi_vo, None) == StereoDPCLossConfig()
+        with pytest.raises(ValueError, match="ground truth"):
+            with_target_precision(SupervisedLossConfig(), xi_vo, None)
+        flat = xi_gt.copy()
+        flat[:, 3:] = xi_vo[:, 3:]  # no rotation error at all
+        with pytest.raises(ValueError, match="no spread"):
+            with_target_precision(SupervisedLossConfig(), xi_vo, flat)
+    assert isinstance(config, SupervisedLossConfig) and isinstance(rotation, SupervisedLossConfig)
+    np.testing.assert_allclose(np.array(config.precision).reshape(6, 6), np.linalg.inv(np.cov(targets.T)),
+                               rtol=1e-7)
+    expected = np.zeros((6, 6))
+    expected[3:, 3:] = np.linalg.inv(np.cov(targets[:, 3:].T))
+    np.testing.assert_allclose(np.array(rotation.precision).reshape(6, 6), expected, rtol=1e-7, atol=1e-9)

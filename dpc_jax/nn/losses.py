@@ -21,6 +21,7 @@ frame t+1 from frame t therefore needs ``T_{t,t+1} = inv(T*)``, computed exactly
 
 from __future__ import annotations
 
+import dataclasses
 from typing import cast
 
 import jax.numpy as jnp
@@ -325,15 +326,48 @@ def target_precision(xi_target: ArrayLike, rotation_only: bool = False) -> Array
     """DPC-Net's weight: the inverse sample covariance of target corrections ``[M, 6]`` → ``[6, 6]``.
 
     With ``rotation_only`` the rotation block is inverted alone (translation rows and columns 0).
+    Raises ``ValueError`` when the targets have (almost) no spread along some direction, where the
+    inverse does not exist (give the precision explicitly then); it reads the values, so it runs
+    outside ``jax.jit``.
     """
     xi = jnp.asarray(xi_target)
     if xi.ndim != 2 or xi.shape[1] != 6 or xi.shape[0] < 7:
         raise ValueError(f"target corrections must have shape [M, 6] with M ≥ 7, got {xi.shape}")
     centred = xi - jnp.mean(xi, axis=0)
     covariance = centred.T @ centred / (xi.shape[0] - 1)
+    block = covariance[3:, 3:] if rotation_only else covariance
+    eigenvalues = jnp.linalg.eigvalsh(block)
+    if not float(eigenvalues[0]) > 1e-9 * float(eigenvalues[-1]):
+        raise ValueError(
+            "the target corrections have (almost) no spread along some direction, so their covariance "
+            "has no inverse; give the precision explicitly"
+        )
     if rotation_only:
-        return jnp.zeros_like(covariance).at[3:, 3:].set(jnp.linalg.inv(covariance[3:, 3:]))
+        return jnp.zeros_like(covariance).at[3:, 3:].set(jnp.linalg.inv(block))
     return jnp.linalg.inv(covariance)
+
+
+def with_target_precision(
+    config: SSDPCLossConfig | StereoDPCLossConfig | SupervisedLossConfig,
+    xi_vo: ArrayLike,
+    xi_gt: ArrayLike | None,
+) -> SSDPCLossConfig | StereoDPCLossConfig | SupervisedLossConfig:
+    """A supervised config without ``precision`` gets DPC-Net's: :func:`target_precision` of the
+    target corrections of the training pairs (``xi_vo``, ``xi_gt``: ``[M, 6]``); any other config
+    is returned as is. Raises ``ValueError`` when the pairs' ground truth is missing."""
+    if not isinstance(config, SupervisedLossConfig) or config.precision is not None:
+        return config
+    if xi_gt is None:
+        raise ValueError("the supervised loss needs the training pairs' ground truth for its precision")
+    import jax
+    import numpy as np
+
+    # In float64: rotation variances are ~10⁶ times smaller than translation ones.
+    with jax.enable_x64(True):
+        xi_vo, xi_gt = (jnp.asarray(np.asarray(x, np.float64)) for x in (xi_vo, xi_gt))
+        targets = se3_log(target_corrections(xi_vo, xi_gt))
+        precision = np.asarray(target_precision(targets, config.rotation_only), np.float64)
+    return dataclasses.replace(config, precision=tuple(float(v) for v in precision.ravel()))
 
 
 def supervised_dpc_loss(

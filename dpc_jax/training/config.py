@@ -117,7 +117,7 @@ class TrainConfig:
           the training batches carry the ground truth, which every training sequence must have).
           Validation, epoch selection and the acceptance test use the method's loss either way.
         * ``precision``: with ``supervision: supervised``, the loss's ``Σ⁻¹`` (6 diagonal or 36
-          numbers; None = identity).
+          numbers); None: DPC-Net's, the inverse covariance of the training pairs' target corrections.
     Optimisation
         * ``batch_size`` (global, over all devices and hosts), ``epochs``.
         * ``learning_rate``, ``lr_halving_epochs``: initial rate, halved every that many epochs.

@@ -470,7 +470,12 @@ def _start_run(
         config_lib.save_json(checkpoints.root / "config.json", config)
         config_lib.save_json(checkpoints.root / "split.json", data.split)
     schedule = learning_rate_schedule(config.learning_rate, config.lr_halving_epochs, data.steps_per_epoch)
-    train_step = make_train_step(config.train_loss_config(), config.warmup_steps(data.steps_per_epoch), mesh)
+    from dpc_jax.nn.losses import with_target_precision
+
+    # The supervised loss without a precision gets DPC-Net's, from the training pairs.
+    table = data.loader.table
+    loss_config = with_target_precision(config.train_loss_config(), table.xi_vo, table.xi_gt)
+    train_step = make_train_step(loss_config, config.warmup_steps(data.steps_per_epoch), mesh)
     log = MetricsLog(workdir, meta["epoch"] if meta else 0, meta["step"] if meta else 0, enabled=is_main)
     run = _Run(config, data, mesh, model_graphdef, graphdef, train_step, schedule, checkpoints, log, progress,
                is_main)
