@@ -19,9 +19,11 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "dpc_jax.geometry.warp": ("bilinear_sample", "inverse_warp", "stereo_warp", "disparity_consistency"),
     "dpc_jax.geometry.ssim": ("ssim_loss",),
     "dpc_jax.geometry.correction": ("apply_correction", "corrected_trajectory"),
-    "dpc_jax.nn.config": ("ModelConfig", "PRESETS", "SSDPCLossConfig", "StereoDPCLossConfig"),
+    "dpc_jax.nn.config": (
+        "ModelConfig", "PRESETS", "SSDPCLossConfig", "StereoDPCLossConfig", "SupervisedLossConfig",
+    ),
     "dpc_jax.nn.losses": (
-        "ss_dpc_loss", "stereo_dpc_loss", "dpc_loss",
+        "ss_dpc_loss", "stereo_dpc_loss", "dpc_loss", "supervised_dpc_loss",
         "gradient_loss", "temporal_pair_errors", "correction_deltas",
     ),
     "dpc_jax.nn.batch": ("Batch",),
