@@ -7,7 +7,7 @@ Usage::
         [--repeats 10] [--breakdown] [--profile DIR]
 
 * ``inference``: jitted eval-mode forward of a batch by the model prepared once
-  (``dpc_jax.nn.models.prepare_inference``), as ``dpc_jax.inference.predict_sequence`` runs one.
+  (``dpc_jax.engine.backend.prepare_inference``), as ``dpc_jax.inference.predict_sequence`` runs one.
 * ``train step``: the library's own jitted, state-donating step (``dpc_jax.training.steps``, the
   ``REFERENCE`` settings, as ``bench_train.py`` runs it): train-mode forward, the loss with its
   warps, backward, the optimizer update, new parameters and BatchNorm statistics.
@@ -41,12 +41,12 @@ from bench_train import train_step_runner
 from flax import nnx
 from machine import this_cpu
 
+from dpc_jax.engine.backend import compiler_options, prepare_inference
 from dpc_jax.hugepages import reexec_with_huge_pages
 from dpc_jax.nn.batch import Batch
 from dpc_jax.nn.config import PRESETS, SSDPCLossConfig, StereoDPCLossConfig
-from dpc_jax.nn.conv import compiler_options
 from dpc_jax.nn.losses import ss_dpc_loss, stereo_dpc_loss
-from dpc_jax.nn.models import create_model, prepare_inference
+from dpc_jax.nn.models import create_model
 
 
 def timeit(fn: Callable[..., object], args: tuple, repeats: int) -> tuple[float, float, float, float]:

@@ -2,7 +2,7 @@
 
     python benchmarks/bench_train_loop.py              # both methods, reference preset, 240x376, batch 8
     python benchmarks/bench_train_loop.py --method ss_dpc --steps 10 --rounds 2
-    python benchmarks/bench_train_loop.py --cache CACHE_ROOT --train 00 --validation 01 --json out.json
+    python benchmarks/bench_train_loop.py --cache ROOT --train 00 --validation 01 --correct 02 --json out.json
 
 Training: samples/s of one epoch as ``dpc-jax train`` runs it (``dpc_jax.training.loop``: the
 prepared cache read by ``TrainLoader`` with its background workers, frame-skip augmentation on,
@@ -10,15 +10,21 @@ flow for ss-DPC-Net, the per-step metrics fetched, checked and logged to TensorB
 samples/s of the same jitted train step called back to back on one batch already on the device
 (the most the loop could reach). Both run on the same state, alternating epoch and isolated
 steps ``--rounds`` times after a warm-up; the medians and their ratio (the loop efficiency) are
-printed. Validation and checkpoints are not part of the epoch measured.
+printed; the whole epoch's wall time counts (its start: threads, the first batch), and beside it
+the rate the loop itself reports (``samples_per_s`` of ``metrics.csv``: from its first step's end
+to its last). Validation and checkpoints are not part of the epoch measured.
 
 Correction: frames/s of ``dpc_jax.correct.correct_cache`` over a whole sequence (reading the cache,
 the prediction, Δ, the acceptance test, the trajectories and their evaluation) against frames/s of
-the isolated inference step on one device-resident batch, alternating likewise.
+the isolated inference step on one device-resident batch, alternating likewise. And batches/s of
+the input pipeline alone (the training loader with its transfer to the device, nothing consuming):
+what it could feed a faster device.
 
 Without ``--cache`` the script writes a synthetic cache (random frames and flow with the layout of
 a prepared one; content does not change the cost of a step) in a temporary folder, sized for
-``--steps`` steps per epoch, and removes it at the end. The network is the preset's with the
+``--steps`` steps per epoch, with a sequence of ``--correct-frames`` frames to correct (a
+correction's fixed costs, the evaluation of its trajectories above all, weigh on a short
+sequence), and removes it at the end. The network is the preset's with the
 training defaults. The device and the CPU are named in the header; ``--json FILE`` (``-``: stdout)
 writes the figures as one JSON object.
 """
@@ -81,14 +87,17 @@ def write_cache(
     return path
 
 
-def synthetic_root(root: Path, steps: int, batch: int, size: tuple[int, int], flow: bool) -> Path:
-    """Training sequence ``00`` with enough pairs (forward and frame-skip) for ``steps`` batches, and a
-    short validation sequence ``01``."""
+def synthetic_root(
+    root: Path, steps: int, batch: int, size: tuple[int, int], flow: bool, correct_frames: int
+) -> Path:
+    """Training sequence ``00`` with enough pairs (forward and frame-skip) for ``steps`` batches, a
+    short validation sequence ``01`` and the sequence ``02`` of ``correct_frames`` frames to correct."""
     kinds = ("forward", "skip") if flow else ()
     # forward + skip pairs of n frames: 2n - 3 samples.
     frames = math.ceil((steps * batch + 3) / 2)
     write_cache(root / "00", frames, size, kinds, seed=0)
     write_cache(root / "01", 4, size, kinds, seed=1)
+    write_cache(root / "02", correct_frames, size, kinds[:1], seed=2)
     return root
 
 
@@ -97,15 +106,16 @@ def median_rate(values: list[float]) -> float:
 
 
 def bench_method(
-    args: argparse.Namespace, method: str, root: Path, train: str, validation: str
+    args: argparse.Namespace, method: str, root: Path, train: str, validation: str, corrected: str
 ) -> dict[str, Any]:
     from flax import nnx
 
     from dpc_jax.correct import correct_cache
     from dpc_jax.data.pipeline import iterate_sequence
     from dpc_jax.data.sequence_cache import load_cache
-    from dpc_jax.inference import TrainedRun, _predict_step
-    from dpc_jax.nn.models import prepare_inference
+    from dpc_jax.engine.backend import prepare_inference
+    from dpc_jax.engine.predict import predict_step
+    from dpc_jax.inference import TrainedRun
     from dpc_jax.training import loop, parallel
     from dpc_jax.training.config import TrainConfig
     from dpc_jax.training.steps import make_train_step
@@ -139,16 +149,37 @@ def bench_method(
             jax.block_until_ready((state, metrics))
             return state, steps * args.batch / (time.perf_counter() - began)
 
+        steady: list[float] = []
+
         def epoch(state: Any, number: int, data: Any = data) -> tuple[Any, float]:
             began = time.perf_counter()
-            state, _ = loop._train_epoch(
+            state, means = loop._train_epoch(
                 number, graphdef, state, train_step, data, config, mesh, 0, log, False
             )
             jax.block_until_ready(state)
+            steady.append(means["samples_per_s"])
             return state, data.steps_per_epoch * args.batch / (time.perf_counter() - began)
 
+        def pipeline(number: int) -> float:
+            """Batches/s of the input side alone: the loader's epoch with the transfer to the device."""
+            share = parallel.process_slice(config.batch_size)
+
+            def put(batch: Any) -> Any:
+                return parallel.shard_batch(jax.tree.map(lambda x: x[share], batch), mesh)
+
+            began = time.perf_counter()
+            for batch in data.loader.epoch(number, put=put):
+                jax.block_until_ready(batch)
+            return len(data.loader) / (time.perf_counter() - began)
+
+        pipeline(0)
+        record["pipeline_batches_s"] = [pipeline(r + 1) for r in range(args.rounds)]
+        record["pipeline_median"] = median_rate(record["pipeline_batches_s"])
+        print(f"  {method}: input pipeline alone {record['pipeline_median']:.1f} batches/s "
+              f"({args.workers} workers)", file=sys.stderr, flush=True)
         # Warm-up: a short epoch (threads, files, logging) and a few isolated steps.
         state, _ = epoch(state, 0, dataclasses.replace(data, steps_per_epoch=min(2, steps)))
+        steady.clear()
         for _ in range(min(2, steps)):
             state, metrics = train_step(graphdef, state, batch, keys[0])
         jax.block_until_ready(state)
@@ -158,11 +189,13 @@ def bench_method(
             loop_rates.append(rate)
             state, rate = isolated(state)
             step_rates.append(rate)
-            print(f"  {method} round {r + 1}: epoch {loop_rates[-1]:.2f}, isolated step {step_rates[-1]:.2f} "
-                  "samples/s", file=sys.stderr, flush=True)
+            print(f"  {method} round {r + 1}: epoch {loop_rates[-1]:.2f} (as the loop reports it "
+                  f"{steady[-1]:.2f}), isolated step {step_rates[-1]:.2f} samples/s",
+                  file=sys.stderr, flush=True)
         log.close()
     record["train"] = {"loop_samples_s": loop_rates, "step_samples_s": step_rates,
-                       "loop_median": median_rate(loop_rates), "step_median": median_rate(step_rates)}
+                       "loop_median": median_rate(loop_rates), "step_median": median_rate(step_rates),
+                       "loop_reported_samples_s": steady, "loop_reported_median": median_rate(steady)}
     record["train"]["efficiency"] = record["train"]["loop_median"] / record["train"]["step_median"]
 
     # Correction: the trained state as a restored run would hold it (model only, evaluation mode).
@@ -171,11 +204,11 @@ def bench_method(
     run_graphdef, run_state = nnx.split(model)
     del state
     run = TrainedRun(root, config, "last", 1, run_graphdef, run_state)
-    cache = load_cache(root / train)
+    cache = load_cache(root / corrected)
     pairs = len(cache) - 1
     size = min(args.batch, pairs)
     prepared = prepare_inference(run_graphdef, run_state)
-    predict = _predict_step(None, method)
+    predict = predict_step(None, method)
     loss_config = config.loss_config()
     one = jax.device_put(next(iter(iterate_sequence(cache, size, flow=config.use_flow))))
     calls = math.ceil(pairs / size)
@@ -227,6 +260,9 @@ def main() -> None:
     parser.add_argument("--cache", type=Path, help="a cache root with --train and --validation sequences")
     parser.add_argument("--train", default="00")
     parser.add_argument("--validation", default="01")
+    parser.add_argument("--correct", default="02", help="the sequence corrected (default 02)")
+    parser.add_argument("--correct-frames", type=int, default=200,
+                        help="frames of the synthetic sequence corrected (default 200)")
     parser.add_argument("--json", metavar="FILE", help="write the figures as JSON (- for stdout)")
     args = parser.parse_args()
     devices = jax.devices()
@@ -247,8 +283,9 @@ def main() -> None:
                 root = args.cache
             else:
                 temporary = Path(tempfile.mkdtemp(prefix="dpc_loop_cache_"))
-                root = synthetic_root(temporary, args.steps, args.batch, args.size, method == "ss_dpc")
-            records.append(bench_method(args, method, root, args.train, args.validation))
+                root = synthetic_root(temporary, args.steps, args.batch, args.size, method == "ss_dpc",
+                                      args.correct_frames)
+            records.append(bench_method(args, method, root, args.train, args.validation, args.correct))
             if temporary is not None:
                 shutil.rmtree(temporary)
                 temporary = None
@@ -260,10 +297,16 @@ def main() -> None:
     print("| method | what | real loop | isolated step | efficiency |")
     print("|---|---|---|---|---|")
     for r in records:
+        print(f"| {r['method']} | input pipeline alone ({args.workers} workers), batches/s | "
+              f"{r['pipeline_median']:.1f} | | |")
+    for r in records:
         t, c = r["train"], r["correct"]
         print(f"| {r['method']} | train ({r['steps_per_epoch']} steps/epoch), samples/s | "
               f"{t['loop_median']:.2f} | "
               f"{t['step_median']:.2f} | {t['efficiency']:.3f} |")
+        print(f"| {r['method']} | train, the loop's own samples/s (after its first step) | "
+              f"{t['loop_reported_median']:.2f} | {t['step_median']:.2f} | "
+              f"{t['loop_reported_median'] / t['step_median']:.3f} |")
         print(f"| {r['method']} | correct ({c['pairs']} pairs), frames/s | {c['loop_median']:.2f} | "
               f"{c['step_median']:.2f} | {c['efficiency']:.3f} |")
     header["load_end"] = os.getloadavg()[0]

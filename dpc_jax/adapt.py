@@ -24,6 +24,7 @@ import json
 import math
 import os
 import time
+from collections.abc import Generator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -32,14 +33,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import nnx
-from tqdm.auto import tqdm
 
 from dpc_jax._io import atomic_write
+from dpc_jax._progress import Progress
 from dpc_jax.data.pipeline import TrainLoader
 from dpc_jax.data.sequence_cache import SequenceCache
+from dpc_jax.engine.driver import drive
 from dpc_jax.inference import TrainedRun
 from dpc_jax.training.optim import create_train_state, make_optimizer
-from dpc_jax.training.steps import NonFiniteLossError, make_train_step
+from dpc_jax.training.steps import make_train_step
 
 if TYPE_CHECKING:
     from dpc_jax.correct import AdaptationSummary, Correction
@@ -104,7 +106,7 @@ class Adaptation:
 
 
 def adapt(
-    run: TrainedRun, cache: SequenceCache, config: AdaptConfig, *, progress: bool = False
+    run: TrainedRun, cache: SequenceCache, config: AdaptConfig, *, progress: Progress = False
 ) -> Adaptation:
     """Fine-tune ``run``'s network on ``cache`` without its ground truth (module docstring)."""
     began = time.perf_counter()
@@ -130,23 +132,27 @@ def adapt(
     step_fn = make_train_step(train_config.loss_config(), config.pose_warmup_steps)
     base_key = jax.random.key(config.seed)
     log: list[dict[str, float]] = []
-    with tqdm(total=config.steps, unit="step", desc=f"adapt {cache.name}", disable=not progress,
-              leave=False) as bar:
+
+    def batches() -> Generator[Any, None, None]:
+        # Epoch after epoch of the loader, each closed (its threads stopped) when left.
         for epoch in itertools.count():
-            with contextlib.closing(loader.epoch(epoch)) as batches:
-                for batch in batches:
-                    if len(log) == config.steps:
-                        break
-                    step = len(log)
-                    state, metrics = step_fn(graphdef, state, batch, jax.random.fold_in(base_key, step))
-                    values = {k: float(v) for k, v in jax.device_get(metrics).items()}
-                    if not math.isfinite(values["loss"]):
-                        raise NonFiniteLossError(f"{cache.name}: non-finite loss, adaptation step {step + 1}")
-                    log.append({"step": step + 1, **values})
-                    bar.update(1)
-                    bar.set_postfix(loss=f"{values['loss']:.4f}")
-            if len(log) == config.steps:
-                break
+            with contextlib.closing(loader.epoch(epoch, put=jax.device_put)) as stream:
+                yield from stream
+
+    def step(state: nnx.State, batch: Any, index: int) -> tuple[nnx.State, dict[str, jax.Array]]:
+        return step_fn(graphdef, state, batch, jax.random.fold_in(base_key, index))
+
+    def consume(index: int, values: dict[str, Any], _: Any) -> None:
+        log.append({"step": index + 1, **{k: float(v) for k, v in values.items()}})
+
+    stream = batches()
+    with contextlib.closing(stream):
+        state = drive(
+            step, state, itertools.islice(stream, config.steps), total=config.steps,
+            desc=f"adapt {cache.name}", progress=progress, consume=consume, finite="loss",
+            on_nonfinite=lambda index, _: f"{cache.name}: non-finite loss, adaptation step {index + 1}",
+            postfix=lambda values: {"loss": f"{float(values['loss']):.4f}"},
+        )
     adapted, _ = nnx.merge(graphdef, state)
     adapted.eval()
     model_graphdef, model_state = nnx.split(adapted)

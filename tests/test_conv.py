@@ -7,9 +7,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from dpc_jax.engine.backend import compiler_options
 from dpc_jax.nn.conv import (
     NHWC,
-    compiler_options,
     conv3x3_few_outputs,
     conv3x3_planar,
     conv_s2,

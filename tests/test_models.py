@@ -296,11 +296,11 @@ def test_inference_on_channel_planes_equals_the_convolutions(method: str) -> Non
                 var.set_value(jnp.asarray(value, jnp.float32))
     model.eval()
     branches = [module for _, module in nnx.iter_modules(model) if isinstance(module, Branch)]
-    assert all(branch.planar_inference for branch in branches)
+    assert all(branch.planar_fits and not branch.planar_inference for branch in branches)
     batch = make_batch(2, TINY)
-    planar = _forward_eval(*nnx.split(model), batch, jax.random.key(0))
-    for branch in branches:
-        branch.planar_inference = False
+    prepared = prepare_inference(*nnx.split(model), planar=True)
+    assert all(m.planar_inference for _, m in nnx.iter_modules(nnx.merge(*prepared)) if isinstance(m, Branch))
+    planar = _forward_eval(*prepared, batch, jax.random.key(0))
     convolutions = _forward_eval(*nnx.split(model), batch, jax.random.key(0))
     np.testing.assert_array_equal(planar.xi_corr, convolutions.xi_corr)
     for got, want in zip(jax.tree.leaves(planar.left), jax.tree.leaves(convolutions.left), strict=True):
@@ -328,7 +328,28 @@ def test_prepared_inference_is_the_model_bit_for_bit(method: str) -> None:
 def test_wide_networks_keep_the_convolutions_in_inference() -> None:
     """A sum of 9·C_in·C_out terms per pixel stops paying, and compiling, for wide layers."""
     wide = nnx.eval_shape(lambda: create_model("ss_dpc", dataclasses.replace(SMALL, width_multiplier=4.0), 0))
-    assert not wide.branch.planar_inference
+    assert not wide.branch.planar_fits and not wide.branch.planar_inference
+
+
+def test_the_backend_chooses_the_planar_path(monkeypatch: pytest.MonkeyPatch) -> None:
+    """On the CPU backend inference runs on channel planes, elsewhere the plain convolutions;
+    DPC_JAX_PLANAR overrides the choice."""
+    from dpc_jax.engine import backend
+
+    graphdef, state = nnx.split(create_model("ss_dpc", SMALL, 0))
+
+    def planar() -> bool:
+        return bool(nnx.merge(*backend.prepare_inference(graphdef, state)).branch.planar_inference)
+
+    monkeypatch.delenv(backend.PLANAR_VARIABLE, raising=False)
+    assert planar() == (jax.default_backend() == "cpu")
+    monkeypatch.setattr(backend.jax, "default_backend", lambda: "gpu")
+    assert not planar()
+    monkeypatch.setenv(backend.PLANAR_VARIABLE, "1")
+    assert planar()
+    monkeypatch.setenv(backend.PLANAR_VARIABLE, "0")
+    monkeypatch.setattr(backend.jax, "default_backend", lambda: "cpu")
+    assert not planar()
 
 
 def test_train_dropout_depends_on_key(stereo_split) -> None:

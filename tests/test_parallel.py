@@ -1,12 +1,15 @@
-"""Data parallelism: one train step on 4 devices equals the same step on 1 device.
+"""Data parallelism: one train step on 4 devices equals the same step on 1 device; two processes
+(JAX's CPU collectives, coordinator on localhost) train as one process with two devices.
 
-JAX fixes its device count when it initialises, so the 4-device run happens in a subprocess with
-``XLA_FLAGS=--xla_force_host_platform_device_count=4`` (the rest of the suite keeps 1 device).
+JAX fixes its device count when it initialises, so the multi-device runs happen in subprocesses
+with ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` (the rest of the suite keeps 1 device).
 """
 
 from __future__ import annotations
 
+import csv
 import os
+import socket
 import subprocess
 import sys
 import textwrap
@@ -16,15 +19,16 @@ from types import SimpleNamespace
 import jax
 import numpy as np
 import pytest
+from flax import nnx
 from jax.sharding import PartitionSpec
 
-from dpc_jax.training import parallel
+from dpc_jax.engine import parallel
 
 SCRIPT = textwrap.dedent(
     """
     import jax, numpy as np
     from jax.sharding import PartitionSpec
-    from dpc_jax.training import parallel
+    from dpc_jax.engine import parallel
     from dpc_jax.nn.batch import Batch
     from dpc_jax.nn.models import create_model
     from dpc_jax.training.optim import create_train_state, make_optimizer
@@ -113,3 +117,73 @@ def test_step_on_four_devices_equals_one_device(tmp_path: Path) -> None:
     n_leaves, changed = int(ok[1]), int(ok[2])
     # Parameters, BatchNorm statistics and Adam moments all moved (the step did something).
     assert changed > n_leaves // 2
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.mark.slow
+def test_two_processes_train_like_one_process_with_two_devices(tmp_path: Path) -> None:
+    """``dpc-jax train`` as two processes of one device each (``--coordinator-address localhost:PORT
+    --num-processes 2 --process-id I``, what the README tells several hosts to run) and as one
+    process with two forced devices: the same global batches, so the same losses and parameters."""
+    from test_train import SIZE, TINY, make_caches
+
+    from dpc_jax import config as config_lib
+    from dpc_jax.inference import load_run
+    from dpc_jax.nn.models import create_model
+    from dpc_jax.training.config import TrainConfig
+
+    cache = make_caches(tmp_path / "data", ["00", "01"], n_frames=10)
+    fields = dict(method="stereo_dpc", preset="small", model=TINY, image_size=SIZE, batch_size=4, epochs=1,
+                  learning_rate=1e-3, steps_per_epoch=3, cache_root=str(cache), validation_sequences=("01",),
+                  log_every=1, pose_warmup_epochs=0)
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_", "XLA_"))}
+    env["JAX_PLATFORMS"] = "cpu"
+    runs = {}
+    for name, distributed in (("two_processes", True), ("one_process", False)):
+        config = config_lib.from_dict(TrainConfig, {**fields, "distributed": distributed})
+        config_file = tmp_path / f"{name}.py"
+        config_file.write_text(f"CONFIG = {config_lib.to_dict(config)!r}\n")
+        runs[name] = [sys.executable, "-m", "dpc_jax", "train", "--config", str(config_file),
+                      "--workdir", str(tmp_path / name), "--no-progress", "--workers", "1"]
+    port = _free_port()
+    workers = [
+        subprocess.Popen([*runs["two_processes"], "--coordinator-address", f"localhost:{port}",
+                          "--num-processes", "2", "--process-id", str(i)],
+                         env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        for i in range(2)
+    ]
+    try:
+        single = subprocess.run(runs["one_process"], capture_output=True, text=True, timeout=900,
+                                env={**env, "XLA_FLAGS": "--xla_force_host_platform_device_count=2"})
+        outputs = [w.communicate(timeout=900)[0] for w in workers]
+    finally:
+        for w in workers:
+            if w.poll() is None:
+                w.kill()
+    assert single.returncode == 0, single.stdout + single.stderr
+    for w, out in zip(workers, outputs, strict=True):
+        assert w.returncode == 0, out
+    # Only process 0 reports and logs: process 1 really was a second process of the run.
+    assert "epoch 1:" in outputs[0] and "epoch 1:" not in outputs[1]
+
+    def losses(name: str) -> list[float]:
+        with (tmp_path / name / "metrics.csv").open(newline="") as f:
+            return [float(row["train_loss"]) for row in csv.DictReader(f)]
+
+    np.testing.assert_allclose(losses("two_processes"), losses("one_process"), rtol=1e-6)
+    one, two = load_run(tmp_path / "one_process", "last"), load_run(tmp_path / "two_processes", "last")
+    start = nnx.state(create_model("stereo_dpc", one.config.model_config(), one.config.seed))
+    moved = 0
+    for (path, a), b, c in zip(jax.tree_util.tree_leaves_with_path(one.state), jax.tree.leaves(two.state),
+                               jax.tree.leaves(start), strict=True):
+        # The same reductions over the same two devices: equal to float rounding.
+        np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-5, atol=1e-7,
+                                   err_msg=jax.tree_util.keystr(path))
+        moved += not np.array_equal(np.asarray(a), np.asarray(c))
+    assert moved > len(jax.tree.leaves(start)) // 2
+

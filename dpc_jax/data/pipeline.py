@@ -23,7 +23,10 @@ batch is padded to ``batch_size`` with copies of the last pair whose ``weight`` 
 
 Batches are assembled by background threads (:func:`prefetch`): a bounded number of batches in
 flight, order preserved, a worker's exception re-raised in the consumer, workers stopped when
-the consumer stops iterating (the generator is closed or garbage collected).
+the consumer stops iterating (the generator is closed or garbage collected). ``put`` (of
+:meth:`TrainLoader.epoch` and :func:`iterate_sequence`) runs in the same threads on each assembled
+batch, e.g. a transfer to the device (``dpc_jax.engine.parallel.shard_batch``): the batches then
+reach the device ahead of the step that uses them, and the step's thread never copies one.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ from collections.abc import Callable, Generator, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -173,9 +177,13 @@ def _assemble(
     )
 
 
+def _identity(batch: Batch) -> Batch:
+    return batch
+
+
 def prefetch(
-    tasks: Iterator[Callable[[], Batch]], depth: int = 4, workers: int = 2
-) -> Generator[Batch, None, None]:
+    tasks: Iterator[Callable[[], Any]], depth: int = 4, workers: int = 2
+) -> Generator[Any, None, None]:
     """Run ``tasks`` (callables) on ``workers`` threads, yielding their results in order.
 
     At most ``depth`` tasks are in flight (bounded memory). An exception of a task is raised in
@@ -273,17 +281,19 @@ class TrainLoader:
             return np.arange(self.num_samples)
         return np.random.default_rng((self.seed, epoch)).permutation(self.num_samples)
 
-    def epoch(self, epoch: int) -> Generator[Batch, None, None]:
-        """The ``len(self)`` batches of epoch ``epoch``, prefetched in the background."""
+    def epoch(self, epoch: int, put: Callable[[Batch], Any] | None = None) -> Generator[Any, None, None]:
+        """The ``len(self)`` batches of epoch ``epoch``, prefetched in the background; with ``put``,
+        ``put(batch)`` of each, computed in the background threads too (module docstring)."""
         order = self.order(epoch)
         ones = np.ones(self.batch_size, np.float32)
+        finish = put or _identity
 
-        def tasks() -> Iterator[Callable[[], Batch]]:
+        def tasks() -> Iterator[Callable[[], Any]]:
             for b in range(len(self)):
                 rows = order[b * self.batch_size:(b + 1) * self.batch_size]
 
-                def task(rows: np.ndarray = rows) -> Batch:
-                    return _assemble(self.caches, self.table, rows, ones, self.use_flow)
+                def task(rows: np.ndarray = rows) -> Any:
+                    return finish(_assemble(self.caches, self.table, rows, ones, self.use_flow))
 
                 yield task
 
@@ -297,25 +307,28 @@ def iterate_sequence(
     flow: bool | None = None,
     workers: int = 1,
     depth: int = 4,
-) -> Generator[Batch, None, None]:
+    put: Callable[[Batch], Any] | None = None,
+) -> Generator[Any, None, None]:
     """The forward pairs ``(k, k+1)``, k = 0 … N-2, of one sequence in order, in fixed-size batches.
 
     The last batch is padded with copies of the final pair whose ``weight`` is 0, so every batch
-    has ``batch_size`` samples; ``ceil((N-1) / batch_size)`` batches in all.
+    has ``batch_size`` samples; ``ceil((N-1) / batch_size)`` batches in all. ``put``: as in
+    :meth:`TrainLoader.epoch`.
     """
+    finish = put or _identity
     [loaded] = _as_caches([cache])
     use_flow = bool(loaded.flows) if flow is None else flow
     table = _build_table([loaded], ["forward"], use_flow)
     n = len(table)
 
-    def tasks() -> Iterator[Callable[[], Batch]]:
+    def tasks() -> Iterator[Callable[[], Any]]:
         for start in range(0, n, batch_size):
             real = np.arange(start, min(start + batch_size, n))
             rows = np.concatenate([real, np.full(batch_size - real.size, n - 1)])
             weight = (np.arange(batch_size) < real.size).astype(np.float32)
 
-            def task(rows: np.ndarray = rows, weight: np.ndarray = weight) -> Batch:
-                return _assemble([loaded], table, rows, weight, use_flow)
+            def task(rows: np.ndarray = rows, weight: np.ndarray = weight) -> Any:
+                return finish(_assemble([loaded], table, rows, weight, use_flow))
 
             yield task
 

@@ -21,15 +21,8 @@ that carry the most pixels:
   summed in eight interleaved partial sums (a sum written left to right is one chain of
   dependent multiply-adds, which leaves the vector units waiting).
 
-Which library runs the remaining convolutions is a compiler option, chosen per network and per
-use (:func:`compiler_options`): Eigen runs *every* convolution of ss-DPC-Net's training step, and
-of both networks' inference. YNNPACK computes the weight gradients of the transposed convolutions
-(8–64 channels, phases at 4× the output channels) much more slowly than Eigen, and its forward
-convolutions at these channel counts are no faster: at 240×376 ss-DPC-Net's step and both
-networks' inference are faster without it (measured alternating with the default; the README's
-performance section has the figures). Stereo DPC's training step keeps XLA's default: there the
-two were equal at the demo's size and the default slightly faster at 240×376, and the demo's
-trained networks stay bit for bit what they are.
+Which library runs the remaining convolutions is a compiler option that the backend module
+(``dpc_jax.engine.backend.compiler_options``) chooses per network and per use.
 
 ``benchmarks/bench_models.py`` measures the effect on the training step (figures are not kept here:
 they depend on the machine and go stale).
@@ -45,20 +38,6 @@ import jax
 import jax.numpy as jnp
 
 NHWC = ("NHWC", "HWIO", "NHWC")
-
-
-# YNNPACK's fusions restricted to matrix products: the convolutions fall back to Eigen.
-EIGEN_CONVOLUTIONS = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_INDIVIDUAL_DOT"}
-
-
-def compiler_options(method: str, *, training: bool) -> dict[str, str]:
-    """XLA compiler options for a jitted function that runs ``method``'s network (``jax.jit``'s
-    ``compiler_options``): on the CPU backend :data:`EIGEN_CONVOLUTIONS` for inference and for
-    ``"ss_dpc"``'s training step, none for ``"stereo_dpc"``'s training step or on other backends
-    (see the module docstring)."""
-    if jax.default_backend() == "cpu" and (method == "ss_dpc" or not training):
-        return dict(EIGEN_CONVOLUTIONS)
-    return {}
 
 
 def _promote(x: jax.Array, kernel: jax.Array) -> tuple[jax.Array, jax.Array]:

@@ -207,11 +207,12 @@ class Branch(nnx.Module):
     ``__call__(x [B, H, W, C_in], *, training) -> (bottleneck [B, h, w, C], inv_depth [B, F, H,
     W], mask [B, F, H, W])``; ``H, W`` may be any size.
 
-    Outside ``training`` the full-resolution layers (the last transposed convolutions, the last
-    block and the two heads) run on channel planes (``conv3x3_planar``; see
-    :data:`PLANAR_MAX_CHANNEL_PAIRS`): the same function summed in another order, faster, and
-    straight to the channel-first maps returned. Training keeps XLA's convolutions, so its
-    numerics stay what they were.
+    A model prepared by :func:`prepare_inference` with ``planar=True`` runs the full-resolution
+    layers (the last transposed convolutions, the last block and the two heads) on channel planes
+    (``conv3x3_planar``; see :data:`PLANAR_MAX_CHANNEL_PAIRS`) outside ``training``: the same
+    function summed in another order, faster on a CPU, and straight to the channel-first maps
+    returned. Which path runs is the backend's choice (``dpc_jax.engine.backend``); training keeps
+    XLA's convolutions, so its numerics stay what they were.
     """
 
     def __init__(self, config: ModelConfig, in_channels: int, frames: int, rngs: nnx.Rngs):
@@ -246,7 +247,10 @@ class Branch(nnx.Module):
         self.mask_upconvs = nnx.List([UpConv(ci, co, rngs) for ci, co in mask_stages])
         self.mask_head = _Head(mask_planes[-1], frames, rngs)
         last = self.iconvs[-1].conv.kernel
-        self.planar_inference = last.shape[2] * last.shape[3] <= PLANAR_MAX_CHANNEL_PAIRS
+        # Whether the planar path fits this network's widths, and whether it runs (set by
+        # prepare_inference for the backend).
+        self.planar_fits = last.shape[2] * last.shape[3] <= PLANAR_MAX_CHANNEL_PAIRS
+        self.planar_inference = False
 
     def __call__(self, x: jax.Array, *, training: bool) -> tuple[jax.Array, jax.Array, jax.Array]:
         planar = self.planar_inference and not training
@@ -579,15 +583,23 @@ def create_model(method: str, config: ModelConfig, seed: int) -> MonoDPC | Stere
 _phase_kernels = jax.jit(lambda kernels: [phase_kernel(k) for k in kernels])
 
 
-def prepare_inference(graphdef: nnx.GraphDef, state: nnx.State) -> tuple[nnx.GraphDef, nnx.State]:
+def prepare_inference(
+    graphdef: nnx.GraphDef, state: nnx.State, *, planar: bool = False
+) -> tuple[nnx.GraphDef, nnx.State]:
     """The model ``(graphdef, state)`` (from ``nnx.split``) in evaluation mode with every transposed
     convolution's phase kernel computed once, as ``nnx.split`` returns it: for a sequence of
-    batches. The same outputs bit for bit as the model itself in evaluation mode, without
-    rearranging the largest kernels (up to 2.4 MB) on every call. The prepared model refuses to
-    train (its phase kernels would go stale); ``graphdef, state`` are not modified.
+    batches. Without ``planar``, the same outputs bit for bit as the model itself in evaluation
+    mode, without rearranging the largest kernels (up to 2.4 MB) on every call; with ``planar``,
+    the full-resolution layers run on channel planes where the widths allow it (:class:`Branch`;
+    the same outputs to float rounding). The prepared model refuses to train (its phase kernels
+    would go stale); ``graphdef, state`` are not modified. ``dpc_jax.engine.backend`` chooses
+    ``planar`` for the backend.
     """
     model = nnx.merge(graphdef, state)
     model.eval()
+    for _, branch in nnx.iter_modules(model):
+        if isinstance(branch, Branch):
+            branch.planar_inference = planar and branch.planar_fits
     upconvs = [m for _, m in nnx.iter_modules(model) if isinstance(m, UpConv)]
     phases = _phase_kernels([m.kernel[...] for m in upconvs])
     for module, value in zip(upconvs, phases, strict=True):

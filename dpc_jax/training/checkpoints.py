@@ -152,6 +152,33 @@ class Checkpoints:
             raise CheckpointError(self.root, error) from error
         return restored["state"], restored["meta"]
 
+    def restore_model(self, abstract_model: Any, which: str = "epochs", epoch: int | None = None) -> Any:
+        """Restore only the model's part (``state[0]``) of ``epoch`` (default the newest) from ``which``,
+        without building an optimizer: for inference and adaptation.
+
+        ``abstract_model`` gives the model state's structure, shapes and dtypes (e.g.
+        ``jax.tree.map(ocp.utils.to_shape_dtype_struct, nnx.state(model))``). Raises like
+        :meth:`restore`.
+        """
+        from flax import nnx
+
+        manager = self.managers[which]
+        epoch = manager.latest_step() if epoch is None else epoch
+        if epoch is None:
+            raise FileNotFoundError(f"{manager.directory}: no checkpoint to restore")
+        item = nnx.State({0: abstract_model})
+        try:
+            restored = manager.restore(
+                epoch,
+                args=ocp.args.Composite(state=ocp.args.PyTreeRestore(
+                    item=item, restore_args=ocp.checkpoint_utils.construct_restore_args(item),
+                    partial_restore=True,
+                )),
+            )
+        except Exception as error:  # orbax and tensorstore raise bare Exceptions for damaged data
+            raise CheckpointError(self.root, error) from error
+        return restored["state"][0]
+
     @staticmethod
     def best_records(meta: dict[str, Any] | None) -> dict[str, Record]:
         """The best-so-far records stored in a checkpoint's ``meta`` (empty records for a new run)."""

@@ -6,7 +6,7 @@ BatchNorm statistics, the prior statistics, the Adam moments and the step count.
 ``make_train_step`` returns ONE jitted pure function ``train_step(graphdef, state, batch, key) ->
 (state, metrics)`` that merges, differentiates the loss w.r.t. the ``nnx.Param`` variables only,
 applies the optimizer and splits again; ``state`` is donated. Given a mesh
-(``dpc_jax.training.parallel``), the batch is sharded on ``data`` and the state replicated, so the same
+(``dpc_jax.engine.parallel``), the batch is sharded on ``data`` and the state replicated, so the same
 function runs on 1..N devices and hosts, with the gradient mean and the BatchNorm batch
 statistics over the global batch.
 
@@ -14,7 +14,7 @@ Pose warm-up (``TrainConfig.pose_warmup_*``): while the optimizer's step count i
 warm-up length the loss sees ξ_corr = 0, so depth, masks and λ_s learn first; the pose head's
 updates are masked in the optimizer for the same steps.
 
-Validation (each epoch, ``dpc_jax.inference.predict_sequence``) gives the three selection
+Validation (each epoch, ``dpc_jax.engine.predict.predict_sequence``) gives the three selection
 criteria of ``dpc_jax.training.checkpoints``: the gradient loss, the loop-closure count of the corrected
 validation trajectory and the mean paired photometric effect Δ of the correction.
 
@@ -42,15 +42,16 @@ import numpy as np
 import orbax.checkpoint as ocp
 from flax import nnx
 from jax.sharding import Mesh
-from tqdm.auto import tqdm
 
 from dpc_jax import config as config_lib
 from dpc_jax._io import atomic_write
+from dpc_jax._progress import Progress
 from dpc_jax.config import ConfigError
+from dpc_jax.engine import parallel
+from dpc_jax.engine.driver import drive
+from dpc_jax.engine.predict import predict_sequence, stereo_depth_of
 from dpc_jax.eval import metrics as metrics_lib
 from dpc_jax.geometry.correction import corrected_trajectory
-from dpc_jax.inference import predict_sequence, stereo_depth_of
-from dpc_jax.training import parallel
 from dpc_jax.training.checkpoints import Checkpoints
 from dpc_jax.training.config import TrainConfig
 from dpc_jax.training.optim import create_train_state, learning_rate_schedule, make_optimizer
@@ -322,67 +323,57 @@ def _train_epoch(
     mesh: Mesh,
     first_step: int,
     log: MetricsLog,
-    progress: bool,
+    progress: Progress,
 ) -> tuple[nnx.State, dict[str, float]]:
     """One epoch of optimizer steps; returns the new state and the epoch means of the step metrics.
 
-    The metrics of step i are fetched after step i+1 is dispatched, so the host never stalls the
-    device; a non-finite loss raises ``NonFiniteLossError`` (the state is then discarded).
+    The step driver (``dpc_jax.engine.driver``) runs it: the data threads put each batch (this
+    process's slice) on the mesh ahead of its step, and the metrics of step i are fetched after
+    step i+1 is dispatched, so the host never stalls the device; a non-finite loss raises
+    ``NonFiniteLossError`` (the state is then discarded).
     """
     share = parallel.process_slice(config.batch_size)
     base_key = jax.random.key(config.seed)
     sums: dict[str, float] = {}
-    timing = {"start": 0.0, "samples": 0}
-    bar = tqdm(
-        total=data.steps_per_epoch,
-        desc=f"epoch {epoch}/{config.epochs}",
-        unit="step",
-        disable=not progress,
-        leave=False,
-        dynamic_ncols=True,
-    )
+    timing = {"start": 0.0, "samples": 0, "rate": 0.0}
 
-    def consume(step: int, metrics: dict[str, jax.Array]) -> None:
-        values = {k: float(v) for k, v in jax.device_get(metrics).items()}
-        if not math.isfinite(values["loss"]):
-            raise NonFiniteLossError(
-                f"non-finite training loss ({values['loss']}) at epoch {epoch}, step {step}; stopping. "
-                f"The last good checkpoint (epoch {epoch - 1}) is intact; lower learning_rate or check the "
-                "data, then continue with --resume"
-            )
+    def put(batch: Any) -> Any:
+        return parallel.shard_batch(jax.tree.map(lambda x: x[share], batch), mesh)
+
+    def step(state: nnx.State, batch: Any, index: int) -> tuple[nnx.State, dict[str, jax.Array]]:
+        return train_step(graphdef, state, batch, jax.random.fold_in(base_key, first_step + index))
+
+    def consume(index: int, values: dict[str, Any], _: Any) -> None:
         for k, v in values.items():
-            sums[k] = sums.get(k, 0.0) + v
+            sums[k] = sums.get(k, 0.0) + float(v)
         now = time.perf_counter()
         if timing["start"] == 0.0:
             timing["start"] = now
         else:
             timing["samples"] += config.batch_size
-        rate = timing["samples"] / (now - timing["start"]) if timing["samples"] else 0.0
-        bar.update(1)
-        bar.set_postfix(loss=f"{values['loss']:.4f}", samples_s=f"{rate:.1f}")
-        if step % config.log_every == 0:
-            log.scalars(step, values, "train")
-        timing["rate"] = rate
+            timing["rate"] = timing["samples"] / (now - timing["start"])
+        if (first_step + index + 1) % config.log_every == 0:
+            log.scalars(first_step + index + 1, {k: float(v) for k, v in values.items()}, "train")
 
-    pending: tuple[int, dict[str, jax.Array]] | None = None
-    step = first_step
-    try:
-        with contextlib.closing(data.loader.epoch(epoch)) as batches:
-            for batch in itertools.islice(batches, data.steps_per_epoch):
-                local = jax.tree.map(lambda x: x[share], batch)
-                key = jax.random.fold_in(base_key, step)
-                state, metrics = train_step(graphdef, state, parallel.shard_batch(local, mesh), key)
-                step += 1
-                if pending is not None:
-                    consume(*pending)
-                pending = (step, metrics)
-        if pending is not None:
-            consume(*pending)
-    finally:
-        bar.close()
+    def nonfinite(index: int, value: float) -> str:
+        return (
+            f"non-finite training loss ({value}) at epoch {epoch}, step {first_step + index + 1}; stopping. "
+            f"The last good checkpoint (epoch {epoch - 1}) is intact; lower learning_rate or check the "
+            "data, then continue with --resume"
+        )
+
+    def postfix(values: dict[str, Any]) -> dict[str, str]:
+        return {"loss": f"{float(values['loss']):.4f}", "samples_s": f"{timing['rate']:.1f}"}
+
+    with contextlib.closing(data.loader.epoch(epoch, put=put)) as batches:
+        state = drive(
+            step, state, itertools.islice(batches, data.steps_per_epoch),
+            total=data.steps_per_epoch, desc=f"epoch {epoch}/{config.epochs}", progress=progress,
+            consume=consume, finite="loss", on_nonfinite=nonfinite, postfix=postfix,
+        )
     n = data.steps_per_epoch
     means = {f"train_{k}": v / n for k, v in sums.items()}
-    means["samples_per_s"] = timing.get("rate", 0.0)
+    means["samples_per_s"] = timing["rate"]
     return state, means
 
 

@@ -21,8 +21,8 @@ import optax
 from flax import nnx
 from jax.sharding import Mesh
 
+from dpc_jax.engine import parallel
 from dpc_jax.nn.models import POSE_HEAD
-from dpc_jax.training import parallel
 
 
 def learning_rate_schedule(learning_rate: float, halving_epochs: int, steps_per_epoch: int) -> optax.Schedule:

@@ -16,15 +16,10 @@ import optax
 from flax import nnx
 from jax.sharding import Mesh
 
+from dpc_jax.engine import backend, parallel
+from dpc_jax.engine.driver import NonFiniteLossError as NonFiniteLossError
 from dpc_jax.nn.batch import Batch
-from dpc_jax.nn.conv import compiler_options
 from dpc_jax.nn.losses import dpc_loss
-from dpc_jax.training import parallel
-
-
-class NonFiniteLossError(RuntimeError):
-    """Training produced a NaN or infinite loss; the run stopped without saving that state."""
-
 
 TrainStep = Callable[[nnx.GraphDef, nnx.State, Batch, jax.Array], tuple[nnx.State, dict[str, jax.Array]]]
 
@@ -57,7 +52,7 @@ def make_train_step(loss_config: Any, warmup_steps: int = 0, mesh: Mesh | None =
         metrics = {"loss": loss, **terms, "grad_norm": optax.tree.norm(grads)}
         return nnx.state((model, optimizer)), metrics
 
-    kwargs: dict[str, Any] = {"compiler_options": compiler_options(loss_config.method, training=True)}
+    kwargs: dict[str, Any] = {"compiler_options": backend.compiler_options(loss_config.method, training=True)}
     if mesh is not None:
         kwargs["out_shardings"] = parallel.replicated(mesh)
     return jax.jit(step, static_argnums=0, donate_argnums=1, **kwargs)

@@ -1,0 +1,170 @@
+"""The network over a cached sequence: ξ_corr, the loss and Δ of every consecutive pair.
+
+:func:`predict_sequence` evaluates a model (any ``graphdef, state``) on every consecutive pair
+``(k, k+1)`` of a cached sequence in fixed-shape batches (the last one padded, its padding dropped),
+so one compilation serves the sequence: ξ_corr, the training loss, and the paired photometric
+effect Δ of the correction (``dpc_jax.nn.losses.correction_deltas``), with the network's depth or
+an independent stereo depth (``dpc_jax.data.stereo_depth``). Validation during training and the
+correction of a restored run (``dpc_jax.inference``) both call it; the step driver
+(``dpc_jax.engine.driver``) runs it.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+from jax.sharding import Mesh
+
+from dpc_jax._progress import Progress
+from dpc_jax.data.pipeline import iterate_sequence
+from dpc_jax.data.sequence_cache import SequenceCache, load_cache
+from dpc_jax.engine import backend, parallel
+from dpc_jax.engine.driver import drive
+from dpc_jax.nn.batch import Batch
+from dpc_jax.nn.losses import correction_deltas, dpc_loss
+
+
+@dataclass(frozen=True)
+class SequencePrediction:
+    """The network over the ``N-1`` consecutive pairs of a sequence (arrays indexed by pair k).
+
+    ``xi_corr [N-1, 6]``; ``photometric [N-1]``: ``L(0)``, the prior's gradient-masked
+    photometric error; ``delta``: ``{"full", "rotation"}: [N-1]``, ``L(ξ) − L(0)``;
+    ``loss``: the training loss in evaluation mode, mean over pairs.
+    """
+
+    xi_corr: np.ndarray
+    photometric: np.ndarray
+    delta: dict[str, np.ndarray]
+    loss: float
+
+    @property
+    def gradient_loss(self) -> float:
+        """Mean over pairs of the corrected pose's gradient-masked photometric error (§IV-a)."""
+        return float(np.mean(self.photometric + self.delta["full"]))
+
+
+@functools.cache
+def predict_step(mesh: Mesh | None, method: str) -> Any:
+    """The jitted ``step(graphdef, state, batch, config, depth) -> dict`` (evaluation mode) for
+    ``method``'s network, compiled with the backend's options (``dpc_jax.engine.backend``)."""
+
+    def step(graphdef: nnx.GraphDef, state: nnx.State, batch: Batch, config: Any,
+             depth: tuple[jax.Array, jax.Array] | None) -> dict[str, jax.Array]:
+        model = nnx.merge(graphdef, state)
+        model.eval()
+        outputs = model(batch)
+        loss, _ = dpc_loss(outputs, batch, config)
+        valid = None
+        if depth is not None:
+            # [B, camera, frame, H, W]: the independent depth replaces the network's; holes are
+            # filled with 1 m and left out through ``valid``.
+            inverse, ok = depth
+            left = outputs.left._replace(inv_depth=jnp.where(ok[:, 0], inverse[:, 0], 1.0))
+            right = outputs.right._replace(inv_depth=jnp.where(ok[:, 1], inverse[:, 1], 1.0))
+            outputs, valid = outputs._replace(left=left, right=right), (ok[:, 0], ok[:, 1])
+        deltas = correction_deltas(outputs, batch, config, valid)
+        return {"xi_corr": outputs.xi_corr, "loss": loss, **deltas}
+
+    kwargs: dict[str, Any] = {"compiler_options": backend.compiler_options(method, training=False)}
+    if mesh is not None:
+        kwargs["out_shardings"] = parallel.replicated(mesh)
+    return jax.jit(step, static_argnums=(0, 3), **kwargs)
+
+
+def _pair_depths(stereo: tuple[np.ndarray, np.ndarray], size: int, n_pairs: int) -> list[tuple[Any, Any]]:
+    """Per batch of ``size`` pairs: the stereo depth of frames ``(k, k+1)`` → ``[B, camera, frame, H, W]``."""
+    inverse, valid = stereo
+    out = []
+    for start in range(0, n_pairs, size):
+        k = np.minimum(np.arange(start, start + size), n_pairs - 1)  # padding repeats the last pair
+        frames = np.stack([k, k + 1], axis=1)
+        out.append((np.moveaxis(inverse[frames], 1, 2), np.moveaxis(valid[frames], 1, 2)))
+    return out
+
+
+def predict_sequence(
+    graphdef: nnx.GraphDef,
+    state: nnx.State,
+    cache: SequenceCache | str | os.PathLike,
+    loss_config: Any,
+    *,
+    batch_size: int,
+    use_flow: bool,
+    stereo_depth: tuple[np.ndarray, np.ndarray] | None = None,
+    mesh: Mesh | None = None,
+    progress: Progress = False,
+) -> SequencePrediction:
+    """Run the model ``(graphdef, state)`` in evaluation mode over every pair of ``cache``
+    (prepared once for the backend: ``dpc_jax.engine.backend.prepare_inference``).
+
+    ``loss_config``: the run's loss config (``TrainConfig.loss_config()``). ``stereo_depth``:
+    ``(inverse depth, valid)`` ``[N, camera, H, W]`` of every frame (``dpc_jax.data.stereo_depth``)
+    to measure Δ with instead of the network's depth (Stereo DPC only). Batches hold
+    ``min(batch_size, N-1)`` samples; with ``mesh`` each is sharded on its ``data`` axis (the
+    size must then divide over the devices). The batches are moved to the device by the data
+    threads; batch k+1 is dispatched before the results of batch k are fetched.
+    """
+    cache = cache if isinstance(cache, SequenceCache) else load_cache(cache)
+    graphdef, state = backend.prepare_inference(graphdef, state)
+    pairs = len(cache) - 1
+    size = max(1, min(batch_size, pairs)) if mesh is None else batch_size
+    step = predict_step(mesh, loss_config.method)
+    depths = _pair_depths(stereo_depth, size, pairs) if stereo_depth is not None else None
+    share = parallel.process_slice(size) if mesh is not None else slice(None)
+
+    def place(tree: Any) -> Any:
+        if mesh is None:
+            return jax.device_put(tree)
+        return parallel.shard_batch(jax.tree.map(lambda x: x[share], tree), mesh)
+
+    def put(batch: Batch) -> tuple[Any, np.ndarray]:
+        return place(batch), np.asarray(batch.weight)
+
+    keys = ("xi_corr", "none", "full", "rotation")
+    results: dict[str, list[np.ndarray]] = {k: [] for k in keys}
+    totals = {"loss": 0.0, "samples": 0.0}
+
+    def run(carry: None, item: tuple[Any, np.ndarray], index: int) -> tuple[None, Any]:
+        depth = None if depths is None else place(depths[index])
+        return carry, step(graphdef, state, item[0], loss_config, depth)
+
+    def consume(index: int, out: dict[str, np.ndarray], item: tuple[Any, np.ndarray]) -> int:
+        real = item[1] > 0
+        for k in keys:
+            results[k].append(np.asarray(out[k], np.float64)[real])
+        totals["loss"] += float(out["loss"]) * float(real.sum())
+        totals["samples"] += float(real.sum())
+        return int(real.sum())
+
+    drive(run, None, iterate_sequence(cache, size, flow=use_flow, put=put), total=pairs,
+          desc=f"predict {cache.name}", unit="pair", progress=progress, consume=consume)
+    merged = {k: np.concatenate(v) for k, v in results.items()}
+    if merged["xi_corr"].shape[0] != pairs:
+        raise RuntimeError(f"{cache.path}: got {merged['xi_corr'].shape[0]} predictions for {pairs} pairs")
+    return SequencePrediction(
+        xi_corr=merged["xi_corr"],
+        photometric=merged["none"],
+        delta={"full": merged["full"], "rotation": merged["rotation"]},
+        loss=totals["loss"] / totals["samples"],
+    )
+
+
+def stereo_depth_of(cache: SequenceCache, acceptance_depth: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """The independent stereo depth of every frame of ``cache`` for ``acceptance_depth == "sgbm"``,
+    else None (the network's own depth)."""
+    if acceptance_depth == "network":
+        return None
+    if acceptance_depth != "sgbm":
+        raise ValueError(f"acceptance_depth must be 'network' or 'sgbm', got {acceptance_depth!r}")
+    from dpc_jax.data.stereo_depth import sequence_inverse_depth
+
+    return sequence_inverse_depth(np.asarray(cache.left), np.asarray(cache.right), float(cache.K[0, 0]),
+                                  cache.baseline)
