@@ -118,6 +118,7 @@ def test_a_character_device_output_is_written_not_replaced() -> None:
     assert stat.S_ISCHR(os.stat("/dev/null").st_mode)
 
 
+@pytest.mark.slow
 def test_evaluate_json_to_a_fifo_a_link_and_redirected_stdout(tmp_path: Path) -> None:
     """The command line end to end: the same JSON reaches a regular file, a FIFO's reader, a symlink's
     target and a file the shell redirected standard output to (after the table, in order)."""
