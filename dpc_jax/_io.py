@@ -31,7 +31,7 @@ import shutil
 import stat
 import sys
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from types import TracebackType
 from typing import Literal
@@ -346,19 +346,24 @@ def _remove_empty(folders: list[Path]) -> None:
 
 
 @contextlib.contextmanager
-def new_folders_removed_on_failure(folder: str | os.PathLike[str]) -> Iterator[None]:
+def new_folders_removed_on_failure(folder: str | os.PathLike[str]) -> Iterator[Callable[[], None]]:
     """Around the writing of outputs under ``folder``: if the block fails (or Ctrl-C arrives), the
     folders on the way to ``folder`` that did not exist before it are removed again where empty, so
-    that folders are made only when an output is written."""
+    that folders are made only when an output is written. The block gets the function that does
+    this, for a failure it reports without raising."""
     missing = []
     current = Path(os.path.abspath(folder))
     while not current.exists() and current != current.parent:
         missing.append(current)
         current = current.parent
-    try:
-        yield
-    except BaseException:
+
+    def remove() -> None:
         _remove_empty(missing[::-1])
+
+    try:
+        yield remove
+    except BaseException:
+        remove()
         raise
 
 

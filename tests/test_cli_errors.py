@@ -728,6 +728,18 @@ def test_ctrl_c_in_prepare_is_one_line_and_leaves_no_temporary(
     assert not out.exists()  # made for the cache, removed with it
 
 
+def test_prepare_failing_on_a_sequence_leaves_no_folder_it_made(
+    data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    short = tmp_path / "short.txt"
+    short.write_text("".join(data["prior"].read_text().splitlines(keepends=True)[:3]))
+    out = tmp_path / "new" / "cache"
+    assert main(["prepare", "--kitti-odometry", str(data["kitti"]), "--sequence", "00", "--prior", str(short),
+                 "--out", str(out), "--size", "10x16", "--no-progress"]) == 1
+    _one_line(capsys.readouterr().err, "short.txt")
+    assert _files(tmp_path) == ["short.txt"]
+
+
 def test_ctrl_c_in_synth_subprocess(tmp_path: Path) -> None:
     """A real SIGINT: exit status 130, one line, no sequence and no temporary folder left behind
     (and the temporary folder of an earlier killed run is gone too)."""

@@ -136,8 +136,11 @@ def run(args: argparse.Namespace) -> int:
     from dpc_jax._io import new_folders_removed_on_failure
 
     progress = progress_mode(args.no_progress)
-    with new_folders_removed_on_failure(args.out):  # Ctrl-C leaves no empty --out behind
-        return _prepare_all(args, sequences, progress)
+    with new_folders_removed_on_failure(args.out) as remove_new_folders:  # nor Ctrl-C, an empty --out
+        status = _prepare_all(args, sequences, progress)
+        if status != 0:
+            remove_new_folders()
+        return status
 
 
 def _prepare_all(args: argparse.Namespace, sequences: list, progress: Progress) -> int:
