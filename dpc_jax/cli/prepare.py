@@ -136,7 +136,8 @@ def run(args: argparse.Namespace) -> int:
     from dpc_jax._io import new_folders_removed_on_failure
 
     progress = progress_mode(args.no_progress)
-    with new_folders_removed_on_failure(args.out) as remove_new_folders:  # nor Ctrl-C, an empty --out
+    # A failed or interrupted run leaves no --out folder that it made and left empty.
+    with new_folders_removed_on_failure(args.out) as remove_new_folders:
         status = _prepare_all(args, sequences, progress)
         if status != 0:
             remove_new_folders()
