@@ -12,6 +12,11 @@ for the same sequences.
     python experiments/linear_baseline.py                   # libviso2-s (stereo), rotation only
     python experiments/linear_baseline.py --mono            # also libviso2-m, ss-DPC-Net rescaling
     python experiments/linear_baseline.py --json out.json   # also the figures as JSON
+    python experiments/linear_baseline.py --demo runs/demo  # a finished `dpc-jax demo` folder instead
+
+With ``--demo OUT`` the baseline is fit on the demo's training sequences (``OUT/data/poses``,
+``OUT/vo``) and applied to its test sequence, rotation only and full 6-DoF, beside the demo's own
+rows (``OUT/summary.json``: the prior, the network as trained and as adapted).
 
 Prints the Markdown table and how many sequences' rotational segment error fell; exit status 0
 when it fell on at least six of the eight stereo sequences, 1 otherwise, 2 for bad input.
@@ -77,7 +82,46 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--translation", action="store_true",
                         help="fit and apply the translation part too (default: rotation only)")
     parser.add_argument("--json", type=Path, metavar="PATH", help="also write the figures as JSON")
+    parser.add_argument("--demo", type=Path, metavar="OUT",
+                        help="a finished `dpc-jax demo` folder: fit on its training sequences, test on its "
+                        "test sequence")
     return parser
+
+
+def demo_table(out: Path) -> str:
+    """The linear baseline on a finished demo's test sequence, beside the demo's rows."""
+    from dpc_jax.data.poses_io import read_kitti_poses
+    from dpc_jax.eval.linear_baseline import apply_linear_correction, fit_linear_correction
+
+    summary = json.loads((out / "summary.json").read_text())
+    # The demo names its training sequences train0, train1, … (dpc_jax.pipelines.demo.DemoConfig).
+    train = sorted(p.stem for p in (out / "data" / "poses").glob("train*.txt"))
+
+    def pair(name: str) -> tuple[np.ndarray, np.ndarray]:
+        poses = out / "data" / "poses" / f"{name}.txt"
+        return read_kitti_poses(poses), read_kitti_poses(out / "vo" / f"{name}.txt")
+
+    gt, prior = pair("test")
+    rows = {"prior (our VO)": metrics(gt, prior)}
+    for rotation_only, label in ((True, "rotation"), (False, "full 6-DoF")):
+        model = fit_linear_correction([pair(n) for n in train], rotation_only=rotation_only)
+        rows[f"linear, **supervised** ({label}; fit on {', '.join(train)})"] = metrics(
+            gt, apply_linear_correction(model, prior)
+        )
+    supervision = summary["config"].get("training", {}).get("supervision", "self")
+    trained_by = "DPC-Net's supervised loss" if supervision == "supervised" else "the self-supervised loss"
+    labels = (("trained", f"network trained with {trained_by}"),
+              ("adapted", "the same, then adapted to the test sequence (self-supervised)"))
+    for key, label in labels:
+        if key in summary["test"]:
+            decision = summary["decisions"].get(key, "")
+            rows[f"{label}; acceptance test: {decision}"] = {
+                k: summary["test"][key][k] for k in KEYS
+            }
+    lines = ["| test sequence | seg. t (%) | seg. r (°/100 m) | m-ATE (m) | m-ATE (°) |",
+             "|---|---|---|---|---|"]
+    lines += [f"| {label} | " + " | ".join(f"{v[k]:.3f}" for k in KEYS) + " |" for label, v in rows.items()]
+    return "\n".join(lines) + "\n"
 
 
 def load(data: Path, kind: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -142,6 +186,16 @@ def table(kind: str, results: dict[str, dict[str, dict[str, float]]], rotation_o
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.demo is not None:
+        if not (args.demo / "summary.json").is_file():
+            print(f"linear_baseline: error: {args.demo / 'summary.json'} not found (give a finished "
+                  "`dpc-jax demo --out` folder)", file=sys.stderr)
+            return 2
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
+        print(demo_table(args.demo))
+        return 0
     kinds = ("stereo", "mono") if args.mono else ("stereo",)
     missing = [str(args.data / f"{k}_{s}.mat") for k in kinds for s in SEQUENCES
                if not (args.data / f"{k}_{s}.mat").is_file()]

@@ -326,7 +326,10 @@ def _overview(config: DemoConfig, train_config: TrainConfig, summary: dict[str, 
            if config.rectify_offset else "")
         + f"Network: Stereo DPC, `{train_config.preset}` preset, {size[0]}×{size[1]} input, "
         f"{train_config.epochs} epoch(s) of {summary['steps_per_epoch']} steps (batch "
-        f"{train_config.batch_size}); epoch {summary['selected_epoch']} selected by `{config.select}`.",
+        f"{train_config.batch_size}); epoch {summary['selected_epoch']} selected by `{config.select}`."
+        + (" **Trained with DPC-Net's supervised loss: the training steps read the training sequences' "
+           "ground truth** (`supervision: supervised`); validation, the acceptance test and the "
+           "adaptation do not." if train_config.supervision == "supervised" else ""),
         "",
     ]
 
