@@ -173,6 +173,19 @@ def decide(
     return result
 
 
+def default_acceptance_depth(run: TrainedRun) -> str:
+    """The depth the acceptance test measures Δ with when none is asked: ``sgbm`` for a stereo run.
+
+    The network's own depth was trained together with the pose it judges, so on images unlike its
+    training data (another camera, real images for a network trained on the synthetic world) both
+    can be wrong together and the test passes what hurts; StereoSGBM on the cached pair is
+    independent of the network. ``acceptance_depth="network"`` (``--acceptance-depth network``)
+    gives the network's depth, the previous default; the run's ``acceptance_depth`` still sets
+    its epoch selection. A monocular run has no stereo pair: its own setting is kept.
+    """
+    return "sgbm" if run.config.method == "stereo_dpc" else run.config.acceptance_depth
+
+
 def correct_cache(
     run: TrainedRun,
     cache: SequenceCache | str | os.PathLike,
@@ -191,17 +204,19 @@ def correct_cache(
 
     ``prior``: None = the cache's own prior, else a replacement (see :func:`prior_for_cache`);
     ``rotation_only``: None = the run's ``config.rotation_only``; ``acceptance_depth``:
-    ``network`` or ``sgbm`` (None = the run's); ``alpha``: the test's level; ``force``: apply the
-    correction whatever the test says; ``held_out``: the pairs ``k`` the test uses (default all;
-    after adaptation, the pairs it never saw). The trajectories start at the first ground-truth
-    pose when the cache has ground truth, else at the first prior pose (docs/method.md §1).
+    ``network`` or ``sgbm`` (None = :func:`default_acceptance_depth`); ``alpha``: the test's level;
+    ``force``: apply the correction whatever the test says; ``held_out``: the pairs ``k`` the test
+    uses (default all; after adaptation, the pairs it never saw). The trajectories start at the
+    first ground-truth pose when the cache has ground truth, else at the first prior pose
+    (docs/method.md §1).
     """
     cache = cache if isinstance(cache, SequenceCache) else load_cache(cache)
     if prior is not None:
         cache = dataclasses.replace(cache, prior=prior_for_cache(cache, prior, prior_format))
     rotation_only = run.config.rotation_only if rotation_only is None else bool(rotation_only)
     prediction = run_prediction(
-        run, cache, batch_size=batch_size, acceptance_depth=acceptance_depth, progress=progress
+        run, cache, batch_size=batch_size, acceptance_depth=acceptance_depth or default_acceptance_depth(run),
+        progress=progress,
     )
     acceptance = decide(run, prediction, rotation_only=rotation_only, pairs=held_out, alpha=alpha,
                         force=force)

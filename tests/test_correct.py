@@ -436,3 +436,50 @@ def test_choose_falls_back_in_order_adapted_trained_prior() -> None:
     name, final = choose(trained_bad, adapted_bad)
     assert name == "prior" and final.applied == "none" and final.choice is not None
     assert "prior is kept" in str(final.choice["reason"])
+
+
+def test_cli_corrects_a_grey_raw_drive(setup: dict, tmp_path: Path) -> None:
+    """The grey pair of real drive 0005 through `correct`: prepared as replicated grey at the run's size."""
+    from conftest import DATA
+
+    from dpc_jax.cli import main
+    from dpc_jax.data.poses_io import read_mat, read_trajectory, write_kitti_poses
+    from dpc_jax.data.sequence_cache import load_cache
+
+    raw = DATA / "kitti-raw"
+    gt, est = read_mat(raw / "libviso2" / "stereo_2011_09_26_drive_0005.mat")
+    write_kitti_poses(tmp_path / "prior.txt", est[:91])  # the first 91 of 154 poses belong to the images
+    write_kitti_poses(tmp_path / "gt.txt", gt[:91])
+    out = tmp_path / "corrected.txt"
+    argv = ["correct", "--checkpoint", str(setup["run"]), "--kitti-raw", str(raw), "--date", "2011_09_26",
+            "--drive", "5", "--prior", str(tmp_path / "prior.txt"), "--gt", str(tmp_path / "gt.txt"),
+            "--frames", "0:8", "--cache", str(tmp_path / "cache"), "--out", str(out), "--no-progress"]
+    assert main(argv) == 0
+    cache = load_cache(tmp_path / "cache" / "2011_09_26_drive_0005")
+    assert len(cache) == 8 and cache.image_size == SIZE
+    left = np.asarray(cache.left)
+    assert left.shape[-1] == 3
+    np.testing.assert_array_equal(left[..., 0], left[..., 1])  # grey, replicated to three channels
+    np.testing.assert_array_equal(left[..., 0], left[..., 2])
+    # P_rect_00 scaled to the cached width; the grey pair's baseline, not the colour pair's.
+    assert cache.K[0, 0] == pytest.approx(721.5377 * SIZE[1] / 1242, rel=1e-6)
+    assert cache.baseline == pytest.approx(387.5744 / 721.5377, rel=1e-6)
+    poses = read_trajectory(out, "kitti")
+    assert poses.shape == (8, 4, 4)
+    np.testing.assert_allclose(poses[0], gt[0], atol=1e-9)
+
+
+def test_a_stereo_run_measures_delta_with_stereo_sgbm_unless_asked_otherwise(setup: dict, run) -> None:
+    """The default acceptance depth of a stereo run is the independent StereoSGBM one, whatever the run's
+    ``acceptance_depth`` (here the config's default, ``network``); ``network`` stays reachable."""
+    from dpc_jax.correct import correct_cache, default_acceptance_depth
+    from dpc_jax.data.sequence_cache import load_cache
+
+    assert run.config.acceptance_depth == "network" and default_acceptance_depth(run) == "sgbm"
+    cache = load_cache(setup["cache"] / "05")
+    default = correct_cache(run, cache)
+    sgbm = correct_cache(run, cache, acceptance_depth="sgbm")
+    network = correct_cache(run, cache, acceptance_depth="network")
+    np.testing.assert_array_equal(default.delta["full"], sgbm.delta["full"])
+    assert not np.allclose(default.delta["full"], network.delta["full"])
+    np.testing.assert_array_equal(default.xi_corr, network.xi_corr)  # the depth changes Δ, not ξ_corr
