@@ -123,7 +123,7 @@ def bench_method(
     config = TrainConfig(
         method=method, preset=args.preset, image_size=args.size, batch_size=args.batch,
         cache_root=str(root), train_sequences=(train,), validation_sequences=(validation,),
-        steps_per_epoch=args.steps, epochs=args.rounds + 1, log_every=1,
+        steps_per_epoch=args.steps, epochs=args.rounds + 1,
     )
     data = loop.open_data(config, workers=args.workers)
     mesh = parallel.make_mesh()

@@ -38,7 +38,7 @@ from dpc_jax._io import atomic_write
 from dpc_jax._progress import Progress
 from dpc_jax.data.pipeline import TrainLoader
 from dpc_jax.data.sequence_cache import SequenceCache
-from dpc_jax.engine.driver import drive
+from dpc_jax.engine.driver import drive, step_key
 from dpc_jax.inference import TrainedRun
 from dpc_jax.training.optim import create_train_state, make_optimizer
 from dpc_jax.training.steps import make_train_step
@@ -140,7 +140,7 @@ def adapt(
                 yield from stream
 
     def step(state: nnx.State, batch: Any, index: int) -> tuple[nnx.State, dict[str, jax.Array]]:
-        return step_fn(graphdef, state, batch, jax.random.fold_in(base_key, index))
+        return step_fn(graphdef, state, batch, step_key(base_key, index))
 
     def consume(index: int, values: dict[str, Any], _: Any) -> None:
         log.append({"step": index + 1, **{k: float(v) for k, v in values.items()}})

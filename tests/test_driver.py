@@ -4,11 +4,12 @@ from __future__ import annotations
 
 from collections.abc import Generator
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dpc_jax.engine.driver import NonFiniteLossError, drive
+from dpc_jax.engine.driver import NonFiniteLossError, drive, step_key
 
 
 def _sum_step(carry: jnp.ndarray, item: float, index: int) -> tuple[jnp.ndarray, dict[str, jnp.ndarray]]:
@@ -78,3 +79,10 @@ def test_ctrl_c_closes_the_batches_and_says_how_far(capsys: pytest.CaptureFixtur
 def test_progress_lines_in_a_log(capsys: pytest.CaptureFixture[str]) -> None:
     drive(_sum_step, jnp.asarray(0.0), [1.0, 2.0], total=2, desc="adapt x", progress="lines")
     assert "adapt x: 2/2 steps" in capsys.readouterr().err
+
+
+def test_step_key_is_fold_in_bit_for_bit() -> None:
+    base = jax.random.key(7)
+    for index in (0, 1, 123456, 2**31 - 1):
+        np.testing.assert_array_equal(jax.random.key_data(step_key(base, index)),
+                                      jax.random.key_data(jax.random.fold_in(base, index)))

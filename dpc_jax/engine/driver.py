@@ -36,6 +36,11 @@ Carry = TypeVar("Carry")
 Item = TypeVar("Item")
 
 
+# The key of step ``index`` from the run's base key: ``jax.random.fold_in`` compiled once, one
+# dispatch per step instead of its primitives one by one (the same bits: integer arithmetic).
+step_key = jax.jit(jax.random.fold_in)
+
+
 class NonFiniteLossError(RuntimeError):
     """A step produced a NaN or infinite loss; the run stopped without saving that state."""
 

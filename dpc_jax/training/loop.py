@@ -48,7 +48,7 @@ from dpc_jax._io import atomic_write
 from dpc_jax._progress import Progress
 from dpc_jax.config import ConfigError
 from dpc_jax.engine import parallel
-from dpc_jax.engine.driver import drive
+from dpc_jax.engine.driver import drive, step_key
 from dpc_jax.engine.predict import predict_sequence, stereo_depth_of
 from dpc_jax.eval import metrics as metrics_lib
 from dpc_jax.geometry.correction import corrected_trajectory
@@ -341,7 +341,7 @@ def _train_epoch(
         return parallel.shard_batch(jax.tree.map(lambda x: x[share], batch), mesh)
 
     def step(state: nnx.State, batch: Any, index: int) -> tuple[nnx.State, dict[str, jax.Array]]:
-        return train_step(graphdef, state, batch, jax.random.fold_in(base_key, first_step + index))
+        return train_step(graphdef, state, batch, step_key(base_key, first_step + index))
 
     def consume(index: int, values: dict[str, Any], _: Any) -> None:
         for k, v in values.items():
