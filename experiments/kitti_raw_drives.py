@@ -134,8 +134,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         for test_drive in drives:
             train_drive = next(d for d in drives if d != test_drive)
             for prior, trained_on in protocol["tests"]:
+                # One network per training drive and prior corrects every test prior it is paired with.
+                tested = tuple(f"{test_drive}_{p}" for p, t in protocol["tests"] if t == trained_on)
                 fold = P.Fold(f"train{train_drive}_{trained_on}", (f"{train_drive}_{trained_on}_train",),
-                              f"{train_drive}_{trained_on}_validation", (f"{test_drive}_{prior}",))
+                              f"{train_drive}_{trained_on}_validation", tested)
                 config = P.fold_config(base, fold, cache_root, overrides)
                 run_dir = args.workdir / "runs" / fold.name
                 P.train_fold(config, run_dir, progress)
