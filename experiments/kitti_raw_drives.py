@@ -42,6 +42,8 @@ def build_parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--kitti-raw", type=Path, default=DEFAULT_ROOT, metavar="ROOT",
                         help="raw root holding DATE/ and libviso2/")
+    parser.add_argument("--test-drives", nargs="+", metavar="NNNN",
+                        help="only these test drives (default: both; e.g. two work folders run side by side)")
     P.add_common_arguments(parser, CONFIG)
     return parser
 
@@ -131,7 +133,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                     P.prepare(sequence, source, cache_root, config0, name=name, frames=frames,
                               disparity_offset=offsets[drive], progress=progress)
         select = args.select or protocol["select"]
-        for test_drive in drives:
+        unknown = [d for d in args.test_drives or () if d not in drives]
+        if unknown:
+            raise ValueError(f"--test-drives {unknown[0]}: not a drive of {args.config} "
+                             f"({', '.join(drives)})")
+        for test_drive in args.test_drives or drives:
             train_drive = next(d for d in drives if d != test_drive)
             for prior, trained_on in protocol["tests"]:
                 # One network per training drive and prior corrects every test prior it is paired with.
