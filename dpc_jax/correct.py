@@ -168,7 +168,8 @@ def decide(
     if not run.improves_on_prior:
         return dataclasses.replace(
             result, decision="none",
-            reason=f"no epoch of the run lowered the validation Δ (selection delta); {result.reason}",
+            reason=f"the run holds no epoch that lowered the validation Δ (selection delta, "
+                   f"best_delta/); {result.reason}",
         )
     return result
 

@@ -93,6 +93,10 @@ def test_evaluate_bad_input(pair: tuple[np.ndarray, np.ndarray]) -> None:
         evaluate(gt, est, align="affine")
     with pytest.raises(ValueError, match="rpe_delta"):
         evaluate(gt, est, rpe_delta=N)
+    # An estimate that never moves loses every frame but the last to the static-frame rule.
+    static = np.repeat(np.eye(4)[None], 3, axis=0)
+    with pytest.raises(ValueError, match=r"removing static frames left 1 pose\(s\)"):
+        evaluate(gt[:3], {"still": static}, remove_static=True)
 
 
 @pytest.fixture(scope="module")

@@ -188,6 +188,9 @@ def evaluate(
     else:
         frames = np.arange(gt.shape[0])
         prepared = {k: gt[0] @ invert_poses(v[0]) @ v for k, v in prepared.items()}
+    if remove_static and gt.shape[0] < 2:
+        raise ValueError(f"removing static frames left {gt.shape[0]} pose(s); a trajectory to evaluate "
+                         "needs at least 2 (the estimate barely moves; evaluate without removing them)")
     if not 1 <= rpe_delta < gt.shape[0]:
         raise ValueError(
             f"rpe_delta must be in [1, {gt.shape[0] - 1}] for {gt.shape[0]} poses, got {rpe_delta}"
