@@ -92,8 +92,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--alpha", type=float, default=0.01, metavar="P",
                         help="level of the one-sided acceptance test on Δ")
     parser.add_argument("--acceptance-depth", choices=("network", "sgbm"),
-                        help="depth Δ is measured with (default: sgbm, StereoSGBM on the cached pair, for a "
-                        "stereo run; network: the network's own depth, the earlier default)")
+                        help="depth Δ is measured with: sgbm, StereoSGBM on the cached pair (default for a "
+                        "stereo run), or network, the network's own depth")
     parser.add_argument("--adapt", type=int, default=0, metavar="STEPS",
                         help="also fine-tune the network for STEPS steps on this sequence's own images (no "
                         "ground truth); its correction is applied only if it passes its test and beats the "
