@@ -9,6 +9,7 @@ vector as an independent SO(3) log. Shared by the tests and ``benchmarks/bench_m
 from __future__ import annotations
 
 import numpy as np
+import scipy.linalg
 from scipy.spatial.transform import Rotation
 
 LENGTHS = (100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0)
@@ -20,6 +21,18 @@ def inv(T: np.ndarray) -> np.ndarray:
 
 def so3_log(R: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(R).as_rotvec()
+
+
+def se3_exp(xi: np.ndarray) -> np.ndarray:
+    """``Exp([ρ, φ])`` as scipy's matrix exponential of the se(3) matrix (an independent reference)."""
+    rho, phi = xi[:3], xi[3:]
+    twist = np.array([
+        [0.0, -phi[2], phi[1], rho[0]],
+        [phi[2], 0.0, -phi[0], rho[1]],
+        [-phi[1], phi[0], 0.0, rho[2]],
+        [0.0, 0.0, 0.0, 0.0],
+    ])
+    return scipy.linalg.expm(twist)
 
 
 def se3_log(T: np.ndarray) -> np.ndarray:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
-import scipy.linalg
+import reference_metrics as ref
 
 from dpc_jax.eval.linear_baseline import (
     apply_linear_correction,
@@ -17,20 +17,6 @@ from dpc_jax.eval.linear_baseline import (
 from dpc_jax.eval.metrics import step_corrections
 
 
-def _twist(xi: np.ndarray) -> np.ndarray:
-    rho, phi = xi[:3], xi[3:]
-    return np.array([
-        [0.0, -phi[2], phi[1], rho[0]],
-        [phi[2], 0.0, -phi[0], rho[1]],
-        [-phi[1], phi[0], 0.0, rho[2]],
-        [0.0, 0.0, 0.0, 0.0],
-    ])
-
-
-def _exp(xi: np.ndarray) -> np.ndarray:
-    return scipy.linalg.expm(_twist(xi))
-
-
 def _pair(seed: int, n: int, bias: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Ground truth with varied 6-DoF steps, and a prior whose every step needs exactly ``bias``:
     ``T_vo_{t+1,t} = Exp(−bias) · G_{t+1,t}`` (scipy's expm as the reference exponential)."""
@@ -38,9 +24,9 @@ def _pair(seed: int, n: int, bias: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     gt, prior = [np.eye(4)], [np.eye(4)]
     for _ in range(n - 1):
         step_xi = np.concatenate([[0.0, 0.0, -1.0] + 0.2 * rng.normal(size=3), 0.02 * rng.normal(size=3)])
-        g_step = _exp(step_xi)
+        g_step = ref.se3_exp(step_xi)
         gt.append(gt[-1] @ np.linalg.inv(g_step))
-        prior.append(prior[-1] @ np.linalg.inv(_exp(-bias) @ g_step))
+        prior.append(prior[-1] @ np.linalg.inv(ref.se3_exp(-bias) @ g_step))
     return np.stack(gt), np.stack(prior)
 
 

@@ -103,7 +103,7 @@ _ATAN_POLY = (0.9999999582162316, -0.3333230282580835, 0.19973680314608708, -0.1
 def _atan2(y: Array, x: Array) -> Array:
     """``arctan2`` by an odd minimax-style polynomial (error < 2e-7 rad in float32).
 
-    XLA's CPU ``atan2`` is a scalar library call, ~40× slower than this vectorised form; the
+    XLA's CPU ``atan2`` is a scalar library call that does not vectorise, unlike this form; the
     small error is irrelevant because angles only parametrise surfaces (a fixed, view-independent
     reparametrisation) and piece ranges overlap by :data:`_SEAM`.
     """
