@@ -29,36 +29,46 @@ from dpc_jax.data.pipeline import TrainLoader
 from dpc_jax.data.sequence_cache import FLOW_FILES, MANIFEST, PAIR_KINDS, load_cache
 
 
-def synthetic_cache(root: Path, frames: int, size: tuple[int, int], seed: int = 0) -> Path:
-    """A cache folder of random content with the real layout (see dpc_jax.data.cache)."""
+def write_random_cache(
+    path: Path, frames: int, size: tuple[int, int], flow_kinds: tuple[str, ...], seed: int
+) -> Path:
+    """A cache folder of random frames and flows (``flow_kinds``) with the layout ``dpc_jax.data.cache``
+    writes; its content does not change the cost of reading or of a step."""
     rng = np.random.default_rng(seed)
-    path = root / "synthetic"
-    path.mkdir()
+    path.mkdir(parents=True)
     h, w = size
     for camera in ("left", "right"):
         np.save(path / f"{camera}.npy", rng.integers(0, 256, (frames, h, w, 3), dtype=np.uint8))
-    for kind, file in FLOW_FILES.items():
+    for kind in flow_kinds:
         count = frames - PAIR_KINDS[kind][0]
-        flow = np.lib.format.open_memmap(path / file, "w+", np.float32, (count, 2, h, w, 2))
+        flow = np.lib.format.open_memmap(path / FLOW_FILES[kind], "w+", np.float32, (count, 2, h, w, 2))
         for k in range(count):
             flow[k] = rng.standard_normal((2, h, w, 2), dtype=np.float32)
         flow.flush()
         del flow
+    # A straight drive at 1.2 m per frame with a small sway, so priors and corrections are not all equal.
     poses = np.tile(np.eye(4), (frames, 1, 1))
     poses[:, 2, 3] = np.arange(frames) * 1.2
+    poses[:, 0, 3] = 0.1 * np.sin(np.arange(frames) / 5.0)
     for name in ("prior", "gt"):
         np.save(path / f"{name}.npy", poses)
-    np.save(path / "K.npy", np.array([[218.4, 0, 184.5], [0, 461.8, 110.6], [0, 0, 1]]))
+    np.save(path / "K.npy", np.array([[0.58 * w, 0, w / 2], [0, 1.92 * h, h / 2], [0, 0, 1]]))
     np.save(path / "baseline.npy", np.float64(0.54))
     np.save(path / "indices.npy", np.arange(frames))
     np.save(path / "times.npy", np.arange(frames) * 0.1)
-    manifest = {"name": "synthetic", "n_frames": frames, "image_size": [h, w], "has_gt": True,
-                "flows": list(FLOW_FILES)}
+    manifest = {"name": path.name, "n_frames": frames, "image_size": [h, w], "has_gt": True,
+                "flows": list(flow_kinds)}
     (path / MANIFEST).write_text(json.dumps(manifest))
     for file in path.iterdir():  # finish the write-back now, not during the timed epochs
         with file.open("rb") as f:
             os.fsync(f.fileno())
     return path
+
+
+def synthetic_cache(root: Path, frames: int, size: tuple[int, int], seed: int = 0) -> Path:
+    """A random cache with every kind of flow, ``root/synthetic``."""
+    return write_random_cache(root / "synthetic", frames, size, tuple(FLOW_FILES), seed)
+
 
 
 def epoch_rate(loader: TrainLoader, epoch: int) -> tuple[float, float]:

@@ -45,46 +45,12 @@ from pathlib import Path
 from typing import Any
 
 import jax
-import numpy as np
+from bench_data import write_random_cache
 from machine import this_cpu
 
 from dpc_jax.hugepages import reexec_with_huge_pages
 
 METHODS = ("stereo_dpc", "ss_dpc")
-
-
-def write_cache(
-    path: Path, frames: int, size: tuple[int, int], flow_kinds: tuple[str, ...], seed: int
-) -> Path:
-    """A cache folder of random frames and flows with the layout ``dpc_jax.data.cache`` writes."""
-    from dpc_jax.data.sequence_cache import FLOW_FILES, MANIFEST, PAIR_KINDS
-
-    rng = np.random.default_rng(seed)
-    path.mkdir(parents=True)
-    h, w = size
-    for camera in ("left", "right"):
-        np.save(path / f"{camera}.npy", rng.integers(0, 256, (frames, h, w, 3), dtype=np.uint8))
-    for kind in flow_kinds:
-        count = frames - PAIR_KINDS[kind][0]
-        flow = np.lib.format.open_memmap(path / FLOW_FILES[kind], "w+", np.float32, (count, 2, h, w, 2))
-        for k in range(count):
-            flow[k] = rng.standard_normal((2, h, w, 2), dtype=np.float32)
-        flow.flush()
-        del flow
-    # A straight drive at 1.2 m per frame with a small sway, so priors and corrections are not all equal.
-    poses = np.tile(np.eye(4), (frames, 1, 1))
-    poses[:, 2, 3] = np.arange(frames) * 1.2
-    poses[:, 0, 3] = 0.1 * np.sin(np.arange(frames) / 5.0)
-    for name in ("prior", "gt"):
-        np.save(path / f"{name}.npy", poses)
-    np.save(path / "K.npy", np.array([[0.58 * w, 0, w / 2], [0, 1.92 * h, h / 2], [0, 0, 1]]))
-    np.save(path / "baseline.npy", np.float64(0.54))
-    np.save(path / "indices.npy", np.arange(frames))
-    np.save(path / "times.npy", np.arange(frames) * 0.1)
-    manifest = {"name": path.name, "n_frames": frames, "image_size": [h, w], "has_gt": True,
-                "flows": list(flow_kinds)}
-    (path / MANIFEST).write_text(json.dumps(manifest))
-    return path
 
 
 def synthetic_root(
@@ -95,9 +61,9 @@ def synthetic_root(
     kinds = ("forward", "skip") if flow else ()
     # forward + skip pairs of n frames: 2n - 3 samples.
     frames = math.ceil((steps * batch + 3) / 2)
-    write_cache(root / "00", frames, size, kinds, seed=0)
-    write_cache(root / "01", 4, size, kinds, seed=1)
-    write_cache(root / "02", correct_frames, size, kinds[:1], seed=2)
+    write_random_cache(root / "00", frames, size, kinds, seed=0)
+    write_random_cache(root / "01", 4, size, kinds, seed=1)
+    write_random_cache(root / "02", correct_frames, size, kinds[:1], seed=2)
     return root
 
 
