@@ -315,6 +315,18 @@ def test_random_bytes_named_mat_are_refused_in_one_line(
     assert _files(tmp_path) == ["random.mat"]
 
 
+def _in_one_process(argvs: list[list[object]]) -> tuple[list[int], list[str], subprocess.CompletedProcess]:
+    """Run each command line through ``dpc_jax.cli.main`` in one fresh interpreter: the exit
+    statuses, which of jax/jaxlib/flax got imported, and the finished process (its stderr)."""
+    texts = [[str(a) for a in argv] for argv in argvs]
+    code = ("import json, sys; from dpc_jax.cli import main; "
+            f"status = [main(argv) for argv in {texts!r}]; "
+            "print(json.dumps([status, [m for m in ('jax', 'jaxlib', 'flax') if m in sys.modules]]))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
+    status, imported = json.loads(done.stdout)
+    return status, imported, done
+
+
 def test_bad_inputs_fail_before_jax_is_imported(data: dict[str, Path], tmp_path: Path) -> None:
     """Every command checks its inputs (and options and outputs) before it imports JAX, so a mistake
     costs a fraction of a second: run in a fresh interpreter, JAX is still not imported afterwards."""
@@ -370,12 +382,7 @@ def test_bad_inputs_fail_before_jax_is_imported(data: dict[str, Path], tmp_path:
         "--config {m}/c.py: no such file": ["demo", "--config", missing / "c.py", "--out", out / "demo"],
         "select must be one of": ["demo", "--config", tmp_path / "bad_demo.py", "--out", out / "demo"],
     }
-    argvs = [[str(a) for a in argv] for argv in cases.values()]
-    code = ("import json, sys; from dpc_jax.cli import main; "
-            f"status = [main(argv) for argv in {argvs!r}]; "
-            "print(json.dumps([status, [m for m in ('jax', 'jaxlib', 'flax') if m in sys.modules]]))")
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
-    status, imported = json.loads(done.stdout)
+    status, imported, done = _in_one_process(list(cases.values()))
     assert imported == [] and all(s != 0 for s in status), (status, imported)
     lines = done.stderr.splitlines()
     assert len(lines) == len(cases) and "Traceback" not in done.stderr, done.stderr
@@ -439,12 +446,7 @@ def test_silent_and_late_mistakes_are_one_line_and_exit_2_before_jax(
         "the label comes from the file name, so give one with --label NAME": [
             "evaluate", "--gt", data["gt"], "--est", odd_name],
     }
-    argvs = [[str(a) for a in argv] for argv in cases.values()]
-    code = ("import json, sys; from dpc_jax.cli import main; "
-            f"status = [main(argv) for argv in {argvs!r}]; "
-            "print(json.dumps([status, [m for m in ('jax', 'jaxlib', 'flax') if m in sys.modules]]))")
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
-    status, imported = json.loads(done.stdout)
+    status, imported, done = _in_one_process(list(cases.values()))
     lines = done.stderr.splitlines()
     assert len(lines) == len(cases) and "Traceback" not in done.stderr, done.stderr
     for needle, line in zip(cases, lines, strict=True):
