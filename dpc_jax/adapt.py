@@ -4,9 +4,10 @@ The training loss needs no ground truth, so a network can keep learning on the l
 corrected. :func:`adapt` fine-tunes a restored run for ``steps`` optimizer steps on the pairs of
 one prepared sequence — its ground truth is dropped before anything reads the cache — with the
 run's loss, a fresh Adam at a constant rate, and BatchNorm statistics updated. Every
-``holdout_every``-th consecutive pair ``(k, k+1)`` is kept out of adaptation (both directions;
-frame-skip pairs are other motions and stay), so the acceptance test (``dpc_jax.acceptance``)
-can judge the adapted network on motions it has not fitted.
+``holdout_every``-th consecutive pair ``(k, k+1)`` is kept out of adaptation, with every pair of
+any kind that reaches frame ``k`` or ``k+1`` (the neighbours share an image with it, a frame-skip
+pair contains its motion), so the acceptance test (``dpc_jax.acceptance``) judges the adapted
+network on frames it has never seen.
 
 :func:`save_adapted` writes the adapted network as a run folder (``checkpoints/config.json``,
 ``checkpoints/epochs/1``; usable with ``dpc-jax correct --checkpoint DIR --select last``) with its
@@ -36,6 +37,7 @@ from flax import nnx
 
 from dpc_jax._io import atomic_write
 from dpc_jax._progress import Progress
+from dpc_jax.data.holdout import MIN_EVERY, held_out_pairs
 from dpc_jax.data.pipeline import TrainLoader
 from dpc_jax.data.sequence_cache import SequenceCache
 from dpc_jax.engine.driver import drive, step_key
@@ -52,7 +54,8 @@ class AdaptConfig:
     """How to adapt (see the module docstring).
 
     * ``steps``: optimizer steps.
-    * ``holdout_every``: every this-many-th consecutive pair is kept out (for the acceptance test).
+    * ``holdout_every``: every this-many-th consecutive pair is kept out with its frames (for the
+      acceptance test); adaptation uses the pairs between them that touch none of their frames.
     * ``batch_size``, ``learning_rate``: None = the run's.
     * ``pose_warmup_steps``: first steps with ξ_corr = 0 in the loss (depth adapts first).
     * ``seed``: shuffling and dropout.
@@ -69,8 +72,8 @@ class AdaptConfig:
         problems = []
         if self.steps < 1:
             problems.append(f"steps must be >= 1, got {self.steps}")
-        if self.holdout_every < 2:
-            problems.append(f"holdout_every must be >= 2, got {self.holdout_every}")
+        if self.holdout_every < MIN_EVERY:
+            problems.append(f"holdout_every must be >= {MIN_EVERY}, got {self.holdout_every}")
         if self.batch_size is not None and self.batch_size < 1:
             problems.append(f"batch_size must be >= 1, got {self.batch_size}")
         rate = self.learning_rate
@@ -80,11 +83,6 @@ class AdaptConfig:
             problems.append(f"pose_warmup_steps must be in [0, steps), got {self.pose_warmup_steps}")
         if problems:
             raise ValueError("invalid AdaptConfig: " + "; ".join(problems))
-
-
-def held_out_pairs(n_pairs: int, every: int) -> np.ndarray:
-    """The consecutive pairs ``k`` kept out of adaptation: ``every//2, every//2 + every, …``."""
-    return np.arange(every // 2, n_pairs, every, dtype=np.int64)
 
 
 @dataclass(frozen=True)

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from dpc_jax.adapt import AdaptConfig, adapt, held_out_pairs, save_adapted
+from dpc_jax.adapt import AdaptConfig, adapt, save_adapted
 from dpc_jax.data.cache import prepare_sequence
+from dpc_jax.data.holdout import adaptable_pairs, held_out_pairs
 from dpc_jax.data.kitti import open_odometry
 from dpc_jax.data.sequence_cache import load_cache
 from dpc_jax.geometry.lie import se3_exp
@@ -65,8 +66,12 @@ class _Untouchable:
 def test_held_out_pairs() -> None:
     np.testing.assert_array_equal(held_out_pairs(12, 5), [2, 7])
     np.testing.assert_array_equal(held_out_pairs(7, 2), [1, 3, 5])
-    with pytest.raises(ValueError, match="holdout_every"):
-        AdaptConfig(steps=3, holdout_every=1)
+    # Pairs 2 and 7 hold frames 2, 3, 7, 8: pairs 1, 3, 6 and 8 touch them.
+    np.testing.assert_array_equal(adaptable_pairs(12, 5), [0, 4, 5, 9, 10, 11])
+    np.testing.assert_array_equal(adaptable_pairs(4, 4), [0])
+    assert held_out_pairs(2, 4).size == 0  # pair 2 does not exist: nothing to test on
+    with pytest.raises(ValueError, match="holdout_every must be >= 4"):
+        AdaptConfig(steps=3, holdout_every=3)
     with pytest.raises(ValueError, match="steps"):
         AdaptConfig(steps=0)
 

@@ -362,9 +362,9 @@ def test_the_decision_follows_the_test_on_the_sequence(setup: dict, run) -> None
 
 
 def test_cli_adapt_writes_the_adapted_network_that_made_the_trajectory(setup: dict, tmp_path: Path) -> None:
-    from dpc_jax.adapt import held_out_pairs
     from dpc_jax.cli import main
     from dpc_jax.correct import correct_cache
+    from dpc_jax.data.holdout import held_out_pairs
     from dpc_jax.data.poses_io import read_trajectory
     from dpc_jax.inference import load_run
 

@@ -101,16 +101,20 @@ def test_augmented_priors_compose_and_invert(caches: tuple[Path, Path]) -> None:
         np.testing.assert_allclose(by_pair[(k + 2, k)], -by_pair[(k, k + 2)], atol=1e-6)
 
 
-def test_held_out_pairs_are_left_out_in_both_directions(caches: tuple[Path, Path]) -> None:
+def test_held_out_pairs_are_kept_out_with_every_sample_touching_them(caches: tuple[Path, Path]) -> None:
     excerpt, _ = caches
     cache = load_cache(excerpt)
-    held = np.array([1, 4])
+    held = np.array([2])
     loader = TrainLoader([excerpt], batch_size=1, reverse=True, shuffle=False, held_out=[held], workers=0)
     seen = {(frame_of(cache.left, b.left[0, 0]), frame_of(cache.left, b.left[0, 1])) for b in loader.epoch(0)}
-    forward = {(k, k + 1) for k in range(N - 1) if k not in held}
-    skip = {(k, k + 2) for k in range(N - 2)}  # other motions: they stay
-    assert seen == forward | skip | {(j, i) for i, j in forward | skip}
-    assert loader.num_samples == 2 * (len(forward) + len(skip))
+    # Frames 2 and 3 belong to the held-out pair; a sample spanning frames i..j reaches them when
+    # either lies in [i, j] (the frame-skip pair (1, 3) contains the motion 2 → 3).
+    unseen = {2, 3}
+    candidates = [(k, k + 1) for k in range(N - 1)] + [(k, k + 2) for k in range(N - 2)]
+    kept = {(i, j) for i, j in candidates if not unseen & set(range(i, j + 1))}
+    assert kept == {(0, 1), (4, 5), (5, 6), (6, 7), (4, 6), (5, 7)}
+    assert seen == kept | {(j, i) for i, j in kept}
+    assert loader.num_samples == 2 * len(kept)
 
 
 def test_shuffling_is_deterministic_per_seed_and_epoch(caches: tuple[Path, Path]) -> None:

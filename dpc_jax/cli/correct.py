@@ -21,6 +21,7 @@ from dpc_jax.cli._common import (
     output_problem,
     restore_problem,
 )
+from dpc_jax.data.holdout import MIN_EVERY, adaptable_pairs, held_out_pairs
 
 if TYPE_CHECKING:
     from dpc_jax.adapt import Adaptation
@@ -100,7 +101,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "network as trained on the kept-out pairs; the adapted network and its log go to "
                         "OUT's stem + '.adapted/'")
     parser.add_argument("--holdout-every", type=int, default=5, metavar="K",
-                        help="with --adapt: every K-th frame pair is kept out of adaptation, for the test")
+                        help="with --adapt: every K-th frame pair (K >= 4) is kept out of adaptation with "
+                        "every pair that touches its frames, for the test")
     parser.add_argument("--adapt-lr", type=float, metavar="LR",
                         help="with --adapt: learning rate (default: the run's)")
     parser.add_argument("--report", type=Path, metavar="DIR",
@@ -140,8 +142,9 @@ def _check_arguments(args: argparse.Namespace) -> str | None:
         return f"--batch-size must be >= 1, got {args.batch_size}"
     if not 0.0 < args.alpha < 1.0:
         return f"--alpha must be in (0, 1), got {args.alpha}"
-    if args.adapt < 0 or args.holdout_every < 2:
-        return f"--adapt must be >= 0 and --holdout-every >= 2, got {args.adapt} and {args.holdout_every}"
+    if args.adapt < 0 or args.holdout_every < MIN_EVERY:
+        return (f"--adapt must be >= 0 and --holdout-every >= {MIN_EVERY}, got {args.adapt} and "
+                f"{args.holdout_every}")
     if args.adapt_lr is not None and not args.adapt_lr > 0:
         return f"--adapt-lr must be > 0, got {args.adapt_lr}"
     problem = (input_problem(args.kitti_odometry, "--kitti-odometry", folder=True)
@@ -160,17 +163,20 @@ def _check_arguments(args: argparse.Namespace) -> str | None:
 
 def _holdout_problem(args: argparse.Namespace, n_frames: int, where: Path | str) -> str | None:
     """Why ``--adapt`` cannot keep pairs of the ``n_frames`` frames of ``where`` out for its test, or
-    None. The pairs kept out are ``K//2, K//2 + K, ...`` of the ``n_frames - 1`` consecutive pairs
-    (``dpc_jax.adapt.held_out_pairs``, which imports JAX); the test needs one, adaptation another."""
+    None (``dpc_jax.data.holdout``): the test needs one pair kept out, adaptation one that touches
+    none of its frames."""
     if not args.adapt:
         return None
     every, n_pairs = args.holdout_every, n_frames - 1
-    held = len(range(every // 2, n_pairs, every))
-    if 1 <= held < n_pairs:
+    held, adaptable = held_out_pairs(n_pairs, every).size, adaptable_pairs(n_pairs, every).size
+    if held and adaptable:
         return None
-    hint = f"; use --holdout-every {2 * n_pairs - 1} or less" if n_pairs >= 2 else ""
+    fits = [k for k in range(MIN_EVERY, 2 * n_pairs + 1)
+            if held_out_pairs(n_pairs, k).size and adaptable_pairs(n_pairs, k).size]
+    hint = f"; use --holdout-every {max(fits)} or less" if fits else f"; {where} is too short to adapt on"
     return (f"--holdout-every {every}: keeps {held} of the {n_pairs} frame pairs of {where} out of "
-            f"adaptation, but its test needs at least one kept out and one to adapt on{hint}")
+            f"adaptation and leaves {adaptable} that touch none of their frames, but its test needs at "
+            f"least one kept out and one to adapt on{hint}")
 
 
 def adapted_path(out: Path) -> Path:

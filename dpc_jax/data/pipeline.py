@@ -40,6 +40,7 @@ from typing import Any
 
 import numpy as np
 
+from dpc_jax.data.holdout import touches
 from dpc_jax.data.priors import log_poses
 from dpc_jax.data.sequence_cache import PAIR_KINDS, SequenceCache, load_cache
 from dpc_jax.nn.batch import Batch
@@ -94,7 +95,8 @@ def _build_table(
     held_out: Sequence[np.ndarray] | None = None, ground_truth: bool | None = None,
 ) -> _SampleTable:
     """The samples of ``kinds`` of every cache; ``held_out[c]``: consecutive pairs ``(k, k+1)`` of
-    cache ``c`` (by ``k``) left out, in both directions. ``ground_truth``: see :class:`TrainLoader`."""
+    cache ``c`` (by ``k``) kept out with every sample that reaches one of their frames
+    (``dpc_jax.data.holdout``). ``ground_truth``: see :class:`TrainLoader`."""
     keys = ("cache", "source", "target", "kind", "slot", "vo", "gt")
     parts: dict[str, list[np.ndarray]] = {k: [] for k in keys}
     with_gt = all(c.gt is not None for c in caches) if ground_truth is None else ground_truth
@@ -112,8 +114,8 @@ def _build_table(
                     f"or use the pairs without flow"
                 )
             i, j = pair_indices(len(cache), kind)
-            if held_out is not None and PAIR_KINDS[kind][0] == 1:
-                keep = ~np.isin(np.minimum(i, j), held_out[c_id])
+            if held_out is not None:
+                keep = ~touches(np.minimum(i, j), np.maximum(i, j), held_out[c_id])
                 i, j = i[keep], j[keep]
             if i.size == 0:
                 continue
@@ -220,8 +222,10 @@ class TrainLoader:
     never do (self-supervised training: no ground truth reaches a batch); None → only when every
     sequence has ground truth (for reporting), so the batch structure is the same for every batch.
 
-    ``held_out``: per cache, the consecutive pairs ``(k, k+1)`` (by ``k``) to leave out, both
-    directions (frame-skip pairs stay: they are other motions).
+    ``held_out``: per cache, the consecutive pairs ``(k, k+1)`` (by ``k``) to keep out, together
+    with every sample (any kind, both directions) whose frames reach frame ``k`` or ``k+1``: the
+    neighbouring pairs share an image with a held-out pair and a frame-skip pair ``(k-1, k+1)``
+    contains its motion, so a network fitted to them has seen what the held-out pair is judged on.
 
     ``len(loader)`` is the number of batches per epoch, ``floor(samples / batch_size)``: the
     last partial batch is dropped. ``epoch(e)`` shuffles with ``numpy.random.default_rng((seed,

@@ -50,6 +50,7 @@ import numpy as np
 
 from dpc_jax import config as config_lib
 from dpc_jax._io import atomic_write
+from dpc_jax.data.holdout import MIN_EVERY
 from dpc_jax.training.config import SELECTIONS
 from dpc_jax.vo.odometry import FALLBACK_WARNING_SHARE
 
@@ -140,9 +141,9 @@ class DemoConfig:
                 problems.append(f"{name} must be >= 3, got {getattr(self, name)}")
         if self.select not in SELECTIONS:
             problems.append(f"select must be one of {tuple(SELECTIONS)}, got {self.select!r}")
-        if self.adapt_steps < 0 or self.holdout_every < 2:
-            problems.append(f"adapt_steps must be >= 0 and holdout_every >= 2, got {self.adapt_steps}, "
-                            f"{self.holdout_every}")
+        if self.adapt_steps < 0 or self.holdout_every < MIN_EVERY:
+            problems.append(f"adapt_steps must be >= 0 and holdout_every >= {MIN_EVERY}, got "
+                            f"{self.adapt_steps}, {self.holdout_every}")
         managed = sorted(set(self.training) & set(_MANAGED))
         if managed:
             problems.append(f"training sets {managed}, which the demo chooses itself")
