@@ -43,6 +43,7 @@ import numpy as np
 from dpc_jax.data.holdout import touches
 from dpc_jax.data.priors import log_poses
 from dpc_jax.data.sequence_cache import PAIR_KINDS, SequenceCache, load_cache
+from dpc_jax.geometry.poses import invert_poses
 from dpc_jax.nn.batch import Batch
 
 
@@ -63,12 +64,8 @@ def _relative_poses(poses: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarr
     Formed in float64 numpy: world coordinates reach kilometres, where float32 would cost
     0.1 mm per step.
     """
-    rot_t = np.swapaxes(poses[j, :3, :3], 1, 2)
-    inv = np.zeros((j.size, 4, 4))
-    inv[:, :3, :3] = rot_t
-    inv[:, :3, 3] = -np.einsum("nab,nb->na", rot_t, poses[j, :3, 3])
-    inv[:, 3, 3] = 1.0
-    return inv @ poses[i]
+    poses = np.asarray(poses, np.float64)
+    return invert_poses(poses[j]) @ poses[i]
 
 
 @dataclass(frozen=True)

@@ -22,6 +22,8 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
+from dpc_jax.geometry import rigid
+
 # Below this squared angle (rad²) the Taylor branches are used. With the series truncated after
 # the θ⁴ term the truncation error is below θ⁶/5040 ≈ 2e-16, float64 rounding.
 _SMALL_ANGLE_SQ = 1e-4
@@ -171,7 +173,7 @@ def se3_exp(xi: ArrayLike) -> Array:
     rho, phi = xi[..., :3], xi[..., 3:]
     rotation = so3_exp(phi)
     translation = jnp.einsum("...ij,...j->...i", so3_left_jacobian(phi), rho)
-    return _compose_rt(rotation, translation)
+    return rigid.from_rotation_translation(rotation, translation, jnp)
 
 
 def se3_log(transform: Array) -> Array:
@@ -186,21 +188,11 @@ def se3_log(transform: Array) -> Array:
     return jnp.concatenate([rho, phi], axis=-1)
 
 
-def _compose_rt(rotation: Array, translation: Array) -> Array:
-    top = jnp.concatenate([rotation, translation[..., None]], axis=-1)
-    bottom = jnp.broadcast_to(
-        jnp.asarray([0.0, 0.0, 0.0, 1.0], dtype=rotation.dtype), (*top.shape[:-2], 1, 4)
-    )
-    return jnp.concatenate([top, bottom], axis=-2)
-
-
 def se3_inverse(transform: Array) -> Array:
     """Inverse of a rigid transform, ``[[Rᵀ, −Rᵀ t], [0, 1]]``. ``[..., 4, 4] -> [..., 4, 4]``."""
     transform = _float(transform)
     _check_last(transform, (4, 4), "transform")
-    rotation_t = jnp.swapaxes(transform[..., :3, :3], -1, -2)
-    translation = -jnp.einsum("...ij,...j->...i", rotation_t, transform[..., :3, 3])
-    return _compose_rt(rotation_t, translation)
+    return rigid.inverse(transform, jnp)
 
 
 def transform_points(transform: Array, points: Array) -> Array:

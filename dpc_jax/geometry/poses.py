@@ -11,6 +11,8 @@ from collections.abc import Callable
 
 import numpy as np
 
+from dpc_jax.geometry import rigid
+
 # The ss-DPC-Net static-frame rule (docs/method.md §6): a frame pair moving less than this much in both
 # translation (m, ‖ρ‖ of the se(3) log) and rotation (rad, ‖φ‖) counts as static.
 STATIC_TRANSLATION_M = 1.5
@@ -19,14 +21,8 @@ _CHUNK = 1024
 
 
 def invert_poses(poses: np.ndarray) -> np.ndarray:
-    """Closed-form inverse of rigid transforms ``[..., 4, 4]`` (dtype-preserving numpy)."""
-    poses = np.asarray(poses)
-    rotation_t = np.swapaxes(poses[..., :3, :3], -1, -2)
-    out = np.zeros_like(poses)
-    out[..., :3, :3] = rotation_t
-    out[..., :3, 3] = -np.einsum("...ij,...j->...i", rotation_t, poses[..., :3, 3])
-    out[..., 3, 3] = 1.0
-    return out
+    """Closed-form inverse of rigid transforms ``[..., 4, 4]``: :func:`rigid.inverse` in numpy."""
+    return rigid.inverse(np.asarray(poses), np)
 
 
 def relative_poses(trajectory: np.ndarray) -> np.ndarray:
