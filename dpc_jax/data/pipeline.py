@@ -41,9 +41,8 @@ from typing import Any
 import numpy as np
 
 from dpc_jax.data.holdout import touches
-from dpc_jax.data.priors import log_poses
 from dpc_jax.data.sequence_cache import PAIR_KINDS, SequenceCache, load_cache
-from dpc_jax.geometry.poses import invert_poses
+from dpc_jax.geometry.poses import invert_poses, log_poses
 from dpc_jax.nn.batch import Batch
 
 

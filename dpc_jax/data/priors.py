@@ -9,13 +9,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import jax
 import numpy as np
 
 from dpc_jax.data import poses_io
 from dpc_jax.data.poses_io import validate_poses
-from dpc_jax.geometry.lie import se3_log
-from dpc_jax.geometry.poses import compose, relative_poses
+from dpc_jax.geometry.poses import compose, log_poses, relative_poses
 
 
 def load_prior(
@@ -42,22 +40,6 @@ def load_prior(
             f"{label}: {poses.shape[0]} prior poses for {n_frames} frames; expected one pose per frame"
         )
     return poses
-
-
-_jit_se3_log = jax.jit(se3_log)
-
-
-def log_poses(transforms: np.ndarray) -> np.ndarray:
-    """:func:`dpc_jax.geometry.lie.se3_log` of ``[M, 4, 4]`` transforms as a numpy ``[M, 6]`` array.
-
-    Compiled once per power-of-two bucket of M, at least 1024 (identity padding), so loaders
-    and caches of any length reuse one or two compilations instead of tracing op by op.
-    float64 with ``jax_enable_x64``, else float32.
-    """
-    m = transforms.shape[0]
-    bucket = max(1024, 1 << max(m - 1, 1).bit_length())
-    padded = np.concatenate([transforms, np.tile(np.eye(4), (bucket - m, 1, 1))])
-    return np.asarray(_jit_se3_log(padded))[:m]
 
 
 def relative_xi(poses: np.ndarray) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Pose algebra on trajectories (numpy): inverses, relative poses, composition, static-frame removal.
+"""Pose algebra on trajectories (numpy): inverses, relative poses, composition, se(3) logs, static frames.
 
 A trajectory is a numpy array ``[N, 4, 4]`` of camera-to-world poses ``T_w_c`` ("Twv", docs/method.md §1).
 Reading and writing trajectory files is :mod:`dpc_jax.data.poses_io`.
@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -17,7 +18,10 @@ from dpc_jax.geometry import rigid
 # translation (m, ‖ρ‖ of the se(3) log) and rotation (rad, ‖φ‖) counts as static.
 STATIC_TRANSLATION_M = 1.5
 STATIC_ROTATION_RAD = 0.007
-_CHUNK = 1024
+# The fewest transforms a compiled Lie function is called with (:func:`_on_buckets`).
+_MIN_BUCKET = 1024
+# A jitted function of ``[M, 4, 4]`` transforms returning a tuple of ``[M, ...]`` arrays.
+_Compiled = Callable[[np.ndarray], tuple[Any, ...]]
 
 
 def invert_poses(poses: np.ndarray) -> np.ndarray:
@@ -56,35 +60,56 @@ def compose(relative: np.ndarray, first_pose: np.ndarray) -> np.ndarray:
     return out
 
 
-# ----------------------------------------------------------------------------- static frames
+# ----------------------------------------------------------------------------- se(3) logs of numpy poses
 
 @functools.cache
-def _log_norm_function() -> Callable[[np.ndarray], tuple[object, object]]:
-    """Jitted ``(‖ρ‖, ‖φ‖)`` of se(3) logs; built on first use so importing this module stays light."""
+def _compiled() -> tuple[_Compiled, _Compiled]:
+    """Jitted ``se3_log`` and ``(‖ρ‖, ‖φ‖)`` of it, built on first use: importing this module needs no JAX."""
     import jax
     import jax.numpy as jnp
 
     from dpc_jax.geometry.lie import se3_log
 
+    def log(transforms: jax.Array) -> tuple[jax.Array]:
+        return (se3_log(transforms),)
+
     def norms(transforms: jax.Array) -> tuple[jax.Array, jax.Array]:
         xi = se3_log(transforms)
         return jnp.linalg.norm(xi[..., :3], axis=-1), jnp.linalg.norm(xi[..., 3:], axis=-1)
 
-    return jax.jit(norms)
+    return jax.jit(log), jax.jit(norms)
+
+
+def _on_buckets(function: _Compiled, transforms: np.ndarray) -> list[np.ndarray]:
+    """The numpy bridge to the compiled Lie functions: each output of ``function`` (one row per
+    transform) for ``[M, 4, 4]`` numpy transforms, as numpy arrays of M rows.
+
+    Evaluated once, on M padded with identities to a power of two of at least ``_MIN_BUCKET``, so
+    that loaders, caches and the static-frame passes, which call it with many different lengths,
+    reuse one or two compilations per process and dtype instead of tracing op by op.
+    """
+    m = transforms.shape[0]
+    bucket = max(_MIN_BUCKET, 1 << max(m - 1, 1).bit_length())
+    padded = np.concatenate([transforms, np.tile(np.eye(4), (bucket - m, 1, 1))])
+    return [np.asarray(output)[:m] for output in function(padded)]
+
+
+def log_poses(transforms: np.ndarray) -> np.ndarray:
+    """:func:`dpc_jax.geometry.lie.se3_log` of ``[M, 4, 4]`` numpy transforms: numpy ``[M, 6]`` (m, rad).
+
+    float64 with ``jax_enable_x64``, else float32.
+    """
+    (xi,) = _on_buckets(_compiled()[0], transforms)
+    return xi
 
 
 def _log_norms(transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(‖ρ‖ m, ‖φ‖ rad)`` of the se(3) logs of ``[M, 4, 4]`` transforms.
+    """``(‖ρ‖ m, ‖φ‖ rad)`` float64 ``[M]`` of the se(3) logs of ``[M, 4, 4]`` transforms."""
+    rho, phi = _on_buckets(_compiled()[1], transforms)
+    return rho.astype(np.float64), phi.astype(np.float64)
 
-    Evaluated in fixed chunks padded with identities, so it compiles once per process and dtype.
-    """
-    function = _log_norm_function()
-    m = transforms.shape[0]
-    padded = np.broadcast_to(np.eye(4), (-(-m // _CHUNK) * _CHUNK, 4, 4)).copy()
-    padded[:m] = transforms
-    rho, phi = zip(*(function(padded[k : k + _CHUNK]) for k in range(0, m, _CHUNK)), strict=True)
-    return np.concatenate(rho)[:m].astype(np.float64), np.concatenate(phi)[:m].astype(np.float64)
 
+# ----------------------------------------------------------------------------- static frames
 
 def remove_static_frames(
     reference: np.ndarray,
