@@ -11,6 +11,8 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
+from dpc_jax.geometry.projective import perspective_divide
+
 
 def _float(x: ArrayLike) -> Array:
     x = jnp.asarray(x)
@@ -82,7 +84,8 @@ def project(points: Array, K: Array, eps: float = 1e-3) -> tuple[Array, Array]:
     ``K``: ``[..., 3, 3]`` broadcasting against the leading axes of ``points``.
     Returns ``uv``: ``[..., H, W, 2]`` (x = column, y = row) and ``valid``: bool ``[..., H, W]``,
     true where ``z > eps``. Where ``z ≤ eps`` the division uses 1 instead of ``z``, so ``uv``
-    and its gradient stay finite there; such pixels must be discarded through ``valid``.
+    and its gradient stay finite there; such pixels must be discarded through ``valid``
+    (:func:`dpc_jax.geometry.projective.perspective_divide`).
     """
     points, K = _float(points), _float(K)
     _check_intrinsics(K)
@@ -90,7 +93,5 @@ def project(points: Array, K: Array, eps: float = 1e-3) -> tuple[Array, Array]:
         raise ValueError(f"points must have shape [..., H, W, 3], got {points.shape}")
     dtype = jnp.result_type(points.dtype, K.dtype)
     pixels = jnp.einsum("...ij,...hwj->...hwi", K.astype(dtype), points.astype(dtype))
-    z = pixels[..., 2]
-    valid = z > eps
-    safe_z = jnp.where(valid, z, jnp.ones_like(z))
-    return pixels[..., :2] / safe_z[..., None], valid
+    u, v, valid = perspective_divide(pixels[..., 0], pixels[..., 1], pixels[..., 2], eps, jnp)
+    return jnp.stack([u, v], axis=-1), valid

@@ -15,6 +15,8 @@ import jax
 import jax.numpy as jnp
 from jax import Array, lax
 
+from dpc_jax.geometry.projective import perspective_divide
+
 
 def _float(x: Array) -> Array:
     x = jnp.asarray(x)
@@ -176,10 +178,8 @@ def inverse_warp(
         m = M[..., i, :, None, None]
         return depth * (m[..., 0, :, :] * u + m[..., 1, :, :] * v + m[..., 2, :, :]) + Kt[..., i, None, None]
 
-    px, py, pz = coordinate(0), coordinate(1), coordinate(2)
-    in_front = pz > eps
-    safe_z = jnp.where(in_front, pz, jnp.ones_like(pz))
-    sampled, inside = _sample(source.astype(dtype), px / safe_z, py / safe_z)
+    x, y, in_front = perspective_divide(coordinate(0), coordinate(1), coordinate(2), eps, jnp)
+    sampled, inside = _sample(source.astype(dtype), x, y)
     return sampled, inside & in_front
 
 

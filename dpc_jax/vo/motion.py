@@ -21,6 +21,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from dpc_jax.geometry.projective import perspective_divide
+
 
 @dataclass(frozen=True)
 class MotionEstimate:
@@ -50,16 +52,14 @@ def project(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Pixels of ``T·X`` in a camera shifted by ``offset_x`` metres along x (the right camera: ``B``).
 
-    Returns ``(uv [N, 2], in_front [N] bool)``; ``uv`` is meaningless where ``in_front`` is false.
+    ``K`` without skew; the principal point is added after the division. Returns
+    ``(uv [N, 2], in_front [N] bool)``; ``uv`` is meaningless where ``in_front`` is false.
     """
     camera = points @ T[:3, :3].T + T[:3, 3]
     camera[:, 0] -= offset_x
-    z = camera[:, 2]
-    in_front = z > 1e-6
-    zs = np.where(in_front, z, 1.0)
-    u = K[0, 0] * camera[:, 0] / zs + K[0, 2]
-    v = K[1, 1] * camera[:, 1] / zs + K[1, 2]
-    return np.stack([u, v], axis=1), in_front
+    x, y, z = camera[:, 0], camera[:, 1], camera[:, 2]
+    u, v, in_front = perspective_divide(K[0, 0] * x, K[1, 1] * y, z, 1e-6, np)
+    return np.stack([u + K[0, 2], v + K[1, 2]], axis=1), in_front
 
 
 def reprojection_errors(
