@@ -26,7 +26,7 @@ import numpy as np
 from machine import this_cpu
 
 from dpc_jax.data.pipeline import TrainLoader
-from dpc_jax.data.sequence_cache import FLOW_FILES, MANIFEST, PAIR_KINDS, load_cache
+from dpc_jax.data.sequence_cache import FLOW_FILES, MANIFEST, PAIR_KINDS, STEREO_DEPTH_FILES, load_cache
 
 
 def write_random_cache(
@@ -46,6 +46,15 @@ def write_random_cache(
             flow[k] = rng.standard_normal((2, h, w, 2), dtype=np.float32)
         flow.flush()
         del flow
+    # The StereoSGBM depth a prepared cache holds (dpc_jax.data.cache), random: 2 to 100 m, 80 % matched.
+    inverse = np.lib.format.open_memmap(path / STEREO_DEPTH_FILES[0], "w+", np.float32, (frames, 2, h, w))
+    valid = np.lib.format.open_memmap(path / STEREO_DEPTH_FILES[1], "w+", bool, (frames, 2, h, w))
+    for k in range(frames):
+        valid[k] = rng.random((2, h, w)) < 0.8
+        inverse[k] = np.where(valid[k], rng.uniform(0.01, 0.5, (2, h, w)), 0).astype(np.float32)
+    inverse.flush()
+    valid.flush()
+    del inverse, valid
     # A straight drive at 1.2 m per frame with a small sway, so priors and corrections are not all equal.
     poses = np.tile(np.eye(4), (frames, 1, 1))
     poses[:, 2, 3] = np.arange(frames) * 1.2
@@ -57,7 +66,7 @@ def write_random_cache(
     np.save(path / "indices.npy", np.arange(frames))
     np.save(path / "times.npy", np.arange(frames) * 0.1)
     manifest = {"name": path.name, "n_frames": frames, "image_size": [h, w], "has_gt": True,
-                "flows": list(flow_kinds)}
+                "flows": list(flow_kinds), "stereo_depth": True}
     (path / MANIFEST).write_text(json.dumps(manifest))
     for file in path.iterdir():  # finish the write-back now, not during the timed epochs
         with file.open("rb") as f:

@@ -91,6 +91,31 @@ def test_augmentation_flows_pair_the_right_frames(tmp_path: Path) -> None:
             np.testing.assert_allclose(stored, farneback(frames[a], frames[b]), atol=1e-5)
 
 
+def test_the_cache_holds_the_stereo_sgbm_depth_of_its_stored_pairs(excerpt: Path) -> None:
+    """The prepared depth is OpenCV's StereoSGBM disparity on the stored pair (grey), d / (fu·B)."""
+    from dpc_jax.data.stereo_depth import MIN_DEPTH, sequence_inverse_depth
+
+    cache = load_cache(excerpt)
+    assert cache.manifest["stereo_depth"] and cache.stereo_depth is not None
+    inverse, valid = cache.stereo_depth
+    assert inverse.shape == valid.shape == (len(cache), 2, *SIZE)
+    fu_b = cache.K[0, 0] * cache.baseline
+    block = 5
+    sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=16 * int(np.ceil(fu_b / MIN_DEPTH / 16)),
+                                 blockSize=block, P1=8 * block * block, P2=32 * block * block,
+                                 uniquenessRatio=5, disp12MaxDiff=1, mode=cv2.STEREO_SGBM_MODE_HH)
+    grey = lambda img: cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY)
+    disparity = sgbm.compute(grey(cache.left[2]), grey(cache.right[2])).astype(np.float32) / 16
+    np.testing.assert_array_equal(valid[2, 0], disparity > 0)
+    np.testing.assert_allclose(inverse[2, 0], np.where(disparity > 0, disparity / fu_b, 0), rtol=1e-6)
+    assert valid[:, 0].mean() > 0.5
+    # The same as computing it now from the stored images, frame by frame and camera by camera.
+    now = sequence_inverse_depth(np.asarray(cache.left), np.asarray(cache.right), cache.K[0, 0],
+                                 cache.baseline, workers=1)
+    np.testing.assert_array_equal(inverse, now[0])
+    np.testing.assert_array_equal(valid, now[1])
+
+
 def test_stereo_warp_with_block_matching_disparity_reconstructs_left(excerpt: Path) -> None:
     """Acceptance check: images, baseline and K of the cache agree with real stereo geometry."""
     cache = load_cache(excerpt)

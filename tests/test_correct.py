@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -483,3 +484,7 @@ def test_a_stereo_run_measures_delta_with_stereo_sgbm_unless_asked_otherwise(set
     np.testing.assert_array_equal(default.delta["full"], sgbm.delta["full"])
     assert not np.allclose(default.delta["full"], network.delta["full"])
     np.testing.assert_array_equal(default.xi_corr, network.xi_corr)  # the depth changes Δ, not ξ_corr
+    # The depth prepared with the cache is the one computed from its images when a cache lacks it.
+    assert cache.stereo_depth is not None
+    computed = correct_cache(run, dataclasses.replace(cache, stereo_depth=None))
+    np.testing.assert_array_equal(computed.delta["full"], default.delta["full"])

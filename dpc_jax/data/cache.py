@@ -20,12 +20,17 @@ file                  array                meaning
 ``flow_reverse.npy``  float32 [N-1,2,H,W,2]  flow k+1 → k (stored at index k)
 ``flow_skip.npy``     float32 [N-2,2,H,W,2]  flow k → k+2
 ``flow_skip_reverse.npy`` float32 [N-2,2,H,W,2]  flow k+2 → k (stored at index k)
+``stereo_inverse_depth.npy`` float32 [N,2,H,W]  StereoSGBM inverse depth (1/m), left (0), right (1)
+``stereo_valid.npy``  bool [N, 2, H, W]    where SGBM found a match (elsewhere the depth is 0)
 ``manifest.json``     —                    sources, parameters, input hash, array shapes
 ====================  ===================  ==================================================
 
-The three augmentation flows exist only with ``flow_augment`` (needed when training with flow
-and frame-skip or reversed pairs). Flow channels are ``[Δx column, Δy row]`` in pixels of the
-resized images, computed on their grey versions with the Farnebäck parameters of docs/method.md §6.
+The stereo depth (``dpc_jax.data.stereo_depth``, on the stored pair) is what the acceptance test
+measures a correction with by default; it is computed once here rather than by every run that
+judges, adapts or validates on the sequence. The three augmentation flows exist only with
+``flow_augment`` (needed when training with flow and frame-skip or reversed pairs). Flow channels
+are ``[Δx column, Δy row]`` in pixels of the resized images, computed on their grey versions with
+the Farnebäck parameters of docs/method.md §6.
 
 Identity of the inputs (``manifest["input_hash"]``): SHA-256 over the cache format version, the
 parameters, the calibration/time/pose/prior files by *content* (small), in-memory prior or
@@ -63,7 +68,8 @@ from dpc_jax._progress import Progress, progress_bar
 from dpc_jax.data.kitti import StereoSequence, load_image, read_ground_truth
 from dpc_jax.data.poses_io import validate_poses
 from dpc_jax.data.priors import load_prior, rescale_monocular
-from dpc_jax.data.sequence_cache import FLOW_FILES, MANIFEST
+from dpc_jax.data.sequence_cache import FLOW_FILES, MANIFEST, STEREO_DEPTH_FILES
+from dpc_jax.data.stereo_depth import sequence_inverse_depth, sgbm_fits
 from dpc_jax.geometry.camera import scale_intrinsics
 from dpc_jax.geometry.poses import remove_static_frames
 
@@ -275,7 +281,7 @@ def prepare_sequence(
         "mono_rescale": mono_rescale, "frames": [inputs.start, inputs.stop], "prior_format": prior_format,
         "farneback": FARNEBACK if flow else None, "interpolation": "INTER_AREA",
         "disparity_offset": float(disparity_offset),
-        "half_pixel_intrinsics": bool(half_pixel_intrinsics),
+        "half_pixel_intrinsics": bool(half_pixel_intrinsics), "stereo_depth": "sgbm",
     }
     extra = [inputs.gt_source] if isinstance(inputs.gt_source, np.ndarray) else []
     digest = input_hash(inputs.sequence, prior, parameters, extra)
@@ -293,6 +299,7 @@ def prepare_sequence(
             flow_augment=flow_augment, label=name, workers=workers, progress=progress,
         )
         K = _resized_intrinsics(inputs.sequence, size, half_pixel_intrinsics)
+        _write_stereo_depth(tmp, float(K[0, 0]), float(inputs.sequence.baseline), name, workers, progress)
         _write_poses_and_calibration(tmp, inputs, kept, K)
         manifest = _manifest(tmp, name, inputs, prior, digest, parameters, kept, size, K)
         atomic_write(tmp / MANIFEST, json.dumps(manifest, indent=2))
@@ -415,6 +422,26 @@ def _write_images_and_flows(
         _write_flows(tmp, arrays["left"], arrays["right"], flow_augment, workers, progress)
 
 
+def _write_stereo_depth(tmp: Path, fu: float, baseline: float, label: str, workers: int,
+                        progress: Progress) -> None:
+    """Write the StereoSGBM inverse depth and validity of the stored pairs of ``tmp`` (``fu``: focal
+    length of the stored images, px; ``baseline``: m), unless they are too narrow for it."""
+    left, right = (np.load(tmp / f"{camera}.npy", mmap_mode="r") for camera in ("left", "right"))
+    n, h, w = left.shape[:3]
+    if not sgbm_fits(w, fu, baseline):
+        log.info("%s: images %d px wide are too narrow for StereoSGBM; no stereo depth stored", label, w)
+        return
+    inverse = np.lib.format.open_memmap(tmp / STEREO_DEPTH_FILES[0], mode="w+", dtype=np.float32,
+                                        shape=(n, 2, h, w))
+    valid = np.lib.format.open_memmap(tmp / STEREO_DEPTH_FILES[1], mode="w+", dtype=bool, shape=(n, 2, h, w))
+
+    with progress_bar(n, f"{label} stereo depth", progress) as bar:
+        sequence_inverse_depth(left, right, fu, baseline, workers=workers, out=(inverse, valid),
+                               done=lambda: bar.update(1))
+    inverse.flush()
+    valid.flush()
+
+
 def _resized_intrinsics(sequence: StereoSequence, size: tuple[int, int], half_pixel: bool) -> np.ndarray:
     """float64 ``[3, 3]`` intrinsics of ``sequence``'s images resized to ``size = (H, W)`` px."""
     (h0, w0), (h1, w1) = sequence.image_size, size
@@ -473,6 +500,7 @@ def _manifest(
         "K": K.tolist(),
         "has_gt": gt is not None,
         "flows": [k for k, f in FLOW_FILES.items() if (tmp / f).exists()],
+        "stereo_depth": all((tmp / f).exists() for f in STEREO_DEPTH_FILES),
     }
 
 

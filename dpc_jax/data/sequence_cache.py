@@ -26,6 +26,8 @@ FLOW_FILES = {
     "skip": "flow_skip.npy",
     "skip_reverse": "flow_skip_reverse.npy",
 }
+# StereoSGBM inverse depth of both cameras and its validity (dpc_jax.data.stereo_depth), when prepared.
+STEREO_DEPTH_FILES = ("stereo_inverse_depth.npy", "stereo_valid.npy")
 # Pair kind → (frame step, backward): see :mod:`dpc_jax.data.pipeline`.
 PAIR_KINDS = {"forward": (1, False), "reverse": (1, True), "skip": (2, False), "skip_reverse": (2, True)}
 
@@ -46,6 +48,9 @@ class SequenceCache:
     times: np.ndarray
     flows: dict[str, np.ndarray]
     manifest: dict
+    # (inverse depth float32 [N, 2, H, W] 1/m, valid bool [N, 2, H, W]), camera axis (left, right);
+    # None in a cache prepared without it.
+    stereo_depth: tuple[np.ndarray, np.ndarray] | None = None
 
     def __len__(self) -> int:
         return int(self.left.shape[0])
@@ -145,6 +150,11 @@ def load_cache(path: str | os.PathLike[str]) -> SequenceCache:
         kind: array(FLOW_FILES[kind], (n - PAIR_KINDS[kind][0], 2, h, w, 2), "float32", mmap=True)
         for kind in manifest["flows"]
     }
+    stereo_depth = None
+    if manifest.get("stereo_depth"):
+        inverse, valid = (array(f, (n, 2, h, w), dtype, mmap=True)
+                          for f, dtype in zip(STEREO_DEPTH_FILES, ("float32", "bool"), strict=True))
+        stereo_depth = (inverse, valid)
     prior = array("prior.npy", (n, 4, 4), "float64")
     _check_finite_poses(path / "prior.npy", prior)
     gt = None
@@ -173,6 +183,7 @@ def load_cache(path: str | os.PathLike[str]) -> SequenceCache:
         times=times,
         flows=flows,
         manifest=manifest,
+        stereo_depth=stereo_depth,
     )
 
 

@@ -9,6 +9,9 @@ trained together with the pose it judges. Metric through the baseline: ``1/Z = d
 from __future__ import annotations
 
 import math
+import os
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numpy as np
@@ -33,6 +36,13 @@ def _matcher(max_disparity: float, block: int) -> cv2.StereoSGBM:
 
 def _grey(image: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
+
+
+def sgbm_fits(width: int, fu: float, baseline: float, block: int = 5) -> bool:
+    """Whether images ``width`` px wide leave StereoSGBM room for its disparity search (down to
+    :data:`MIN_DEPTH`) and window; narrower ones make OpenCV refuse the pair."""
+    search = 16 * max(1, math.ceil(float(fu) * float(baseline) / MIN_DEPTH / 16))
+    return width - search > block // 2
 
 
 def sgbm_inverse_depth(
@@ -66,12 +76,24 @@ def sgbm_inverse_depth(
 
 
 def sequence_inverse_depth(
-    left: np.ndarray, right: np.ndarray, fu: float, baseline: float
+    left: np.ndarray, right: np.ndarray, fu: float, baseline: float, *, workers: int | None = None,
+    out: tuple[np.ndarray, np.ndarray] | None = None, done: Callable[[], object] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`sgbm_inverse_depth` of every frame: ``left``/``right`` uint8 ``[N, H, W, 3]`` →
-    ``(inverse depth float32 [N, 2, H, W], valid bool [N, 2, H, W])``, camera axis (left, right)."""
-    inv = np.zeros((left.shape[0], 2, *left.shape[1:3]), np.float32)
-    valid = np.zeros(inv.shape, bool)
-    for k in range(left.shape[0]):
+    ``(inverse depth float32 [N, 2, H, W], valid bool [N, 2, H, W])``, camera axis (left, right).
+
+    ``workers`` threads match frames in parallel (OpenCV releases the GIL; default: CPU count);
+    each frame's result does not depend on them. ``out``: arrays of those shapes to fill (e.g.
+    memory maps) instead of new ones; ``done`` is called once per finished frame (progress).
+    """
+    shape = (left.shape[0], 2, *left.shape[1:3])
+    inv, valid = out if out is not None else (np.zeros(shape, np.float32), np.zeros(shape, bool))
+
+    def frame(k: int) -> None:
         inv[k, 0], valid[k, 0], inv[k, 1], valid[k, 1] = sgbm_inverse_depth(left[k], right[k], fu, baseline)
+        if done is not None:
+            done()
+
+    with ThreadPoolExecutor(workers or os.cpu_count() or 1) as pool:
+        list(pool.map(frame, range(left.shape[0])))
     return inv, valid

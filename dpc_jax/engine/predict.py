@@ -158,12 +158,14 @@ def predict_sequence(
 
 
 def stereo_depth_of(cache: SequenceCache, acceptance_depth: str) -> tuple[np.ndarray, np.ndarray] | None:
-    """The independent stereo depth of every frame of ``cache`` for ``acceptance_depth == "sgbm"``,
-    else None (the network's own depth)."""
+    """The independent stereo depth of every frame of ``cache`` for ``acceptance_depth == "sgbm"``
+    (the one prepared with the cache, else computed now), else None (the network's own depth)."""
     if acceptance_depth == "network":
         return None
     if acceptance_depth != "sgbm":
         raise ValueError(f"acceptance_depth must be 'network' or 'sgbm', got {acceptance_depth!r}")
+    if cache.stereo_depth is not None:
+        return cache.stereo_depth
     from dpc_jax.data.stereo_depth import sequence_inverse_depth
 
     return sequence_inverse_depth(np.asarray(cache.left), np.asarray(cache.right), float(cache.K[0, 0]),
