@@ -1,5 +1,6 @@
-"""Self-supervised losses of ss-DPC-Net and Stereo DPC (docs/method.md §2 and §4), and DPC-Net's
-supervised loss (:func:`supervised_dpc_loss`, docs/method.md "The supervised loss").
+"""Self-supervised losses of ss-DPC-Net and Stereo DPC (docs/method.md §2 and §4), their per-pair
+errors for epoch selection and the acceptance test, and :func:`dpc_loss`, the training loss a config
+names (DPC-Net's supervised loss is :mod:`dpc_jax.nn.supervised_loss`).
 
 Pure ``jnp`` functions of a :class:`~dpc_jax.nn.outputs.DPCOutputs` and a
 :class:`~dpc_jax.nn.batch.Batch`; they never import the models. They work under ``jax.jit`` (pass
@@ -21,120 +22,28 @@ frame t+1 from frame t therefore needs ``T_{t,t+1} = inv(T*)``, computed exactly
 
 from __future__ import annotations
 
-import dataclasses
 from typing import cast
 
 import jax.numpy as jnp
 from jax import Array
-from jax.typing import ArrayLike
 
 from dpc_jax.geometry.correction import apply_correction
-from dpc_jax.geometry.lie import se3_exp, se3_inverse, se3_log, so3_exp, so3_log
-from dpc_jax.geometry.ssim import ssim_loss
-from dpc_jax.geometry.warp import disparity_consistency, inverse_warp, stereo_warp
+from dpc_jax.geometry.lie import se3_exp, se3_inverse
+from dpc_jax.geometry.warp import inverse_warp, stereo_warp
 from dpc_jax.nn.batch import Batch
 from dpc_jax.nn.config import SSDPCLossConfig, StereoDPCLossConfig, SupervisedLossConfig
+from dpc_jax.nn.loss_terms import (
+    disparity_consistency_loss,
+    explainability_loss,
+    gradient_mask,
+    masked_mean,
+    per_sample_mean,
+    photometric_error,
+    rotation_weights,
+    to_unit_images,
+)
 from dpc_jax.nn.outputs import BranchOutputs, DPCOutputs
-
-# ITU-R BT.601 luma weights, as in cv2.cvtColor(..., COLOR_RGB2GRAY).
-_GREY_WEIGHTS = (0.299, 0.587, 0.114)
-
-
-# --- building blocks --------------------------------------------------------------------------
-
-
-def to_unit_images(images: ArrayLike, dtype: jnp.dtype) -> Array:
-    """uint8 images in [0, 255] -> ``dtype`` in [0, 1]; float images are only cast."""
-    images = jnp.asarray(images)
-    if jnp.issubdtype(images.dtype, jnp.integer):
-        return images.astype(dtype) / 255.0
-    return images.astype(dtype)
-
-
-def photometric_error(
-    target: Array, reconstruction: Array, ssim_weight: float | Array = 0.85, valid: Array | None = None
-) -> Array:
-    """Per-pixel photometric error ``λ_s · L_SSIM + (1 − λ_s) · |I − I*|``, channels averaged.
-
-    ``target``, ``reconstruction``: ``[..., H, W, C]`` in [0, 1] -> ``[..., H, W]``.
-    ``ssim_weight`` (λ_s) is a Python float (0 skips the SSIM computation) or a scalar array
-    (a learned value, e.g. the sigmoid of a parameter). ``valid`` (bool ``[..., H, W]``): where
-    given, invalid reconstructed pixels are replaced by the target before SSIM, so the zeros
-    that the sampler puts outside the source image do not corrupt the 3×3 statistics of their
-    valid neighbours (invalid pixels themselves are dropped later by :func:`masked_mean`).
-    The target is data: no gradient flows into it through the SSIM term.
-    """
-    l1 = jnp.mean(jnp.abs(target - reconstruction), axis=-1)
-    if isinstance(ssim_weight, (int, float)) and ssim_weight == 0:
-        return l1
-    if valid is not None:
-        reconstruction = jnp.where(valid[..., None], reconstruction, target)
-    structural = jnp.mean(ssim_loss(target, reconstruction, grad_x=False), axis=-1)
-    return ssim_weight * structural + (1.0 - ssim_weight) * l1
-
-
-def masked_mean(values: Array, valid: Array, weight: Array, scale: Array | None = None) -> Array:
-    """``Σ w_b s_b v e / Σ w_b v`` over the batch and all pixels; 0 when nothing is valid.
-
-    ``values`` (e), ``valid`` (v, bool or {0, 1}): ``[B, ...]``; ``weight`` (w): ``[B]`` sample
-    weights (0 = padding); ``scale`` (s): optional ``[B]`` factors that multiply the numerator
-    only (up-weighting without renormalising). Non-finite values at excluded pixels cannot leak
-    into the result.
-    """
-    extra = (1,) * (values.ndim - 1)
-    keep = (valid > 0) & (weight.reshape(-1, *extra) > 0)
-    w = jnp.broadcast_to(weight.reshape(-1, *extra).astype(values.dtype), values.shape)
-    if scale is not None:
-        w_num = w * scale.reshape(-1, *extra).astype(values.dtype)
-    else:
-        w_num = w
-    numerator = jnp.sum(jnp.where(keep, w_num * values, 0.0))
-    denominator = jnp.sum(jnp.where(keep, w, 0.0))
-    return jnp.where(denominator > 0, numerator / jnp.where(denominator > 0, denominator, 1.0), 0.0)
-
-
-def explainability_loss(mask: Array, weight: Array, floor: float = 1e-6) -> Array:
-    """``mean(−log W)`` over all pixels of real samples (cross-entropy against label 1).
-
-    ``mask``: ``[B, ...]`` in (0, 1); ``weight``: ``[B]``. W is clamped to ``[floor, 1]``
-    inside the log, so the loss is at most ``−log(floor)`` per pixel.
-    """
-    nll = -jnp.log(jnp.clip(mask, floor, 1.0))
-    return masked_mean(nll, jnp.ones(mask.shape, dtype=bool), weight)
-
-
-def rotation_weights(xi_vo: Array, threshold: float = 0.005, rot_weight: float = 4.0) -> Array:
-    """Per-sample factor ``1 + λ_rot`` where ``‖φ_vo‖ ≥ γ``, else 1 (ss-DPC-Net eq. 10).
-
-    ``xi_vo``: ``[B, 6]`` prior ``[ρ, φ]``; ``φ`` is ``Log(R_vo)``. -> ``[B]``.
-    """
-    angle = jnp.linalg.norm(xi_vo[..., 3:], axis=-1)
-    return jnp.where(angle >= threshold, 1.0 + rot_weight, 1.0).astype(xi_vo.dtype)
-
-
-def gradient_mask(image: Array, threshold: float = 0.03) -> Array:
-    """High-gradient pixels ``(|∇x I| + |∇y I|) / 2 > γ_grad`` (ss-DPC-Net eq. 11).
-
-    ``image``: ``[..., H, W, 3]`` RGB in [0, 1], converted to grey with BT.601 weights.
-    Forward differences ``I(u+1, v) − I(u, v)`` and ``I(u, v+1) − I(u, v)``; the last column
-    (row) has no forward neighbour and gets a zero x (y) difference. -> bool ``[..., H, W]``.
-    """
-    grey = jnp.tensordot(image, jnp.asarray(_GREY_WEIGHTS, dtype=image.dtype), axes=([-1], [0]))
-    dx = jnp.abs(jnp.diff(grey, axis=-1, append=grey[..., -1:]))
-    dy = jnp.abs(jnp.diff(grey, axis=-2, append=grey[..., -1:, :]))
-    return 0.5 * (dx + dy) > threshold
-
-
-def disparity_consistency_loss(
-    disparity_left: Array, disparity_right: Array, weight: Array
-) -> tuple[Array, Array]:
-    """Left and right disparity-consistency terms (Zhang eq. 7–8), each a masked mean.
-
-    ``disparity_*``: ``[B, ..., H, W]`` in pixels; errors are in units of the image width (see
-    :func:`~dpc_jax.geometry.warp.disparity_consistency`). -> ``(L_disp^l, L_disp^r)``.
-    """
-    err_l, valid_l, err_r, valid_r = disparity_consistency(disparity_left, disparity_right)
-    return masked_mean(err_l, valid_l, weight), masked_mean(err_r, valid_r, weight)
+from dpc_jax.nn.supervised_loss import supervised_dpc_loss
 
 
 def _ssim_weight(outputs: DPCOutputs, fixed: float) -> float | Array:
@@ -310,111 +219,6 @@ def stereo_dpc_loss(
     return loss, metrics
 
 
-# --- DPC-Net's supervised loss -------------------------------------------------------------------
-
-
-def target_corrections(xi_vo: ArrayLike, xi_gt: ArrayLike) -> Array:
-    """The correction each pair needs, ``T_target = Exp(ξ_gt) · inv(Exp(ξ_vo))`` → ``[B, 4, 4]``.
-
-    ``xi_vo``, ``xi_gt``: ``[B, 6]`` prior and ground-truth relative poses ``Log(T_{k+1,k})``; then
-    ``T_target · T_vo = T_gt``, the correction a perfect network outputs (``T* = Exp(ξ_corr) · T_vo``).
-    """
-    return se3_exp(jnp.asarray(xi_gt)) @ se3_inverse(se3_exp(jnp.asarray(xi_vo)))
-
-
-def target_precision(xi_target: ArrayLike, rotation_only: bool = False) -> Array:
-    """DPC-Net's weight: the inverse sample covariance of target corrections ``[M, 6]`` → ``[6, 6]``.
-
-    With ``rotation_only`` the rotation block is inverted alone (translation rows and columns 0).
-    Raises ``ValueError`` when the targets have (almost) no spread along some direction, where the
-    inverse does not exist (give the precision explicitly then); it reads the values, so it runs
-    outside ``jax.jit``.
-    """
-    xi = jnp.asarray(xi_target)
-    if xi.ndim != 2 or xi.shape[1] != 6 or xi.shape[0] < 7:
-        raise ValueError(f"target corrections must have shape [M, 6] with M ≥ 7, got {xi.shape}")
-    centred = xi - jnp.mean(xi, axis=0)
-    covariance = centred.T @ centred / (xi.shape[0] - 1)
-    block = covariance[3:, 3:] if rotation_only else covariance
-    eigenvalues = jnp.linalg.eigvalsh(block)
-    if not float(eigenvalues[0]) > 1e-9 * float(eigenvalues[-1]):
-        raise ValueError(
-            "the target corrections have (almost) no spread along some direction, so their covariance "
-            "has no inverse; give the precision explicitly"
-        )
-    if rotation_only:
-        return jnp.zeros_like(covariance).at[3:, 3:].set(jnp.linalg.inv(block))
-    return jnp.linalg.inv(covariance)
-
-
-def with_target_precision(
-    config: SSDPCLossConfig | StereoDPCLossConfig | SupervisedLossConfig,
-    xi_vo: ArrayLike,
-    xi_gt: ArrayLike | None,
-) -> SSDPCLossConfig | StereoDPCLossConfig | SupervisedLossConfig:
-    """A supervised config without ``precision`` gets DPC-Net's: :func:`target_precision` of the
-    target corrections of the training pairs (``xi_vo``, ``xi_gt``: ``[M, 6]``); any other config
-    is returned as is. Raises ``ValueError`` when the pairs' ground truth is missing."""
-    if not isinstance(config, SupervisedLossConfig) or config.precision is not None:
-        return config
-    if xi_gt is None:
-        raise ValueError("the supervised loss needs the training pairs' ground truth for its precision")
-    import jax
-    import numpy as np
-
-    # In float64: rotation variances are ~10⁶ times smaller than translation ones.
-    with jax.enable_x64(True):
-        xi_vo, xi_gt = (jnp.asarray(np.asarray(x, np.float64)) for x in (xi_vo, xi_gt))
-        targets = se3_log(target_corrections(xi_vo, xi_gt))
-        precision = np.asarray(target_precision(targets, config.rotation_only), np.float64)
-    return dataclasses.replace(config, precision=tuple(float(v) for v in precision.ravel()))
-
-
-def supervised_dpc_loss(
-    outputs: DPCOutputs, batch: Batch, config: SupervisedLossConfig
-) -> tuple[Array, dict[str, Array]]:
-    """DPC-Net's covariance-weighted SE(3) loss of ``ξ_corr`` against the ground-truth correction.
-
-    Per sample, with ``T_target`` of :func:`target_corrections` and ``P = Σ⁻¹``
-    (``config.precision``)::
-
-        g = Log(Exp(ξ_corr) · inv(T_target))        (the correction's error, [ρ, φ])
-        ℓ = ½ gᵀ P g − ½ g₀ᵀ P g₀,   g₀ = Log(inv(T_target))   (g for ξ_corr = 0)
-
-    averaged over samples with ``batch.weight``. The second term does not depend on the network; as
-    in DPC-Net's code it makes the loss the improvement over no correction (negative is better).
-    With ``config.rotation_only`` the same on SO(3): ``g = Log(Exp(φ_corr) · R_targetᵀ)`` and the
-    rotation block of P. Metrics: ``loss``, ``supervised_error`` (the mean of ½ gᵀ P g) and
-    ``no_correction`` (the mean of ½ g₀ᵀ P g₀). Raises ``ValueError`` when the batch carries no
-    ground truth.
-    """
-    if batch.xi_gt is None:
-        raise ValueError("the supervised loss needs ground truth: the batch has no xi_gt")
-    xi_corr = jnp.asarray(outputs.xi_corr)
-    dtype = jnp.result_type(xi_corr.dtype, jnp.float32)
-    xi_corr = xi_corr.astype(dtype)
-    target = target_corrections(jnp.asarray(batch.xi_vo, dtype), jnp.asarray(batch.xi_gt, dtype))
-    precision = jnp.asarray(config.precision_matrix(), dtype)
-    if config.rotation_only:
-        r_inv = jnp.swapaxes(target[..., :3, :3], -1, -2)
-        error = so3_log(so3_exp(xi_corr[:, 3:]) @ r_inv)
-        baseline = so3_log(r_inv)
-        precision = precision[3:, 3:]
-    else:
-        t_inv = se3_inverse(target)
-        error = se3_log(se3_exp(xi_corr) @ t_inv)
-        baseline = se3_log(t_inv)
-    weight = jnp.asarray(batch.weight, dtype)
-    total = jnp.sum(weight)
-
-    def mean_quadratic(v: Array) -> Array:
-        return jnp.sum(weight * 0.5 * jnp.einsum("bi,ij,bj->b", v, precision, v)) / total
-
-    corrected, uncorrected = mean_quadratic(error), mean_quadratic(baseline)
-    loss = corrected - uncorrected
-    return loss, {"loss": loss, "supervised_error": corrected, "no_correction": uncorrected}
-
-
 def dpc_loss(
     outputs: DPCOutputs, batch: Batch, config: SSDPCLossConfig | StereoDPCLossConfig | SupervisedLossConfig
 ) -> tuple[Array, dict[str, Array]]:
@@ -433,14 +237,6 @@ def dpc_loss(
 
 
 # --- epoch selection and the acceptance test -----------------------------------------------------
-
-
-def per_sample_mean(values: Array, valid: Array) -> Array:
-    """``Σ v e / Σ v`` over every axis but the first → ``[B]``; 0 for a sample with nothing valid."""
-    axes = tuple(range(1, values.ndim))
-    numerator = jnp.sum(jnp.where(valid, values, 0.0), axis=axes)
-    count = jnp.sum(valid, axis=axes).astype(values.dtype)
-    return jnp.where(count > 0, numerator / jnp.where(count > 0, count, 1.0), 0.0)
 
 
 def _valid_depth(depth_valid: Array | None, frame: int) -> Array | bool:

@@ -461,7 +461,7 @@ def _start_run(
         config_lib.save_json(checkpoints.root / "config.json", config)
         config_lib.save_json(checkpoints.root / "split.json", data.split)
     schedule = learning_rate_schedule(config.learning_rate, config.lr_halving_epochs, data.steps_per_epoch)
-    from dpc_jax.nn.losses import with_target_precision
+    from dpc_jax.nn.supervised_loss import with_target_precision
 
     # The supervised loss without a precision gets DPC-Net's, from the training pairs.
     table = data.loader.table
