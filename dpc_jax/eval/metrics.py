@@ -339,53 +339,34 @@ def trajectory_metrics(
     Keys: ``m_ate_trans_m, m_ate_rot_deg, seg_trans_pct, seg_rot_deg_per_100m, kitti_trans_pct,
     kitti_rot_deg_per_100m, ate_m, rpe_trans_m, rpe_rot_deg, loop_closures`` (scalars) and
     ``seg_lengths_m, seg_per_length_trans_pct, seg_per_length_rot_deg_per_100m, seg_counts``
-    ``[L]`` and ``c_ate_trans_m, c_ate_rot_deg`` ``[N]``.
-
-    Same values as the individual functions; the transforms whose logarithm is needed (pose
-    errors, segments, RPE) go through a single batched ``se3_log``, which keeps compilation short.
+    ``[L]`` and ``c_ate_trans_m, c_ate_rot_deg`` ``[N]``; each the value of the function named.
     """
     gt, est = _check_pair(gt, est)
-    n, n_len = gt.shape[0], len(lengths)
+    n = gt.shape[0]
     if n < 2:
         raise ValueError(f"a trajectory needs at least 2 poses, got {n}")
     if not 1 <= rpe_delta < n:
         raise ValueError(f"rpe_delta must be in [1, N − 1] = [1, {n - 1}], got {rpe_delta}")
-    pose_err = se3_inverse(est) @ gt
-    c = path_length(gt)
-    length = jnp.asarray(lengths, c.dtype)
-    start = jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32)[:, None], (n, n_len))
-    end = _first_index(lambda k: c[k] - c[start] > length, start.shape, n)
-    valid = end < n
-    seg_err = _segment_deltas(gt, est, start, jnp.minimum(end, n - 1))
-    m = n - rpe_delta
-    rpe_err = se3_inverse(se3_inverse(gt[:m]) @ gt[rpe_delta:]) @ (se3_inverse(est[:m]) @ est[rpe_delta:])
-    xi = se3_log(jnp.concatenate([pose_err, seg_err.reshape(-1, 4, 4), rpe_err]))
-    rot_norm = jnp.linalg.norm(xi[:, 3:], axis=-1)
-
-    pose_trans = jnp.linalg.norm(pose_err[:, :3, 3], axis=-1)
-    pose_rot = rot_norm[:n]
-    seg_xi = xi[n : n + n * n_len].reshape(n, n_len, 6)
-    seg_trans = jnp.where(valid, jnp.linalg.norm(seg_xi[..., :3], axis=-1) / length, 0.0)
-    seg_rot = jnp.where(valid, jnp.linalg.norm(seg_xi[..., 3:], axis=-1) / length, 0.0)
-    seg = _aggregate_segments(seg_trans, seg_rot, valid, length)
-    rpe_trans = jnp.linalg.norm(rpe_err[:, :3, 3], axis=-1)
-    rpe_rot = jnp.degrees(rot_norm[n + n * n_len :])
+    m_ate_trans, m_ate_rot = m_ate(gt, est)
+    c_ate_trans, c_ate_rot = c_ate(gt, est)
+    seg = segment_errors(gt, est, lengths)
     devkit = kitti_devkit_errors(gt, est, lengths, devkit_step)
+    rpe_trans, rpe_rot = rpe(gt, est, rpe_delta)
     return {
-        "m_ate_trans_m": jnp.mean(pose_trans),
-        "m_ate_rot_deg": jnp.degrees(jnp.mean(pose_rot)),
+        "m_ate_trans_m": m_ate_trans,
+        "m_ate_rot_deg": m_ate_rot,
         "seg_trans_pct": seg.trans_pct,
         "seg_rot_deg_per_100m": seg.rot_deg_per_100m,
         "kitti_trans_pct": devkit.trans_pct,
         "kitti_rot_deg_per_100m": devkit.rot_deg_per_100m,
         "ate_m": ate(gt, est, align),
-        "rpe_trans_m": jnp.sqrt(jnp.mean(rpe_trans**2)),
-        "rpe_rot_deg": jnp.sqrt(jnp.mean(rpe_rot**2)),
+        "rpe_trans_m": rpe_trans,
+        "rpe_rot_deg": rpe_rot,
         "loop_closures": count_loop_closures(est, stride=loop_stride),
         "seg_lengths_m": seg.lengths,
         "seg_per_length_trans_pct": seg.per_length_trans_pct,
         "seg_per_length_rot_deg_per_100m": seg.per_length_rot_deg_per_100m,
         "seg_counts": seg.counts,
-        "c_ate_trans_m": jnp.cumsum(pose_trans),
-        "c_ate_rot_deg": jnp.degrees(jnp.cumsum(pose_rot)),
+        "c_ate_trans_m": c_ate_trans,
+        "c_ate_rot_deg": c_ate_rot,
     }
