@@ -10,6 +10,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from dpc_jax.data.splits import training_names
 from dpc_jax.hugepages import reexec_with_huge_pages
 from dpc_jax.pipelines import protocol as P
 
@@ -56,8 +57,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             missing = [s for s in held_out if s not in sequences]
             if missing:
                 raise ValueError(f"fold {name} needs sequence(s) {missing}, not among {list(sequences)}")
-            fold = P.Fold(name, tuple(s for s in sequences if s not in held_out), spec["validation"],
-                          tuple(spec["test"]))
+            fold = P.Fold(name, training_names(sequences, held_out), spec["validation"], tuple(spec["test"]))
             folds.append((fold, spec["prior"]))
             cache_root = args.workdir / "cache" / spec["prior"]
             configs[name] = P.fold_config(base, fold, cache_root, {**spec["overrides"], **overrides})

@@ -42,6 +42,7 @@ import numpy as np
 
 from dpc_jax.data.holdout import touches
 from dpc_jax.data.sequence_cache import PAIR_KINDS, SequenceCache, load_cache
+from dpc_jax.data.splits import training_names
 from dpc_jax.geometry.poses import invert_poses, log_poses
 from dpc_jax.nn.batch import Batch
 
@@ -362,11 +363,9 @@ def leave_one_out(
             raise ValueError(f"{role} sequence {value!r} is not one of {known}")
     if test is not None and test == validation:
         raise ValueError(f"sequence {test!r} cannot be both the validation and the test sequence")
-    held_out = {test, validation} - {None}
-    if train is None:
-        chosen = tuple(n for n in known if n not in held_out)
-    else:
-        chosen = tuple(dict.fromkeys(train))
+    held_out = [n for n in (test, validation) if n is not None]
+    chosen = training_names(known, held_out, None if train is None else list(dict.fromkeys(train)))
+    if train is not None:
         unknown = [n for n in chosen if n not in known]
         if unknown:
             raise ValueError(f"training sequences {unknown} are not among {known}")

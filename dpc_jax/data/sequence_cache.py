@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from dpc_jax.data.poses_io import validate_poses
+from dpc_jax.data.splits import training_names
 
 MANIFEST = "manifest.json"
 FLOW_FILES = {
@@ -217,8 +218,7 @@ def training_sequences(
             raise ValueError(
                 f"{role}_sequences {missing} are not prepared under {cache_root} (found {available})"
             )
-    held_out = set(validation) | set(test)
-    chosen = list(train) or [s for s in available if s not in held_out]
+    chosen = list(training_names(available, (*validation, *test), list(train) or None))
     if not chosen:
         raise ValueError(f"no training sequence under {cache_root} besides the validation and test ones")
     return chosen
