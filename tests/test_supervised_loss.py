@@ -147,7 +147,8 @@ def test_only_supervised_training_reads_ground_truth(tmp_path, monkeypatch: pyte
     from dpc_jax.data.sequence_cache import load_cache
     from dpc_jax.nn.config import SupervisedLossConfig
     from dpc_jax.training import steps as steps_lib
-    from dpc_jax.training.loop import open_data, train
+    from dpc_jax.training.loop import train
+    from dpc_jax.training.train_data import open_data
 
     root = make_caches(tmp_path / "data", ["00", "01", "02"])
     seen: list[tuple[str, bool]] = []

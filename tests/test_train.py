@@ -35,6 +35,7 @@ from dpc_jax.training.config import TrainConfig
 from dpc_jax.training.loop import train
 from dpc_jax.training.optim import create_train_state, learning_rate_schedule, make_optimizer
 from dpc_jax.training.steps import NonFiniteLossError, make_train_step
+from dpc_jax.training.train_data import open_data
 
 
 @pytest.mark.parametrize(("halving", "steps_per_epoch"), [(5, 7), (4, 3), (1, 1)])
@@ -335,7 +336,7 @@ def test_bad_input_fails_before_any_compute(
         train(tiny_config(cache_root), tmp_path / "e", resume=True, progress=False)
     stored = tmp_path / "f" / "checkpoints"
     config_lib.save_json(stored / "config.json", tiny_config(cache_root))
-    split = train_lib.open_data(tiny_config(cache_root), workers=0).split
+    split = open_data(tiny_config(cache_root), workers=0).split
     config_lib.save_json(stored / "split.json", {**split, "train_samples": 1})
     with pytest.raises(ConfigError, match=r"cannot resume: train_samples: 1 → 42$"):
         train(tiny_config(cache_root), tmp_path / "f", resume=True, progress=False)

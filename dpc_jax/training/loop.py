@@ -18,16 +18,16 @@ Validation (each epoch, ``dpc_jax.engine.predict.predict_sequence``) gives the t
 criteria of ``dpc_jax.training.checkpoints``: the gradient loss, the loop-closure count of the corrected
 validation trajectory and the mean paired photometric effect Δ of the correction.
 
-The loop (``train``) and its files are described in its docstring.
+The loop (``train``) and its files are described in its docstring. The data it opens
+(``dpc_jax.training.train_data``), its metrics log (``dpc_jax.training.metrics_log``), the validation
+(``dpc_jax.training.validation``) and the workdir checks (``dpc_jax.training.workdir``) have their
+own modules.
 """
 
 from __future__ import annotations
 
 import contextlib
-import csv
-import io
 import itertools
-import json
 import math
 import os
 import sys
@@ -38,279 +38,29 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import jax
-import numpy as np
 import orbax.checkpoint as ocp
 from flax import nnx
 from jax.sharding import Mesh
 
 from dpc_jax import config as config_lib
-from dpc_jax._io import atomic_write
 from dpc_jax._progress import Progress
 from dpc_jax.config import ConfigError
 from dpc_jax.engine import parallel
 from dpc_jax.engine.driver import drive, step_key
-from dpc_jax.engine.predict import predict_sequence, stereo_depth_of
-from dpc_jax.eval import metrics as metrics_lib
-from dpc_jax.geometry.correction import corrected_trajectory
 from dpc_jax.training.checkpoints import Checkpoints
 from dpc_jax.training.config import TrainConfig
+from dpc_jax.training.metrics_log import MetricsLog
 from dpc_jax.training.optim import create_train_state, learning_rate_schedule, make_optimizer
 from dpc_jax.training.steps import NonFiniteLossError, make_train_step
+from dpc_jax.training.train_data import TrainData, open_data
+from dpc_jax.training.validation import validate
+from dpc_jax.training.workdir import check_split, check_workdir
 
 if TYPE_CHECKING:
     import optax
 
     from dpc_jax.training.checkpoints import Record
 
-# --------------------------------------------------------------------------- data
-
-
-@dataclass(frozen=True)
-class ValidationSequence:
-    """One validation sequence: its cache, prior trajectory, (optional) ground truth and, with
-    ``acceptance_depth="sgbm"``, the stereo depth Δ is measured with."""
-
-    name: str
-    cache: Any
-    prior: np.ndarray
-    ground_truth: np.ndarray | None
-    stereo_depth: tuple[np.ndarray, np.ndarray] | None = None
-
-
-@dataclass(frozen=True)
-class TrainData:
-    """What the loop consumes: the training loader, the validation sequences, the split record and
-    the per-component mean and scale of the training priors (``prior_statistics [2, 6]``)."""
-
-    loader: Any
-    steps_per_epoch: int
-    validation: tuple[ValidationSequence, ...]
-    use_flow: bool
-    split: dict[str, Any]
-    prior_statistics: np.ndarray
-
-
-def open_data(config: TrainConfig, workers: int = 2) -> TrainData:
-    """Open the cache of ``config``: check the split and the image size, build the loaders.
-
-    Raises ``ConfigError`` for a sequence that is not cached, an empty training set or an image
-    size different from the model's, before any compute.
-    """
-    from dpc_jax.data.pipeline import TrainLoader
-    from dpc_jax.data.sequence_cache import load_cache, training_sequences
-
-    try:
-        # The command line checks the same caches before it starts JAX (dpc_jax.cli.train).
-        train_names = training_sequences(
-            config.cache_root, config.train_sequences, config.validation_sequences, config.test_sequences
-        )
-    except ValueError as error:
-        raise ConfigError(str(error)) from None
-    root = Path(config.cache_root)
-    size = config.resolved_image_size
-    caches = {name: load_cache(root / name) for name in [*train_names, *config.validation_sequences]}
-    for name, cache in caches.items():
-        if cache.image_size != size:
-            raise ConfigError(
-                f"{root / name}: images are {cache.image_size[0]}x{cache.image_size[1]}, the model expects "
-                f"{size[0]}x{size[1]} (image_size); prepare the cache with --size {size[0]}x{size[1]}"
-            )
-    use_flow = config.use_flow
-    loader = TrainLoader(
-        [caches[n] for n in train_names],
-        config.batch_size,
-        seed=config.data_seed,
-        frame_skip=config.frame_skip,
-        reverse=config.reverse,
-        flow=use_flow,
-        # Ground truth reaches the training batches only for the supervised loss.
-        ground_truth=config.supervision == "supervised",
-        workers=workers,
-    )
-    steps = min(len(loader), config.steps_per_epoch or len(loader))
-    validation = tuple(
-        ValidationSequence(n, caches[n], np.asarray(caches[n].prior), caches[n].gt,
-                           stereo_depth_of(caches[n], config.acceptance_depth))
-        for n in config.validation_sequences
-    )
-    statistics = prior_statistics(loader.table.xi_vo, config.prior_normalization)
-    split = {
-        "cache_root": str(Path(config.cache_root).absolute()),
-        "train": train_names,
-        "validation": list(config.validation_sequences),
-        "test": list(config.test_sequences),
-        "train_samples": loader.num_samples,
-        "steps_per_epoch": steps,
-        "validation_pairs": {v.name: len(v.cache) - 1 for v in validation},
-        "input_hashes": {n: c.manifest.get("input_hash") for n, c in caches.items()},
-        "prior_statistics": statistics.tolist(),
-    }
-    return TrainData(loader, steps, validation, use_flow, split, statistics)
-
-
-def prior_statistics(xi_vo: np.ndarray, normalization: str) -> np.ndarray:
-    """``[2, 6]`` mean and scale of the prior input: those of ``xi_vo [S, 6]`` (the training pairs)
-    for ``"train_statistics"``, else 0 and 1. A component that (nearly) never varies — standard
-    deviation below 1e-6, float32 noise — keeps scale 1 rather than amplifying that noise."""
-    if normalization == "none":
-        return np.stack([np.zeros(6), np.ones(6)])
-    xi = np.asarray(xi_vo, np.float64)
-    scale = xi.std(axis=0)
-    return np.stack([xi.mean(axis=0), np.where(scale > 1e-6, scale, 1.0)])
-
-
-# --------------------------------------------------------------------------- logging
-
-
-METRICS_CSV = "metrics.csv"
-
-
-class MetricsLog:
-    """``WORKDIR/metrics.csv`` (one row per epoch, rewritten atomically) and TensorBoard events.
-
-    On resume from epoch E, rows after E are dropped and TensorBoard events after E's last
-    step are purged, so a redone epoch appears once. Only process 0 writes.
-    """
-
-    def __init__(self, workdir: Path, resumed_epoch: int, resumed_step: int, enabled: bool = True):
-        self.path = workdir / METRICS_CSV
-        self.enabled = enabled
-        self.rows: list[dict[str, Any]] = []
-        self.writer = None
-        if not enabled:
-            return
-        if resumed_epoch and self.path.is_file():
-            with self.path.open(newline="") as f:
-                self.rows = [r for r in csv.DictReader(f) if int(r["epoch"]) <= resumed_epoch]
-        from tensorboardX import SummaryWriter
-
-        self.writer = SummaryWriter(
-            str(workdir / "tensorboard"), purge_step=resumed_step + 1 if resumed_epoch else None
-        )
-
-    def scalars(self, step: int, values: dict[str, float], prefix: str) -> None:
-        if self.writer is not None:
-            for name, value in values.items():
-                self.writer.add_scalar(f"{prefix}/{name}", value, step)
-
-    def epoch(self, row: dict[str, Any]) -> None:
-        """Append one epoch's row to ``metrics.csv`` and its scalars to TensorBoard."""
-        if not self.enabled:
-            return
-        self.rows.append(row)
-        fields = list(dict.fromkeys(k for r in self.rows for k in r))
-        buffer = io.StringIO()
-        writer = csv.DictWriter(buffer, fieldnames=fields, lineterminator="\n")
-        writer.writeheader()
-        writer.writerows(self.rows)
-        atomic_write(self.path, buffer.getvalue())
-        numbers = {k: float(v) for k, v in row.items() if k not in ("epoch", "step")}
-        numbers = {k: v for k, v in numbers.items() if math.isfinite(v)}
-        self.scalars(int(row["step"]), numbers, "epoch")
-        if self.writer is not None:
-            self.writer.flush()
-
-    def close(self) -> None:
-        if self.writer is not None:
-            self.writer.close()
-
-
-# --------------------------------------------------------------------------- validation
-
-
-def _segment_errors(ground_truth: np.ndarray, estimate: np.ndarray) -> tuple[float, float]:
-    """Mean segment errors (t_err %, r_err °/100 m) over the lengths the sequence covers (NaN if none)."""
-    with jax.enable_x64(True):
-        result = metrics_lib.segment_errors(ground_truth, estimate)
-        return float(result.trans_pct), float(result.rot_deg_per_100m)
-
-
-def validate(
-    model_graphdef: nnx.GraphDef, model_state: nnx.State, data: TrainData, config: TrainConfig, mesh: Mesh
-) -> dict[str, float]:
-    """Validation figures of one epoch (docs/method.md §5), means over the validation pairs.
-
-    * ``val_loss``: the training loss in evaluation mode;
-    * ``val_gradient_loss``: the photometric loss on high-gradient pixels (selection a);
-    * ``val_loop_closures``: loop closures of the corrected validation trajectories, summed
-      (selection b);
-    * ``val_delta``, ``val_delta_rotation``: mean Δ of the full / rotation-only correction
-      (selection ``delta``; ``dpc_jax.acceptance``);
-    * ``val_{prior,corrected}_{t,r}_err``: segment errors against ground truth, averaged over the
-      sequences that have it (reporting only; NaN without ground truth).
-    """
-    loss_config = config.loss_config()
-    weighted = {"loss": 0.0, "gradient_loss": 0.0, "delta": 0.0, "delta_rotation": 0.0}
-    pairs = 0
-    closures = 0
-    errors: list[tuple[float, float, float, float]] = []
-    for seq in data.validation:
-        prediction = predict_sequence(
-            model_graphdef, model_state, seq.cache, loss_config, batch_size=config.batch_size,
-            use_flow=data.use_flow, stereo_depth=seq.stereo_depth, mesh=mesh,
-        )
-        n = prediction.xi_corr.shape[0]
-        weighted["loss"] += prediction.loss * n
-        weighted["gradient_loss"] += prediction.gradient_loss * n
-        weighted["delta"] += float(prediction.delta["full"].sum())
-        weighted["delta_rotation"] += float(prediction.delta["rotation"].sum())
-        pairs += n
-        first = seq.ground_truth[0] if seq.ground_truth is not None else seq.prior[0]
-        corrected = corrected_trajectory(prediction.xi_corr, seq.prior, first, config.rotation_only)
-        closures += int(metrics_lib.count_loop_closures(corrected))
-        if seq.ground_truth is not None:
-            errors.append(
-                (*_segment_errors(seq.ground_truth, seq.prior), *_segment_errors(seq.ground_truth, corrected))
-            )
-    mean_errors = np.mean(errors, axis=0) if errors else np.full(4, np.nan)
-    return {
-        **{f"val_{k}": v / pairs for k, v in weighted.items()},
-        "val_loop_closures": closures,
-        "val_prior_t_err": float(mean_errors[0]),
-        "val_prior_r_err": float(mean_errors[1]),
-        "val_corrected_t_err": float(mean_errors[2]),
-        "val_corrected_r_err": float(mean_errors[3]),
-    }
-
-
-# --------------------------------------------------------------------------- the loop
-
-
-def check_workdir(config: TrainConfig, workdir: str | os.PathLike, resume: bool) -> bool:
-    """Refuse a workdir that holds another run; return whether there is a run to resume.
-
-    A workdir with a stored config needs ``resume=True`` and the same config (the error lists
-    the differing keys). ``resume=True`` on a workdir without a run starts a new one.
-    """
-    stored_path = Path(workdir) / "checkpoints" / "config.json"
-    if not stored_path.is_file():
-        return False
-    stored = config_lib.load_file(stored_path, TrainConfig)
-    if not resume:
-        raise ConfigError(
-            f"{workdir} already holds a training run ({stored_path}); pass --resume to continue it "
-            "or choose another --workdir"
-        )
-    differences = config_lib.diff(stored, config)
-    if differences:
-        raise ConfigError(
-            f"{workdir} holds a run with a different config ({stored_path}); cannot resume with: "
-            + "; ".join(differences)
-        )
-    return True
-
-
-def _check_split(workdir: Path, split: dict[str, Any]) -> None:
-    """Refuse to resume on data that differ from the run's stored split (re-prepared cache, ...)."""
-    path = workdir / "checkpoints" / "split.json"
-    if not path.is_file():
-        return
-    stored = json.loads(path.read_text())
-    changes = [f"{k}: {stored.get(k)!r} → {split.get(k)!r}" for k in sorted(set(stored) | set(split))
-               if stored.get(k) != split.get(k)]
-    if changes:
-        message = "; ".join(changes)
-        raise ConfigError(f"{path}: the data changed since the run started, cannot resume: {message}")
 
 
 def _train_epoch(
@@ -435,7 +185,7 @@ def _open_run(
         parallel.initialize_distributed(**(distributed or {}))
     data = open_data(config, workers=workers)
     if has_run:
-        _check_split(workdir, data.split)
+        check_split(workdir, data.split)
     mesh = parallel.make_mesh()
     try:
         parallel.check_batch_size(config.batch_size, mesh)
