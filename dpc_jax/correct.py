@@ -36,7 +36,6 @@ from dpc_jax._io import atomic_write
 from dpc_jax.acceptance import (
     DEFAULT_ALPHA,
     Acceptance,
-    ComponentTest,
     acceptance_test,
     component_test,
     forced,
@@ -45,6 +44,9 @@ from dpc_jax.data.poses_io import WRITE_FORMATS, write_kitti_poses, write_tum
 from dpc_jax.data.sequence_cache import SequenceCache, load_cache
 from dpc_jax.eval.evaluation import Evaluation
 from dpc_jax.inference import SequencePrediction, TrainedRun, run_prediction
+
+# The report of a correction; re-exported for cli/correct.py.
+from dpc_jax.report.correction import write_correction_report as write_correction_report
 
 
 class AdaptationSummary(TypedDict):
@@ -304,16 +306,6 @@ def choose(trained: Correction, adapted: Correction | None = None) -> tuple[str,
                                                      "comparison": dataclasses.asdict(test)})
 
 
-def choice_markdown(choice: dict[str, object]) -> str:
-    """How :func:`choose` decided, as Markdown (a table row for the comparison, if one was made)."""
-    lines = ["## Final choice (no ground truth used)", "", f"**{choice['final']}**: {choice['reason']}.", ""]
-    comparison = choice.get("comparison")
-    if isinstance(comparison, dict):
-        t = ComponentTest(**comparison)
-        lines += [_TEST_HEADER.replace("component", "comparison"), _TEST_RULE, _test_row(t), ""]
-    return "\n".join(lines)
-
-
 def frames_path(path: str | os.PathLike) -> Path:
     """Where :func:`write_trajectory` lists frame numbers: ``corrected.txt`` → ``corrected.frames.txt``."""
     path = Path(path)
@@ -339,60 +331,3 @@ def write_trajectory(path: str | os.PathLike, correction: Correction, format: st
         atomic_write(frames_path(path), "".join(f"{int(i)}\n" for i in correction.frames))
         written.append(frames_path(path))
     return written
-
-
-_TEST_HEADER = ("| component | pairs | mean Δ | median Δ | pairs improved | Wilcoxon W | p (one-sided) "
-                "| passed |")
-_TEST_RULE = "|---|---|---|---|---|---|---|---|"
-
-
-def _test_row(t: ComponentTest) -> str:
-    return (f"| {t.component} | {t.pairs} | {t.mean_delta:.3e} | {t.median_delta:.3e} | "
-            f"{100 * t.improved_share:.1f} % | {t.statistic:.4g} | {t.p_value:.3g} | "
-            f"{'yes' if t.passed else 'no'} |")
-
-
-def acceptance_markdown(acceptance: Acceptance) -> str:
-    """The acceptance test as Markdown: one row per component tested, then the decision."""
-    lines = [_TEST_HEADER, _TEST_RULE, *(_test_row(t) for t in acceptance.tests.values())]
-    applied = {"full": "the full correction", "rotation": "only the rotation of the correction",
-               "none": "nothing: the corrected trajectory is the prior"}[acceptance.decision]
-    return "\n".join([
-        *lines, "",
-        f"Δ = L(ξ_corr) − L(0) per frame pair: the gradient-masked photometric error of the temporal "
-        f"reconstructions with the correction minus without it, same depth (negative: the correction "
-        f"explains the images better). Test: one-sided Wilcoxon signed-rank at α = {acceptance.alpha:g}.",
-        "",
-        f"**Applied: {applied}** ({acceptance.reason}).",
-        "",
-    ])
-
-
-def write_correction_report(directory: str | os.PathLike, correction: Correction, title: str) -> list[Path]:
-    """``report.md`` (acceptance test; with ground truth also the metrics, CSV tables and plots),
-    ``summary.json`` and, with ground truth, ``metrics.json`` in ``directory``."""
-    from dpc_jax.eval.evaluation import write_report
-
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    section = "## Acceptance test (no ground truth used)\n\n" + acceptance_markdown(correction.acceptance)
-    if correction.choice is not None:
-        section += "\n" + choice_markdown(correction.choice)
-    if correction.adaptation is not None:
-        a = correction.adaptation
-        section = (f"## Adaptation (no ground truth used)\n\n{a['steps']} steps on this sequence's own "
-                   f"pairs in {a['seconds'] / 60:.1f} min; {a['held_out']} pairs kept out for the acceptance "
-                   f"test (every {a['holdout_every']}th).\n\n" + section)
-    written: list[Path] = []
-    if correction.evaluation is not None:
-        written = write_report(directory, correction.evaluation, title)
-        report = directory / "report.md"
-        atomic_write(report, report.read_text() + "\n" + section)
-        atomic_write(directory / "metrics.json", correction.evaluation.to_json())
-        written.append(directory / "metrics.json")
-    else:
-        text = f"# {title}\n\nNo ground truth: nothing to evaluate.\n\n{section}"
-        atomic_write(directory / "report.md", text)
-        written.append(directory / "report.md")
-    atomic_write(directory / "summary.json", json.dumps(correction.summary(), indent=2) + "\n")
-    return [*written, directory / "summary.json"]

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from dpc_jax.hugepages import reexec_with_huge_pages
 from dpc_jax.pipelines import protocol as P
+from dpc_jax.report.protocol import write_results
 
 HERE = Path(__file__).resolve().parent
 
@@ -80,7 +81,7 @@ def main(argv: Sequence[str] | None = None) -> int:
              f"Not a reproduction: the trained network has seen frames "
              f"{t0}–{t1 - 1}, and 108 frames give only a handful of 100 m segments."
              + (" SMOKE RUN (1 epoch of 2 steps)." if args.smoke else "")]
-    P.print_results(P.write_results(args.workdir, results, "Pipeline on the real KITTI raw excerpt", notes))
+    P.print_results(write_results(args.workdir, results, "Pipeline on the real KITTI raw excerpt", notes))
     return 0
 
 

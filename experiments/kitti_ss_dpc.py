@@ -13,6 +13,7 @@ from pathlib import Path
 from dpc_jax.data.splits import training_names
 from dpc_jax.hugepages import reexec_with_huge_pages
 from dpc_jax.pipelines import protocol as P
+from dpc_jax.report.protocol import write_results
 
 HERE = Path(__file__).resolve().parent
 
@@ -90,7 +91,7 @@ def main(argv: Sequence[str] | None = None) -> int:
              f"(mono rescaled to the ground-truth step length); stereo: rotation-only correction; "
              f"epoch selection: {select}."
              + (" SMOKE RUN (1 epoch of 2 steps): the numbers mean nothing." if args.smoke else "")]
-    P.print_results(P.write_results(args.workdir, results, "ss-DPC-Net on KITTI odometry", notes))
+    P.print_results(write_results(args.workdir, results, "ss-DPC-Net on KITTI odometry", notes))
     return 0
 
 

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from dpc_jax.hugepages import reexec_with_huge_pages
 from dpc_jax.pipelines import protocol as P
+from dpc_jax.report.protocol import write_results
 
 HERE = Path(__file__).resolve().parent
 
@@ -87,7 +88,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     notes = [f"Stereo DPC (Zhang et al.), leave-one-out; validation per fold as in {args.config.name}; "
              f"priors: {args.priors}; epoch selection: {select}."
              + (" SMOKE RUN (1 epoch of 2 steps): the numbers mean nothing." if args.smoke else "")]
-    P.print_results(P.write_results(args.workdir, results, "Stereo DPC on KITTI odometry", notes))
+    P.print_results(write_results(args.workdir, results, "Stereo DPC on KITTI odometry", notes))
     return 0
 
 

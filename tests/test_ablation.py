@@ -6,7 +6,7 @@ import importlib.util
 from pathlib import Path
 
 from dpc_jax import config as config_lib
-from dpc_jax.pipelines.demo import TRAINING, DemoConfig
+from dpc_jax.pipelines.demo_config import TRAINING, DemoConfig
 from dpc_jax.training.config import REFERENCE, TrainConfig
 
 ABLATION = Path(__file__).resolve().parents[1] / "experiments" / "ablation.py"

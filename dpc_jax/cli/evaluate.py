@@ -147,7 +147,8 @@ def run(args: argparse.Namespace) -> int:
                              f"got {args.rpe_delta}")
         import_jax(x64=True)
         from dpc_jax._io import OutputSet, atomic_write
-        from dpc_jax.eval.evaluation import evaluate, export_trajectories, format_table, write_report
+        from dpc_jax.eval.evaluation import evaluate
+        from dpc_jax.report.evaluation import export_trajectories, format_table, write_report
 
         result = evaluate(gt, estimates, remove_static=args.remove_static, align=args.align,
                           rpe_delta=args.rpe_delta, diagnose=args.diagnose, focal_px=args.focal)

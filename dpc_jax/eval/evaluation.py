@@ -1,4 +1,4 @@
-"""Evaluate estimated trajectories against ground truth, and write reports and evo-readable exports.
+"""Evaluate estimated trajectories against ground truth (its report: :mod:`dpc_jax.report.evaluation`).
 
 :func:`evaluate` is the one entry point every command that reports metrics uses (``evaluate``,
 ``train``, ``correct``, ``demo``). It prepares the trajectories as the papers do, then computes every
@@ -19,21 +19,16 @@ prepared trajectories and the per-length and cumulative curves as attributes.
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 import math
 import re
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import cast
+from typing import Any, cast
 
 import numpy as np
 
-from dpc_jax._io import atomic_write
-from dpc_jax.data.poses_io import write_kitti_poses, write_tum
-from dpc_jax.eval.diagnosis import Diagnosis, format_diagnosis
+from dpc_jax.eval.diagnosis import Diagnosis
 from dpc_jax.geometry.poses import compose, invert_poses, relative_poses, remove_static_frames
 
 SUMMARY_KEYS: tuple[str, ...] = (
@@ -47,11 +42,6 @@ SUMMARY_KEYS: tuple[str, ...] = (
     "rpe_trans_m",
     "rpe_rot_deg",
     "loop_closures",
-)
-# Column titles of the Markdown table, in the order of SUMMARY_KEYS.
-_TITLES = (
-    "m-ATE (m)", "m-ATE (°)", "seg. t (%)", "seg. r (°/100 m)", "KITTI t (%)", "KITTI r (°/100 m)",
-    "ATE (m)", "RPE t (m)", "RPE r (°)", "loops",
 )
 _LABEL = re.compile(r"[A-Za-z0-9_.+-]+")
 GT_LABEL = "gt"
@@ -219,118 +209,15 @@ def evaluate(
     )
 
 
-# ----------------------------------------------------------------------------- text outputs
+# The report moved to dpc_jax.report.evaluation. dpc_jax/__init__.py (write_report, export_trajectories)
+# and cli/correct.py (format_table) still import these names from here; they resolve at first use, by
+# name, until those two imports name dpc_jax.report.evaluation and this goes.
+_MOVED = ("write_report", "export_trajectories", "format_table")
 
 
-def _fmt(value: float | int | None) -> str:
-    if value is None:
-        return "n/a"
-    if isinstance(value, int):
-        return str(value)
-    return f"{value:.4g}" if abs(value) < 1e4 else f"{value:.0f}"
+def __getattr__(name: str) -> Any:
+    if name in _MOVED:
+        import importlib
 
-
-def format_table(result: Evaluation) -> str:
-    """Markdown table of the summary, one row per estimate."""
-    lines = ["| estimate | " + " | ".join(_TITLES) + " |", "|---" * (len(_TITLES) + 1) + "|"]
-    for label, m in result.metrics.items():
-        lines.append(f"| {label} | " + " | ".join(_fmt(m.summary[k]) for k in SUMMARY_KEYS) + " |")
-    return "\n".join(lines) + "\n"
-
-
-def format_segment_table(result: Evaluation) -> str:
-    """Markdown table of the per-length segment errors (translation % / rotation °/100 m)."""
-    lengths = next(iter(result.metrics.values())).seg_lengths_m
-    lines = [
-        "| estimate | " + " | ".join(f"{length:g} m" for length in lengths) + " |",
-        "|---" * (len(lengths) + 1) + "|",
-    ]
-    for label, m in result.metrics.items():
-        cells = [
-            "n/a" if np.isnan(t) else f"{t:.3g} / {r:.3g}"
-            for t, r in zip(m.seg_per_length_trans_pct, m.seg_per_length_rot_deg_per_100m, strict=True)
-        ]
-        lines.append(f"| {label} | " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
-
-
-def metrics_csv(result: Evaluation) -> str:
-    """CSV text: header ``label,<SUMMARY_KEYS>``, one row per estimate (empty cell for NaN)."""
-    buffer = io.StringIO()
-    writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(["label", *SUMMARY_KEYS])
-    for label, m in result.metrics.items():
-        writer.writerow([label, *("" if m.summary[k] is None else m.summary[k] for k in SUMMARY_KEYS)])
-    return buffer.getvalue()
-
-
-def segment_csv(result: Evaluation) -> str:
-    """CSV text: ``label,length_m,count,trans_pct,rot_deg_per_100m``, one row per estimate and length."""
-    buffer = io.StringIO()
-    writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(["label", "length_m", "count", "trans_pct", "rot_deg_per_100m"])
-    for label, m in result.metrics.items():
-        for length, count, t, r in zip(
-            m.seg_lengths_m, m.seg_counts, m.seg_per_length_trans_pct, m.seg_per_length_rot_deg_per_100m,
-            strict=True,
-        ):
-            writer.writerow(
-                [label, f"{length:g}", int(count), "" if np.isnan(t) else t, "" if np.isnan(r) else r]
-            )
-    return buffer.getvalue()
-
-
-def write_report(
-    directory: str | Path, result: Evaluation, title: str = "Trajectory evaluation"
-) -> list[Path]:
-    """Write ``report.md``, ``metrics.csv``, ``segment_errors.csv`` and the PNG plots into ``directory``.
-
-    Plots: ``trajectory.png`` (horizontal plane), ``segment_errors.png`` (per length, translation
-    and rotation), ``c_ate.png`` (cumulative errors). Every file is written atomically; the
-    directory is created if needed. Returns the written paths.
-    """
-    from dpc_jax.eval import plots
-
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    settings = [
-        f"{result['num_poses']} poses evaluated",
-        "static frames removed (ss-DPC-Net rule)" if result.remove_static else "all frames",
-        f"ATE alignment: {result.align}",
-        f"RPE Δ = {result.rpe_delta} frame(s)",
-    ]
-    report = "\n".join([
-        f"# {title}", "", "; ".join(settings) + ".", "", format_table(result),
-        "Segment errors per length (translation % / rotation °/100 m):", "", format_segment_table(result),
-        *(["## What the error is made of", "", format_diagnosis(result.diagnoses)]
-          if result.diagnoses else []),
-        "![trajectories](trajectory.png)", "", "![segment errors](segment_errors.png)", "",
-        "![cumulative error](c_ate.png)", "",
-    ])
-    written = []
-    texts = {"report.md": report, "metrics.csv": metrics_csv(result)}
-    texts["segment_errors.csv"] = segment_csv(result)
-    for name, text in texts.items():
-        atomic_write(directory / name, text)
-        written.append(directory / name)
-    written.append(plots.plot_trajectories(directory / "trajectory.png", result.gt, result.trajectories))
-    written.append(plots.plot_segment_errors(directory / "segment_errors.png", result.metrics))
-    written.append(plots.plot_c_ate(directory / "c_ate.png", result.metrics))
-    return written
-
-
-def export_trajectories(directory: str | Path, result: Evaluation) -> list[Path]:
-    """Write the evaluated ground truth and estimates as ``NAME.kitti.txt`` and ``NAME.tum.txt`` (evo).
-
-    ``NAME`` is ``gt`` or the estimate's label. The TUM timestamps are the frame indices of the
-    evaluated frames in the input sequence, so GT and estimates associate one to one in evo.
-    """
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    stamps = result.frames.astype(np.float64)
-    written = []
-    for name, traj in ((GT_LABEL, result.gt), *result.trajectories.items()):
-        write_kitti_poses(directory / f"{name}.kitti.txt", traj)
-        write_tum(directory / f"{name}.tum.txt", traj, stamps)
-        written += [directory / f"{name}.kitti.txt", directory / f"{name}.tum.txt"]
-    return written
+        return getattr(importlib.import_module("dpc_jax.report.evaluation"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -42,17 +42,15 @@ import math
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from dpc_jax import config as config_lib
-from dpc_jax._io import atomic_write
-from dpc_jax.data.holdout import MIN_EVERY
-from dpc_jax.training.config import SELECTIONS
-from dpc_jax.vo.odometry import FALLBACK_WARNING_SHARE
+from dpc_jax.pipelines.demo_config import DemoConfig
+from dpc_jax.report.demo import decision_label, write_demo_report
 
 if TYPE_CHECKING:
     from dpc_jax.adapt import Adaptation
@@ -62,134 +60,12 @@ if TYPE_CHECKING:
     from dpc_jax.eval.evaluation import Evaluation
     from dpc_jax.training.config import TrainConfig
 
-# Training defaults of the demo (``TrainConfig`` fields); ``DemoConfig.training`` overrides them.
-TRAINING: dict[str, Any] = {
-    "method": "stereo_dpc",
-    "preset": "small",
-    "image_size": (64, 96),
-    "batch_size": 8,
-    "epochs": 8,
-    "learning_rate": 2e-3,
-    "lr_halving_epochs": 2,
-    "keep_checkpoints": 1,
-}
-# The demo sets these itself (paths and split).
-_MANAGED = ("cache_root", "train_sequences", "validation_sequences", "test_sequences")
 # The run and the caches inside OUT (the report lists them as `run/` and `cache/`).
 _RUN_DIR, _CACHE_DIR = "run", "cache"
 
 
 class DemoError(ValueError):
     """The demo cannot go on (e.g. its VO prior is not VO); the message says why and what to change."""
-
-
-@dataclass(frozen=True)
-class DemoConfig:
-    """What the demo renders, how it trains and how it corrects.
-
-    Data
-        * ``train_sequences``, ``train_frames``: number and length (frames, 10 Hz) of the training
-          sequences; ``validation_frames``, ``test_frames``: the one validation (epoch selection)
-          and one test (held out) sequence.
-        * ``render_size``: ``(H, W)`` of the rendered images (the VO runs on them; the network
-          sees them resized to the training ``image_size``).
-        * ``moving_objects``, ``illumination_drift``, ``noise``, ``disparity_offset``: see
-          ``dpc_jax.synth.SynthConfig``.
-        * ``vo_estimate_offset``: the prior's VO self-calibrates the disparity offset (False: it
-          ignores the residual, as libviso2).
-        * ``rectify_offset``: measure the residual with our VO's online estimate and rectify the
-          network's images by it.
-        * ``seed``: training sequence i has seed ``seed + i``, validation ``seed + 100``, test
-          ``seed + 200``.
-    Training and correction
-        * ``training``: ``TrainConfig`` fields overriding :data:`TRAINING` (not the cache root
-          or the split, which the demo sets).
-        * ``select``: the epoch used for the test: ``delta`` (most negative validation Δ; no ground
-          truth), ``gradient``, ``loop`` or ``last``.
-        * ``acceptance``: apply a correction only where the acceptance test passes (False: apply
-          every correction, as the papers do).
-        * ``adapt_steps`` (0: no adaptation), ``holdout_every``: see ``dpc_jax.adapt``.
-        * ``max_fallback_share``: the demo refuses a prior whose VO fell back to constant velocity on
-          more of the pairs than this (default ``dpc_jax.vo.odometry.FALLBACK_WARNING_SHARE``).
-    """
-
-    train_sequences: int = 2
-    train_frames: int = 300
-    validation_frames: int = 150
-    test_frames: int = 300
-    render_size: tuple[int, int] = (240, 376)
-    moving_objects: int = 6
-    illumination_drift: float = 0.3
-    noise: float = 1.0
-    disparity_offset: float = -0.8
-    vo_estimate_offset: bool = False
-    rectify_offset: bool = True
-    seed: int = 0
-    training: dict[str, Any] = field(default_factory=dict)
-    select: str = "delta"
-    acceptance: bool = True
-    adapt_steps: int = 300
-    holdout_every: int = 5
-    max_fallback_share: float = FALLBACK_WARNING_SHARE
-
-    def __post_init__(self) -> None:
-        problems = []
-        if self.train_sequences < 1:
-            problems.append(f"train_sequences must be >= 1, got {self.train_sequences}")
-        for name in ("train_frames", "validation_frames", "test_frames"):
-            if getattr(self, name) < 3:
-                problems.append(f"{name} must be >= 3, got {getattr(self, name)}")
-        if self.select not in SELECTIONS:
-            problems.append(f"select must be one of {tuple(SELECTIONS)}, got {self.select!r}")
-        if self.adapt_steps < 0 or self.holdout_every < MIN_EVERY:
-            problems.append(f"adapt_steps must be >= 0 and holdout_every >= {MIN_EVERY}, got "
-                            f"{self.adapt_steps}, {self.holdout_every}")
-        managed = sorted(set(self.training) & set(_MANAGED))
-        if managed:
-            problems.append(f"training sets {managed}, which the demo chooses itself")
-        if problems:
-            raise config_lib.ConfigError("invalid DemoConfig: " + "; ".join(problems))
-        self.synth_config("test")  # SynthConfig's own checks
-        self.train_config("cache")  # TrainConfig's own checks
-
-    @property
-    def sequences(self) -> dict[str, str]:
-        """Sequence name → role (``train``, ``validation``, ``test``), in rendering order."""
-        names = {f"train{i}": "train" for i in range(self.train_sequences)}
-        return {**names, "val": "validation", "test": "test"}
-
-    def synth_config(self, name: str) -> Any:
-        """The ``SynthConfig`` of sequence ``name`` (see :attr:`sequences`)."""
-        from dpc_jax.synth import SynthConfig
-
-        if name.startswith("train"):
-            frames, seed = self.train_frames, self.seed + int(name[5:])
-        elif name == "val":
-            frames, seed = self.validation_frames, self.seed + 100
-        elif name == "test":
-            frames, seed = self.test_frames, self.seed + 200
-        else:
-            raise KeyError(f"no demo sequence {name!r}; expected one of {list(self.sequences)}")
-        return SynthConfig(
-            frames=frames, height=self.render_size[0], width=self.render_size[1], seed=seed,
-            moving_objects=self.moving_objects, illumination_drift=self.illumination_drift, noise=self.noise,
-            disparity_offset=self.disparity_offset,
-        )
-
-    def train_config(self, cache_root: str | os.PathLike) -> Any:
-        """The ``TrainConfig`` of the demo's run on the caches under ``cache_root``."""
-        from dpc_jax.training.config import TrainConfig
-
-        roles = self.sequences
-        values = {
-            **TRAINING,
-            **self.training,
-            "cache_root": str(cache_root),
-            "train_sequences": tuple(n for n, r in roles.items() if r == "train"),
-            "validation_sequences": ("val",),
-            "test_sequences": ("test",),
-        }
-        return config_lib.from_dict(TrainConfig, values, where="DemoConfig.training")
 
 
 ProgressFn = Callable[[str], None]
@@ -213,32 +89,6 @@ def _render(config: DemoConfig, data_root: Path, name: str, progress: bool) -> b
     return True
 
 
-def _fmt(value: float | None, digits: int = 3) -> str:
-    return "n/a" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
-
-
-def _epoch_table(metrics_csv: Path, selected: int) -> str:
-    """Markdown table of the run's per-epoch validation figures (the selected epoch marked)."""
-    import csv
-
-    with metrics_csv.open(newline="") as f:
-        rows = list(csv.DictReader(f))
-    lines = [
-        "| epoch | train loss | val gradient loss | val r_err prior → corrected (°/100 m) | "
-        "val t_err prior → corrected (%) |",
-        "|---|---|---|---|---|",
-    ]
-    for row in rows:
-        epoch = int(row["epoch"])
-        mark = " (selected)" if epoch == selected else ""
-        lines.append(
-            f"| {epoch}{mark} | {float(row['train_loss']):.4f} | {float(row['val_gradient_loss']):.5f} | "
-            f"{_fmt(float(row['val_prior_r_err']))} → {_fmt(float(row['val_corrected_r_err']))} | "
-            f"{_fmt(float(row['val_prior_t_err']), 2)} → {_fmt(float(row['val_corrected_t_err']), 2)} |"
-        )
-    return "\n".join(lines) + "\n"
-
-
 def prior_error(gt: np.ndarray, prior: np.ndarray, focal_px: float | None = None) -> dict[str, Any]:
     """What a prior's error consists of (:func:`dpc_jax.eval.diagnosis.diagnose`, the same as
     ``dpc-jax evaluate --diagnose``): the mean per frame (systematic) and the standard deviation
@@ -249,180 +99,6 @@ def prior_error(gt: np.ndarray, prior: np.ndarray, focal_px: float | None = None
     record = diagnose(gt, prior, focal_px).to_dict()
     record["std"] = record.pop("spread")
     return record
-
-
-def _composition_table(records: dict[str, dict[str, Any]]) -> str:
-    axes = ("ρx", "ρy", "ρz", "φx", "φy", "φz")
-    lines = [
-        "| sequence | fallbacks | offset measured (px) | "
-        + " | ".join(f"{a} mean ± std ({'mm' if a[0] == 'ρ' else 'mrad'})" for a in axes) + " |",
-        "|---" * (3 + len(axes)) + "|",
-    ]
-    lines[0] += " end-point drift the mean explains (position / heading) | mean rotation per step (px) |"
-    lines[1] += "---|---|"
-    for name, r in records.items():
-        error = r["error"]
-        cells = [f"{m:+.2f} ± {s:.2f}" for m, s in zip(error["mean"], error["std"], strict=True)]
-        shares = " / ".join(
-            "n/a" if error.get(k) is None else f"{100 * error[k]:.0f} %"
-            for k in ("drift_trans_explained", "drift_rot_explained")
-        )
-        px = "n/a" if error.get("mean_rot_px_norm") is None else f"{error['mean_rot_px_norm']:.3f}"
-        head = f"| {name} | {r['fallbacks']}/{r['pairs']} | {r['offset']:+.3f} | "
-        lines.append(head + " | ".join(cells) + f" | {shares} | {px} |")
-    return "\n".join(lines) + "\n"
-
-
-def _decision(correction: Any) -> str:
-    if correction.acceptance.forced:
-        return "not tested (applied)"
-    names = {"full": "accepted (full 6-DoF)", "rotation": "accepted (rotation only)", "none": "rejected"}
-    return names[correction.applied]
-
-
-def _results_table(summary: dict[str, Any]) -> str:
-    columns = (("seg_trans_pct", "seg. t (%)"), ("seg_rot_deg_per_100m", "seg. r (°/100 m)"),
-               ("m_ate_trans_m", "m-ATE (m)"), ("m_ate_rot_deg", "m-ATE (°)"), ("ate_m", "ATE (m)"))
-    rows = [("prior (our VO)", "prior", "")]
-    labels = (("trained", "network as trained"), ("adapted", "network adapted to the test sequence"))
-    for key, label in labels:
-        if key in summary["test"]:
-            rows.append((f"{label} (epoch {summary['selected_epoch']})", key, summary["decisions"][key]))
-    rows.append((f"**final: {summary['final']}** (corrected.txt)", "corrected", summary["choice"]["reason"]))
-    lines = ["| estimate | acceptance test | " + " | ".join(t for _, t in columns) + " |",
-             "|---|---|" + "---|" * len(columns)]
-    for label, key, decision in rows:
-        values = summary["test"][key]
-        lines.append(f"| {label} | {decision} | " + " | ".join(_fmt(values[k]) for k, _ in columns) + " |")
-    return "\n".join(lines) + "\n"
-
-
-def _write_evaluation_files(out: Path, evaluation: Evaluation) -> None:
-    """The plots and the metric files (``metrics.csv``, ``segment_errors.csv``, ``metrics.json``)."""
-    from dpc_jax.eval import plots
-    from dpc_jax.eval.evaluation import metrics_csv, segment_csv
-
-    plots.plot_trajectories(out / "trajectory.png", evaluation.gt, evaluation.trajectories)
-    plots.plot_segment_errors(out / "segment_errors.png", evaluation.metrics)
-    plots.plot_c_ate(out / "c_ate.png", evaluation.metrics)
-    atomic_write(out / "metrics.csv", metrics_csv(evaluation))
-    atomic_write(out / "segment_errors.csv", segment_csv(evaluation))
-    atomic_write(out / "metrics.json", evaluation.to_json())
-
-
-def _overview(config: DemoConfig, train_config: TrainConfig, summary: dict[str, Any]) -> list[str]:
-    """The report's title and its paragraph on the data, the prior and the network."""
-    lengths = ", ".join(f"{n}: {summary['lengths_m'][n]:.0f} m" for n in config.sequences)
-    size = train_config.resolved_image_size
-    return [
-        "# dpc_jax synthetic demo: Stereo DPC corrects a classical stereo VO",
-        "",
-        f"Synthetic stereo sequences ({config.render_size[0]}×{config.render_size[1]}, 10 Hz) with moving "
-        f"cars ({config.moving_objects}), an illumination drift (±{config.illumination_drift:g}), image "
-        f"noise (σ = {config.noise:g}) and a stereo calibration residual of {config.disparity_offset:+g} px: "
-        f"{config.train_sequences} for training, one for validation (epoch selection), one held-out test "
-        f"sequence ({lengths}). Prior: our classical stereo VO with its online disparity-offset estimate "
-        f"{'on' if config.vo_estimate_offset else 'off (as libviso2)'}. "
-        + ("The network's images are rectified by the residual our VO measures with the estimate on. "
-           if config.rectify_offset else "")
-        + f"Network: Stereo DPC, `{train_config.preset}` preset, {size[0]}×{size[1]} input, "
-        f"{train_config.epochs} epoch(s) of {summary['steps_per_epoch']} steps (batch "
-        f"{train_config.batch_size}); epoch {summary['selected_epoch']} selected by `{config.select}`."
-        + (" **Trained with DPC-Net's supervised loss: the training steps read the training sequences' "
-           "ground truth** (`supervision: supervised`); validation, the acceptance test and the "
-           "adaptation do not." if train_config.supervision == "supervised" else ""),
-        "",
-    ]
-
-
-def _composition_section(summary: dict[str, Any]) -> list[str]:
-    """The report's section on what each sequence's prior error consists of."""
-    return [
-        "## What the prior's error consists of (ground truth, for this report only)",
-        "",
-        "Per sequence: constant-velocity fallbacks of the prior's VO, the disparity offset our VO measured, "
-        "and the correction each step needs — its mean per frame (systematic: what a correction can learn) "
-        "and its spread (random: it averages out over a segment); the share of the end-point drift that the "
-        "mean alone produces (the bias-only trajectory's drift projected on the prior's); the mean "
-        "rotation's image shift at the principal point at the rendered images' focal length "
-        "(`dpc-jax evaluate --diagnose`).",
-        "",
-        _composition_table(summary["sequences"]),
-    ]
-
-
-def _adaptation_paragraph(adaptation: dict[str, Any] | None) -> str:
-    """What the adaptation to the test sequence did, or that there was none."""
-    if not adaptation:
-        return "No adaptation (adapt_steps = 0)."
-    return (
-        f"Adaptation: {adaptation['steps']} steps on the test sequence's own pairs "
-        f"({adaptation['seconds']:.0f} s), every {adaptation['holdout_every']}th pair "
-        f"({adaptation['held_out']} pairs) kept out for its "
-        "acceptance test; the adapted network is in `adapted/`."
-    )
-
-
-def _test_section(evaluation: Evaluation, summary: dict[str, Any]) -> list[str]:
-    """The report's test section: the table, the final trajectory against the prior, the adaptation, the
-    per-length errors and the plots."""
-    from dpc_jax.eval.evaluation import format_segment_table
-
-    prior, corrected = (summary["test"][k] for k in ("prior", "corrected"))
-    change = {k: summary["change_pct"][k] for k in ("seg_trans_pct", "seg_rot_deg_per_100m")}
-    return [
-        "## Test sequence",
-        "",
-        _results_table(summary),
-        f"Final trajectory against the prior: translation {_fmt(prior['seg_trans_pct'])} → "
-        f"{_fmt(corrected['seg_trans_pct'])} % ({change['seg_trans_pct']:+.1f} %), rotation "
-        f"{_fmt(prior['seg_rot_deg_per_100m'])} → {_fmt(corrected['seg_rot_deg_per_100m'])} °/100 m "
-        f"({change['seg_rot_deg_per_100m']:+.1f} %). The acceptance test decides without ground truth "
-        "(docs/method.md §8); the network rows show each network's proposal whatever its test said.",
-        "",
-        _adaptation_paragraph(summary.get("adaptation")),
-        "",
-        "Segment errors per length (translation % / rotation °/100 m):",
-        "",
-        format_segment_table(evaluation),
-        "![trajectories](trajectory.png)",
-        "",
-        "![segment errors](segment_errors.png)",
-        "",
-        "![cumulative errors](c_ate.png)",
-        "",
-    ]
-
-
-def _training_section(summary: dict[str, Any], run_dir: Path) -> list[str]:
-    """The report's training section (per-epoch validation figures), the wall time and the list of files."""
-    stages = ", ".join(f"{k} {v:.0f} s" for k, v in summary["seconds"].items())
-    return [
-        "## Training (validation sequence; ground-truth errors logged, never used)",
-        "",
-        _epoch_table(run_dir / "metrics.csv", summary["selected_epoch"]),
-        f"Wall time: {summary['seconds_total']:.0f} s ({stages}).",
-        "",
-        "Files: `corrected.txt` (KITTI poses of the final test trajectory), `metrics.csv`, "
-        "`segment_errors.csv`, `metrics.json`, `summary.json`, `run/` (checkpoints, metrics.csv, "
-        "TensorBoard), `adapted/` (the adapted network, its log), `vo/` (priors and calibration runs), "
-        "`data/` (rendered sequences), `cache/`.",
-        "",
-    ]
-
-
-def _write_report(out: Path, config: DemoConfig, train_config: TrainConfig, evaluation: Evaluation,
-                  summary: dict[str, Any], run_dir: Path) -> Path:
-    """``OUT/report.md`` with the tables, the per-length errors, the records and the plots."""
-    _write_evaluation_files(out, evaluation)
-    text = "\n".join([
-        *_overview(config, train_config, summary),
-        *_composition_section(summary),
-        *_test_section(evaluation, summary),
-        *_training_section(summary, run_dir),
-    ])
-    atomic_write(out / "report.md", text)
-    return out / "report.md"
 
 
 def _change(prior: float | None, corrected: float | None) -> float:
@@ -526,7 +202,8 @@ def _correct_test(config: DemoConfig, out: Path, seconds: dict[str, float], prog
     test_cache = load_cache(out / _CACHE_DIR / "test")
     corrections = {"trained": correct_cache(run, test_cache, force=not config.acceptance, progress=progress)}
     seconds["correct"] = time.perf_counter() - t
-    say(f"network as trained (epoch {run.epoch}): {_decision(corrections['trained'])} on the test sequence")
+    say(f"network as trained (epoch {run.epoch}): {decision_label(corrections['trained'].acceptance)} "
+        "on the test sequence")
     adaptation: Adaptation | None = None
     if config.adapt_steps:
         t = time.perf_counter()
@@ -535,7 +212,8 @@ def _correct_test(config: DemoConfig, out: Path, seconds: dict[str, float], prog
             run, test_cache, how, force=not config.acceptance, progress=progress)
         save_adapted(out / "adapted", adaptation, {"delta": corrections["adapted"].acceptance.mean_delta})
         seconds["adapt"] = time.perf_counter() - t
-        say(f"adapted ({config.adapt_steps} steps): {_decision(corrections['adapted'])} on held-out pairs")
+        say(f"adapted ({config.adapt_steps} steps): {decision_label(corrections['adapted'].acceptance)} "
+            "on held-out pairs")
     final, result = choose(corrections["trained"], corrections.get("adapted"))
     write_trajectory(out / "corrected.txt", result)
     return _TestCorrections(run.epoch, test_cache, corrections, adaptation, final, result)
@@ -559,7 +237,7 @@ def _evaluate_test(config: DemoConfig, tested: _TestCorrections,
               for k in ("seg_trans_pct", "seg_rot_deg_per_100m")}
     return evaluation, {
         "test": test_metrics,
-        "decisions": {k: _decision(c) for k, c in tested.corrections.items()},
+        "decisions": {k: decision_label(c.acceptance) for k, c in tested.corrections.items()},
         "acceptance": {k: c.acceptance.to_dict() for k, c in tested.corrections.items()},
         "final": tested.final,
         "choice": tested.result.choice,
@@ -577,7 +255,7 @@ def _write_results(out: Path, config: DemoConfig, train_config: TrainConfig, eva
     t = time.perf_counter()
     # The report states the wall time up to itself; summary.json then gets the total with the report's time.
     summary["seconds_total"] = time.perf_counter() - began
-    report = _write_report(out, config, train_config, evaluation, summary, out / _RUN_DIR)
+    report = write_demo_report(out, config, train_config, evaluation, summary, out / _RUN_DIR)
     summary["seconds"]["report"] = time.perf_counter() - t
     summary["seconds_total"] = time.perf_counter() - began
     summary["report"] = str(report)

@@ -1,4 +1,5 @@
-"""What the experiment entry points share: priors, caches, folds, training, correction, result tables.
+"""What the experiment entry points share: priors, caches, folds, training, correction (the results
+table: :mod:`dpc_jax.report.protocol`).
 
 An experiment is a list of *folds*. A fold trains one network (``dpc_jax.training.loop.train``) on its
 training sequences, selects the epoch on its validation sequence without ground truth, corrects
@@ -22,11 +23,9 @@ KITTI (their ``--smoke`` tests).
 
 from __future__ import annotations
 
-import csv
 import io
 import json
 import logging
-import math
 import runpy
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -168,7 +167,7 @@ def prepare(
     )
 
 
-# --------------------------------------------------------------------------- train, correct, report
+# --------------------------------------------------------------------------- train and correct
 
 
 def train_fold(config: Any, workdir: Path, progress: bool) -> dict[str, Any]:
@@ -196,9 +195,10 @@ def correct_and_evaluate(
     trajectory is chosen by ``dpc_jax.correct.choose`` (the adapted correction only if it passes
     its test and beats the trained one, else the trained one if it passes, else the prior). Writes
     the final trajectory, the reports and (adapting) the adapted network."""
-    from dpc_jax.correct import choose, correct_cache, write_correction_report, write_trajectory
+    from dpc_jax.correct import choose, correct_cache, write_trajectory
     from dpc_jax.data.sequence_cache import load_cache
     from dpc_jax.inference import load_run
+    from dpc_jax.report.correction import write_correction_report
 
     run = load_run(run_dir, select)
     loaded = load_cache(cache)
@@ -230,71 +230,6 @@ def correct_and_evaluate(
     return Result(fold, name, prior_label, run.epoch, select, int(correction.corrected.shape[0]),
                   {"prior": estimates["prior"], "corrected": estimates["corrected"]},
                   f"{final}" + (f" ({correction.applied})" if final != "prior" else ""), stages, decisions)
-
-
-COLUMNS = (
-    ("seg_trans_pct", "seg. t (%)"), ("seg_rot_deg_per_100m", "seg. r (°/100 m)"),
-    ("m_ate_trans_m", "m-ATE (m)"), ("m_ate_rot_deg", "m-ATE (°)"), ("ate_m", "ATE (m)"),
-)
-
-
-def _cell(value: Any) -> str:
-    return "n/a" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.4g}"
-
-
-def results_markdown(results: Sequence[Result], title: str, notes: Sequence[str] = ()) -> str:
-    """The results table: one row per test sequence and prior, prior → corrected for each metric."""
-    header = ["fold", "sequence", "prior", "epoch", "applied", "frames", *(t for _, t in COLUMNS)]
-    preamble: list[str | None] = [f"# {title}", "", *(f"{n}" for n in notes), "" if notes else None]
-    lines = [x for x in preamble if x is not None]
-    lines += ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
-    for r in results:
-        cells = [f"{_cell(r.metrics['prior'][k])} → {_cell(r.metrics['corrected'][k])}" for k, _ in COLUMNS]
-        lines.append("| " + " | ".join(
-            [r.fold, r.sequence, r.prior_label, f"{r.epoch} ({r.selection})", r.applied, str(r.frames),
-             *cells]
-        ) + " |")
-    lines += ["", "Each cell: prior → corrected. Segment errors are the mean of the per-length means over "
-              "100–800 m (n/a when the sequence is shorter than 100 m). applied: which network's correction "
-              "the final trajectory holds and what its acceptance test let through (full, rotation), or "
-              "prior (no test passed)."]
-    staged = [r for r in results if r.stages]
-    if staged:
-        titles = " | ".join(t for _, t in COLUMNS)
-        stage_header = f"| sequence | prior | estimate | acceptance test | {titles} |"
-        lines += ["", "Per network (each row: that network's correction applied, whatever its test said):",
-                  "", stage_header, "|---" * (4 + len(COLUMNS)) + "|"]
-        for r in staged:
-            rows = [("prior", "", r.metrics["prior"])]
-            rows += [(f"network {label}", r.decisions[label], m) for label, m in r.stages.items()]
-            rows.append((f"final ({r.applied})", "", r.metrics["corrected"]))
-            for label, decision, m in rows:
-                cells = [_cell(m[k]) for k, _ in COLUMNS]
-                head = f"| {r.sequence} | {r.prior_label} | {label} | {decision} | "
-                lines.append(head + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
-
-
-def results_csv(results: Sequence[Result]) -> str:
-    """CSV: one row per test sequence, prior and corrected value of every summary metric."""
-    buffer = io.StringIO()
-    keys = list(results[0].metrics["prior"]) if results else []
-    writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(["fold", "sequence", "prior", "epoch", "selection", "applied", "frames",
-                     *(f"{which}_{k}" for which in ("prior", "corrected") for k in keys)])
-    for r in results:
-        values = [r.metrics[which][k] for which in ("prior", "corrected") for k in keys]
-        writer.writerow([r.fold, r.sequence, r.prior_label, r.epoch, r.selection, r.applied, r.frames,
-                         *("" if v is None else v for v in values)])
-    return buffer.getvalue()
-
-
-def write_results(workdir: Path, results: Sequence[Result], title: str, notes: Sequence[str] = ()) -> Path:
-    """``WORKDIR/results.md`` and ``results.csv`` (atomic); returns the Markdown path."""
-    workdir.mkdir(parents=True, exist_ok=True)
-    atomic_write(workdir / "results.csv", results_csv(results))
-    atomic_write(workdir / "results.md", results_markdown(results, title, notes))
-    return workdir / "results.md"
 
 
 # --------------------------------------------------------------------------- fake KITTI (smoke tests)

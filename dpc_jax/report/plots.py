@@ -17,16 +17,13 @@ from __future__ import annotations
 import io
 from collections.abc import Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from dpc_jax._io import atomic_write
-
-if TYPE_CHECKING:
-    from dpc_jax.eval.evaluation import EstimateMetrics
+from dpc_jax.eval.evaluation import EstimateMetrics
 
 _AXES = "xyz"
 _DPI = 120

@@ -1,0 +1,106 @@
+"""The report of a corrected sequence (:class:`dpc_jax.correct.Correction`): the acceptance test, how the
+final correction was chosen, what the adaptation did, and the evaluation when there is ground truth."""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Protocol
+
+from dpc_jax._io import atomic_write
+from dpc_jax.acceptance import Acceptance, ComponentTest
+from dpc_jax.eval.evaluation import Evaluation
+from dpc_jax.report.evaluation import write_report
+from dpc_jax.report.tables import row, rule
+
+_TEST_COLUMNS = ("pairs", "mean Δ", "median Δ", "pairs improved", "Wilcoxon W", "p (one-sided)", "passed")
+
+
+class CorrectionResult(Protocol):
+    """What the report reads of a :class:`dpc_jax.correct.Correction` (a protocol, so that the
+    correction can import this module and not the reverse)."""
+
+    @property
+    def acceptance(self) -> Acceptance: ...
+
+    @property
+    def evaluation(self) -> Evaluation | None: ...
+
+    @property
+    def adaptation(self) -> Mapping[str, Any] | None: ...
+
+    @property
+    def choice(self) -> Mapping[str, object] | None: ...
+
+    def summary(self) -> dict[str, object]: ...
+
+
+def _test_row(t: ComponentTest) -> str:
+    return row([t.component, str(t.pairs), f"{t.mean_delta:.3e}", f"{t.median_delta:.3e}",
+                f"{100 * t.improved_share:.1f} %", f"{t.statistic:.4g}", f"{t.p_value:.3g}",
+                "yes" if t.passed else "no"])
+
+
+def acceptance_markdown(acceptance: Acceptance) -> str:
+    """The acceptance test as Markdown: one row per component tested, then the decision."""
+    lines = [row(["component", *_TEST_COLUMNS]), rule(1 + len(_TEST_COLUMNS)),
+             *(_test_row(t) for t in acceptance.tests.values())]
+    applied = {"full": "the full correction", "rotation": "only the rotation of the correction",
+               "none": "nothing: the corrected trajectory is the prior"}[acceptance.decision]
+    return "\n".join([
+        *lines, "",
+        f"Δ = L(ξ_corr) − L(0) per frame pair: the gradient-masked photometric error of the temporal "
+        f"reconstructions with the correction minus without it, same depth (negative: the correction "
+        f"explains the images better). Test: one-sided Wilcoxon signed-rank at α = {acceptance.alpha:g}.",
+        "",
+        f"**Applied: {applied}** ({acceptance.reason}).",
+        "",
+    ])
+
+
+def choice_markdown(choice: Mapping[str, object]) -> str:
+    """How :func:`dpc_jax.correct.choose` decided, as Markdown (a table row for the comparison, if one
+    was made)."""
+    lines = ["## Final choice (no ground truth used)", "", f"**{choice['final']}**: {choice['reason']}.", ""]
+    comparison = choice.get("comparison")
+    if isinstance(comparison, dict):
+        t = ComponentTest(**comparison)
+        lines += [row(["comparison", *_TEST_COLUMNS]), rule(1 + len(_TEST_COLUMNS)), _test_row(t), ""]
+    return "\n".join(lines)
+
+
+def adaptation_markdown(adaptation: Mapping[str, Any]) -> str:
+    """What the adaptation did (``dpc_jax.correct.AdaptationSummary``), as a Markdown section."""
+    a = adaptation
+    return (f"## Adaptation (no ground truth used)\n\n{a['steps']} steps on this sequence's own "
+            f"pairs in {a['seconds'] / 60:.1f} min; {a['held_out']} pairs kept out for the acceptance "
+            f"test (every {a['holdout_every']}th).\n\n")
+
+
+def write_correction_report(
+    directory: str | os.PathLike, correction: CorrectionResult, title: str
+) -> list[Path]:
+    """``report.md`` (acceptance test; with ground truth also the metrics, CSV tables and plots),
+    ``summary.json`` and, with ground truth, ``metrics.json`` in ``directory``."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    section = "## Acceptance test (no ground truth used)\n\n" + acceptance_markdown(correction.acceptance)
+    if correction.choice is not None:
+        section += "\n" + choice_markdown(correction.choice)
+    if correction.adaptation is not None:
+        section = adaptation_markdown(correction.adaptation) + section
+    written: list[Path] = []
+    if correction.evaluation is not None:
+        written = write_report(directory, correction.evaluation, title)
+        report = directory / "report.md"
+        atomic_write(report, report.read_text() + "\n" + section)
+        atomic_write(directory / "metrics.json", correction.evaluation.to_json())
+        written.append(directory / "metrics.json")
+    else:
+        text = f"# {title}\n\nNo ground truth: nothing to evaluate.\n\n{section}"
+        atomic_write(directory / "report.md", text)
+        written.append(directory / "report.md")
+    atomic_write(directory / "summary.json", json.dumps(correction.summary(), indent=2) + "\n")
+    return [*written, directory / "summary.json"]

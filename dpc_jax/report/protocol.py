@@ -1,0 +1,107 @@
+"""The results table of an experiment (``dpc_jax.pipelines.protocol``): prior against corrected per test
+sequence, as ``results.md`` and ``results.csv``."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any, Protocol
+
+from dpc_jax._io import atomic_write
+from dpc_jax.report.tables import csv_text, row, rule
+
+COLUMNS = (
+    ("seg_trans_pct", "seg. t (%)"), ("seg_rot_deg_per_100m", "seg. r (°/100 m)"),
+    ("m_ate_trans_m", "m-ATE (m)"), ("m_ate_rot_deg", "m-ATE (°)"), ("ate_m", "ATE (m)"),
+)
+
+
+class SequenceResult(Protocol):
+    """What the table reads of one test sequence's result (``dpc_jax.pipelines.protocol.Result``):
+    ``metrics`` ``{"prior": summary, "corrected": summary}`` (``dpc_jax.eval.evaluation`` summaries),
+    ``stages`` network label → its proposal's summary, ``decisions`` network label → acceptance
+    decision, ``applied`` which network's correction the final trajectory holds (or ``prior``)."""
+
+    @property
+    def fold(self) -> str: ...
+
+    @property
+    def sequence(self) -> str: ...
+
+    @property
+    def prior_label(self) -> str: ...
+
+    @property
+    def epoch(self) -> int: ...
+
+    @property
+    def selection(self) -> str: ...
+
+    @property
+    def frames(self) -> int: ...
+
+    @property
+    def metrics(self) -> Mapping[str, Mapping[str, Any]]: ...
+
+    @property
+    def applied(self) -> str: ...
+
+    @property
+    def stages(self) -> Mapping[str, Mapping[str, Any]]: ...
+
+    @property
+    def decisions(self) -> Mapping[str, str]: ...
+
+
+def _cell(value: Any) -> str:
+    return "n/a" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.4g}"
+
+
+def results_markdown(results: Sequence[SequenceResult], title: str, notes: Sequence[str] = ()) -> str:
+    """The results table: one row per test sequence and prior, prior → corrected for each metric."""
+    header = ["fold", "sequence", "prior", "epoch", "applied", "frames", *(t for _, t in COLUMNS)]
+    preamble: list[str | None] = [f"# {title}", "", *(f"{n}" for n in notes), "" if notes else None]
+    lines = [x for x in preamble if x is not None]
+    lines += [row(header), rule(len(header))]
+    for r in results:
+        cells = [f"{_cell(r.metrics['prior'][k])} → {_cell(r.metrics['corrected'][k])}" for k, _ in COLUMNS]
+        lines.append(row([r.fold, r.sequence, r.prior_label, f"{r.epoch} ({r.selection})", r.applied,
+                          str(r.frames), *cells]))
+    lines += ["", "Each cell: prior → corrected. Segment errors are the mean of the per-length means over "
+              "100–800 m (n/a when the sequence is shorter than 100 m). applied: which network's correction "
+              "the final trajectory holds and what its acceptance test let through (full, rotation), or "
+              "prior (no test passed)."]
+    staged = [r for r in results if r.stages]
+    if staged:
+        lines += ["", "Per network (each row: that network's correction applied, whatever its test said):",
+                  "", row(["sequence", "prior", "estimate", "acceptance test", *(t for _, t in COLUMNS)]),
+                  rule(4 + len(COLUMNS))]
+        for r in staged:
+            rows = [("prior", "", r.metrics["prior"])]
+            rows += [(f"network {label}", r.decisions[label], m) for label, m in r.stages.items()]
+            rows.append((f"final ({r.applied})", "", r.metrics["corrected"]))
+            for label, decision, m in rows:
+                cells = [_cell(m[k]) for k, _ in COLUMNS]
+                lines.append(row([r.sequence, r.prior_label, label, decision, *cells]))
+    return "\n".join(lines) + "\n"
+
+
+def results_csv(results: Sequence[SequenceResult]) -> str:
+    """CSV: one row per test sequence, prior and corrected value of every summary metric."""
+    keys = list(results[0].metrics["prior"]) if results else []
+    return csv_text(
+        ["fold", "sequence", "prior", "epoch", "selection", "applied", "frames",
+         *(f"{which}_{k}" for which in ("prior", "corrected") for k in keys)],
+        ([r.fold, r.sequence, r.prior_label, r.epoch, r.selection, r.applied, r.frames,
+          *(r.metrics[which][k] for which in ("prior", "corrected") for k in keys)] for r in results),
+    )
+
+
+def write_results(workdir: Path, results: Sequence[SequenceResult], title: str,
+                  notes: Sequence[str] = ()) -> Path:
+    """``WORKDIR/results.md`` and ``results.csv`` (atomic); returns the Markdown path."""
+    workdir.mkdir(parents=True, exist_ok=True)
+    atomic_write(workdir / "results.csv", results_csv(results))
+    atomic_write(workdir / "results.md", results_markdown(results, title, notes))
+    return workdir / "results.md"

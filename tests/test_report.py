@@ -1,0 +1,118 @@
+"""The reporting layer: shared table helpers, the experiment results table, the correction report."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import subprocess
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from dpc_jax.acceptance import Acceptance, ComponentTest
+from dpc_jax.pipelines.protocol import Result
+from dpc_jax.report.correction import acceptance_markdown, choice_markdown, write_correction_report
+from dpc_jax.report.demo import decision_label
+from dpc_jax.report.protocol import results_csv, results_markdown
+from dpc_jax.report.tables import csv_text, table
+
+METRICS = {"seg_trans_pct": 2.5, "seg_rot_deg_per_100m": None, "m_ate_trans_m": 12345.678,
+           "m_ate_rot_deg": math.nan, "ate_m": 0.125}
+
+
+def test_table_and_csv_text() -> None:
+    assert table(["a", "b"], [["1", ""], ["x", "y"]]) == "| a | b |\n|---|---|\n| 1 |  |\n| x | y |\n"
+    assert csv_text(["a", "b"], [[1, None], ["x,y", 2.5]]) == 'a,b\n1,\n"x,y",2.5\n'
+
+
+def test_results_table_and_csv() -> None:
+    corrected = {**METRICS, "seg_trans_pct": 2.0}
+    results = [
+        Result("f", "00", "libviso2", 3, "delta", 100, {"prior": METRICS, "corrected": corrected},
+               "trained (full)", {"trained": METRICS}, {"trained": "full"}),
+        Result("g", "05", "vo", 1, "last", 7, {"prior": METRICS, "corrected": METRICS}, "prior"),
+    ]
+    text = results_markdown(results, "Title", ["a note"])
+    lines = text.splitlines()
+    assert lines[:4] == ["# Title", "", "a note", ""]
+    assert lines[4] == ("| fold | sequence | prior | epoch | applied | frames | seg. t (%) | "
+                        "seg. r (°/100 m) | m-ATE (m) | m-ATE (°) | ATE (m) |")
+    assert lines[5] == "|---|---|---|---|---|---|---|---|---|---|---|"
+    assert lines[6] == ("| f | 00 | libviso2 | 3 (delta) | trained (full) | 100 | 2.5 → 2 | n/a → n/a | "
+                        "1.235e+04 → 1.235e+04 | n/a → n/a | 0.125 → 0.125 |")
+    # Only the staged result has per-network rows: prior, each network, final.
+    assert lines[-5] == ("| sequence | prior | estimate | acceptance test | seg. t (%) | seg. r (°/100 m) | "
+                         "m-ATE (m) | m-ATE (°) | ATE (m) |")
+    assert lines[-3] == "| 00 | libviso2 | prior |  | 2.5 | n/a | 1.235e+04 | n/a | 0.125 |"
+    assert lines[-2] == "| 00 | libviso2 | network trained | full | 2.5 | n/a | 1.235e+04 | n/a | 0.125 |"
+    assert lines[-1] == "| 00 | libviso2 | final (trained (full)) |  | 2 | n/a | 1.235e+04 | n/a | 0.125 |"
+    assert text.endswith("\n")
+    assert "# Title\n\n| fold" in results_markdown(results, "Title")
+
+    csv_lines = results_csv(results).splitlines()
+    assert csv_lines[0] == ("fold,sequence,prior,epoch,selection,applied,frames," + ",".join(
+        f"{which}_{k}" for which in ("prior", "corrected") for k in METRICS))
+    assert csv_lines[1] == ("f,00,libviso2,3,delta,trained (full),100,"
+                            "2.5,,12345.678,nan,0.125,2.0,,12345.678,nan,0.125")
+    assert results_csv([]) == "fold,sequence,prior,epoch,selection,applied,frames\n"
+
+
+def _test(component: str, passed: bool) -> ComponentTest:
+    return ComponentTest(component, 12, -1.5e-3, -2e-4, 0.75, 10.0, 0.0123, passed)
+
+
+def test_acceptance_and_choice_markdown() -> None:
+    acceptance = Acceptance(0.05, {"full": _test("full", True)}, "full", "full: passed")
+    lines = acceptance_markdown(acceptance).splitlines()
+    assert lines[0] == ("| component | pairs | mean Δ | median Δ | pairs improved | Wilcoxon W "
+                        "| p (one-sided) | passed |")
+    assert lines[1] == "|---|---|---|---|---|---|---|---|"
+    assert lines[2] == "| full | 12 | -1.500e-03 | -2.000e-04 | 75.0 % | 10 | 0.0123 | yes |"
+    assert "**Applied: the full correction** (full: passed)." in lines
+    comparison = dataclasses.asdict(_test("adapted − trained", False))
+    choice = {"final": "trained", "reason": "because", "comparison": comparison}
+    lines = choice_markdown(choice).splitlines()
+    assert lines[2] == "**trained**: because."
+    assert lines[4].startswith("| comparison | pairs |")
+    assert lines[6] == "| adapted − trained | 12 | -1.500e-03 | -2.000e-04 | 75.0 % | 10 | 0.0123 | no |"
+    assert choice_markdown({"final": "prior", "reason": "r"}).count("|") == 0
+    assert decision_label(acceptance) == "accepted (full 6-DoF)"
+    assert decision_label(Acceptance(0.05, decision="none")) == "rejected"
+    assert decision_label(Acceptance(0.05, decision="rotation", forced=True)) == "not tested (applied)"
+
+
+@dataclass(frozen=True)
+class _Correction:
+    """The fields of dpc_jax.correct.Correction that the report reads, without ground truth."""
+
+    acceptance: Acceptance
+    adaptation: dict[str, Any] | None = None
+    choice: dict[str, object] | None = None
+    evaluation: None = None
+    extra: dict[str, object] = field(default_factory=dict)
+
+    def summary(self) -> dict[str, object]:
+        return {"applied": self.acceptance.decision}
+
+
+def test_correction_report_without_ground_truth(tmp_path: Path) -> None:
+    acceptance = Acceptance(0.05, {"rotation": _test("rotation", False)}, "none", "rotation: failed")
+    adaptation = {"steps": 30, "seconds": 90.0, "held_out": 6, "holdout_every": 5, "source_epoch": 2}
+    written = write_correction_report(tmp_path / "r", _Correction(acceptance, adaptation), "T")
+    assert [p.name for p in written] == ["report.md", "summary.json"]
+    text = (tmp_path / "r" / "report.md").read_text()
+    assert text.startswith("# T\n\nNo ground truth: nothing to evaluate.\n\n"
+                           "## Adaptation (no ground truth used)\n\n30 steps on this sequence's own pairs in "
+                           "1.5 min; 6 pairs kept out for the acceptance test (every 5th).\n\n"
+                           "## Acceptance test (no ground truth used)\n\n")
+    assert "**Applied: nothing: the corrected trajectory is the prior** (rotation: failed)." in text
+    assert json.loads((tmp_path / "r" / "summary.json").read_text()) == {"applied": "none"}
+
+
+def test_table_reports_do_not_import_matplotlib() -> None:
+    # The command line prints tables without drawing: matplotlib is imported only to write figures.
+    code = "import sys, dpc_jax.report.evaluation; print('matplotlib' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["False"]
