@@ -20,8 +20,9 @@ from dpc_jax.cli import main
 from dpc_jax.data.kitti import load_image, open_odometry
 from dpc_jax.geometry.warp import inverse_warp, stereo_warp
 from dpc_jax.synth import SynthConfig, render_sequence, sequence_poses, write_sequences
-from dpc_jax.synth.render import FACADE, GROUND, FrameScene, nearest_hits
+from dpc_jax.synth.render import nearest_hits
 from dpc_jax.synth.sequence import _plan, frame_scene, kitti_intrinsics
+from dpc_jax.synth.shapes import FACADE, GROUND, FrameScene
 
 H, W = 64, 160
 BASE = SynthConfig(frames=3, height=H, width=W, seed=3)
