@@ -13,6 +13,14 @@ reason.
 The test runs per component: ``full`` (the correction as trained: 6-DoF, or only its rotation
 for a rotation-only run) and ``rotation`` (only its rotation part). The decision is the first
 that passes in that order, else ``none`` (the prior is kept).
+
+A passed ``rotation`` is then taken apart by axis (:func:`supported_axes`): the rotation about
+each camera axis alone (x: pitch, y: yaw, z: roll) is tested the same way, and when some but not
+all pass, only those axes are applied (``rotation_xz``: about x and z), provided that rotation
+passes the test too. A network can be right about one axis and wrong about another; on a real
+drive a rotation that helped as a whole carried a yaw that hurt on its own and, summed over
+100 m, turned the travel (``docs/method.md`` §8). When no single axis passes (the effect is
+spread over them), the whole rotation stays.
 """
 
 from __future__ import annotations
@@ -25,7 +33,33 @@ import numpy as np
 
 DEFAULT_ALPHA = 0.01
 COMPONENTS = ("full", "rotation")
-DECISIONS = (*COMPONENTS, "none")
+AXES = "xyz"  # camera axes: x right (pitch), y down (yaw), z forward (roll)
+AXIS_COMPONENTS = tuple(f"rotation_{a}" for a in AXES)
+
+
+def rotation_component(axes: str) -> str:
+    """The component of a rotation about ``axes`` (in order, a part of ``"xyz"``): ``rotation_xz``,
+    or ``rotation`` for all three."""
+    if not axes or "".join(a for a in AXES if a in axes) != axes:
+        raise ValueError(f"axes must be a non-empty ordered part of {AXES!r}, got {axes!r}")
+    return "rotation" if axes == AXES else f"rotation_{axes}"
+
+
+def rotation_axes_words(component: str) -> str:
+    """``rotation_xz`` → ``"rotation about x, z"`` (camera axes; for reports)."""
+    return "rotation about " + ", ".join(component.removeprefix("rotation_"))
+
+
+def component_mask(component: str) -> np.ndarray:
+    """Which entries of ξ = [ρ, φ] a decision applies → float64 ``[6]`` of 0/1."""
+    if component == "full":
+        return np.ones(6)
+    if component == "none":
+        return np.zeros(6)
+    axes = AXES if component == "rotation" else component.removeprefix("rotation_")
+    if not component.startswith("rotation") or rotation_component(axes) != component:
+        raise ValueError(f"not a decision: {component!r}")
+    return np.array([0.0, 0.0, 0.0, *(float(a in axes) for a in AXES)])
 
 
 @dataclass(frozen=True)
@@ -118,6 +152,15 @@ def acceptance_test(
             return Acceptance(alpha, tests, c, f"{c}: mean Δ {t.mean_delta:.3g} < 0, p = {t.p_value:.3g}")
     parts = [f"{c}: mean Δ {t.mean_delta:.3g}, p = {t.p_value:.3g}" for c, t in tests.items()]
     return Acceptance(alpha, tests, "none", "no component significantly below 0 (" + "; ".join(parts) + ")")
+
+
+def supported_axes(
+    deltas: dict[str, np.ndarray], alpha: float = DEFAULT_ALPHA
+) -> tuple[str, dict[str, ComponentTest]]:
+    """The camera axes whose rotation alone passes the test → ``(axes, tests)``, ``axes`` in order
+    (``"xz"``, ``""`` when none does); ``deltas``: Δ ``[M]`` of each of :data:`AXIS_COMPONENTS`."""
+    tests = {c: component_test(c, deltas[c], alpha) for c in AXIS_COMPONENTS}
+    return "".join(a for a, c in zip(AXES, AXIS_COMPONENTS, strict=True) if tests[c].passed), tests
 
 
 def forced(acceptance: Acceptance, component: str) -> Acceptance:

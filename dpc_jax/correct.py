@@ -26,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TypedDict
@@ -34,11 +35,16 @@ import numpy as np
 
 from dpc_jax._io import atomic_write
 from dpc_jax.acceptance import (
+    AXES,
+    AXIS_COMPONENTS,
     DEFAULT_ALPHA,
     Acceptance,
     acceptance_test,
+    component_mask,
     component_test,
     forced,
+    rotation_component,
+    supported_axes,
 )
 from dpc_jax.data.poses_io import WRITE_FORMATS, write_kitti_poses, write_tum
 from dpc_jax.data.sequence_cache import SequenceCache, load_cache
@@ -217,15 +223,59 @@ def correct_cache(
     if prior is not None:
         cache = dataclasses.replace(cache, prior=prior_for_cache(cache, prior, prior_format))
     rotation_only = run.config.rotation_only if rotation_only is None else bool(rotation_only)
-    prediction = run_prediction(
-        run, cache, batch_size=batch_size, acceptance_depth=acceptance_depth or default_acceptance_depth(run),
-        progress=progress,
-    )
+    depth = acceptance_depth or default_acceptance_depth(run)
+    prediction = run_prediction(run, cache, batch_size=batch_size, acceptance_depth=depth, progress=progress)
     acceptance = decide(run, prediction, rotation_only=rotation_only, pairs=held_out, alpha=alpha,
                         force=force)
+    delta = dict(prediction.delta)
+    if acceptance.decision == "rotation" and not acceptance.forced:
+
+        def subset_delta(axes: str) -> np.ndarray:
+            mask = component_mask(rotation_component(axes))[3:]
+            again = run_prediction(run, cache, batch_size=batch_size, acceptance_depth=depth,
+                                   rotation_axes=mask, progress=progress)
+            return again.delta["rotation"]
+
+        acceptance, delta = refine_rotation(acceptance, delta, subset_delta, held_out)
     correction = compose_correction(run, cache, prediction.xi_corr, acceptance, rotation_only)
-    return dataclasses.replace(correction, delta=prediction.delta,
+    return dataclasses.replace(correction, delta=delta,
                                tested=None if held_out is None else np.asarray(held_out, np.int64))
+
+
+def refine_rotation(
+    acceptance: Acceptance,
+    delta: dict[str, np.ndarray],
+    subset_delta: Callable[[str], np.ndarray],
+    pairs: np.ndarray | None = None,
+) -> tuple[Acceptance, dict[str, np.ndarray]]:
+    """A passed ``rotation`` decision narrowed to the axes whose rotation alone passes the test
+    (``dpc_jax.acceptance``) → ``(acceptance, delta)``.
+
+    ``delta``: Δ ``[N-1]`` per component, with the single axes; ``subset_delta(axes)``: Δ of the
+    rotation about ``axes`` (two of them: it needs another pass of the network); ``pairs``: the
+    pairs the test uses (default all). The narrowed rotation must pass the test itself; its Δ is
+    added to ``delta`` (what :func:`choose` compares). With no axis or every axis passing alone,
+    the rotation is kept whole; the per-axis tests are recorded either way.
+    """
+    chosen = slice(None) if pairs is None else np.asarray(pairs)
+    axes, tests = supported_axes({c: delta[c][chosen] for c in AXIS_COMPONENTS}, acceptance.alpha)
+    recorded = dataclasses.replace(acceptance, tests={**acceptance.tests, **tests})
+    if axes in ("", AXES):
+        return recorded, delta
+    component = rotation_component(axes)
+    delta = {**delta, component: delta[component] if component in delta else subset_delta(axes)}
+    test = component_test(component, delta[component][chosen], acceptance.alpha)
+    tests[component] = test
+    recorded = dataclasses.replace(acceptance, tests={**acceptance.tests, **tests})
+    if not test.passed:
+        return dataclasses.replace(recorded, reason=f"{acceptance.reason}; the axes passing alone ({axes}) "
+                                                     f"did not pass together (p = {test.p_value:.3g})"), delta
+    dropped = ", ".join(a for a in AXES if a not in axes)
+    return dataclasses.replace(
+        recorded, decision=component,
+        reason=f"{acceptance.reason}; only the rotation about {', '.join(axes)} passes alone "
+               f"({component}: mean Δ {test.mean_delta:.3g}, p = {test.p_value:.3g}); {dropped} dropped",
+    ), delta
 
 
 def compose_correction(
@@ -239,11 +289,15 @@ def compose_correction(
     gt = None if cache.gt is None else np.asarray(cache.gt, np.float64)
     first = gt[0] if gt is not None else prior[0]
     proposed = corrected_trajectory(xi_corr, prior, first, rotation_only)
-    applied = {
-        "full": proposed,
-        "rotation": corrected_trajectory(xi_corr, prior, first, True),
-        "none": corrected_trajectory(np.zeros_like(xi_corr), prior, first),
-    }[acceptance.decision]
+    decision = acceptance.decision
+    if decision == "full":
+        applied = proposed
+    elif decision == "rotation":
+        applied = corrected_trajectory(xi_corr, prior, first, True)
+    elif decision == "none":
+        applied = corrected_trajectory(np.zeros_like(xi_corr), prior, first)
+    else:  # the rotation about some axes
+        applied = corrected_trajectory(xi_corr * component_mask(decision), prior, first)
     evaluation = None
     if gt is not None:
         import jax

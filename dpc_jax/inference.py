@@ -115,11 +115,13 @@ def run_prediction(
     *,
     batch_size: int | None = None,
     acceptance_depth: str | None = None,
+    rotation_axes: np.ndarray | None = None,
     progress: Progress = False,
 ) -> SequencePrediction:
     """:func:`predict_sequence` with a restored run's model, loss and settings.
 
-    ``acceptance_depth``: ``network`` or ``sgbm`` (default: the run's ``acceptance_depth``).
+    ``acceptance_depth``: ``network`` or ``sgbm`` (default: the run's ``acceptance_depth``);
+    ``rotation_axes``: see :func:`predict_sequence`.
     """
     if cache.image_size != run.image_size:
         (h, w), (rh, rw) = cache.image_size, run.image_size
@@ -131,7 +133,7 @@ def run_prediction(
         run.graphdef, run.state, cache, run.config.loss_config(),
         batch_size=batch_size or run.config.batch_size, use_flow=run.config.use_flow,
         stereo_depth=stereo_depth_of(cache, acceptance_depth or run.config.acceptance_depth),
-        progress=progress,
+        rotation_axes=rotation_axes, progress=progress,
     )
 
 

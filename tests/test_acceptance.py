@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -197,3 +198,92 @@ def test_on_real_frames_a_planted_correction_is_accepted_when_it_helps_and_refus
     helps = {k: np.asarray(v) for k, v in correction_deltas(proposal, helped_batch, config, valid).items()}
     accepted = acceptance_test(helps)
     assert accepted.decision == "full", accepted.reason
+
+
+def test_component_masks_and_names() -> None:
+    from dpc_jax.acceptance import component_mask, rotation_axes_words, rotation_component
+
+    assert rotation_component("xz") == "rotation_xz" and rotation_component("xyz") == "rotation"
+    np.testing.assert_array_equal(component_mask("rotation_xz"), [0, 0, 0, 1, 0, 1])
+    np.testing.assert_array_equal(component_mask("rotation"), [0, 0, 0, 1, 1, 1])
+    np.testing.assert_array_equal(component_mask("full"), np.ones(6))
+    np.testing.assert_array_equal(component_mask("none"), np.zeros(6))
+    assert rotation_axes_words("rotation_xz") == "rotation about x, z"
+    for bad in ("zx", "xx", "w", ""):
+        with pytest.raises(ValueError, match="axes"):
+            rotation_component(bad)
+
+
+def _refined(single: dict[str, np.ndarray], subset: np.ndarray | None = None):
+    """``refine_rotation`` of a passed rotation with these single-axis Δ; records the subsets asked for."""
+    from dpc_jax.correct import refine_rotation
+
+    good = -np.linspace(1, 12, 12) * 1e-4
+    asked: list[str] = []
+
+    def subset_delta(axes: str) -> np.ndarray:
+        asked.append(axes)
+        assert subset is not None
+        return subset
+
+    accepted = acceptance_test({"rotation": good}, components=("rotation",))
+    assert accepted.decision == "rotation"
+    acceptance, delta = refine_rotation(accepted, {"rotation": good, **single}, subset_delta)
+    return acceptance, delta, asked
+
+
+def test_a_passed_rotation_keeps_only_the_axes_that_pass_alone() -> None:
+    good, bad, flat = -np.linspace(1, 12, 12) * 1e-4, np.linspace(1, 12, 12) * 1e-5, np.zeros(12)
+    # Pitch and roll help alone, yaw hurts: the rotation about x and z, judged on its own Δ.
+    acceptance, delta, asked = _refined({"rotation_x": good, "rotation_y": bad, "rotation_z": good}, 2 * good)
+    assert acceptance.decision == "rotation_xz" and asked == ["xz"] and "y dropped" in acceptance.reason
+    np.testing.assert_array_equal(delta["rotation_xz"], 2 * good)
+    assert set(acceptance.tests) == {"rotation", "rotation_x", "rotation_y", "rotation_z", "rotation_xz"}
+    # One axis: its Δ is already there, no other pass.
+    acceptance, delta, asked = _refined({"rotation_x": flat, "rotation_y": good, "rotation_z": bad})
+    assert acceptance.decision == "rotation_y" and asked == []
+    # Every axis, or none, passing alone: the rotation stays whole.
+    for single in ({"rotation_x": good, "rotation_y": good, "rotation_z": good},
+                   {"rotation_x": flat, "rotation_y": bad, "rotation_z": flat}):
+        acceptance, _, asked = _refined(single)
+        assert acceptance.decision == "rotation" and asked == []
+        assert {"rotation_x", "rotation_y", "rotation_z"} <= set(acceptance.tests)
+    # The axes passing alone must pass together too.
+    acceptance, _, asked = _refined({"rotation_x": good, "rotation_y": bad, "rotation_z": good}, bad)
+    assert acceptance.decision == "rotation" and asked == ["xz"]
+    assert "did not pass together" in acceptance.reason
+
+
+def test_on_real_frames_a_spurious_axis_is_dropped_and_the_helpful_one_kept(real_pairs) -> None:
+    """19 real pairs, SGBM depth: a prior with a planted 2 mrad yaw error per pair, and a proposal that
+    undoes it but adds a spurious 2 mrad pitch. The per-axis Δ of ``correction_deltas`` equals Δ of
+    the axis alone, the rotation about y alone is kept, the pitch dropped."""
+    from dpc_jax.correct import refine_rotation
+
+    batch, outputs, valid, steps = real_pairs
+    n = len(steps)
+    config = StereoDPCLossConfig()
+    undo = np.zeros((n, 6))
+    undo[:, 4] = 2e-3
+    spurious = undo.copy()
+    spurious[:, 3] = 2e-3 * np.where(np.arange(n) % 2, 1.0, -1.0)
+    biased = np.asarray(se3_exp(-undo)) @ steps
+    batch = batch._replace(xi_vo=np.asarray(log_poses(biased)))
+    proposal = outputs._replace(xi_corr=spurious)
+    deltas = {k: np.asarray(v) for k, v in correction_deltas(proposal, batch, config, valid).items()}
+    for i, axis in enumerate("xyz"):
+        alone = np.zeros((n, 6))
+        alone[:, 3 + i] = spurious[:, 3 + i]
+        alone_outputs = outputs._replace(xi_corr=alone)
+        reference = np.asarray(correction_deltas(alone_outputs, batch, config, valid)["full"])
+        np.testing.assert_allclose(deltas[f"rotation_{axis}"], reference, rtol=1e-5, atol=1e-9)
+
+    def subset_delta(axes: str) -> np.ndarray:
+        mask = np.array([float(a in axes) for a in "xyz"])
+        return np.asarray(correction_deltas(proposal, batch, config, valid, mask)["rotation"])
+
+    # Refined as if the whole rotation had passed (the spurious pitch may sink it on its own).
+    whole = acceptance_test({"rotation": deltas["rotation"]}, components=("rotation",))
+    refined, _ = refine_rotation(dataclasses.replace(whole, decision="rotation"), deltas, subset_delta)
+    assert refined.tests["rotation_y"].passed and not refined.tests["rotation_x"].passed
+    assert refined.decision == "rotation_y", refined.reason

@@ -12,6 +12,7 @@ import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from dpc_jax.acceptance import rotation_axes_words
 from dpc_jax.cli._common import (
     Formatter,
     frame_range,
@@ -325,7 +326,8 @@ def _print_summary(
         print(f"{correction.name}: correction NOT applied, the prior is written unchanged "
               f"({correction.acceptance.reason}); --force applies it anyway")
     applied = {"full": "rotation only" if correction.rotation_only else "full 6-DoF",
-               "rotation": "rotation only", "none": "none"}[correction.applied]
+               "rotation": "rotation only", "none": "none"}.get(correction.applied)
+    applied = applied or f"{rotation_axes_words(correction.applied)} only"
     print(f"{correction.name}: {correction.corrected.shape[0]} poses, correction applied: {applied} "
           f"(network: epoch {run_.epoch} of {args.checkpoint}, {criterion}) -> "
           f"{', '.join(map(str, written))}")

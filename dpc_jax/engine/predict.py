@@ -30,13 +30,16 @@ from dpc_jax.engine.driver import drive
 from dpc_jax.nn.batch import Batch
 from dpc_jax.nn.losses import correction_deltas, dpc_loss
 
+DELTAS = ("full", "rotation", "rotation_x", "rotation_y", "rotation_z")
+
 
 @dataclass(frozen=True)
 class SequencePrediction:
     """The network over the ``N-1`` consecutive pairs of a sequence (arrays indexed by pair k).
 
     ``xi_corr [N-1, 6]``; ``photometric [N-1]``: ``L(0)``, the prior's gradient-masked
-    photometric error; ``delta``: ``{"full", "rotation"}: [N-1]``, ``L(ξ) − L(0)``;
+    photometric error; ``delta``: ``{name: [N-1]}``, ``L(ξ) − L(0)`` for each of :data:`DELTAS`
+    (``dpc_jax.nn.losses.correction_deltas``);
     ``loss``: the training loss in evaluation mode, mean over pairs.
     """
 
@@ -57,7 +60,7 @@ def predict_step(mesh: Mesh | None, method: str) -> Any:
     ``method``'s network, compiled with the backend's options (``dpc_jax.engine.backend``)."""
 
     def step(graphdef: nnx.GraphDef, state: nnx.State, batch: Batch, config: Any,
-             depth: tuple[jax.Array, jax.Array] | None) -> dict[str, jax.Array]:
+             depth: tuple[jax.Array, jax.Array] | None, rotation_axes: jax.Array) -> dict[str, jax.Array]:
         model = nnx.merge(graphdef, state)
         model.eval()
         outputs = model(batch)
@@ -70,7 +73,7 @@ def predict_step(mesh: Mesh | None, method: str) -> Any:
             left = outputs.left._replace(inv_depth=jnp.where(ok[:, 0], inverse[:, 0], 1.0))
             right = outputs.right._replace(inv_depth=jnp.where(ok[:, 1], inverse[:, 1], 1.0))
             outputs, valid = outputs._replace(left=left, right=right), (ok[:, 0], ok[:, 1])
-        deltas = correction_deltas(outputs, batch, config, valid)
+        deltas = correction_deltas(outputs, batch, config, valid, rotation_axes)
         return {"xi_corr": outputs.xi_corr, "loss": loss, **deltas}
 
     kwargs: dict[str, Any] = {"compiler_options": backend.compiler_options(method, training=False)}
@@ -100,6 +103,7 @@ def predict_sequence(
     use_flow: bool,
     stereo_depth: tuple[np.ndarray, np.ndarray] | None = None,
     mesh: Mesh | None = None,
+    rotation_axes: np.ndarray | None = None,
     progress: Progress = False,
 ) -> SequencePrediction:
     """Run the model ``(graphdef, state)`` in evaluation mode over every pair of ``cache``
@@ -109,8 +113,10 @@ def predict_sequence(
     ``(inverse depth, valid)`` ``[N, camera, H, W]`` of every frame (``dpc_jax.data.stereo_depth``)
     to measure Δ with instead of the network's depth (Stereo DPC only). Batches hold
     ``min(batch_size, N-1)`` samples; with ``mesh`` each is sharded on its ``data`` axis (the
-    size must then divide over the devices). The batches are moved to the device by the data
-    threads; batch k+1 is dispatched before the results of batch k are fetched.
+    size must then divide over the devices). ``rotation_axes``: ``[3]`` 0/1, the camera axes
+    whose rotation ``delta["rotation"]`` applies (default all; ``correction_deltas``). The
+    batches are moved to the device by the data threads; batch k+1 is dispatched before the
+    results of batch k are fetched.
     """
     cache = cache if isinstance(cache, SequenceCache) else load_cache(cache)
     graphdef, state = backend.prepare_inference(graphdef, state)
@@ -128,13 +134,15 @@ def predict_sequence(
     def put(batch: Batch) -> tuple[Any, np.ndarray]:
         return place(batch), np.asarray(batch.weight)
 
-    keys = ("xi_corr", "none", "full", "rotation")
+    # A host array: jit places it beside the batch, replicated over a mesh.
+    axes = np.ones(3, np.float32) if rotation_axes is None else np.asarray(rotation_axes, np.float32)
+    keys = ("xi_corr", "none", *DELTAS)
     results: dict[str, list[np.ndarray]] = {k: [] for k in keys}
     totals = {"loss": 0.0, "samples": 0.0}
 
     def run(carry: None, item: tuple[Any, np.ndarray], index: int) -> tuple[None, Any]:
         depth = None if depths is None else place(depths[index])
-        return carry, step(graphdef, state, item[0], loss_config, depth)
+        return carry, step(graphdef, state, item[0], loss_config, depth, axes)
 
     def consume(index: int, out: dict[str, np.ndarray], item: tuple[Any, np.ndarray]) -> int:
         real = item[1] > 0
@@ -152,7 +160,7 @@ def predict_sequence(
     return SequencePrediction(
         xi_corr=merged["xi_corr"],
         photometric=merged["none"],
-        delta={"full": merged["full"], "rotation": merged["rotation"]},
+        delta={k: merged[k] for k in DELTAS},
         loss=totals["loss"] / totals["samples"],
     )
 

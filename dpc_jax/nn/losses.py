@@ -303,17 +303,26 @@ def correction_deltas(
     batch: Batch,
     config: SSDPCLossConfig | StereoDPCLossConfig,
     depth_valid: tuple[Array | None, Array | None] | None = None,
+    rotation_axes: Array | None = None,
 ) -> dict[str, Array]:
     """Paired effect of the correction per sample: ``Δ = L(ξ_corr) − L(0)`` → ``{name: [B]}``.
 
     ``L`` is :func:`temporal_pair_errors` with the *same* depth and validity in every term, so Δ
     isolates the pose: ``full`` applies ξ_corr as the loss config does (only its rotation with
-    ``rotation_only``), ``rotation`` only its rotation part ``[0, φ]``; ``none`` is ``L(0)``
-    itself (the prior). Δ < 0: the corrected pose explains the images better than the prior.
+    ``rotation_only``), ``rotation`` only its rotation part ``[0, φ ⊙ rotation_axes]``
+    (``rotation_axes``: ``[3]`` 0/1 per camera axis x, y, z; default all), ``rotation_x``,
+    ``rotation_y``, ``rotation_z`` the rotation about that axis alone; ``none`` is ``L(0)`` itself
+    (the prior). Δ < 0: the corrected pose explains the images better than the prior.
     """
     xi = jnp.asarray(outputs.xi_corr)
+    axes = jnp.ones(3, xi.dtype) if rotation_axes is None else jnp.asarray(rotation_axes, xi.dtype)
+
+    def rotation_delta(mask: Array) -> Array:
+        rotation_xi = jnp.concatenate([jnp.zeros_like(xi[:, :3]), xi[:, 3:] * mask], axis=-1)
+        return temporal_pair_errors(outputs._replace(xi_corr=rotation_xi), batch, config, depth_valid) - none
+
     none = temporal_pair_errors(outputs._replace(xi_corr=jnp.zeros_like(xi)), batch, config, depth_valid)
     full = temporal_pair_errors(outputs, batch, config, depth_valid)
-    rotation_xi = jnp.concatenate([jnp.zeros_like(xi[:, :3]), xi[:, 3:]], axis=-1)
-    rotation = temporal_pair_errors(outputs._replace(xi_corr=rotation_xi), batch, config, depth_valid)
-    return {"none": none, "full": full - none, "rotation": rotation - none}
+    unit = jnp.eye(3, dtype=xi.dtype)
+    single = {f"rotation_{name}": rotation_delta(unit[i]) for i, name in enumerate("xyz")}
+    return {"none": none, "full": full - none, "rotation": rotation_delta(axes), **single}

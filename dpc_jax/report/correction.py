@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from dpc_jax._io import atomic_write
-from dpc_jax.acceptance import Acceptance, ComponentTest
+from dpc_jax.acceptance import Acceptance, ComponentTest, rotation_axes_words
 from dpc_jax.eval.evaluation import Evaluation
 from dpc_jax.report.evaluation import write_report
 from dpc_jax.report.tables import row, rule
@@ -48,7 +48,8 @@ def acceptance_markdown(acceptance: Acceptance) -> str:
     lines = [row(["component", *_TEST_COLUMNS]), rule(1 + len(_TEST_COLUMNS)),
              *(_test_row(t) for t in acceptance.tests.values())]
     applied = {"full": "the full correction", "rotation": "only the rotation of the correction",
-               "none": "nothing: the corrected trajectory is the prior"}[acceptance.decision]
+               "none": "nothing: the corrected trajectory is the prior"}.get(acceptance.decision)
+    applied = applied or f"only the {rotation_axes_words(acceptance.decision)} of the correction"
     return "\n".join([
         *lines, "",
         f"Δ = L(ξ_corr) − L(0) per frame pair: the gradient-masked photometric error of the temporal "

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from dpc_jax._io import atomic_write
-from dpc_jax.acceptance import Acceptance
+from dpc_jax.acceptance import Acceptance, rotation_axes_words
 from dpc_jax.eval.evaluation import Evaluation
 from dpc_jax.report.evaluation import segment_section, write_figures, write_tables
 from dpc_jax.report.tables import row, rule, table
@@ -83,7 +83,7 @@ def decision_label(acceptance: Acceptance) -> str:
     if acceptance.forced:
         return "not tested (applied)"
     names = {"full": "accepted (full 6-DoF)", "rotation": "accepted (rotation only)", "none": "rejected"}
-    return names[acceptance.decision]
+    return names.get(acceptance.decision) or f"accepted ({rotation_axes_words(acceptance.decision)} only)"
 
 
 def _epoch_table(metrics_csv: Path, selected: int) -> str:
