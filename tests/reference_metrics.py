@@ -3,7 +3,9 @@
 Written straight from the definitions of docs/method.md §5–§7 and the published code they describe
 (pyslam ``TrajectoryMetrics.segment_errors``, the KITTI devkit ``evaluate_odometry.cpp``,
 ss-DPC-Net's static-frame loop), one pose or one segment at a time, with scipy's rotation
-vector as an independent SO(3) log. Shared by the tests and ``benchmarks/bench_metrics.py``.
+vector as an independent SO(3) log. Shared by the tests and ``benchmarks/bench_metrics.py``; its
+numpy SE(3) functions (``so3_hat``, ``se3_exp``, ``se3_log``) are the tests' references for the Lie
+algebra too.
 """
 
 from __future__ import annotations
@@ -23,15 +25,16 @@ def so3_log(R: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(R).as_rotvec()
 
 
+def so3_hat(phi: np.ndarray) -> np.ndarray:
+    """The skew matrix ``φ^`` with ``φ^ v = φ × v``."""
+    return np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
+
+
 def se3_exp(xi: np.ndarray) -> np.ndarray:
     """``Exp([ρ, φ])`` as scipy's matrix exponential of the se(3) matrix (an independent reference)."""
-    rho, phi = xi[:3], xi[3:]
-    twist = np.array([
-        [0.0, -phi[2], phi[1], rho[0]],
-        [phi[2], 0.0, -phi[0], rho[1]],
-        [-phi[1], phi[0], 0.0, rho[2]],
-        [0.0, 0.0, 0.0, 0.0],
-    ])
+    twist = np.zeros((4, 4))
+    twist[:3, :3] = so3_hat(xi[3:])
+    twist[:3, 3] = xi[:3]
     return scipy.linalg.expm(twist)
 
 
@@ -39,7 +42,7 @@ def se3_log(T: np.ndarray) -> np.ndarray:
     """``[ρ, φ]`` with ``ρ = J⁻¹(φ) t`` (Barfoot's closed form)."""
     phi = so3_log(T[:3, :3])
     theta = np.linalg.norm(phi)
-    hat = np.array([[0, -phi[2], phi[1]], [phi[2], 0, -phi[0]], [-phi[1], phi[0], 0]])
+    hat = so3_hat(phi)
     if theta < 1e-6:
         j_inv = np.eye(3) - 0.5 * hat + hat @ hat / 12.0
     else:

@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import reference_metrics as ref
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
@@ -40,43 +41,14 @@ PROPERTY = settings(max_examples=25, deadline=None)
 # --- float64 numpy references ---------------------------------------------------------------------
 
 
-def hat_np(phi: np.ndarray) -> np.ndarray:
-    x, y, z = phi
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-
-
-def left_jacobian_np(phi: np.ndarray) -> np.ndarray:
-    """Closed form of J(φ); the series below 1e-3 rad where the closed form cancels."""
-    theta = np.linalg.norm(phi)
-    A = hat_np(phi)
-    if theta < 1e-3:
-        t2 = theta * theta
-        b, c = 0.5 - t2 / 24 + t2 * t2 / 720, 1 / 6 - t2 / 120 + t2 * t2 / 5040
-    else:
-        b, c = (1 - np.cos(theta)) / theta**2, (theta - np.sin(theta)) / theta**3
-    return np.eye(3) + b * A + c * A @ A
-
-
 def left_jacobian_series_np(phi: np.ndarray) -> np.ndarray:
     """J(φ) = Σ_n (φ^)^n / (n+1)!, summed to convergence (independent of the closed form)."""
-    A = hat_np(phi)
+    A = ref.so3_hat(phi)
     total, term = np.zeros((3, 3)), np.eye(3)
     for n in range(40):
         total += term / math.factorial(n + 1)
         term = term @ A
     return total
-
-
-def se3_exp_np(xi: np.ndarray) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec(xi[3:]).as_matrix()
-    T[:3, 3] = left_jacobian_np(xi[3:]) @ xi[:3]
-    return T
-
-
-def se3_log_np(T: np.ndarray) -> np.ndarray:
-    phi = Rotation.from_matrix(T[:3, :3]).as_rotvec()
-    return np.concatenate([np.linalg.solve(left_jacobian_np(phi), T[:3, 3]), phi])
 
 
 def loop(fn, x: np.ndarray, core: int) -> np.ndarray:
@@ -243,9 +215,9 @@ def test_so3_log_at_exactly_pi(dtype: type) -> None:
 @given(data=st.data())
 def test_se3_exp_log_match_closed_form_float64(shape: tuple[int, ...], data: st.DataObject) -> None:
     xi = draw_xi(data, shape)
-    T_np = loop(se3_exp_np, xi, 1)
+    T_np = loop(ref.se3_exp, xi, 1)
     close(_se3_exp(xi), T_np, np.float64)
-    close(_se3_log(T_np), loop(se3_log_np, T_np, 2), np.float64)
+    close(_se3_log(T_np), loop(ref.se3_log, T_np, 2), np.float64)
 
 
 @pytest.mark.parametrize("shape", SHAPES)
@@ -274,7 +246,7 @@ def test_se3_group_properties(shape: tuple[int, ...], dtype: type, data: st.Data
 def test_transform_points(shape: tuple[int, ...], dtype: type, data: st.DataObject) -> None:
     xi = draw_xi(data, shape)
     points = data.draw(hnp.arrays(np.float64, (*shape, 4, 3), elements=st.floats(-10.0, 10.0)))
-    T = loop(se3_exp_np, xi, 1)
+    T = loop(ref.se3_exp, xi, 1)
     expected = np.einsum("...ij,...nj->...ni", T[..., :3, :3], points) + T[..., None, :3, 3]
     out = _transform_points(T.astype(dtype), points.astype(dtype))
     assert out.dtype == dtype
@@ -297,7 +269,7 @@ def generators() -> np.ndarray:
     G = np.zeros((4, 4, 6))
     for i in range(3):
         G[i, 3, i] = 1.0
-        G[:3, :3, 3 + i] = hat_np(np.eye(3)[i])
+        G[:3, :3, 3 + i] = ref.so3_hat(np.eye(3)[i])
     return G
 
 
