@@ -4,8 +4,8 @@ Written straight from the definitions of docs/method.md §5–§7 and the publis
 (pyslam ``TrajectoryMetrics.segment_errors``, the KITTI devkit ``evaluate_odometry.cpp``,
 ss-DPC-Net's static-frame loop), one pose or one segment at a time, with scipy's rotation
 vector as an independent SO(3) log. Shared by the tests and ``benchmarks/bench_metrics.py``; its
-numpy SE(3) functions (``so3_hat``, ``se3_exp``, ``se3_log``) are the tests' references for the Lie
-algebra too.
+numpy SE(3) functions (``so3_hat``, ``se3_exp``, ``se3_log``, ``se3_logm``) are the tests' references
+for the Lie algebra too.
 """
 
 from __future__ import annotations
@@ -51,6 +51,12 @@ def se3_log(T: np.ndarray) -> np.ndarray:
             + (1.0 / theta**2 - (1.0 + np.cos(theta)) / (2.0 * theta * np.sin(theta))) * hat @ hat
         )
     return np.concatenate([j_inv @ T[:3, 3], phi])
+
+
+def se3_logm(T: np.ndarray) -> np.ndarray:
+    """``[ρ, φ]`` of a rigid transform read off scipy's general matrix logarithm ``[[φ^, ρ], [0, 0]]``."""
+    log = np.real(scipy.linalg.logm(T))
+    return np.array([log[0, 3], log[1, 3], log[2, 3], log[2, 1], log[0, 2], log[1, 0]])
 
 
 def remove_static_frames(prior: np.ndarray, trans: float = 1.5, rot: float = 0.007) -> np.ndarray:
