@@ -17,9 +17,9 @@ to its last). Validation and checkpoints are not part of the epoch measured.
 Correction: frames/s of ``dpc_jax.correct.correct_cache`` over a whole sequence (reading the cache,
 the prediction, Δ — for Stereo DPC with the StereoSGBM depth prepared with the cache, as
 ``dpc-jax prepare`` writes it — the acceptance test, the trajectories and their evaluation)
-against frames/s of the isolated inference step on one device-resident batch, alternating likewise. And batches/s of
-the input pipeline alone (the training loader with its transfer to the device, nothing consuming):
-what it could feed a faster device.
+against frames/s of the isolated inference step on one device-resident batch, alternating
+likewise. And batches/s of the input pipeline alone (the training loader with its transfer to the
+device, nothing consuming): what it could feed a faster device.
 
 Without ``--cache`` the script writes a synthetic cache (random frames and flow with the layout of
 a prepared one; content does not change the cost of a step) in a temporary folder, sized for

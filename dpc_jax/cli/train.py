@@ -105,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _cache_problem(config: TrainConfig) -> str | None:
     """The first problem of the caches the run reads (its training and validation sequences, chosen as
-    :func:`~dpc_jax.training.loop.open_data` does; a resumed run reads the same), or None. Checked
+    :func:`~dpc_jax.training.train_data.open_data` does; a resumed run reads the same), or None. Checked
     without JAX, so a missing or damaged cache costs no JAX start-up."""
     from dpc_jax.data.sequence_cache import load_cache, training_sequences
 

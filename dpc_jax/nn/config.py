@@ -215,9 +215,10 @@ class SupervisedLossConfig:
 
     * ``precision``: the 6 × 6 weight ``Σ⁻¹`` of the SE(3) error, row-major (36 numbers), or its
       diagonal (6 numbers), in the units of ``[ρ (m), φ (rad)]``. DPC-Net uses the inverse
-      covariance of the training set's target corrections (:func:`dpc_jax.nn.losses.target_precision`),
-      which the training loop puts here when it is None (:func:`dpc_jax.nn.losses.with_target_precision`);
-      the loss function itself weighs every component by 1 when it is None.
+      covariance of the training set's target corrections
+      (:func:`dpc_jax.nn.supervised_loss.target_precision`), which the training loop puts here when
+      it is None (:func:`dpc_jax.nn.supervised_loss.with_target_precision`); the loss function
+      itself weighs every component by 1 when it is None.
     * ``rotation_only``: regress the rotation only, on SO(3), with the rotation block of
       ``precision`` (DPC-Net's rotation-only variant; ss-DPC-Net's setting for stereo priors).
     * ``method``: the network it trains (``"ss_dpc"`` or ``"stereo_dpc"``); the training step

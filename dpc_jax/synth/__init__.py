@@ -3,7 +3,8 @@
 * :class:`SynthConfig`, :func:`render_sequence`, :func:`iter_frames` (``sequence``): the Python API.
 * :func:`write_sequences`, :func:`write_sequence` (``writer``): KITTI-layout output.
 * ``world`` (road and town layout), ``trajectory`` (car-like motion), ``render`` (jitted ray
-  casting), ``textures`` (band-limited procedural materials).
+  casting and shading), ``shapes`` (the primitives and their ray intersections), ``textures``
+  (band-limited procedural materials).
 """
 
 from dpc_jax.synth.sequence import (
