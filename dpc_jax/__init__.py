@@ -37,7 +37,8 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
         "m_ate", "c_ate", "segment_errors", "kitti_devkit_errors", "ate", "rpe", "count_loop_closures",
         "trajectory_metrics",
     ),
-    "dpc_jax.eval.evaluation": ("evaluate", "Evaluation", "write_report", "export_trajectories"),
+    "dpc_jax.eval.evaluation": ("evaluate", "Evaluation"),
+    "dpc_jax.report.evaluation": ("write_report", "export_trajectories"),
     "dpc_jax.eval.diagnosis": ("diagnose", "Diagnosis"),
     "dpc_jax.eval.linear_baseline": ("LinearCorrection", "fit_linear_correction", "apply_linear_correction"),
     "dpc_jax.data": (

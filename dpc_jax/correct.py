@@ -52,7 +52,6 @@ from dpc_jax.eval.evaluation import Evaluation
 from dpc_jax.inference import SequencePrediction, TrainedRun, run_prediction
 
 # The report of a correction; re-exported for cli/correct.py.
-from dpc_jax.report.correction import write_correction_report as write_correction_report
 
 
 class AdaptationSummary(TypedDict):
@@ -300,10 +299,7 @@ def compose_correction(
         applied = corrected_trajectory(xi_corr * component_mask(decision), prior, first)
     evaluation = None
     if gt is not None:
-        import jax
-
-        with jax.enable_x64(True):
-            evaluation = evaluate(gt, {"prior": prior, "network": proposed, "corrected": applied})
+        evaluation = evaluate(gt, {"prior": prior, "network": proposed, "corrected": applied})
     return Correction(
         name=cache.name,
         frames=np.asarray(cache.indices, np.int64),

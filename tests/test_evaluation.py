@@ -65,6 +65,26 @@ def test_evaluate_reanchors_and_matches_reference(pair: tuple[np.ndarray, np.nda
     assert json.loads(result.to_json()) == dict(result)
 
 
+def test_precision_is_the_argument_not_the_process_setting(pair: tuple[np.ndarray, np.ndarray]) -> None:
+    import jax
+
+    from dpc_jax.eval.evaluation import segment_summary
+
+    gt, est = pair
+    anchored = gt[0] @ np.linalg.inv(est[0]) @ est
+    reference = ref.segment_errors(gt, anchored)[0]
+    with jax.enable_x64(False):  # a process in float32, as JAX starts
+        default = evaluate(gt, {"prior": est})["estimates"]["prior"]
+        coarse = evaluate(gt, {"prior": est}, precision="float32")["estimates"]["prior"]
+        summary = segment_summary(gt, anchored)
+    np.testing.assert_allclose(default["seg_trans_pct"], reference, rtol=1e-9)
+    np.testing.assert_allclose(summary[0], reference, rtol=1e-9)
+    assert coarse["seg_trans_pct"] != default["seg_trans_pct"]
+    np.testing.assert_allclose(coarse["seg_trans_pct"], reference, rtol=1e-3)
+    with pytest.raises(ValueError, match="precision"):
+        evaluate(gt, est, precision="float16")
+
+
 def test_evaluate_remove_static(pair: tuple[np.ndarray, np.ndarray]) -> None:
     gt, est = pair
     result = evaluate(gt, {"prior": est}, remove_static=True)

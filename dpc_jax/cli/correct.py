@@ -293,7 +293,8 @@ def _write_outputs(
 ) -> list[Path]:
     """Write ``--out`` (and its frame list), ``--report`` and the adapted network; the trajectory files."""
     from dpc_jax._io import OutputSet
-    from dpc_jax.correct import write_correction_report, write_trajectory
+    from dpc_jax.correct import write_trajectory
+    from dpc_jax.report.correction import write_correction_report
 
     # The corrected trajectory (with its frame list) and the report are written all or nothing.
     with OutputSet() as outputs:
@@ -315,7 +316,7 @@ def _print_summary(
     written: list[Path],
 ) -> None:
     """Print what was applied and written, the metrics against ground truth and the adaptation's outcome."""
-    from dpc_jax.eval.evaluation import format_table
+    from dpc_jax.report.evaluation import format_table
 
     criterion = {"delta": "most negative validation Δ", "gradient": "best gradient loss",
                  "loop": "most loop closures", "last": "newest"}[args.select]

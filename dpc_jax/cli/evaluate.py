@@ -145,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
             # is reported before JAX is imported.
             raise ValueError(f"--rpe-delta must be in [1, {gt.shape[0] - 1}] for {gt.shape[0]} poses, "
                              f"got {args.rpe_delta}")
-        import_jax(x64=True)
+        import_jax()
         from dpc_jax._io import OutputSet, atomic_write
         from dpc_jax.eval.evaluation import evaluate
         from dpc_jax.report.evaluation import export_trajectories, format_table, write_report

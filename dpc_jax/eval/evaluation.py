@@ -11,10 +11,12 @@ metric of :mod:`dpc_jax.eval.metrics` in one compiled call per estimate:
   ground truth and every estimate lose the same frames, and each estimate is re-composed from its
   relative poses between consecutive kept frames, starting at the first kept ground-truth pose.
 
-Values are computed in float64 when ``jax_enable_x64`` is on (the CLI turns it on), float32
-otherwise. The result is an :class:`Evaluation`: a read-only mapping equal to the JSON summary
-``{"num_poses": N, "estimates": {label: {metric: value}}}`` (NaN becomes ``None``), with the
-prepared trajectories and the per-length and cumulative curves as attributes.
+Precision is an argument, not process state: :func:`evaluate` and :func:`segment_summary` compute in
+float64 by default (``precision="float32"`` for the faster, coarser figures), in a local
+``jax.enable_x64`` scope whatever the process's setting. The result is an :class:`Evaluation`: a
+read-only mapping equal to the JSON summary ``{"num_poses": N, "estimates": {label: {metric:
+value}}}`` (NaN becomes ``None``), with the prepared trajectories and the per-length and cumulative
+curves as attributes.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ import math
 import re
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
-from typing import Any, cast
+from typing import cast
 
 import numpy as np
 
@@ -45,6 +47,7 @@ SUMMARY_KEYS: tuple[str, ...] = (
 )
 _LABEL = re.compile(r"[A-Za-z0-9_.+-]+")
 GT_LABEL = "gt"
+PRECISIONS = ("float64", "float32")
 
 
 @dataclass(frozen=True)
@@ -135,6 +138,7 @@ def evaluate(
     static_prior: str | None = None,
     diagnose: bool = False,
     focal_px: float | None = None,
+    precision: str = "float64",
 ) -> Evaluation:
     """Evaluate estimates ``{label: [N, 4, 4]}`` (or one array, labelled ``est``) against ``gt``.
 
@@ -142,9 +146,43 @@ def evaluate(
     ``remove_static`` and ``static_prior`` are described in the module docstring. ``diagnose`` adds
     each estimate's error composition (:func:`dpc_jax.eval.diagnosis.diagnose`, on the evaluated
     frames; ``focal_px`` for the pixel shift) as ``result.diagnoses`` and the summary's
-    ``"diagnosis"``. Raises ``ValueError`` for mismatched lengths (both counts named), bad labels or
-    shapes.
+    ``"diagnosis"``. ``precision``: ``float64`` or ``float32`` (module docstring). Raises
+    ``ValueError`` for mismatched lengths (both counts named), bad labels or shapes.
     """
+    import jax
+
+    with jax.enable_x64(_x64(precision)):
+        return _evaluate(gt, estimates, remove_static, align, rpe_delta, static_prior, diagnose, focal_px)
+
+
+def segment_summary(gt: np.ndarray, est: np.ndarray, precision: str = "float64") -> tuple[float, float]:
+    """Mean segment errors of ``est`` against ``gt`` (both ``[N, 4, 4]``) → ``(t_err %, r_err °/100 m)``
+    over the lengths the trajectory covers (NaN if none), without :func:`evaluate`'s other metrics."""
+    import jax
+
+    from dpc_jax.eval.metrics import segment_errors
+
+    with jax.enable_x64(_x64(precision)):
+        result = segment_errors(np.asarray(gt, np.float64), np.asarray(est, np.float64))
+        return float(result.trans_pct), float(result.rot_deg_per_100m)
+
+
+def _x64(precision: str) -> bool:
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+    return precision == "float64"
+
+
+def _evaluate(
+    gt: np.ndarray,
+    estimates: Mapping[str, np.ndarray] | np.ndarray,
+    remove_static: bool,
+    align: str,
+    rpe_delta: int,
+    static_prior: str | None,
+    diagnose: bool,
+    focal_px: float | None,
+) -> Evaluation:
     import jax
 
     from dpc_jax.eval.metrics import ALIGNMENTS, trajectory_metrics
@@ -207,17 +245,3 @@ def evaluate(
         gt=gt, trajectories=prepared, frames=frames, metrics=results, align=align, rpe_delta=rpe_delta,
         remove_static=remove_static, diagnoses=diagnoses,
     )
-
-
-# The report moved to dpc_jax.report.evaluation. dpc_jax/__init__.py (write_report, export_trajectories)
-# and cli/correct.py (format_table) still import these names from here; they resolve at first use, by
-# name, until those two imports name dpc_jax.report.evaluation and this goes.
-_MOVED = ("write_report", "export_trajectories", "format_table")
-
-
-def __getattr__(name: str) -> Any:
-    if name in _MOVED:
-        import importlib
-
-        return getattr(importlib.import_module("dpc_jax.report.evaluation"), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

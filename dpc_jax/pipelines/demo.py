@@ -223,15 +223,13 @@ def _evaluate_test(config: DemoConfig, tested: _TestCorrections,
                    trained: dict[str, Any]) -> tuple[Evaluation, dict[str, Any]]:
     """Evaluate the test trajectories against the ground truth (read here only); return the evaluation and
     the summary's entries on the test sequence and the network."""
-    import jax
 
     from dpc_jax.eval.evaluation import evaluate
 
     gt = np.asarray(tested.cache.gt, np.float64)
     proposals = {k: c.proposed for k, c in tested.corrections.items()}
     estimates = {"prior": tested.result.prior, **proposals, "corrected": tested.result.corrected}
-    with jax.enable_x64(True):
-        evaluation = evaluate(gt, estimates)
+    evaluation = evaluate(gt, estimates)
     test_metrics = {label: dict(evaluation.estimates[label]) for label in estimates}
     change = {k: _change(test_metrics["prior"][k], test_metrics["corrected"][k])
               for k in ("seg_trans_pct", "seg_rot_deg_per_100m")}

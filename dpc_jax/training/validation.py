@@ -4,23 +4,16 @@ criteria (``dpc_jax.training.checkpoints``) and the metrics log read, from
 
 from __future__ import annotations
 
-import jax
 import numpy as np
 from flax import nnx
 from jax.sharding import Mesh
 
 from dpc_jax.engine.predict import predict_sequence
 from dpc_jax.eval import metrics as metrics_lib
+from dpc_jax.eval.evaluation import segment_summary
 from dpc_jax.geometry.correction import corrected_trajectory
 from dpc_jax.training.config import TrainConfig
 from dpc_jax.training.train_data import TrainData
-
-
-def _segment_errors(ground_truth: np.ndarray, estimate: np.ndarray) -> tuple[float, float]:
-    """Mean segment errors (t_err %, r_err °/100 m) over the lengths the sequence covers (NaN if none)."""
-    with jax.enable_x64(True):
-        result = metrics_lib.segment_errors(ground_truth, estimate)
-        return float(result.trans_pct), float(result.rot_deg_per_100m)
 
 
 def validate(
@@ -58,7 +51,7 @@ def validate(
         closures += int(metrics_lib.count_loop_closures(corrected))
         if seq.ground_truth is not None:
             errors.append(
-                (*_segment_errors(seq.ground_truth, seq.prior), *_segment_errors(seq.ground_truth, corrected))
+                (*segment_summary(seq.ground_truth, seq.prior), *segment_summary(seq.ground_truth, corrected))
             )
     mean_errors = np.mean(errors, axis=0) if errors else np.full(4, np.nan)
     return {
