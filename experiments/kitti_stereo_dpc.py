@@ -10,6 +10,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from dpc_jax.data.splits import training_names
 from dpc_jax.hugepages import reexec_with_huge_pages
 from dpc_jax.pipelines import protocol as P
 from dpc_jax.report.protocol import write_results
@@ -63,7 +64,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             validation = protocol["validation"].get(test, protocol["validation"]["default"])
             if validation not in sequences or validation == test:
                 validation = next(s for s in sequences if s != test)
-            train = tuple(n for n in opened if n not in (test, validation))
+            train = training_names(tuple(opened), (test, validation))
             folds.append(P.Fold(f"test_{test}", train, validation, (test,)))
         cache_root = args.workdir / "cache"
         configs = {f.name: P.fold_config(base, f, cache_root, overrides) for f in folds}
