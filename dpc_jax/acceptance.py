@@ -83,13 +83,15 @@ class ComponentTest:
 
 @dataclass(frozen=True)
 class Acceptance:
-    """Outcome of the acceptance test: ``decision`` ∈ ``full | rotation | none`` and why."""
+    """Outcome of the acceptance test: ``decision`` ∈ ``full | rotation | rotation_<axes> | none``,
+    the ``scale`` of the applied correction (1 unless a judge chose less, ``dpc_jax.correct``) and why."""
 
     alpha: float
     tests: dict[str, ComponentTest] = field(default_factory=dict)
     decision: str = "none"
     reason: str = ""
     forced: bool = False
+    scale: float = 1.0
 
     @property
     def mean_delta(self) -> float:
@@ -103,6 +105,7 @@ class Acceptance:
             "decision": self.decision,
             "reason": self.reason,
             "forced": self.forced,
+            "scale": self.scale,
             "tests": {name: asdict(test) for name, test in self.tests.items()},
         }
 

@@ -50,6 +50,7 @@ from dpc_jax.data.poses_io import WRITE_FORMATS, write_kitti_poses, write_tum
 from dpc_jax.data.sequence_cache import SequenceCache, load_cache
 from dpc_jax.eval.evaluation import Evaluation
 from dpc_jax.inference import SequencePrediction, TrainedRun, run_prediction
+from dpc_jax.judge import correction_effects
 
 # The report of a correction; re-exported for cli/correct.py.
 
@@ -206,6 +207,7 @@ def correct_cache(
     alpha: float = DEFAULT_ALPHA,
     force: bool = False,
     held_out: np.ndarray | None = None,
+    judge: SequenceCache | str | os.PathLike | None = None,
     progress: bool = False,
 ) -> Correction:
     """Correct the prior of a cached sequence with ``run`` where the acceptance test allows it.
@@ -214,9 +216,12 @@ def correct_cache(
     ``rotation_only``: None = the run's ``config.rotation_only``; ``acceptance_depth``:
     ``network`` or ``sgbm`` (None = :func:`default_acceptance_depth`); ``alpha``: the test's level;
     ``force``: apply the correction whatever the test says; ``held_out``: the pairs ``k`` the test
-    uses (default all; after adaptation, the pairs it never saw). The trajectories start at the
-    first ground-truth pose when the cache has ground truth, else at the first prior pose
-    (docs/method.md §1).
+    uses (default all; after adaptation, the pairs it never saw). ``judge``: the same frames
+    prepared at a larger size (``dpc_jax.judge``, a stereo run): every Δ of the test is measured
+    there, with its StereoSGBM depth, instead of at the network's size, and the applied correction
+    is scaled by the one of :data:`JUDGE_SCALES` its images support best (:func:`scale_correction`).
+    The trajectories start at the first ground-truth pose when the cache has ground truth, else at
+    the first prior pose (docs/method.md §1).
     """
     cache = cache if isinstance(cache, SequenceCache) else load_cache(cache)
     if prior is not None:
@@ -224,21 +229,93 @@ def correct_cache(
     rotation_only = run.config.rotation_only if rotation_only is None else bool(rotation_only)
     depth = acceptance_depth or default_acceptance_depth(run)
     prediction = run_prediction(run, cache, batch_size=batch_size, acceptance_depth=depth, progress=progress)
+    judged = None if judge is None else _judge_for(run, cache, judge)
+
+    def judge_deltas(masks: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        assert judged is not None
+        return correction_effects(judged, prediction.xi_corr, masks, run.config.loss_config(),
+                                  batch_size or run.config.batch_size)
+
+    if judged is not None:
+        full = "rotation" if rotation_only else "full"
+        names = ("full", "rotation", *AXIS_COMPONENTS)
+        prediction = dataclasses.replace(prediction, delta=judge_deltas(
+            {c: component_mask(full if c == "full" else c) for c in names}))
     acceptance = decide(run, prediction, rotation_only=rotation_only, pairs=held_out, alpha=alpha,
                         force=force)
     delta = dict(prediction.delta)
     if acceptance.decision == "rotation" and not acceptance.forced:
 
         def subset_delta(axes: str) -> np.ndarray:
-            mask = component_mask(rotation_component(axes))[3:]
+            mask = component_mask(rotation_component(axes))
+            if judged is not None:
+                return judge_deltas({"subset": mask})["subset"]
             again = run_prediction(run, cache, batch_size=batch_size, acceptance_depth=depth,
-                                   rotation_axes=mask, progress=progress)
+                                   rotation_axes=mask[3:], progress=progress)
             return again.delta["rotation"]
 
         acceptance, delta = refine_rotation(acceptance, delta, subset_delta, held_out)
+    if judged is not None and acceptance.decision != "none" and not acceptance.forced:
+        mask = component_mask("rotation" if rotation_only and acceptance.decision == "full"
+                              else acceptance.decision)
+        scaled = judge_deltas({f"{s:g}": s * mask for s in JUDGE_SCALES[:-1]})
+        by_scale = {s: scaled[f"{s:g}"] for s in JUDGE_SCALES[:-1]}
+        acceptance, delta = scale_correction(acceptance, delta, by_scale, held_out)
     correction = compose_correction(run, cache, prediction.xi_corr, acceptance, rotation_only)
     return dataclasses.replace(correction, delta=delta,
                                tested=None if held_out is None else np.asarray(held_out, np.int64))
+
+
+JUDGE_SCALES = (0.25, 0.5, 0.75, 1.0)
+
+
+def _judge_for(
+    run: TrainedRun, cache: SequenceCache, judge: SequenceCache | str | os.PathLike
+) -> SequenceCache:
+    """The judge cache of ``cache``, checked: the same frames, a stereo run."""
+    judged = judge if isinstance(judge, SequenceCache) else load_cache(judge)
+    if run.config.method != "stereo_dpc":
+        raise ValueError(f"{judged.path}: a judge measures Δ with stereo depth; the run is "
+                         f"{run.config.method}")
+    if not np.array_equal(np.asarray(judged.indices), np.asarray(cache.indices)):
+        raise ValueError(f"{judged.path}: holds frames other than those of {cache.path}; a judge must be "
+                         "the same frames prepared at another size")
+    return judged
+
+
+def scale_correction(
+    acceptance: Acceptance,
+    delta: dict[str, np.ndarray],
+    scaled: dict[float, np.ndarray],
+    pairs: np.ndarray | None = None,
+) -> tuple[Acceptance, dict[str, np.ndarray]]:
+    """The magnitude of a passed correction that the judge's images support → ``(acceptance, delta)``.
+
+    ``delta[decision]``: Δ of the decided correction as proposed (scale 1); ``scaled``: ``{s: Δ}``
+    of the same correction times each smaller scale of :data:`JUDGE_SCALES`. The scale with the
+    lowest mean Δ on ``pairs`` (default all) is applied when it passes the test itself; its Δ
+    replaces ``delta[decision]`` (what :func:`choose` compares). A network trained at a coarse
+    input size can get the direction of a rotation right and its size wrong (docs/method.md §8).
+    """
+    chosen = slice(None) if pairs is None else np.asarray(pairs)
+    decision = acceptance.decision
+    means = {1.0: float(delta[decision][chosen].mean())}
+    means.update({s: float(d[chosen].mean()) for s, d in scaled.items()})
+    best = min(means, key=lambda s: means[s])
+    listed = ", ".join(f"×{s:g} {means[s]:.3g}" for s in sorted(means))
+    if best == 1.0:
+        reason = f"{acceptance.reason}; mean Δ by scale: {listed}"
+        return dataclasses.replace(acceptance, reason=reason), delta
+    name = f"{decision} ×{best:g}"
+    test = component_test(name, scaled[best][chosen], acceptance.alpha)
+    tests = {**acceptance.tests, name: test}
+    if not test.passed:
+        reason = f"{acceptance.reason}; ×{best:g} did not pass (p = {test.p_value:.3g})"
+        return dataclasses.replace(acceptance, tests=tests, reason=reason), delta
+    return dataclasses.replace(
+        acceptance, tests=tests, scale=best,
+        reason=f"{acceptance.reason}; applied ×{best:g}, the scale with the lowest mean Δ ({listed})",
+    ), {**delta, decision: scaled[best]}
 
 
 def refine_rotation(
@@ -288,15 +365,16 @@ def compose_correction(
     gt = None if cache.gt is None else np.asarray(cache.gt, np.float64)
     first = gt[0] if gt is not None else prior[0]
     proposed = corrected_trajectory(xi_corr, prior, first, rotation_only)
-    decision = acceptance.decision
-    if decision == "full":
-        applied = proposed
-    elif decision == "rotation":
-        applied = corrected_trajectory(xi_corr, prior, first, True)
-    elif decision == "none":
+    decision, scale = acceptance.decision, acceptance.scale
+    if decision == "none":
         applied = corrected_trajectory(np.zeros_like(xi_corr), prior, first)
-    else:  # the rotation about some axes
-        applied = corrected_trajectory(xi_corr * component_mask(decision), prior, first)
+    elif decision == "full" and scale == 1.0:
+        applied = proposed
+    elif decision == "rotation" and scale == 1.0:
+        applied = corrected_trajectory(xi_corr, prior, first, True)
+    else:  # the rotation about some axes, or a scaled correction
+        mask = component_mask("rotation" if decision == "full" and rotation_only else decision)
+        applied = corrected_trajectory(scale * xi_corr * mask, prior, first)
     evaluation = None
     if gt is not None:
         evaluation = evaluate(gt, {"prior": prior, "network": proposed, "corrected": applied})

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import io
 import math
 import sys
@@ -107,6 +108,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         cache_root = args.workdir / "cache"
         overrides = P.overrides_from(args)
         adapt_steps = 2 if args.smoke else protocol.get("adapt_steps", 0)
+        judge_size = protocol.get("judge_size")
+        judge_size = None if judge_size is None else tuple(judge_size)
         sequences, priors, offsets = {}, {}, {}
         for drive, spec in drives.items():
             mat = args.kitti_raw / spec["libviso2"]
@@ -132,6 +135,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                 for name, frames in jobs.items():
                     P.prepare(sequence, source, cache_root, config0, name=name, frames=frames,
                               disparity_offset=offsets[drive], progress=progress)
+                if judge_size is not None:
+                    judge_config = dataclasses.replace(config0, image_size=judge_size)
+                    P.prepare(sequence, source, cache_root, judge_config, name=f"{drive}_{prior}_judge",
+                              disparity_offset=offsets[drive], progress=progress)
         select = args.select or protocol["select"]
         unknown = [d for d in args.test_drives or () if d not in drives]
         if unknown:
@@ -151,7 +158,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                     fold.name, run_dir, cache_root / f"{test_drive}_{prior}", args.workdir, select=select,
                     prior_label=prior, acceptance=protocol.get("acceptance", True),
                     rotation_only=protocol.get("rotation_only"), adapt_steps=adapt_steps,
-                    holdout_every=protocol.get("holdout_every", 5), progress=progress)
+                    holdout_every=protocol.get("holdout_every", 5), progress=progress,
+                    judge=None if judge_size is None else cache_root / f"{test_drive}_{prior}_judge")
                 rows += long_rows(test_drive, prior, f"{train_drive} {PRIOR_NAMES[trained_on]}", result)
                 print(f"[{(time.perf_counter() - began) / 60:.1f} min] test {test_drive}, prior {prior}, "
                       f"trained on {train_drive} {trained_on}: final {result.applied}", flush=True)
@@ -166,7 +174,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"{offsets[d]:+.3f} px" for d, s in sequences.items())
     notes = [f"Real KITTI raw drives ({described}). Each test drive is corrected by networks trained on the "
              f"other drive (trained on: drive and training prior), epoch by {select}, adapted "
-             f"{adapt_steps} steps to the test drive, acceptance depth {base.acceptance_depth}, "
+             f"{adapt_steps} steps to the test drive, acceptance depth {base.acceptance_depth}"
+             + (f" measured at {judge_size[0]}×{judge_size[1]} (the scale of an accepted correction chosen "
+                "there)" if judge_size is not None else "") + ", "
              f"{'rotation only' if protocol.get('rotation_only') else 'full correction'} applied. "
              f"{minutes:.1f} minutes." + (" SMOKE RUN (1 epoch of 2 steps, 2 adaptation steps)." if args.smoke
                                           else "")]

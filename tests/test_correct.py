@@ -466,3 +466,59 @@ def test_a_stereo_run_measures_delta_with_stereo_sgbm_unless_asked_otherwise(set
     assert cache.stereo_depth is not None
     computed = correct_cache(run, dataclasses.replace(cache, stereo_depth=None))
     np.testing.assert_array_equal(computed.delta["full"], default.delta["full"])
+
+
+def test_a_judge_measures_the_same_delta_without_the_network(setup: dict, run) -> None:
+    """On the cache the network ran on, the judge's Δ (StereoSGBM depth, no network) is the Δ of the
+    prediction with that depth: the temporal error needs only images, depth, prior and ξ."""
+    from dpc_jax.acceptance import component_mask
+    from dpc_jax.data.sequence_cache import load_cache
+    from dpc_jax.inference import run_prediction
+    from dpc_jax.judge import correction_effects
+
+    cache = load_cache(setup["cache"] / "05")
+    prediction = run_prediction(run, cache, acceptance_depth="sgbm")
+    names = ("full", "rotation", "rotation_x", "rotation_y", "rotation_z")
+    judged = correction_effects(cache, prediction.xi_corr, {c: component_mask(c) for c in names},
+                                run.config.loss_config(), batch_size=4)
+    for name in names:
+        np.testing.assert_allclose(judged[name], prediction.delta[name], rtol=1e-4, atol=1e-7)  # float32
+    halved = correction_effects(cache, prediction.xi_corr, {"half": 0.5 * component_mask("full")},
+                                run.config.loss_config())["half"]
+    alone = correction_effects(cache, 0.5 * prediction.xi_corr, {"full": component_mask("full")},
+                               run.config.loss_config())["full"]
+    np.testing.assert_allclose(halved, alone, rtol=1e-6, atol=1e-9)
+    with pytest.raises(ValueError, match=r"xi_corr must be \[9, 6\]"):
+        correction_effects(cache, prediction.xi_corr[:-1], {"full": np.ones(6)}, run.config.loss_config())
+
+
+def test_a_scaled_correction_is_applied_at_its_scale_and_only_if_it_passes(setup: dict, run) -> None:
+    import dataclasses
+
+    from dpc_jax.acceptance import Acceptance, acceptance_test
+    from dpc_jax.correct import compose_correction, scale_correction
+    from dpc_jax.data.sequence_cache import load_cache
+    from dpc_jax.geometry.correction import corrected_trajectory
+
+    good = -np.linspace(1, 12, 12) * 1e-4
+    accepted = dataclasses.replace(acceptance_test({"rotation": good}, components=("rotation",)),
+                                   decision="rotation_xz")
+    delta = {"rotation_xz": good}
+    # ×0.5 has the lowest mean Δ and passes: applied, its Δ replaces the proposal's.
+    scaled, new = scale_correction(accepted, delta, {0.25: 0.5 * good, 0.5: 2 * good, 0.75: 1.5 * good})
+    assert scaled.scale == 0.5 and scaled.decision == "rotation_xz" and "rotation_xz ×0.5" in scaled.tests
+    np.testing.assert_array_equal(new["rotation_xz"], 2 * good)
+    # The proposal's own scale is best: nothing changes but the reason.
+    same, kept = scale_correction(accepted, delta, {0.25: 0.1 * good, 0.5: 0.2 * good, 0.75: 0.3 * good})
+    assert same.scale == 1.0 and kept["rotation_xz"] is good and "by scale" in same.reason
+    # The best scale must pass on its own (six pairs cannot reach the 1 % level: p ≥ 1/64).
+    failing, _ = scale_correction(accepted, {"rotation_xz": good[:6]}, {0.5: 2 * good[:6]})
+    assert failing.scale == 1.0 and "did not pass" in failing.reason
+
+    cache = load_cache(setup["cache"] / "05")
+    xi = np.random.default_rng(0).normal(scale=1e-3, size=(len(cache) - 1, 6))
+    applied = compose_correction(run, cache, xi, Acceptance(0.01, {}, "rotation_xz", "", scale=0.5), False)
+    expected = corrected_trajectory(0.5 * xi * np.array([0, 0, 0, 1, 0, 1]), cache.prior, cache.gt[0])
+    np.testing.assert_allclose(applied.corrected, expected, atol=1e-12)
+    proposed = corrected_trajectory(xi, cache.prior, cache.gt[0])
+    np.testing.assert_allclose(applied.proposed, proposed, atol=1e-12)

@@ -82,7 +82,7 @@ def predict_step(mesh: Mesh | None, method: str) -> Any:
     return jax.jit(step, static_argnums=(0, 3), **kwargs)
 
 
-def _pair_depths(stereo: tuple[np.ndarray, np.ndarray], size: int, n_pairs: int) -> list[tuple[Any, Any]]:
+def pair_depths(stereo: tuple[np.ndarray, np.ndarray], size: int, n_pairs: int) -> list[tuple[Any, Any]]:
     """Per batch of ``size`` pairs: the stereo depth of frames ``(k, k+1)`` → ``[B, camera, frame, H, W]``."""
     inverse, valid = stereo
     out = []
@@ -123,7 +123,7 @@ def predict_sequence(
     pairs = len(cache) - 1
     size = max(1, min(batch_size, pairs)) if mesh is None else batch_size
     step = predict_step(mesh, loss_config.method)
-    depths = _pair_depths(stereo_depth, size, pairs) if stereo_depth is not None else None
+    depths = pair_depths(stereo_depth, size, pairs) if stereo_depth is not None else None
     share = parallel.process_slice(size) if mesh is not None else slice(None)
 
     def place(tree: Any) -> Any:

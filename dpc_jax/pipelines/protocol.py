@@ -187,14 +187,16 @@ def _estimates(correction: Correction) -> dict[str, dict[str, Any]]:
 def correct_and_evaluate(
     fold: str, run_dir: Path, cache: Path, out_root: Path, *, select: str = "gradient",
     prior_label: str = "prior", rotation_only: bool | None = None, acceptance: bool = True,
-    adapt_steps: int = 0, holdout_every: int = 5, progress: bool = False,
+    adapt_steps: int = 0, holdout_every: int = 5, judge: Path | None = None, progress: bool = False,
 ) -> Result:
     """Correct the prior of ``cache`` with the run's selected epoch (only where the acceptance test
     allows it, unless ``acceptance`` is False) and, with ``adapt_steps``, also with the network
     adapted to ``cache``'s own pairs (``dpc_jax.adapt``, the ground truth unread); the final
     trajectory is chosen by ``dpc_jax.correct.choose`` (the adapted correction only if it passes
-    its test and beats the trained one, else the trained one if it passes, else the prior). Writes
-    the final trajectory, the reports and (adapting) the adapted network."""
+    its test and beats the trained one, else the trained one if it passes, else the prior).
+    ``judge``: the same frames prepared at a larger size, where every acceptance test is measured
+    (``dpc_jax.correct.correct_cache``). Writes the final trajectory, the reports and (adapting)
+    the adapted network."""
     from dpc_jax.correct import choose, correct_cache, write_trajectory
     from dpc_jax.data.sequence_cache import load_cache
     from dpc_jax.inference import load_run
@@ -203,14 +205,16 @@ def correct_and_evaluate(
     run = load_run(run_dir, select)
     loaded = load_cache(cache)
     name = Path(cache).name
+    judged = None if judge is None else load_cache(judge)
     corrections = {"trained": correct_cache(run, loaded, rotation_only=rotation_only, force=not acceptance,
-                                            progress=progress)}
+                                            judge=judged, progress=progress)}
     if adapt_steps:
         from dpc_jax.adapt import AdaptConfig, adapt_and_correct, save_adapted
 
         how = AdaptConfig(adapt_steps, holdout_every=holdout_every)
         adaptation, corrections["adapted"] = adapt_and_correct(
-            run, loaded, how, rotation_only=rotation_only, force=not acceptance, progress=progress)
+            run, loaded, how, rotation_only=rotation_only, force=not acceptance, judge=judged,
+            progress=progress)
         save_adapted(out_root / "adapted" / fold / name, adaptation,
                      {"delta": corrections["adapted"].acceptance.mean_delta})
     final, correction = choose(corrections["trained"], corrections.get("adapted"))

@@ -11,9 +11,10 @@ For every training drive and training prior a Stereo DPC network is trained on t
 corrects the *other* drive: our VO's prior with the network trained on our VO, libviso2-s's prior with
 the network trained on our VO *and* with the one trained on libviso2-s (the papers' setting: the prior
 they correct is the prior they learn from). Each correction runs with the network as trained and as
-adapted to the test drive (``adapt_steps``; its ground truth never read), behind the acceptance test;
-``dpc_jax.correct.choose`` keeps the final. Every network's images are rectified by the disparity offset
-our VO measured on that drive (no ground truth). Only the rotation of the correction is applied (see
+adapted to the test drive (``adapt_steps``; its ground truth never read), behind the acceptance test,
+measured on the test drive prepared at ``judge_size``; ``dpc_jax.correct.choose`` keeps the final.
+Every network's images are rectified by the disparity offset our VO measured on that drive (no
+ground truth). Only the rotation of the correction is applied (see
 ``rotation_only`` in ``configs/kitti_raw_excerpt.py``).
 
 Command:
@@ -40,6 +41,11 @@ PROTOCOL = {
     "adapt_steps": 300,
     "holdout_every": 5,
     "rotation_only": True,
+    # Every acceptance test on a test drive is measured on its frames prepared at this size
+    # (dpc_jax.judge): the papers' input size, where the photometric loss resolves rotations that
+    # 64×96 does not, and which picks the scale of an accepted correction (docs/method.md §8).
+    # None: at the network's size.
+    "judge_size": (240, 376),
 }
 
 CONFIG = {
