@@ -277,10 +277,12 @@ def _judge_for(
     if run.config.method != "stereo_dpc":
         raise ValueError(f"{judged.path}: a judge measures Δ with stereo depth; the run is "
                          f"{run.config.method}")
-    if not np.array_equal(np.asarray(judged.indices), np.asarray(cache.indices)):
+    same_sequence = judged.manifest.get("sequence") == cache.manifest.get("sequence")
+    if not same_sequence or not np.array_equal(np.asarray(judged.indices), np.asarray(cache.indices)):
         raise ValueError(f"{judged.path}: holds frames other than those of {cache.path}; a judge must be "
                          "the same frames prepared at another size")
-    return judged
+    # Δ is measured around the prior being corrected, which may replace the caches' own.
+    return dataclasses.replace(judged, prior=cache.prior)
 
 
 def scale_correction(

@@ -426,6 +426,9 @@ def test_silent_and_late_mistakes_are_one_line_and_exit_2_before_jax(
             *prepare, "--sequence", "00", "05"],
         "--frames 0:7: 00 has 6 frames (0 to 5)": [*prepare, "--sequence", "00", "--frames", "0:7"],
         "--noise nan: expected a finite number": ["synth", "--out", out / "s", "--noise", "nan"],
+        "--judge CACHE goes with --data": [
+            "correct", "--checkpoint", data["run"], "--kitti-odometry", data["kitti"], "--sequence", "00",
+            "--prior", data["prior"], "--judge", data["cache"], "--out", out / "c.txt"],
         "--holdout-every 1000: keeps 0 of the 5 frame pairs of": [
             "correct", "--checkpoint", data["run"], "--data", data["cache"], "--out", out / "c.txt",
             "--adapt", "5", "--holdout-every", "1000"],

@@ -522,3 +522,20 @@ def test_a_scaled_correction_is_applied_at_its_scale_and_only_if_it_passes(setup
     np.testing.assert_allclose(applied.corrected, expected, atol=1e-12)
     proposed = corrected_trajectory(xi, cache.prior, cache.gt[0])
     np.testing.assert_allclose(applied.proposed, proposed, atol=1e-12)
+
+
+def test_cli_judge_measures_the_test_on_another_cache_of_the_same_frames(setup: dict, tmp_path: Path) -> None:
+    import json
+
+    from dpc_jax.cli import main
+
+    cache = str(setup["cache"] / "05")
+    out = tmp_path / "c.txt"
+    assert main(["correct", "--checkpoint", str(setup["run"]), "--data", cache, "--judge", cache,
+                 "--out", str(out), "--report", str(tmp_path / "r"), "--no-progress"]) == 0
+    summary = json.loads((tmp_path / "r" / "summary.json").read_text())
+    assert summary["acceptance"]["scale"] in (0.25, 0.5, 0.75, 1.0)
+    # Another sequence's frames cannot judge this one.
+    assert main(["correct", "--checkpoint", str(setup["run"]), "--data", cache, "--judge",
+                 str(setup["cache"] / "00"), "--out", str(tmp_path / "d.txt"), "--no-progress"]) == 2
+    assert not (tmp_path / "d.txt").exists()

@@ -17,6 +17,7 @@ from dpc_jax.cli._common import (
     Formatter,
     frame_range,
     frames_problem,
+    image_size,
     import_jax,
     input_problem,
     output_problem,
@@ -96,6 +97,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--acceptance-depth", choices=("network", "sgbm"),
                         help="depth Δ is measured with: sgbm, StereoSGBM on the cached pair (default for a "
                         "stereo run), or network, the network's own depth")
+    judge = parser.add_mutually_exclusive_group()
+    judge.add_argument("--judge", type=Path, metavar="CACHE",
+                       help="with --data: the same frames prepared at a larger size; the acceptance test is "
+                       "measured there (StereoSGBM depth, no network) and picks the scale of the correction")
+    judge.add_argument("--judge-size", type=image_size, metavar="HxW",
+                       help="raw inputs: prepare the frames also at this size (e.g. 240x376) and judge there")
     parser.add_argument("--adapt", type=int, default=0, metavar="STEPS",
                         help="also fine-tune the network for STEPS steps on this sequence's own images (no "
                         "ground truth); its correction is applied only if it passes its test and beats the "
@@ -146,9 +153,14 @@ def _check_arguments(args: argparse.Namespace) -> str | None:
     if args.adapt < 0 or args.holdout_every < MIN_EVERY:
         return (f"--adapt must be >= 0 and --holdout-every >= {MIN_EVERY}, got {args.adapt} and "
                 f"{args.holdout_every}")
+    if args.judge is not None and args.data is None:
+        return "--judge CACHE goes with --data (raw inputs: --judge-size HxW)"
+    if args.judge_size is not None and args.data is not None:
+        return "--judge-size goes with raw inputs (with --data: --judge CACHE)"
     if args.adapt_lr is not None and not args.adapt_lr > 0:
         return f"--adapt-lr must be > 0, got {args.adapt_lr}"
     problem = (input_problem(args.kitti_odometry, "--kitti-odometry", folder=True)
+               or input_problem(args.judge, "--judge", folder=True)
                or input_problem(args.kitti_raw, "--kitti-raw", folder=True)
                or input_problem(args.prior, "--prior") or input_problem(args.gt, "--gt")
                or output_problem(args.out, "--out") or output_problem(args.report, "--report", folder=True)
@@ -212,8 +224,8 @@ def run(args: argparse.Namespace) -> int:
                 run_ = load_run(args.checkpoint, args.select)
             except CheckpointError as error:
                 return _error(restore_problem(error.folder, error.__cause__ or error))
-            cache, prior = _sequence(args, run_, checked, stack)
-            correction, adaptation, adapted = _correct(args, run_, cache, prior)
+            cache, prior, judge = _sequence(args, run_, checked, stack)
+            correction, adaptation, adapted = _correct(args, run_, cache, prior, judge)
         except (OSError, ValueError, KeyError) as error:
             return _error(str(error))
     written = _write_outputs(args, correction, adaptation, adapted)
@@ -223,14 +235,16 @@ def run(args: argparse.Namespace) -> int:
 
 def _sequence(
     args: argparse.Namespace, run_: TrainedRun, checked: SequenceCache | None, stack: contextlib.ExitStack
-) -> tuple[SequenceCache | Path, str | None]:
-    """The sequence to correct and the prior to correct instead of its own (None: the cache's).
+) -> tuple[SequenceCache | Path, str | None, Path | None]:
+    """The sequence to correct, the prior to correct instead of its own (None: the cache's) and the
+    judge's cache (None: none).
 
     ``checked``: the ``--data`` cache, loaded; else the raw inputs are prepared at the run's image size
-    into ``--cache`` or a temporary folder that ``stack`` removes, with ``--prior`` as the cache's prior.
+    (and at ``--judge-size``) into ``--cache`` or a temporary folder that ``stack`` removes, with
+    ``--prior`` as the cache's prior.
     """
     if checked is not None:
-        return checked, args.prior
+        return checked, args.prior, args.judge
     from dpc_jax._io import remove_stale
     from dpc_jax.data.cache import prepare_sequence
     from dpc_jax.data.kitti import open_odometry, open_raw
@@ -247,21 +261,26 @@ def _sequence(
     cache_root = args.cache or Path(
         stack.enter_context(tempfile.TemporaryDirectory(prefix=f"dpc-correct-{os.getpid()}-"))
     )
-    cache = prepare_sequence(
-        sequence, args.prior, cache_root, size=run_.image_size, flow=run_.use_flow,
-        remove_static=args.remove_static, mono_rescale=args.mono_rescale, frames=args.frames,
-        prior_format=args.prior_format, ground_truth=args.gt, progress=False if args.no_progress else None,
-    )
+    common = {"remove_static": args.remove_static, "mono_rescale": args.mono_rescale, "frames": args.frames,
+              "prior_format": args.prior_format, "ground_truth": args.gt,
+              "progress": False if args.no_progress else None}
+    cache = prepare_sequence(sequence, args.prior, cache_root, size=run_.image_size, flow=run_.use_flow,
+                             **common)
+    judge = None
+    if args.judge_size is not None:
+        judge = prepare_sequence(sequence, args.prior, cache_root, size=args.judge_size,
+                                 name=f"{sequence.name}_judge", **common)
     from dpc_jax.data.sequence_cache import load_cache
 
     problem = _holdout_problem(args, len(load_cache(cache)), sequence.name)
     if problem is not None:
         raise ValueError(problem)
-    return cache, None
+    return cache, None, judge
 
 
 def _correct(
-    args: argparse.Namespace, run_: TrainedRun, cache: SequenceCache | Path, prior: str | None
+    args: argparse.Namespace, run_: TrainedRun, cache: SequenceCache | Path, prior: str | None,
+    judge: Path | None,
 ) -> tuple[Correction, Adaptation | None, Correction | None]:
     """The correction to write, with ``--adapt`` also the adaptation and the adapted network's correction
     (the one written only if :func:`~dpc_jax.correct.choose` prefers it to the trained network's)."""
@@ -270,7 +289,8 @@ def _correct(
 
     show = sys.stderr.isatty() and not args.no_progress
     options = {"rotation_only": args.rotation_only, "batch_size": args.batch_size,
-               "acceptance_depth": args.acceptance_depth, "alpha": args.alpha, "force": args.force}
+               "acceptance_depth": args.acceptance_depth, "alpha": args.alpha, "force": args.force,
+               "judge": judge}
     if not args.adapt:
         correction = correct_cache(run_, cache, prior, prior_format=args.prior_format, progress=show,
                                    **options)
