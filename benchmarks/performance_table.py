@@ -187,8 +187,8 @@ def parse_train_loop(text: str) -> list[Row]:
         rows.append(Row(
             f"{result['method']} training loop / correction against the isolated step",
             f"batch {record['batch']}, {h}×{w}, {record['preset']} preset",
-            f"train {train['loop_median']:.1f} samples/s (efficiency {train['efficiency']:.2f}); "
-            f"correct {correct['loop_median']:.1f} frames/s (efficiency {correct['efficiency']:.2f})",
+            f"train {train['loop_median']:.1f} samples/s (efficiency {train['efficiency']:.3g}); "
+            f"correct {correct['loop_median']:.1f} frames/s (efficiency {correct['efficiency']:.3g})",
             machine=f"{record['device']}, {record['cpu']}",
         ))
     return rows
