@@ -75,13 +75,14 @@ def median_rate(values: list[float]) -> float:
 def bench_method(
     args: argparse.Namespace, method: str, root: Path, train: str, validation: str, corrected: str
 ) -> dict[str, Any]:
+    import numpy as np
     from flax import nnx
 
-    from dpc_jax.correct import correct_cache
+    from dpc_jax.correct import correct_cache, default_acceptance_depth
     from dpc_jax.data.pipeline import iterate_sequence
     from dpc_jax.data.sequence_cache import load_cache
     from dpc_jax.engine.backend import prepare_inference
-    from dpc_jax.engine.predict import predict_step
+    from dpc_jax.engine.predict import pair_depths, predict_step, stereo_depth_of
     from dpc_jax.inference import TrainedRun
     from dpc_jax.training import loop, parallel
     from dpc_jax.training.config import TrainConfig
@@ -178,13 +179,18 @@ def bench_method(
     predict = predict_step(None, method)
     loss_config = config.loss_config()
     one = jax.device_put(next(iter(iterate_sequence(cache, size, flow=config.use_flow))))
+    # The same inputs the correction's step gets: the cache's stereo depth where its test uses it,
+    # and every rotation axis for Δ of the whole rotation.
+    stereo = stereo_depth_of(cache, default_acceptance_depth(run))
+    depth = None if stereo is None else jax.device_put(pair_depths(stereo, size, pairs)[0])
+    axes = np.ones(3, np.float32)
     calls = math.ceil(pairs / size)
 
     def predict_isolated() -> float:
         began = time.perf_counter()
         out = None
         for _ in range(calls):
-            out = predict(*prepared, one, loss_config, None)
+            out = predict(*prepared, one, loss_config, depth, axes)
         jax.block_until_ready(out)
         return calls * size / (time.perf_counter() - began)
 

@@ -1,7 +1,7 @@
 """The CPU a benchmark ran on, in the one line every benchmark prints in its header.
 
-Speed ratios against PyTorch differ by CPU generation as much as by code (the README's
-performance section has two machines' tables), and "x86_64" or a bare "AMD EPYC" does not tell
+Speed ratios against PyTorch differ by CPU generation as much as by code (``docs/performance.md``
+records figures from more than one machine), and "x86_64" or a bare "AMD EPYC" does not tell
 them apart: the description adds the family and model numbers and the widest vector instruction
 set, read from ``/proc/cpuinfo``.
 """

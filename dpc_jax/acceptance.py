@@ -21,11 +21,17 @@ passes the test too. A network can be right about one axis and wrong about anoth
 drive a rotation that helped as a whole carried a yaw that hurt on its own and, summed over
 100 m, turned the travel (``docs/method.md`` §8). When no single axis passes (the effect is
 spread over them), the whole rotation stays.
+
+Measured on a larger copy of the frames (a judge, ``dpc_jax.judge``), a passed correction is also
+scaled (:func:`scale_correction`): of ×0.25, ×0.5, ×0.75 and ×1 the one with the lowest mean Δ is
+applied, provided it passes the test itself.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -172,3 +178,77 @@ def forced(acceptance: Acceptance, component: str) -> Acceptance:
         raise ValueError(f"component must be one of {COMPONENTS}, got {component!r}")
     return Acceptance(acceptance.alpha, acceptance.tests, component,
                       f"forced ({acceptance.decision} by the test: {acceptance.reason})", forced=True)
+
+
+JUDGE_SCALES = (0.25, 0.5, 0.75, 1.0)
+
+
+def scale_correction(
+    acceptance: Acceptance,
+    delta: dict[str, np.ndarray],
+    scaled: dict[float, np.ndarray],
+    pairs: np.ndarray | None = None,
+) -> tuple[Acceptance, dict[str, np.ndarray]]:
+    """The magnitude of a passed correction that the judge's images support → ``(acceptance, delta)``.
+
+    ``delta[decision]``: Δ of the decided correction as proposed (scale 1); ``scaled``: ``{s: Δ}``
+    of the same correction times each smaller scale of :data:`JUDGE_SCALES`. The scale with the
+    lowest mean Δ on ``pairs`` (default all) is applied when it passes the test itself; its Δ
+    replaces ``delta[decision]`` (what :func:`dpc_jax.correct.choose` compares). A network trained at a coarse
+    input size can get the direction of a rotation right and its size wrong (docs/method.md §8).
+    """
+    chosen = slice(None) if pairs is None else np.asarray(pairs)
+    decision = acceptance.decision
+    means = {1.0: float(delta[decision][chosen].mean())}
+    means.update({s: float(d[chosen].mean()) for s, d in scaled.items()})
+    best = min(means, key=lambda s: means[s])
+    listed = ", ".join(f"×{s:g} {means[s]:.3g}" for s in sorted(means))
+    if best == 1.0:
+        reason = f"{acceptance.reason}; mean Δ by scale: {listed}"
+        return dataclasses.replace(acceptance, reason=reason), delta
+    name = f"{decision} ×{best:g}"
+    test = component_test(name, scaled[best][chosen], acceptance.alpha)
+    tests = {**acceptance.tests, name: test}
+    if not test.passed:
+        reason = f"{acceptance.reason}; ×{best:g} did not pass (p = {test.p_value:.3g})"
+        return dataclasses.replace(acceptance, tests=tests, reason=reason), delta
+    return dataclasses.replace(
+        acceptance, tests=tests, scale=best,
+        reason=f"{acceptance.reason}; applied ×{best:g}, the scale with the lowest mean Δ ({listed})",
+    ), {**delta, decision: scaled[best]}
+
+
+def refine_rotation(
+    acceptance: Acceptance,
+    delta: dict[str, np.ndarray],
+    subset_delta: Callable[[str], np.ndarray],
+    pairs: np.ndarray | None = None,
+) -> tuple[Acceptance, dict[str, np.ndarray]]:
+    """A passed ``rotation`` decision narrowed to the axes whose rotation alone passes the test
+    (``dpc_jax.acceptance``) → ``(acceptance, delta)``.
+
+    ``delta``: Δ ``[N-1]`` per component, with the single axes; ``subset_delta(axes)``: Δ of the
+    rotation about ``axes`` (two of them: it needs another pass of the network); ``pairs``: the
+    pairs the test uses (default all). The narrowed rotation must pass the test itself; its Δ is
+    added to ``delta`` (what :func:`dpc_jax.correct.choose` compares). With no axis or every axis
+    passing alone, the rotation is kept whole; the per-axis tests are recorded either way.
+    """
+    chosen = slice(None) if pairs is None else np.asarray(pairs)
+    axes, tests = supported_axes({c: delta[c][chosen] for c in AXIS_COMPONENTS}, acceptance.alpha)
+    recorded = dataclasses.replace(acceptance, tests={**acceptance.tests, **tests})
+    if axes in ("", AXES):
+        return recorded, delta
+    component = rotation_component(axes)
+    delta = {**delta, component: delta[component] if component in delta else subset_delta(axes)}
+    test = component_test(component, delta[component][chosen], acceptance.alpha)
+    tests[component] = test
+    recorded = dataclasses.replace(acceptance, tests={**acceptance.tests, **tests})
+    if not test.passed:
+        return dataclasses.replace(recorded, reason=f"{acceptance.reason}; the axes passing alone ({axes}) "
+                                                     f"did not pass together (p = {test.p_value:.3g})"), delta
+    dropped = ", ".join(a for a in AXES if a not in axes)
+    return dataclasses.replace(
+        recorded, decision=component,
+        reason=f"{acceptance.reason}; only the rotation about {', '.join(axes)} passes alone "
+               f"({component}: mean Δ {test.mean_delta:.3g}, p = {test.p_value:.3g}); {dropped} dropped",
+    ), delta

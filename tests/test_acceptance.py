@@ -216,7 +216,7 @@ def test_component_masks_and_names() -> None:
 
 def _refined(single: dict[str, np.ndarray], subset: np.ndarray | None = None):
     """``refine_rotation`` of a passed rotation with these single-axis Δ; records the subsets asked for."""
-    from dpc_jax.correct import refine_rotation
+    from dpc_jax.acceptance import refine_rotation
 
     good = -np.linspace(1, 12, 12) * 1e-4
     asked: list[str] = []
@@ -258,7 +258,7 @@ def test_on_real_frames_a_spurious_axis_is_dropped_and_the_helpful_one_kept(real
     """19 real pairs, SGBM depth: a prior with a planted 2 mrad yaw error per pair, and a proposal that
     undoes it but adds a spurious 2 mrad pitch. The per-axis Δ of ``correction_deltas`` equals Δ of
     the axis alone, the rotation about y alone is kept, the pitch dropped."""
-    from dpc_jax.correct import refine_rotation
+    from dpc_jax.acceptance import refine_rotation
 
     batch, outputs, valid, steps = real_pairs
     n = len(steps)

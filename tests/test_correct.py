@@ -495,8 +495,8 @@ def test_a_judge_measures_the_same_delta_without_the_network(setup: dict, run) -
 def test_a_scaled_correction_is_applied_at_its_scale_and_only_if_it_passes(setup: dict, run) -> None:
     import dataclasses
 
-    from dpc_jax.acceptance import Acceptance, acceptance_test
-    from dpc_jax.correct import compose_correction, scale_correction
+    from dpc_jax.acceptance import Acceptance, acceptance_test, scale_correction
+    from dpc_jax.correct import compose_correction
     from dpc_jax.data.sequence_cache import load_cache
     from dpc_jax.geometry.correction import corrected_trajectory
 

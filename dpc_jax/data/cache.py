@@ -54,10 +54,8 @@ import json
 import logging
 import os
 import shutil
-from collections.abc import Iterable, Iterator
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Iterable
 from pathlib import Path
-from typing import TypedDict
 
 import cv2
 import jax
@@ -65,11 +63,11 @@ import numpy as np
 
 from dpc_jax._io import atomic_write, install_folder, remove_stale, temp_name
 from dpc_jax._progress import Progress, progress_bar
+from dpc_jax.data.cache_products import FARNEBACK, ordered_map, write_flows, write_stereo_depth
 from dpc_jax.data.kitti import StereoSequence, load_image, read_ground_truth
 from dpc_jax.data.poses_io import validate_poses
 from dpc_jax.data.priors import load_prior, rescale_monocular
 from dpc_jax.data.sequence_cache import FLOW_FILES, MANIFEST, STEREO_DEPTH_FILES
-from dpc_jax.data.stereo_depth import sequence_inverse_depth, sgbm_fits
 from dpc_jax.geometry.camera import scale_intrinsics
 from dpc_jax.geometry.poses import remove_static_frames
 
@@ -77,35 +75,6 @@ log = logging.getLogger(__name__)
 
 CACHE_VERSION = 1
 DEFAULT_SIZE = (240, 376)
-
-
-class FarnebackParams(TypedDict):
-    """Keyword arguments of ``cv2.calcOpticalFlowFarneback`` (besides ``flags``)."""
-
-    pyr_scale: float
-    levels: int
-    winsize: int
-    iterations: int
-    poly_n: int
-    poly_sigma: float
-
-
-# docs/method.md §6: pyr_scale 0.5, 3 levels, window 15, 3 iterations, poly_n 5, poly_sigma 1.2.
-FARNEBACK: FarnebackParams = {
-    "pyr_scale": 0.5, "levels": 3, "winsize": 15, "iterations": 3, "poly_n": 5, "poly_sigma": 1.2
-}
-
-
-def farneback_flow(source_grey: np.ndarray, target_grey: np.ndarray) -> np.ndarray:
-    """Dense flow source → target, float32 ``[H, W, 2]`` (Δx, Δy) px, docs/method.md §6 parameters.
-
-    ``target(y + Δy, x + Δx) ≈ source(y, x)``.
-    """
-    # OpenCV's stubs require an output array ``flow``; None (allocate one) is what OpenCV accepts.
-    flow = cv2.calcOpticalFlowFarneback(  # type: ignore[call-overload]
-        source_grey, target_grey, None, flags=0, **FARNEBACK
-    )
-    return flow.astype(np.float32, copy=False)
 
 
 def _file_digest(path: Path) -> str:
@@ -169,52 +138,6 @@ def _resized_frame(
     if image.shape[:2] == size:
         return image
     return cv2.resize(image, (size[1], size[0]), interpolation=cv2.INTER_AREA)
-
-
-def _ordered_map(fn, items: list, workers: int) -> Iterator:
-    """``map`` over a thread pool (OpenCV releases the GIL), results in order, bounded look-ahead."""
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        pending = []
-        for item in items:
-            pending.append(pool.submit(fn, item))
-            if len(pending) > 2 * workers:
-                yield pending.pop(0).result()
-        for future in pending:
-            yield future.result()
-
-
-def _grey(image: np.ndarray) -> np.ndarray:
-    return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-
-
-def _write_flows(
-    tmp: Path, left: np.ndarray, right: np.ndarray, augment: bool, workers: int, progress: Progress
-) -> None:
-    n = left.shape[0]
-    kinds = {"forward": (1, False)}
-    if augment:
-        kinds |= {"reverse": (1, True), "skip": (2, False), "skip_reverse": (2, True)}
-    for kind, (step, backward) in kinds.items():
-        count = n - step
-        if count < 1:
-            raise ValueError(f"{n} frames are too few for {kind} flow (needs at least {step + 1})")
-        out = np.lib.format.open_memmap(
-            tmp / FLOW_FILES[kind], mode="w+", dtype=np.float32, shape=(count, 2, *left.shape[1:3], 2)
-        )
-
-        def pair_flow(k: int, step: int = step, backward: bool = backward) -> np.ndarray:
-            a, b = (k + step, k) if backward else (k, k + step)
-            return np.stack([
-                farneback_flow(_grey(cam[a]), _grey(cam[b])) for cam in (left, right)
-            ])
-
-        results = _ordered_map(pair_flow, list(range(count)), workers)
-        with progress_bar(count, f"flow ({kind})", progress, unit="pair") as bar:
-            for k, flow in enumerate(results):
-                out[k] = flow
-                bar.update(1)
-        out.flush()
-        del out
 
 
 def prepare_sequence(
@@ -299,7 +222,7 @@ def prepare_sequence(
             flow_augment=flow_augment, label=name, workers=workers, progress=progress,
         )
         K = _resized_intrinsics(inputs.sequence, size, half_pixel_intrinsics)
-        _write_stereo_depth(tmp, float(K[0, 0]), float(inputs.sequence.baseline), name, workers, progress)
+        write_stereo_depth(tmp, float(K[0, 0]), float(inputs.sequence.baseline), name, workers, progress)
         _write_poses_and_calibration(tmp, inputs, kept, K)
         manifest = _manifest(tmp, name, inputs, prior, digest, parameters, kept, size, K)
         atomic_write(tmp / MANIFEST, json.dumps(manifest, indent=2))
@@ -397,7 +320,8 @@ def _write_images_and_flows(
     progress: Progress,
 ) -> None:
     """Write ``left.npy``/``right.npy``, uint8 ``[N, H, W, 3]`` with ``size = (H, W)``, of the ``kept``
-    frames into ``tmp``; with ``flow``, the flows of the stored images too (:func:`_write_flows`).
+    frames into ``tmp``; with ``flow``, the flows of the stored images too
+    (:func:`~dpc_jax.data.cache_products.write_flows`).
 
     ``disparity_offset`` (px at the source resolution) shifts the right images before resizing.
     """
@@ -408,7 +332,7 @@ def _write_images_and_flows(
     for camera, paths in (("left", sequence.left_paths), ("right", sequence.right_paths)):
         shift = shifts[camera]
         out = np.lib.format.open_memmap(tmp / f"{camera}.npy", mode="w+", dtype=np.uint8, shape=shape)
-        frames_iter = _ordered_map(
+        frames_iter = ordered_map(
             lambda p, s=shift: _resized_frame(p, sequence.image_size, size, s), [paths[i] for i in kept],
             workers,
         )
@@ -419,27 +343,7 @@ def _write_images_and_flows(
         out.flush()
         arrays[camera] = out
     if flow:
-        _write_flows(tmp, arrays["left"], arrays["right"], flow_augment, workers, progress)
-
-
-def _write_stereo_depth(tmp: Path, fu: float, baseline: float, label: str, workers: int,
-                        progress: Progress) -> None:
-    """Write the StereoSGBM inverse depth and validity of the stored pairs of ``tmp`` (``fu``: focal
-    length of the stored images, px; ``baseline``: m), unless they are too narrow for it."""
-    left, right = (np.load(tmp / f"{camera}.npy", mmap_mode="r") for camera in ("left", "right"))
-    n, h, w = left.shape[:3]
-    if not sgbm_fits(w, fu, baseline):
-        log.info("%s: images %d px wide are too narrow for StereoSGBM; no stereo depth stored", label, w)
-        return
-    inverse = np.lib.format.open_memmap(tmp / STEREO_DEPTH_FILES[0], mode="w+", dtype=np.float32,
-                                        shape=(n, 2, h, w))
-    valid = np.lib.format.open_memmap(tmp / STEREO_DEPTH_FILES[1], mode="w+", dtype=bool, shape=(n, 2, h, w))
-
-    with progress_bar(n, f"{label} stereo depth", progress) as bar:
-        sequence_inverse_depth(left, right, fu, baseline, workers=workers, out=(inverse, valid),
-                               done=lambda: bar.update(1))
-    inverse.flush()
-    valid.flush()
+        write_flows(tmp, arrays["left"], arrays["right"], flow_augment, workers, progress)
 
 
 def _resized_intrinsics(sequence: StereoSequence, size: tuple[int, int], half_pixel: bool) -> np.ndarray:
