@@ -34,7 +34,6 @@ import numpy as np
 
 from dpc_jax._io import atomic_write
 from dpc_jax.acceptance import (
-    AXIS_COMPONENTS,
     DEFAULT_ALPHA,
     JUDGE_SCALES,
     Acceptance,
@@ -217,9 +216,9 @@ def correct_cache(
     ``network`` or ``sgbm`` (None = :func:`default_acceptance_depth`); ``alpha``: the test's level;
     ``force``: apply the correction whatever the test says; ``held_out``: the pairs ``k`` the test
     uses (default all; after adaptation, the pairs it never saw). ``judge``: the same frames
-    prepared at a larger size (``dpc_jax.judge``, a stereo run): every Δ of the test is measured
-    there, with its StereoSGBM depth, instead of at the network's size, and the applied correction
-    is scaled by the one of :data:`JUDGE_SCALES` its images support best (:func:`scale_correction`).
+    prepared at a larger size (``dpc_jax.judge``, a stereo run): a correction that passes at the
+    network's size must pass there too, with its StereoSGBM depth, and is applied at the scale of
+    :data:`~dpc_jax.acceptance.JUDGE_SCALES` its images support best (:func:`judged_correction`).
     The trajectories start at the first ground-truth pose when the cache has ground truth, else at
     the first prior pose (docs/method.md §1).
     """
@@ -228,39 +227,28 @@ def correct_cache(
         cache = dataclasses.replace(cache, prior=prior_for_cache(cache, prior, prior_format))
     rotation_only = run.config.rotation_only if rotation_only is None else bool(rotation_only)
     depth = acceptance_depth or default_acceptance_depth(run)
-    prediction = run_prediction(run, cache, batch_size=batch_size, acceptance_depth=depth, progress=progress)
     judged = None if judge is None else _judge_for(run, cache, judge)
-
-    def judge_deltas(masks: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        assert judged is not None
-        return correction_effects(judged, prediction.xi_corr, masks, run.config.loss_config(),
-                                  batch_size or run.config.batch_size)
-
-    if judged is not None:
-        full = "rotation" if rotation_only else "full"
-        names = ("full", "rotation", *AXIS_COMPONENTS)
-        prediction = dataclasses.replace(prediction, delta=judge_deltas(
-            {c: component_mask(full if c == "full" else c) for c in names}))
+    prediction = run_prediction(run, cache, batch_size=batch_size, acceptance_depth=depth, progress=progress)
     acceptance = decide(run, prediction, rotation_only=rotation_only, pairs=held_out, alpha=alpha,
                         force=force)
     delta = dict(prediction.delta)
     if acceptance.decision == "rotation" and not acceptance.forced:
 
         def subset_delta(axes: str) -> np.ndarray:
-            mask = component_mask(rotation_component(axes))
-            if judged is not None:
-                return judge_deltas({"subset": mask})["subset"]
+            axes_mask = component_mask(rotation_component(axes))[3:]
             again = run_prediction(run, cache, batch_size=batch_size, acceptance_depth=depth,
-                                   rotation_axes=mask[3:], progress=progress)
+                                   rotation_axes=axes_mask, progress=progress)
             return again.delta["rotation"]
 
         acceptance, delta = refine_rotation(acceptance, delta, subset_delta, held_out)
     if judged is not None and acceptance.decision != "none" and not acceptance.forced:
         mask = component_mask("rotation" if rotation_only and acceptance.decision == "full"
                               else acceptance.decision)
-        scaled = judge_deltas({f"{s:g}": s * mask for s in JUDGE_SCALES[:-1]})
-        by_scale = {s: scaled[f"{s:g}"] for s in JUDGE_SCALES[:-1]}
-        acceptance, delta = scale_correction(acceptance, delta, by_scale, held_out)
+        scales = {f"{s:g}": s * mask for s in JUDGE_SCALES}
+        measured = correction_effects(judged, prediction.xi_corr, scales, run.config.loss_config(),
+                                      batch_size or run.config.batch_size)
+        by_scale = {s: measured[f"{s:g}"] for s in JUDGE_SCALES}
+        acceptance, delta = judged_correction(acceptance, delta, by_scale, held_out)
     correction = compose_correction(run, cache, prediction.xi_corr, acceptance, rotation_only)
     return dataclasses.replace(correction, delta=delta,
                                tested=None if held_out is None else np.asarray(held_out, np.int64))
@@ -280,6 +268,36 @@ def _judge_for(
                          "the same frames prepared at another size")
     # Δ is measured around the prior being corrected, which may replace the caches' own.
     return dataclasses.replace(judged, prior=cache.prior)
+
+
+def judged_correction(
+    acceptance: Acceptance,
+    delta: dict[str, np.ndarray],
+    by_scale: dict[float, np.ndarray],
+    pairs: np.ndarray | None = None,
+) -> tuple[Acceptance, dict[str, np.ndarray]]:
+    """A correction decided at the network's size, judged on a larger copy of the frames →
+    ``(acceptance, delta)``.
+
+    ``by_scale``: ``{s: Δ}`` at the judge of the decided correction times each of
+    :data:`~dpc_jax.acceptance.JUDGE_SCALES`. It must pass the test there at scale 1 too (else the
+    prior is kept): a test at two sizes, with two depths, both of which must agree. Then
+    :func:`~dpc_jax.acceptance.scale_correction` picks its scale there; ``delta[decision]`` becomes
+    the judge's Δ (what :func:`choose` compares).
+    """
+    chosen = slice(None) if pairs is None else np.asarray(pairs)
+    decision = acceptance.decision
+    name = f"{decision} (judge)"
+    test = component_test(name, by_scale[1.0][chosen], acceptance.alpha)
+    tests = {**acceptance.tests, name: test}
+    if not test.passed:
+        reason = (f"{acceptance.reason}; not at the judge's size (mean Δ {test.mean_delta:.3g}, "
+                  f"p = {test.p_value:.3g}): the prior is kept")
+        return dataclasses.replace(acceptance, tests=tests, decision="none", reason=reason), delta
+    judged = dataclasses.replace(acceptance, tests=tests,
+                                 reason=f"{acceptance.reason}; at the judge's size p = {test.p_value:.3g}")
+    smaller = {s: d for s, d in by_scale.items() if s != 1.0}
+    return scale_correction(judged, {**delta, decision: by_scale[1.0]}, smaller, pairs)
 
 
 def compose_correction(

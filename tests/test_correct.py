@@ -539,3 +539,24 @@ def test_cli_judge_measures_the_test_on_another_cache_of_the_same_frames(setup: 
     assert main(["correct", "--checkpoint", str(setup["run"]), "--data", cache, "--judge",
                  str(setup["cache"] / "00"), "--out", str(tmp_path / "d.txt"), "--no-progress"]) == 2
     assert not (tmp_path / "d.txt").exists()
+
+
+def test_a_judged_correction_must_pass_at_both_sizes() -> None:
+    import dataclasses
+
+    from dpc_jax.acceptance import acceptance_test
+    from dpc_jax.correct import judged_correction
+
+    good, bad = -np.linspace(1, 12, 12) * 1e-4, np.linspace(1, 12, 12) * 1e-5
+    accepted = dataclasses.replace(acceptance_test({"rotation": good}, components=("rotation",)),
+                                   decision="rotation_xz")
+    network = {"rotation_xz": good}
+    # Refused at the judge's size: the prior, whatever the network's size said.
+    refused, delta = judged_correction(accepted, network, {0.25: bad, 0.5: bad, 0.75: bad, 1.0: bad})
+    assert refused.decision == "none" and "not at the judge's size" in refused.reason
+    assert delta["rotation_xz"] is good
+    # Passed there: scaled by the judge's images, and the judge's Δ is what choose compares.
+    by_scale = {0.25: good, 0.5: 3 * good, 0.75: 2 * good, 1.0: 1.5 * good}
+    kept, delta = judged_correction(accepted, network, by_scale)
+    assert kept.decision == "rotation_xz" and kept.scale == 0.5 and "rotation_xz (judge)" in kept.tests
+    np.testing.assert_array_equal(delta["rotation_xz"], 3 * good)
