@@ -235,9 +235,13 @@ def correct_cache(
     if acceptance.decision == "rotation" and not acceptance.forced:
 
         def subset_delta(axes: str) -> np.ndarray:
-            axes_mask = component_mask(rotation_component(axes))[3:]
+            mask = component_mask(rotation_component(axes))
+            if depth == "sgbm" and run.config.method == "stereo_dpc" and not run.config.learn_ssim_weight:
+                # Δ with stereo depth needs no network (dpc_jax.judge): no second pass of it.
+                return correction_effects(cache, prediction.xi_corr, {axes: mask}, run.config.loss_config(),
+                                          batch_size or run.config.batch_size)[axes]
             again = run_prediction(run, cache, batch_size=batch_size, acceptance_depth=depth,
-                                   rotation_axes=axes_mask, progress=progress)
+                                   rotation_axes=mask[3:], progress=progress)
             return again.delta["rotation"]
 
         acceptance, delta = refine_rotation(acceptance, delta, subset_delta, held_out)
