@@ -82,7 +82,7 @@ def bench_method(
     from dpc_jax.data.pipeline import iterate_sequence
     from dpc_jax.data.sequence_cache import load_cache
     from dpc_jax.engine.backend import prepare_inference
-    from dpc_jax.engine.predict import pair_depths, predict_step, stereo_depth_of
+    from dpc_jax.engine.predict import predict_step, stereo_depth_of
     from dpc_jax.inference import TrainedRun
     from dpc_jax.training import loop, parallel
     from dpc_jax.training.config import TrainConfig
@@ -175,14 +175,12 @@ def bench_method(
     cache = load_cache(root / corrected)
     pairs = len(cache) - 1
     size = min(args.batch, pairs)
-    prepared = prepare_inference(run_graphdef, run_state)
-    predict = predict_step(None, method)
-    loss_config = config.loss_config()
-    one = jax.device_put(next(iter(iterate_sequence(cache, size, flow=config.use_flow))))
+    prepared_graphdef, prepared_state = prepare_inference(run_graphdef, run_state)
+    predict = predict_step(None, prepared_graphdef, config.loss_config())
     # The same inputs the correction's step gets: the cache's stereo depth where its test uses it,
     # and every rotation axis for Δ of the whole rotation.
     stereo = stereo_depth_of(cache, default_acceptance_depth(run))
-    depth = None if stereo is None else jax.device_put(pair_depths(stereo, size, pairs)[0])
+    one = jax.device_put(next(iter(iterate_sequence(cache, size, flow=config.use_flow, stereo_depth=stereo))))
     axes = np.ones(3, np.float32)
     calls = math.ceil(pairs / size)
 
@@ -190,7 +188,7 @@ def bench_method(
         began = time.perf_counter()
         out = None
         for _ in range(calls):
-            out = predict(*prepared, one, loss_config, depth, axes)
+            out = predict(prepared_state, one, axes)
         jax.block_until_ready(out)
         return calls * size / (time.perf_counter() - began)
 

@@ -1,17 +1,20 @@
 #!/usr/bin/env bash
 # The GPU figures of the README in one run on a CUDA machine that has jax, flax, optax, orbax, OpenCV
 # and PyTorch but no network and no ../shared: loop efficiency (bench_train_loop.py) for both
-# methods, then the side-by-side against PyTorch eager and compiled (bench_vs_torch.py).
+# methods at 240×376, batch 8, then the side-by-side against PyTorch eager and compiled
+# (bench_vs_torch.py). Each part writes its output as it goes, so a part cut short by its time limit
+# leaves what it measured.
 #
 # Prepare beside the checkout, in folders git ignores:
 #   pip download --no-deps --only-binary=:all: --python-version 3.12 --platform manylinux2014_x86_64 \
 #       -d .whl tensorboardX                    # the one dependency such images tend to lack
 #   cp -r ../shared/bench/torch_reference .device/
 # then run `bash benchmarks/gpu_check.sh` there with `.whl` and `.device` carried; the outputs go to
-# $OUT (default ./gpu_out). BUDGET (seconds, default 540) bounds the PyTorch comparison.
+# $OUT (default ./gpu_out). BUDGET (seconds, default 540) bounds the whole run.
 set -uo pipefail
 export PYTHONUNBUFFERED=1
 OUT="${OUT:-gpu_out}"
+BUDGET="${BUDGET:-540}"
 mkdir -p "$OUT"
 if compgen -G ".whl/*.whl" > /dev/null; then
     python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site \
@@ -22,14 +25,24 @@ else
 fi
 # One persistent cache: the benchmarks' processes compile some of the same programs.
 export JAX_COMPILATION_CACHE_DIR=/tmp/jaxcache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
-nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/device.txt"
 start=$SECONDS
+left() { echo $(( BUDGET - (SECONDS - start) )); }
+{
+    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
+    python3 -c "import jax, flax, optax, torch; print('jax', jax.__version__, jax.devices(), 'flax', \
+flax.__version__, 'optax', optax.__version__, 'torch', torch.__version__)"
+    nproc
+    date -u
+} 2>&1 | tee "$OUT/device.txt"
 for method in stereo_dpc ss_dpc; do
-    timeout 200 python3 benchmarks/bench_train_loop.py --method "$method" --steps 60 --rounds 3 \
-        --json "$OUT/loop_$method.json" 2>&1 | tee "$OUT/loop_$method.txt"
+    timeout "${LOOP_TIMEOUT:-170}" python3 benchmarks/bench_train_loop.py --method "$method" \
+        --steps "${LOOP_STEPS:-40}" --rounds 3 --workers 4 --json "$OUT/loop_$method.json" 2>&1 \
+        | tee "$OUT/loop_$method.txt"
+    echo "elapsed $((SECONDS - start)) s"
 done
-timeout $(( ${BUDGET:-540} - (SECONDS - start) )) python3 benchmarks/bench_vs_torch.py \
+timeout "$(left)" python3 benchmarks/bench_vs_torch.py \
     --torch-python python3 --torch-bench .device/torch_reference/bench_torch.py --torch-device cuda \
-    --wait-quiet 0 --torch-variants eager compiled --compiled-only mono-train-8 stereo-infer-1 mono-infer-1 \
-    --torch-timeout 100 --pairs 1 --reps 20 --warmup 3 \
-    --only stereo-train-8 mono-train-8 stereo-infer-1 mono-infer-1 2>&1 | tee "$OUT/vs_torch.md"
+    --wait-quiet 0 --torch-variants eager compiled --compiled-only mono-infer-1 mono-train-8 \
+    --torch-timeout 90 --pairs 1 --reps 20 --warmup 3 \
+    --only mono-train-8 stereo-train-8 mono-infer-1 stereo-infer-1 2>&1 | tee "$OUT/vs_torch.md"
+echo "elapsed $((SECONDS - start)) s"

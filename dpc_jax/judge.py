@@ -23,23 +23,21 @@ import numpy as np
 
 from dpc_jax.data.pipeline import iterate_sequence
 from dpc_jax.data.sequence_cache import SequenceCache
-from dpc_jax.engine.predict import pair_depths, stereo_depth_of
+from dpc_jax.engine.predict import stereo_depth_of
 from dpc_jax.nn.batch import Batch
 from dpc_jax.nn.config import SSDPCLossConfig, StereoDPCLossConfig
-from dpc_jax.nn.losses import temporal_pair_errors
+from dpc_jax.nn.losses import temporal_pair_errors, with_stereo_depth
 from dpc_jax.nn.outputs import BranchOutputs, DPCOutputs
 
 
 @functools.partial(jax.jit, static_argnames="config")
-def _effects(batch: Batch, depth: tuple[jax.Array, jax.Array], xi: jax.Array, masks: jax.Array,
-             config: StereoDPCLossConfig) -> jax.Array:
-    """Δ ``[C, B]`` of ``xi [B, 6] ⊙ masks[c] [6]`` for each of the ``C`` masks (module docstring)."""
-    inverse, ok = depth  # [B, camera, frame, H, W]
-    ones = jnp.ones(inverse.shape[:1] + inverse.shape[2:], jnp.float32)
-    left = BranchOutputs(jnp.where(ok[:, 0], inverse[:, 0], 1.0), ones)
-    right = BranchOutputs(jnp.where(ok[:, 1], inverse[:, 1], 1.0), ones)
-    valid = (ok[:, 0], ok[:, 1])
-    outputs = DPCOutputs(jnp.zeros_like(xi), left, right)
+def _effects(batch: Batch, xi: jax.Array, masks: jax.Array, config: StereoDPCLossConfig) -> jax.Array:
+    """Δ ``[C, B]`` of ``xi [B, 6] ⊙ masks[c] [6]`` for each of the ``C`` masks (module docstring),
+    with ``batch.stereo_depth``."""
+    assert batch.stereo_depth is not None
+    ones = jnp.ones(batch.stereo_depth[0].shape[:1] + batch.stereo_depth[0].shape[2:], jnp.float32)
+    branch = BranchOutputs(ones, ones)
+    outputs, valid = with_stereo_depth(DPCOutputs(jnp.zeros_like(xi), branch, branch), batch.stereo_depth)
     none = temporal_pair_errors(outputs, batch, config, valid)
     return jnp.stack([temporal_pair_errors(outputs._replace(xi_corr=xi * masks[c]), batch, config, valid)
                       - none for c in range(masks.shape[0])])
@@ -74,11 +72,10 @@ def correction_effects(
     stereo = stereo_depth_of(cache, "sgbm")
     assert stereo is not None  # "sgbm" always gives a depth
     size = max(1, min(batch_size, pairs))
-    depths = pair_depths(stereo, size, pairs)
     out: list[np.ndarray] = []
-    for index, batch in enumerate(iterate_sequence(cache, size, flow=False)):
+    for index, batch in enumerate(iterate_sequence(cache, size, flow=False, stereo_depth=stereo)):
         rows = np.minimum(np.arange(index * size, (index + 1) * size), pairs - 1)
-        effects: Any = _effects(batch, depths[index], jnp.asarray(xi_corr[rows]), stacked, config=config)
+        effects: Any = _effects(batch, jnp.asarray(xi_corr[rows]), stacked, config=config)
         out.append(np.asarray(effects, np.float64)[:, np.asarray(batch.weight) > 0])
     merged = np.concatenate(out, axis=1)
     return {name: merged[i] for i, name in enumerate(names)}

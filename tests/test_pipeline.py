@@ -153,6 +153,28 @@ def test_evaluation_iterates_in_order_and_pads_with_weight_zero(caches: tuple[Pa
     assert all(b.left.shape == (3, 2, *SIZE, 3) for b in batches)
 
 
+def test_evaluation_batches_carry_the_stereo_depth_of_both_frames(caches: tuple[Path, Path]) -> None:
+    excerpt, _ = caches
+    cache = load_cache(excerpt)
+    rng = np.random.default_rng(0)
+    inverse = rng.uniform(0.01, 1.0, (N, 2, *SIZE)).astype(np.float32)  # [frame, camera, H, W]
+    valid = rng.uniform(size=inverse.shape) > 0.3
+    batches = list(iterate_sequence(cache, batch_size=3, stereo_depth=(inverse, valid)))
+    for index, batch in enumerate(batches):
+        assert batch.stereo_depth is not None
+        got_inverse, got_valid = batch.stereo_depth
+        assert got_inverse.shape == got_valid.shape == (3, 2, 2, *SIZE)  # [B, camera, frame, H, W]
+        for n in range(3):
+            k = min(3 * index + n, N - 2)  # the padding repeats the last pair
+            for camera in range(2):
+                for frame in range(2):
+                    np.testing.assert_array_equal(got_inverse[n, camera, frame], inverse[k + frame, camera])
+                    np.testing.assert_array_equal(got_valid[n, camera, frame], valid[k + frame, camera])
+    assert next(iter(iterate_sequence(cache, batch_size=3))).stereo_depth is None
+    with pytest.raises(ValueError, match="stereo depth must hold its 8 frames"):
+        next(iter(iterate_sequence(cache, batch_size=3, stereo_depth=(inverse[:-1], valid[:-1]))))
+
+
 def test_load_cache_rejects_incomplete_folder(tmp_path: Path) -> None:
     (tmp_path / ".04.tmp-x").mkdir()
     np.save(tmp_path / ".04.tmp-x" / "left.npy", np.zeros((2, 4, 4, 3), np.uint8))

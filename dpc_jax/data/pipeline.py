@@ -145,9 +145,12 @@ def _check_compatible(caches: list[SequenceCache]) -> None:
 
 
 def _assemble(
-    caches: list[SequenceCache], table: _SampleTable, rows: np.ndarray, weight: np.ndarray, use_flow: bool
+    caches: list[SequenceCache], table: _SampleTable, rows: np.ndarray, weight: np.ndarray, use_flow: bool,
+    stereo_depth: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Batch:
-    """Gather the samples ``rows`` of ``table`` into one Batch of numpy arrays."""
+    """Gather the samples ``rows`` of ``table`` into one Batch of numpy arrays; ``stereo_depth``:
+    ``(inverse depth, valid)`` ``[N, camera, H, W]`` of every frame of a single cache, gathered into
+    ``Batch.stereo_depth`` for the samples' two frames."""
     b = rows.size
     h, w = caches[0].image_size
     left = np.empty((b, 2, h, w, 3), np.uint8)
@@ -173,7 +176,17 @@ def _assemble(
         weight=weight.astype(np.float32),
         flow=flow,
         xi_gt=None if table.xi_gt is None else table.xi_gt[rows],
+        stereo_depth=None if stereo_depth is None else _pair_depth(stereo_depth, table, rows),
     )
+
+
+def _pair_depth(
+    stereo_depth: tuple[np.ndarray, np.ndarray], table: _SampleTable, rows: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The frames ``(source, target)`` of samples ``rows`` → ``[B, camera, frame, H, W]`` each."""
+    frames = np.stack([table.source[rows], table.target[rows]], axis=1)  # [B, frame]
+    inverse, valid = stereo_depth
+    return np.moveaxis(inverse[frames], 1, 2), np.moveaxis(valid[frames], 1, 2)
 
 
 def _identity(batch: Batch) -> Batch:
@@ -309,18 +322,24 @@ def iterate_sequence(
     workers: int = 1,
     depth: int = 4,
     put: Callable[[Batch], Any] | None = None,
+    stereo_depth: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Generator[Any, None, None]:
     """The forward pairs ``(k, k+1)``, k = 0 … N-2, of one sequence in order, in fixed-size batches.
 
     The last batch is padded with copies of the final pair whose ``weight`` is 0, so every batch
     has ``batch_size`` samples; ``ceil((N-1) / batch_size)`` batches in all. ``put``: as in
-    :meth:`TrainLoader.epoch`.
+    :meth:`TrainLoader.epoch`. ``stereo_depth``: ``(inverse depth, valid)`` ``[N, camera, H, W]``
+    of every frame, gathered into each batch's ``stereo_depth`` by the data threads (so ``put``
+    moves it to the device with the images).
     """
     finish = put or _identity
     [loaded] = _as_caches([cache])
     use_flow = bool(loaded.flows) if flow is None else flow
     table = _build_table([loaded], ["forward"], use_flow)
     n = len(table)
+    if stereo_depth is not None and any(a.shape[:1] != (len(loaded),) for a in stereo_depth):
+        raise ValueError(f"{loaded.path}: the stereo depth must hold its {len(loaded)} frames, got "
+                         f"{[a.shape for a in stereo_depth]}")
 
     def tasks() -> Iterator[Callable[[], Any]]:
         for start in range(0, n, batch_size):
@@ -329,7 +348,7 @@ def iterate_sequence(
             weight = (np.arange(batch_size) < real.size).astype(np.float32)
 
             def task(rows: np.ndarray = rows, weight: np.ndarray = weight) -> Any:
-                return finish(_assemble([loaded], table, rows, weight, use_flow))
+                return finish(_assemble([loaded], table, rows, weight, use_flow, stereo_depth))
 
             yield task
 

@@ -17,7 +17,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 from jax.sharding import Mesh
@@ -28,7 +27,7 @@ from dpc_jax.data.sequence_cache import SequenceCache, load_cache
 from dpc_jax.engine import backend, parallel
 from dpc_jax.engine.driver import drive
 from dpc_jax.nn.batch import Batch
-from dpc_jax.nn.losses import correction_deltas, dpc_loss
+from dpc_jax.nn.losses import correction_deltas, dpc_loss, with_stereo_depth
 
 DELTAS = ("full", "rotation", "rotation_x", "rotation_y", "rotation_z")
 
@@ -55,42 +54,31 @@ class SequencePrediction:
 
 
 @functools.cache
-def predict_step(mesh: Mesh | None, method: str) -> Any:
-    """The jitted ``step(graphdef, state, batch, config, depth) -> dict`` (evaluation mode) for
-    ``method``'s network, compiled with the backend's options (``dpc_jax.engine.backend``)."""
+def predict_step(mesh: Mesh | None, graphdef: nnx.GraphDef, config: Any) -> Any:
+    """The jitted ``step(state, batch, rotation_axes) -> dict`` (evaluation mode) of the model
+    ``graphdef`` with the loss ``config``, compiled with the backend's options
+    (``dpc_jax.engine.backend``).
 
-    def step(graphdef: nnx.GraphDef, state: nnx.State, batch: Batch, config: Any,
-             depth: tuple[jax.Array, jax.Array] | None, rotation_axes: jax.Array) -> dict[str, jax.Array]:
+    The static parts are bound here, once per ``(mesh, graphdef, config)``, so a call hashes no
+    graph definition. Δ is measured with ``batch.stereo_depth`` where the batch carries one
+    (``dpc_jax.nn.losses.with_stereo_depth``), else with the network's depth.
+    """
+
+    def step(state: nnx.State, batch: Batch, rotation_axes: jax.Array) -> dict[str, jax.Array]:
         model = nnx.merge(graphdef, state)
         model.eval()
         outputs = model(batch)
         loss, _ = dpc_loss(outputs, batch, config)
         valid = None
-        if depth is not None:
-            # [B, camera, frame, H, W]: the independent depth replaces the network's; holes are
-            # filled with 1 m and left out through ``valid``.
-            inverse, ok = depth
-            left = outputs.left._replace(inv_depth=jnp.where(ok[:, 0], inverse[:, 0], 1.0))
-            right = outputs.right._replace(inv_depth=jnp.where(ok[:, 1], inverse[:, 1], 1.0))
-            outputs, valid = outputs._replace(left=left, right=right), (ok[:, 0], ok[:, 1])
+        if batch.stereo_depth is not None:
+            outputs, valid = with_stereo_depth(outputs, batch.stereo_depth)
         deltas = correction_deltas(outputs, batch, config, valid, rotation_axes)
         return {"xi_corr": outputs.xi_corr, "loss": loss, **deltas}
 
-    kwargs: dict[str, Any] = {"compiler_options": backend.compiler_options(method, training=False)}
+    kwargs: dict[str, Any] = {"compiler_options": backend.compiler_options(config.method, training=False)}
     if mesh is not None:
         kwargs["out_shardings"] = parallel.replicated(mesh)
-    return jax.jit(step, static_argnums=(0, 3), **kwargs)
-
-
-def pair_depths(stereo: tuple[np.ndarray, np.ndarray], size: int, n_pairs: int) -> list[tuple[Any, Any]]:
-    """Per batch of ``size`` pairs: the stereo depth of frames ``(k, k+1)`` → ``[B, camera, frame, H, W]``."""
-    inverse, valid = stereo
-    out = []
-    for start in range(0, n_pairs, size):
-        k = np.minimum(np.arange(start, start + size), n_pairs - 1)  # padding repeats the last pair
-        frames = np.stack([k, k + 1], axis=1)
-        out.append((np.moveaxis(inverse[frames], 1, 2), np.moveaxis(valid[frames], 1, 2)))
-    return out
+    return jax.jit(step, **kwargs)
 
 
 def predict_sequence(
@@ -115,15 +103,14 @@ def predict_sequence(
     ``min(batch_size, N-1)`` samples; with ``mesh`` each is sharded on its ``data`` axis (the
     size must then divide over the devices). ``rotation_axes``: ``[3]`` 0/1, the camera axes
     whose rotation ``delta["rotation"]`` applies (default all; ``correction_deltas``). The
-    batches are moved to the device by the data threads; batch k+1 is dispatched before the
-    results of batch k are fetched.
+    batches, with their stereo depth, are assembled and moved to the device by the data threads;
+    batch k+1 is dispatched before the results of batch k are fetched.
     """
     cache = cache if isinstance(cache, SequenceCache) else load_cache(cache)
     graphdef, state = backend.prepare_inference(graphdef, state)
     pairs = len(cache) - 1
     size = max(1, min(batch_size, pairs)) if mesh is None else batch_size
-    step = predict_step(mesh, loss_config.method)
-    depths = pair_depths(stereo_depth, size, pairs) if stereo_depth is not None else None
+    step = predict_step(mesh, graphdef, loss_config)
     share = parallel.process_slice(size) if mesh is not None else slice(None)
 
     def place(tree: Any) -> Any:
@@ -141,8 +128,7 @@ def predict_sequence(
     totals = {"loss": 0.0, "samples": 0.0}
 
     def run(carry: None, item: tuple[Any, np.ndarray], index: int) -> tuple[None, Any]:
-        depth = None if depths is None else place(depths[index])
-        return carry, step(graphdef, state, item[0], loss_config, depth, axes)
+        return carry, step(state, item[0], axes)
 
     def consume(index: int, out: dict[str, np.ndarray], item: tuple[Any, np.ndarray]) -> int:
         real = item[1] > 0
@@ -152,8 +138,9 @@ def predict_sequence(
         totals["samples"] += float(real.sum())
         return int(real.sum())
 
-    drive(run, None, iterate_sequence(cache, size, flow=use_flow, put=put), total=pairs,
-          desc=f"predict {cache.name}", unit="pair", progress=progress, consume=consume)
+    batches = iterate_sequence(cache, size, flow=use_flow, put=put, stereo_depth=stereo_depth)
+    drive(run, None, batches, total=pairs, desc=f"predict {cache.name}", unit="pair", progress=progress,
+          consume=consume)
     merged = {k: np.concatenate(v) for k, v in results.items()}
     if merged["xi_corr"].shape[0] != pairs:
         raise RuntimeError(f"{cache.path}: got {merged['xi_corr'].shape[0]} predictions for {pairs} pairs")

@@ -30,6 +30,11 @@ class Batch(NamedTuple):
       (index 1) camera.
     * ``xi_gt``: float32 ``[B, 6]`` or None, ground-truth ``Log(T_gt_{k+1,k})``; for
       evaluation and reporting only, never used by a loss.
+    * ``stereo_depth``: ``(inverse depth, valid)`` or None: float32 inverse depth (1/m) and bool
+      validity ``[B, camera, frame, H, W]`` of an independent stereo depth (StereoSGBM,
+      ``dpc_jax.data.stereo_depth``) of frames k and k+1 of the left (0) and right (1) camera;
+      for measuring Δ of a correction (``dpc_jax.nn.losses.with_stereo_depth``), never used by a
+      loss.
     """
 
     left: Array | np.ndarray
@@ -40,3 +45,4 @@ class Batch(NamedTuple):
     weight: Array | np.ndarray
     flow: Array | np.ndarray | None = None
     xi_gt: Array | np.ndarray | None = None
+    stereo_depth: tuple[Array | np.ndarray, Array | np.ndarray] | None = None

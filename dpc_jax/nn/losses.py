@@ -25,6 +25,7 @@ from __future__ import annotations
 from typing import cast
 
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 
 from dpc_jax.geometry.correction import apply_correction
@@ -296,6 +297,24 @@ def gradient_loss(
     weight = jnp.asarray(batch.weight).astype(errors.dtype)
     total = jnp.sum(weight)
     return jnp.where(total > 0, jnp.sum(weight * errors) / jnp.where(total > 0, total, 1.0), 0.0)
+
+
+def with_stereo_depth(
+    outputs: DPCOutputs, depth: tuple[Array | np.ndarray, Array | np.ndarray]
+) -> tuple[DPCOutputs, tuple[Array, Array]]:
+    """``outputs`` with an independent stereo depth in place of both branches' → ``(outputs, valid)``.
+
+    ``depth``: ``(inverse depth (1/m), valid)`` ``[B, camera, frame, H, W]``
+    (``Batch.stereo_depth``). Holes get inverse depth 1 (any finite value would do) and are left
+    out of every term through ``valid = (valid_left, valid_right)`` ``[B, frame, H, W]``, the
+    ``depth_valid`` of :func:`correction_deltas` and :func:`temporal_pair_errors`.
+    """
+    if outputs.right is None:
+        raise ValueError("a stereo depth replaces both cameras' depth: it needs Stereo DPC's outputs")
+    inverse, ok = jnp.asarray(depth[0]), jnp.asarray(depth[1])
+    left = outputs.left._replace(inv_depth=jnp.where(ok[:, 0], inverse[:, 0], 1.0))
+    right = outputs.right._replace(inv_depth=jnp.where(ok[:, 1], inverse[:, 1], 1.0))
+    return outputs._replace(left=left, right=right), (ok[:, 0], ok[:, 1])
 
 
 def correction_deltas(
