@@ -1,0 +1,163 @@
+"""experiments/supervised_comparison.py: its table from hand-made summaries and drive rows (no training)."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import io
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from dpc_jax.pipelines import protocol as dpc_protocol
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "experiments" / "supervised_comparison.py"
+CONFIG = ROOT / "experiments" / "configs" / "supervised_comparison.py"
+
+
+@pytest.fixture(scope="module")
+def comparison() -> Any:
+    spec = importlib.util.spec_from_file_location("experiment_supervised_comparison", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclass resolves its annotations through sys.modules
+    spec.loader.exec_module(module)
+    return module
+
+
+def _values(t: float | None, r: float | None, ate: float) -> dict[str, float | None]:
+    return {"seg_trans_pct": t, "seg_rot_deg_per_100m": r, "m_ate_trans_m": ate, "m_ate_rot_deg": ate / 2,
+            "ate_m": ate * 1.5, "rpe_trans_m": 0.04, "rpe_rot_deg": 0.02, "loop_closures": 0}
+
+
+def _demo(trained: float, adapted: float, final: str) -> dict[str, Any]:
+    """A demo summary.json: prior 10 % / 4 °/100 m, the network rows scaled by the given factors."""
+    corrected = {"trained": trained, "adapted": adapted, "prior": 1.0}[final]
+    return {
+        "test": {"prior": _values(10.0, 4.0, 2.0), "trained": _values(10 * trained, 4 * trained, 2 * trained),
+                 "adapted": _values(10 * adapted, 4 * adapted, 2 * adapted),
+                 "corrected": _values(10 * corrected, 4 * corrected, 2 * corrected)},
+        "decisions": {"trained": "accepted (full 6-DoF)", "adapted": "rejected"},
+        "final": final,
+    }
+
+
+def _drive_csv(drive: str, prior_t: float | None, scale: float, decision: str) -> list[dict[str, str]]:
+    """``kitti_raw_drives.py`` results.csv rows (text cells, empty where undefined)."""
+    def cells(factor: float) -> dict[str, str]:
+        values = _values(None if prior_t is None else prior_t * factor, None if prior_t is None else factor,
+                         0.8 * factor)
+        return {k: "" if v is None else str(v) for k, v in values.items()}
+
+    rows = [("prior", "", 1.0), ("trained", decision, scale), ("adapted", "none", 1.1),
+            ("final", f"trained ({decision})", scale)]
+    return [{"drive": drive, "prior": "vo", "trained_on": "x our VO", "estimate": e, "decision": d,
+             **cells(f)} for e, d, f in rows]
+
+
+def test_demo_rows_keep_every_stage_its_decision_and_the_prior(comparison: Any) -> None:
+    rows = comparison.demo_rows(3, _demo(0.5, 0.4, "adapted"), _demo(0.8, 1.2, "trained"),
+                                _values(9.0, 1.0, 1.0), "train0, train1")
+    assert [r.kind for r in rows] == list(comparison.KINDS)
+    by_kind = {r.kind: r for r in rows}
+    assert {r.test for r in rows} == {"demo seed 3"} and {r.trained_on for r in rows} == {"train0, train1"}
+    assert by_kind["prior"].metrics["seg_trans_pct"] == 10.0 and by_kind["prior"].decision == ""
+    assert by_kind["linear"].metrics["seg_rot_deg_per_100m"] == 1.0
+    assert by_kind["supervised_trained"].metrics["seg_trans_pct"] == pytest.approx(5.0)
+    assert by_kind["supervised_adapted"].decision == "rejected"
+    assert by_kind["supervised_final"].decision == "adapted: rejected"
+    assert by_kind["supervised_final"].metrics["m_ate_trans_m"] == pytest.approx(0.8)
+    assert by_kind["self_final"].decision == "trained: accepted (full 6-DoF)"
+    assert by_kind["self_adapted"].metrics["seg_rot_deg_per_100m"] == pytest.approx(4.8)
+    assert "loop_closures" not in by_kind["self_trained"].metrics
+
+
+def test_a_demo_without_adaptation_and_kept_prior(comparison: Any) -> None:
+    summary = _demo(1.1, 1.0, "prior")
+    del summary["test"]["adapted"], summary["decisions"]["adapted"]
+    rows = comparison.demo_rows(0, summary, summary, _values(None, None, 1.0), "train0")
+    kinds = [r.kind for r in rows]
+    assert "self_adapted" not in kinds and "supervised_adapted" not in kinds
+    assert {r.decision for r in rows if r.kind.endswith("_final")} == {"prior"}
+    assert next(r for r in rows if r.kind == "linear").metrics["seg_trans_pct"] is None
+
+
+def test_drive_rows_from_the_results_csv(comparison: Any) -> None:
+    rows = comparison.drive_rows("0005", "drive 0001, frames 0–79",
+                                 _drive_csv("0005", None, 0.9, "rotation_xz"),
+                                 _drive_csv("0005", None, 0.95, "none"), _values(None, None, 0.7))
+    assert [r.kind for r in rows] == list(comparison.KINDS)
+    by_kind = {r.kind: r for r in rows}
+    assert by_kind["prior"].metrics["m_ate_trans_m"] == pytest.approx(0.8)
+    assert by_kind["prior"].metrics["seg_trans_pct"] is None  # shorter than 100 m: no segments
+    assert by_kind["supervised_trained"].decision == "rotation_xz"
+    assert by_kind["supervised_trained"].metrics["m_ate_trans_m"] == pytest.approx(0.72)
+    assert by_kind["self_final"].decision == "trained (none)"
+    assert by_kind["self_trained"].metrics["m_ate_trans_m"] == pytest.approx(0.76)
+    assert by_kind["linear"].metrics["m_ate_trans_m"] == 0.7
+
+
+def test_markdown_csv_and_the_change_over_seeds(comparison: Any) -> None:
+    rows = [*comparison.demo_rows(0, _demo(0.5, 0.4, "adapted"), _demo(0.8, 1.2, "trained"),
+                                  _values(9.0, 1.0, 1.0), "train0, train1"),
+            *comparison.demo_rows(1, _demo(0.9, 1.1, "trained"), _demo(0.3, 0.6, "trained"),
+                                  _values(5.0, 2.0, 1.0), "train0, train1"),
+            *comparison.drive_rows("0005", "drive 0001, frames 0–79", _drive_csv("0005", None, 0.9, "none"),
+                                   _drive_csv("0005", None, 0.95, "none"), _values(None, None, 0.7))]
+    text = comparison.comparison_markdown(rows, ["a note"])
+    lines = text.splitlines()
+    assert lines[2] == "a note"
+    table = [line for line in lines if line.startswith("| demo seed") or line.startswith("| drive")]
+    assert len(table) == len(rows) == 2 * 8 + 8
+    assert "| drive 0005 | drive 0001, frames 0–79 | prior (our VO) |  | — | — | 0.8 |" in text
+    linear_row = ("| demo seed 0 | train0, train1 | linear baseline, **supervised** (rotation) | "
+                  "applied (no test) |")
+    assert linear_row + " 9 | 1 |" in text
+    # Over the two seeds (not the drive): linear seg. t 9 and 5 against 10 → -10 % (seed 0) … -50 % (seed 1).
+    linear = next(line for line in lines if line.startswith("| linear baseline") and "…" in line)
+    assert "-50.0 % (1) … -10.0 % (0)" in linear
+    supervised_trained = next(line for line in lines
+                              if line.startswith("| network, **supervised**: trained |"))
+    assert supervised_trained.split(" | ")[1] == "-50.0 % (0) … -10.0 % (1)"
+    self_adapted = next(line for line in lines if line.startswith("| network, self-supervised: adapted |"))
+    assert self_adapted.split(" | ")[1] == "-40.0 % (1) … +20.0 % (0)"
+    assert "over the demo seeds (0, 1)" in text
+
+    parsed = list(csv.DictReader(io.StringIO(comparison.comparison_csv(rows))))
+    assert [r["row"] for r in parsed[:8]] == list(comparison.KINDS)
+    assert parsed[0]["test"] == "demo seed 0" and float(parsed[0]["seg_trans_pct"]) == 10.0
+    assert parsed[-1]["seg_trans_pct"] == ""
+    assert float(parsed[-1]["m_ate_trans_m"]) == pytest.approx(0.8 * 0.95)
+
+
+def test_no_seed_no_summary_and_a_missing_metric_is_na(comparison: Any) -> None:
+    drive = comparison.drive_rows("0001", "drive 0005, frames 0–67", _drive_csv("0001", 0.6, 0.9, "none"),
+                                  _drive_csv("0001", 0.6, 0.95, "none"), _values(0.5, 0.5, 0.7))
+    assert comparison.change_summary(drive) == []
+    short = comparison.demo_rows(0, _demo(0.5, 0.4, "adapted"), _demo(0.8, 1.2, "trained"),
+                                 _values(None, None, 1.0), "train0")
+    for row in short:
+        row.metrics["seg_trans_pct"] = None
+    summary = comparison.change_summary(short)
+    assert all(line.split(" | ")[1] == "n/a" for line in summary[4:])
+    assert comparison.change_pct(0.0, 1.0) is None and comparison.change_pct(2.0, 1.0) == -50.0
+
+
+def test_the_config_states_its_command_and_narrows_the_drives_to_our_vo() -> None:
+    doc = CONFIG.read_text().split('"""')[1]
+    assert "python experiments/supervised_comparison.py --workdir" in doc and "Produces" in doc
+    config, protocol = dpc_protocol.load_protocol(CONFIG)
+    drives_config, drives_protocol = dpc_protocol.load_protocol(ROOT / "experiments" / "configs"
+                                                                / "kitti_raw_drives.py")
+    assert config == drives_config and config.supervision == "self"
+    assert protocol["tests"] == (("vo", "vo"),)
+    assert {k: v for k, v in protocol.items() if k != "tests"} == {
+        k: v for k, v in drives_protocol.items() if k != "tests"}
+    import runpy
+
+    namespace = runpy.run_path(str(CONFIG))
+    supervised = dpc_protocol.fold_config(config, dpc_protocol.Fold("f", ("a",), "b", ()), Path("c"),
+                                          namespace["SUPERVISED"])
+    assert supervised.supervision == "supervised" and supervised.precision is not None
