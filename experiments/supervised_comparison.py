@@ -375,12 +375,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     try:
         namespace = runpy.run_path(str(args.config))
-        if args.kitti_raw is None:
-            args.kitti_raw = _experiment("kitti_raw_drives").DEFAULT_ROOT
-        if not args.skip_drives and not (args.kitti_raw / "libviso2").is_dir():
-            raise OSError(f"--kitti-raw {args.kitti_raw}: no libviso2/ folder (or give --skip-drives)")
-    except Exception as error:  # the config file's own code, or a missing data folder
-        print(f"supervised_comparison: error: {args.config}: {error}", file=sys.stderr)
+    except Exception as error:  # the config file's own code failed
+        print(f"supervised_comparison: error: {args.config}: {type(error).__name__}: {error}",
+              file=sys.stderr)
+        return 2
+    if args.kitti_raw is None:
+        args.kitti_raw = _experiment("kitti_raw_drives").DEFAULT_ROOT
+    if not args.skip_drives and not (args.kitti_raw / "libviso2").is_dir():
+        print(f"supervised_comparison: error: --kitti-raw {args.kitti_raw}: no libviso2/ folder (or give "
+              "--skip-drives)", file=sys.stderr)
         return 2
     logging.getLogger("absl").setLevel(logging.ERROR)
     progress = not args.no_progress and sys.stderr.isatty()
