@@ -282,8 +282,8 @@ def _experiment(name: str) -> ModuleType:
     return module
 
 
-def finished_drives(workdir: Path, argv: list[str], record: Mapping[str, Any],
-                    say: Callable[[str], None]) -> list[dict[str, str]]:
+def finished_drives(workdir: Path, argv: list[str], record: Mapping[str, Any], say: Callable[[str], None],
+                    no_progress: bool) -> list[dict[str, str]]:
     """``kitti_raw_drives.py``'s ``results.csv`` rows for ``argv`` (its arguments after ``--workdir``):
     read when that run finished with the same arguments and config (``record``), else run."""
     stamp, results = workdir / "comparison_run.json", workdir / "results.csv"
@@ -293,7 +293,8 @@ def finished_drives(workdir: Path, argv: list[str], record: Mapping[str, Any],
     else:
         from dpc_jax._io import atomic_write
 
-        code = _experiment("kitti_raw_drives").main(["--workdir", str(workdir), *argv])
+        quiet = ["--no-progress"] if no_progress else []
+        code = _experiment("kitti_raw_drives").main(["--workdir", str(workdir), *argv, *quiet])
         if code != 0:
             raise RuntimeError(f"kitti_raw_drives.py --workdir {workdir} {' '.join(argv)}: "
                                f"exit status {code}")
@@ -311,14 +312,14 @@ def run_drives(args: argparse.Namespace, namespace: Mapping[str, Any],
     base, protocol = P.load_protocol(args.config)
     record = {"config": config_lib.to_dict(base), "protocol": protocol}
     common = ["--config", str(args.config), "--kitti-raw", str(args.kitti_raw)]
-    common += ["--smoke"] * args.smoke + ["--no-progress"] * args.no_progress
+    common += ["--smoke"] * args.smoke
     supervised = [f"--set={key}={json.dumps(value)}" for key, value in namespace["SUPERVISED"].items()]
     own_dir, other_dir = args.workdir / "drives", args.workdir / "supervised" / "drives"
     say("drives, self-supervised networks")
-    own = finished_drives(own_dir, common, record, say)
+    own = finished_drives(own_dir, common, record, say, args.no_progress)
     share(own_dir, other_dir, ("priors", "cache"))
     say("drives, supervised networks")
-    other = finished_drives(other_dir, common + supervised, record, say)
+    other = finished_drives(other_dir, common + supervised, record, say, args.no_progress)
     drives = protocol["drives"]
     rows = []
     for test in drives:

@@ -161,3 +161,30 @@ def test_the_config_states_its_command_and_narrows_the_drives_to_our_vo() -> Non
     supervised = dpc_protocol.fold_config(config, dpc_protocol.Fold("f", ("a",), "b", ()), Path("c"),
                                           namespace["SUPERVISED"])
     assert supervised.supervision == "supervised" and supervised.precision is not None
+
+
+def test_smoke_keeps_the_supervised_demo_supervised(comparison: Any) -> None:
+    import runpy
+
+    namespace = runpy.run_path(str(CONFIG))
+    smoke = namespace["SMOKE_DEMO"]
+    configs = {kind: comparison.demo_config(Path(path), 7, smoke) for kind, path in namespace["DEMO"].items()}
+    assert configs["supervised"].train_config("c").supervision == "supervised"
+    assert configs["self"].train_config("c").supervision == "self"
+    for config in configs.values():
+        assert config.seed == 7 and config.train_frames == smoke["train_frames"]
+        assert config.train_config("c").image_size == smoke["training"]["image_size"]
+    full = comparison.demo_config(Path(namespace["DEMO"]["supervised"]), 0, None)
+    assert full.train_config("c").precision == configs["supervised"].train_config("c").precision
+
+
+def test_share_links_what_the_second_run_lacks(comparison: Any, tmp_path: Path) -> None:
+    source, target = tmp_path / "seed_0", tmp_path / "supervised" / "seed_0"
+    (source / "data").mkdir(parents=True)
+    (source / "data" / "x.txt").write_text("x")
+    (target / "vo").mkdir(parents=True)
+    (source / "vo").mkdir()
+    comparison.share(source, target, ("data", "vo", "cache"))
+    assert (target / "data").is_symlink() and (target / "data" / "x.txt").read_text() == "x"
+    assert not (target / "vo").is_symlink()  # a folder of its own is kept
+    assert not (target / "cache").exists()  # nothing to share
