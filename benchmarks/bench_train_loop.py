@@ -105,17 +105,23 @@ def bench_method(
         batch = parallel.shard_batch(next(iter(data.loader.epoch(0))), mesh)
         base = jax.random.key(config.seed)
         keys = [jax.random.fold_in(base, s) for s in range(steps)]
+        # The step as the loop runs it: graph definition bound, state as its flat list of arrays.
+        leaves, treedef = jax.tree.flatten(state)
+        bound = train_step.bind(graphdef, treedef)
         began = time.perf_counter()
-        state, metrics = train_step(graphdef, state, batch, keys[0])
+        leaves, metrics = bound(leaves, batch, keys[0])
         jax.block_until_ready(metrics)
         record["compile_s"] = time.perf_counter() - began
+        state = jax.tree.unflatten(treedef, leaves)
 
         def isolated(state: Any) -> tuple[Any, float]:
+            leaves = jax.tree.leaves(state)
             began = time.perf_counter()
             for key in keys:
-                state, metrics = train_step(graphdef, state, batch, key)
-            jax.block_until_ready((state, metrics))
-            return state, steps * args.batch / (time.perf_counter() - began)
+                leaves, metrics = bound(leaves, batch, key)
+            jax.block_until_ready((leaves, metrics))
+            rate = steps * args.batch / (time.perf_counter() - began)
+            return jax.tree.unflatten(treedef, leaves), rate
 
         steady: list[float] = []
 
@@ -148,9 +154,10 @@ def bench_method(
         # Warm-up: a short epoch (threads, files, logging) and a few isolated steps.
         state, _ = epoch(state, 0, dataclasses.replace(data, steps_per_epoch=min(2, steps)))
         steady.clear()
+        leaves = jax.tree.leaves(state)
         for _ in range(min(2, steps)):
-            state, metrics = train_step(graphdef, state, batch, keys[0])
-        jax.block_until_ready(state)
+            leaves, metrics = bound(leaves, batch, keys[0])
+        state = jax.block_until_ready(jax.tree.unflatten(treedef, leaves))
         loop_rates, step_rates = [], []
         for r in range(args.rounds):
             state, rate = epoch(state, r + 1)
@@ -176,7 +183,8 @@ def bench_method(
     pairs = len(cache) - 1
     size = min(args.batch, pairs)
     prepared_graphdef, prepared_state = prepare_inference(run_graphdef, run_state)
-    predict = predict_step(None, prepared_graphdef, config.loss_config())
+    prepared_leaves, treedef = jax.tree.flatten(prepared_state)
+    predict = predict_step(None, prepared_graphdef, treedef, config.loss_config())
     # The same inputs the correction's step gets: the cache's stereo depth where its test uses it,
     # and every rotation axis for Δ of the whole rotation.
     stereo = stereo_depth_of(cache, default_acceptance_depth(run))
@@ -188,7 +196,7 @@ def bench_method(
         began = time.perf_counter()
         out = None
         for _ in range(calls):
-            out = predict(prepared_state, one, axes)
+            out = predict(prepared_leaves, one, axes)
         jax.block_until_ready(out)
         return calls * size / (time.perf_counter() - began)
 

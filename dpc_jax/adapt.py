@@ -137,21 +137,24 @@ def adapt(
             with contextlib.closing(loader.epoch(epoch, put=jax.device_put)) as stream:
                 yield from stream
 
-    def step(state: nnx.State, batch: Any, index: int) -> tuple[nnx.State, dict[str, jax.Array]]:
-        return step_fn(graphdef, state, batch, step_key(base_key, index))
+    leaves, treedef = jax.tree.flatten(state)
+    bound = step_fn.bind(graphdef, treedef)
+
+    def step(leaves: list[jax.Array], batch: Any, index: int) -> tuple[list[jax.Array], dict[str, jax.Array]]:
+        return bound(leaves, batch, step_key(base_key, index))
 
     def consume(index: int, values: dict[str, Any], _: Any) -> None:
         log.append({"step": index + 1, **{k: float(v) for k, v in values.items()}})
 
     stream = batches()
     with contextlib.closing(stream):
-        state = drive(
-            step, state, itertools.islice(stream, config.steps), total=config.steps,
+        leaves = drive(
+            step, leaves, itertools.islice(stream, config.steps), total=config.steps,
             desc=f"adapt {cache.name}", progress=progress, consume=consume, finite="loss",
             on_nonfinite=lambda index, _: f"{cache.name}: non-finite loss, adaptation step {index + 1}",
             postfix=lambda values: {"loss": f"{float(values['loss']):.4f}"},
         )
-    adapted, _ = nnx.merge(graphdef, state)
+    adapted, _ = nnx.merge(graphdef, jax.tree.unflatten(treedef, leaves))
     adapted.eval()
     model_graphdef, model_state = nnx.split(adapted)
     adapted_run = dataclasses.replace(run, selection=f"{run.selection}+adapted", graphdef=model_graphdef,

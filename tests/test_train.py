@@ -218,6 +218,30 @@ def test_train_step_warmup_holds_the_correction_at_zero(cache_root: Path, cheap_
     assert np.abs(pose(state)).max() > 0
 
 
+def test_bound_train_step_carries_the_same_state_as_a_call(cache_root: Path, cheap_losses: None) -> None:
+    from dpc_jax.data.pipeline import TrainLoader
+
+    config = tiny_config(cache_root)
+    model = create_model(config.method, config.model_config(), 0)
+    graphdef, state = create_train_state(model, make_optimizer(config, 3))
+    step = make_train_step(config.loss_config(), 0)
+    batch = next(iter(TrainLoader([cache_root / "00"], 4, workers=0).epoch(0)))
+    # The step donates its state: each path starts from its own copy.
+    called = jax.tree.map(jnp.copy, state)
+    leaves, treedef = jax.tree.flatten(jax.tree.map(jnp.copy, state))
+    bound = step.bind(graphdef, treedef)
+    assert step.bind(graphdef, treedef) is bound  # compiled once per graph definition and tree
+    for k in range(2):
+        called, called_metrics = step(graphdef, called, batch, jax.random.key(k))
+        leaves, bound_metrics = bound(leaves, batch, jax.random.key(k))
+        for name, value in called_metrics.items():
+            np.testing.assert_allclose(bound_metrics[name], value, rtol=1e-5, atol=1e-7)
+    rebuilt = jax.tree.unflatten(treedef, leaves)
+    assert jax.tree.structure(rebuilt) == jax.tree.structure(called)
+    for a, b in zip(jax.tree.leaves(rebuilt), jax.tree.leaves(called), strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6)
+
+
 def _read_metrics(workdir: Path) -> list[dict[str, str]]:
     with (workdir / "metrics.csv").open(newline="") as f:
         return list(csv.DictReader(f))
@@ -301,12 +325,19 @@ def test_non_finite_loss_stops_and_keeps_the_last_good_checkpoint(
     def poisoned(loss_config: object, warmup_steps: int = 0, mesh: object = None) -> object:
         step = real(loss_config, warmup_steps, mesh)
         calls = itertools.count()
+        bind = step.bind
 
-        def wrapped(graphdef, state, batch, key):  # the 5th update (epoch 2) yields NaN
-            state, metrics = step(graphdef, state, batch, key)
-            return state, {**metrics, "loss": metrics["loss"] * (jnp.nan if next(calls) == 4 else 1.0)}
+        def poisoned_bind(graphdef, treedef):
+            bound = bind(graphdef, treedef)
 
-        return wrapped
+            def wrapped(leaves, batch, key):  # the 5th update (epoch 2) yields NaN
+                leaves, metrics = bound(leaves, batch, key)
+                return leaves, {**metrics, "loss": metrics["loss"] * (jnp.nan if next(calls) == 4 else 1.0)}
+
+            return wrapped
+
+        step.bind = poisoned_bind
+        return step
 
     monkeypatch.setattr(train_lib, "make_train_step", poisoned)
     message = r"non-finite training loss \(nan\) at epoch 2, step 5.*checkpoint \(epoch 1\) is intact"

@@ -54,18 +54,20 @@ class SequencePrediction:
 
 
 @functools.cache
-def predict_step(mesh: Mesh | None, graphdef: nnx.GraphDef, config: Any) -> Any:
-    """The jitted ``step(state, batch, rotation_axes) -> dict`` (evaluation mode) of the model
-    ``graphdef`` with the loss ``config``, compiled with the backend's options
+def predict_step(mesh: Mesh | None, graphdef: nnx.GraphDef, treedef: Any, config: Any) -> Any:
+    """The jitted ``step(leaves, batch, rotation_axes) -> dict`` (evaluation mode) of the model
+    ``graphdef`` with the loss ``config``, its state given as the flat list of arrays ``leaves``
+    (``leaves, treedef = jax.tree.flatten(state)``), compiled with the backend's options
     (``dpc_jax.engine.backend``).
 
-    The static parts are bound here, once per ``(mesh, graphdef, config)``, so a call hashes no
-    graph definition. Δ is measured with ``batch.stereo_depth`` where the batch carries one
+    The static parts are bound here, once per ``(mesh, graphdef, treedef, config)``, so a call
+    neither hashes the graph definition nor walks the NNX state's Python tree. Δ is measured with
+    ``batch.stereo_depth`` where the batch carries one
     (``dpc_jax.nn.losses.with_stereo_depth``), else with the network's depth.
     """
 
-    def step(state: nnx.State, batch: Batch, rotation_axes: jax.Array) -> dict[str, jax.Array]:
-        model = nnx.merge(graphdef, state)
+    def step(leaves: list[jax.Array], batch: Batch, rotation_axes: jax.Array) -> dict[str, jax.Array]:
+        model = nnx.merge(graphdef, jax.tree.unflatten(treedef, leaves))
         model.eval()
         outputs = model(batch)
         loss, _ = dpc_loss(outputs, batch, config)
@@ -110,7 +112,8 @@ def predict_sequence(
     graphdef, state = backend.prepare_inference(graphdef, state)
     pairs = len(cache) - 1
     size = max(1, min(batch_size, pairs)) if mesh is None else batch_size
-    step = predict_step(mesh, graphdef, loss_config)
+    leaves, treedef = jax.tree.flatten(state)
+    step = predict_step(mesh, graphdef, treedef, loss_config)
     share = parallel.process_slice(size) if mesh is not None else slice(None)
 
     def place(tree: Any) -> Any:
@@ -128,7 +131,7 @@ def predict_sequence(
     totals = {"loss": 0.0, "samples": 0.0}
 
     def run(carry: None, item: tuple[Any, np.ndarray], index: int) -> tuple[None, Any]:
-        return carry, step(state, item[0], axes)
+        return carry, step(leaves, item[0], axes)
 
     def consume(index: int, out: dict[str, np.ndarray], item: tuple[Any, np.ndarray]) -> int:
         real = item[1] > 0

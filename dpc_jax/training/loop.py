@@ -32,7 +32,6 @@ import math
 import os
 import sys
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -51,7 +50,7 @@ from dpc_jax.training.checkpoints import Checkpoints
 from dpc_jax.training.config import TrainConfig
 from dpc_jax.training.metrics_log import MetricsLog
 from dpc_jax.training.optim import create_train_state, learning_rate_schedule, make_optimizer
-from dpc_jax.training.steps import NonFiniteLossError, make_train_step
+from dpc_jax.training.steps import NonFiniteLossError, TrainStep, make_train_step
 from dpc_jax.training.train_data import TrainData, open_data
 from dpc_jax.training.validation import validate
 from dpc_jax.training.workdir import check_split, check_workdir
@@ -67,7 +66,7 @@ def _train_epoch(
     epoch: int,
     graphdef: nnx.GraphDef,
     state: nnx.State,
-    train_step: Callable[..., tuple[nnx.State, dict[str, jax.Array]]],
+    train_step: TrainStep,
     data: TrainData,
     config: TrainConfig,
     mesh: Mesh,
@@ -79,7 +78,8 @@ def _train_epoch(
 
     The step driver (``dpc_jax.engine.driver``) runs it: the data threads put each batch (this
     process's slice) on the mesh ahead of its step, and the metrics of step i are fetched after
-    step i+1 is dispatched, so the host never stalls the device; a non-finite loss raises
+    step i+1 is dispatched, so the host never stalls the device; between steps the state travels
+    as its flat list of arrays (``TrainStep.bind``); a non-finite loss raises
     ``NonFiniteLossError`` (the state is then discarded).
     """
     share = parallel.process_slice(config.batch_size)
@@ -90,8 +90,11 @@ def _train_epoch(
     def put(batch: Any) -> Any:
         return parallel.shard_batch(jax.tree.map(lambda x: x[share], batch), mesh)
 
-    def step(state: nnx.State, batch: Any, index: int) -> tuple[nnx.State, dict[str, jax.Array]]:
-        return train_step(graphdef, state, batch, step_key(base_key, first_step + index))
+    leaves, treedef = jax.tree.flatten(state)
+    bound = train_step.bind(graphdef, treedef)
+
+    def step(leaves: list[jax.Array], batch: Any, index: int) -> tuple[list[jax.Array], dict[str, jax.Array]]:
+        return bound(leaves, batch, step_key(base_key, first_step + index))
 
     def consume(index: int, values: dict[str, Any], _: Any) -> None:
         for k, v in values.items():
@@ -116,11 +119,12 @@ def _train_epoch(
         return {"loss": f"{float(values['loss']):.4f}", "samples_s": f"{timing['rate']:.1f}"}
 
     with contextlib.closing(data.loader.epoch(epoch, put=put)) as batches:
-        state = drive(
-            step, state, itertools.islice(batches, data.steps_per_epoch),
+        leaves = drive(
+            step, leaves, itertools.islice(batches, data.steps_per_epoch),
             total=data.steps_per_epoch, desc=f"epoch {epoch}/{config.epochs}", progress=progress,
             consume=consume, finite="loss", on_nonfinite=nonfinite, postfix=postfix,
         )
+    state = jax.tree.unflatten(treedef, leaves)
     n = data.steps_per_epoch
     means = {f"train_{k}": v / n for k, v in sums.items()}
     means["samples_per_s"] = timing["rate"]
@@ -163,7 +167,7 @@ class _Run:
     mesh: Mesh
     model_graphdef: nnx.GraphDef
     graphdef: nnx.GraphDef
-    train_step: Callable[..., tuple[nnx.State, dict[str, jax.Array]]]
+    train_step: TrainStep
     schedule: optax.Schedule
     checkpoints: Checkpoints
     log: MetricsLog

@@ -21,11 +21,52 @@ from dpc_jax.engine.driver import NonFiniteLossError as NonFiniteLossError
 from dpc_jax.nn.batch import Batch
 from dpc_jax.nn.losses import dpc_loss
 
-TrainStep = Callable[[nnx.GraphDef, nnx.State, Batch, jax.Array], tuple[nnx.State, dict[str, jax.Array]]]
+BoundStep = Callable[[list[jax.Array], Batch, jax.Array], tuple[list[jax.Array], dict[str, jax.Array]]]
+
+
+class TrainStep:
+    """The jitted train step of one loss: ``step(graphdef, state, batch, key) -> (state, metrics)``
+    (``state`` donated), and :meth:`bind` for the drivers of many steps."""
+
+    def __init__(self, function: Callable[..., tuple[nnx.State, dict[str, jax.Array]]],
+                 jit_kwargs: dict[str, Any]) -> None:
+        self._function = function
+        self._jit_kwargs = jit_kwargs
+        self._jitted = jax.jit(function, static_argnums=0, donate_argnums=1, **jit_kwargs)
+        self._bound: dict[tuple[nnx.GraphDef, Any], BoundStep] = {}
+
+    def __call__(self, graphdef: nnx.GraphDef, state: nnx.State, batch: Batch,
+                 key: jax.Array) -> tuple[nnx.State, dict[str, jax.Array]]:
+        return self._jitted(graphdef, state, batch, key)
+
+    def bind(self, graphdef: nnx.GraphDef, treedef: Any) -> BoundStep:
+        """``step(leaves, batch, key) -> (leaves, metrics)``: this step of the model ``graphdef``
+        with the state carried as its flat list of arrays (``leaves, treedef =
+        jax.tree.flatten(state)``; donated), compiled once per ``(graphdef, treedef)``.
+
+        The same computation as a call. Per step the host then neither hashes and compares the
+        graph definition (a static argument) nor walks the NNX state's Python tree in and out: host
+        time an accelerator waits for when its step is shorter than the dispatch.
+        """
+        key = (graphdef, treedef)
+        if key not in self._bound:
+            function = self._function
+
+            def flat(leaves: list[jax.Array], batch: Batch,
+                     key: jax.Array) -> tuple[list[jax.Array], dict[str, jax.Array]]:
+                state, metrics = function(graphdef, jax.tree.unflatten(treedef, leaves), batch, key)
+                out, out_treedef = jax.tree.flatten(state)
+                if out_treedef != treedef:
+                    raise ValueError(f"the step changed the state's structure: {out_treedef} != {treedef}")
+                return out, metrics
+
+            self._bound[key] = jax.jit(flat, donate_argnums=0, **self._jit_kwargs)
+        return self._bound[key]
 
 
 def make_train_step(loss_config: Any, warmup_steps: int = 0, mesh: Mesh | None = None) -> TrainStep:
-    """The jitted ``train_step(graphdef, state, batch, key) -> (state, metrics)``; ``state`` donated.
+    """The jitted ``train_step(graphdef, state, batch, key) -> (state, metrics)``; ``state`` donated
+    (:class:`TrainStep`; its :meth:`~TrainStep.bind` for a loop of steps).
 
     ``loss_config``: the method's loss config (``TrainConfig.loss_config()``); the loss sees
     ξ_corr = 0 while the optimizer's step count is below ``warmup_steps``.
@@ -55,4 +96,4 @@ def make_train_step(loss_config: Any, warmup_steps: int = 0, mesh: Mesh | None =
     kwargs: dict[str, Any] = {"compiler_options": backend.compiler_options(loss_config.method, training=True)}
     if mesh is not None:
         kwargs["out_shardings"] = parallel.replicated(mesh)
-    return jax.jit(step, static_argnums=0, donate_argnums=1, **kwargs)
+    return TrainStep(step, kwargs)
