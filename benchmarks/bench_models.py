@@ -100,12 +100,14 @@ def build(method: str, preset: str, hw: tuple[int, int]) -> dict[str, Callable]:
     # The library's jitted inference and training step compile the network with these options too.
     jit = functools.partial(jax.jit, compiler_options=compiler_options(method, training=True))
 
-    # As dpc_jax.inference.predict_sequence runs a sequence: the model prepared once, then batches.
-    inference_graphdef, prepared = prepare_inference(graphdef, nnx.merge_state(params, stats))
+    # As dpc_jax.engine.predict runs a sequence: the model prepared once, its state passed as its
+    # flat list of arrays, then batches.
+    inference_graphdef, prepared_state = prepare_inference(graphdef, nnx.merge_state(params, stats))
+    prepared, treedef = jax.tree.flatten(prepared_state)
 
     @functools.partial(jax.jit, compiler_options=compiler_options(method, training=False))
-    def infer(prepared: nnx.State, batch: Batch):
-        return nnx.merge(inference_graphdef, prepared)(batch)
+    def infer(prepared: list[jax.Array], batch: Batch):
+        return nnx.merge(inference_graphdef, jax.tree.unflatten(treedef, prepared))(batch)
 
     @jit
     def forward_train(params: nnx.State, stats: nnx.State, batch: Batch, key: jax.Array):

@@ -63,10 +63,13 @@ def train_step_runner(
     step = make_train_step(config.loss_config(), 0, mesh)
     batch = parallel.shard_batch(random_batch(batch_size, model_config.image_size, method == "ss_dpc"), mesh)
     key = jax.random.key(0)
-    live = [state]
+    # As the training loop runs it: graph definition bound, state carried as its flat arrays.
+    leaves, treedef = jax.tree.flatten(state)
+    bound = step.bind(graphdef, treedef)
+    live = [leaves]
 
     def run() -> object:
-        live[0], metrics = step(graphdef, live[0], batch, key)
+        live[0], metrics = bound(live[0], batch, key)
         return metrics
 
     return run, tuple(model_config.image_size)
