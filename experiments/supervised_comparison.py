@@ -59,6 +59,7 @@ CHANGED = METRICS[:4]
 KINDS = {
     "prior": "prior (our VO)",
     "linear": "linear baseline, **supervised** (rotation)",
+    "constant": "constant bias, **supervised** (rotation)",
     "supervised_trained": "network, **supervised**: trained",
     "supervised_adapted": "network, **supervised**: adapted (self-supervised)",
     "supervised_final": "network, **supervised**: final",
@@ -116,13 +117,19 @@ def _demo_stages(summary: Mapping[str, Any]) -> dict[str, tuple[str, Metrics]]:
     return stages
 
 
+def _baseline_rows(test: str, trained_on: str, baselines: Mapping[str, Mapping[str, Any]]) -> list[Row]:
+    """The supervised baselines' rows (``baselines``: ``linear`` and ``constant`` → metrics)."""
+    return [Row(test, trained_on, kind, "applied (no test)", _metrics(baselines[kind]))
+            for kind in ("linear", "constant")]
+
+
 def demo_rows(seed: int, supervised: Mapping[str, Any], self_supervised: Mapping[str, Any],
-              linear: Mapping[str, Any], trained_on: str) -> list[Row]:
+              baselines: Mapping[str, Mapping[str, Any]], trained_on: str) -> list[Row]:
     """The rows of demo seed ``seed`` from the two demos' summaries (``summary.json``) and the
-    linear baseline's metrics on the same test sequence."""
+    baselines' metrics on the same test sequence (:func:`baseline_metrics`)."""
     test = f"demo seed {seed}"
     return [Row(test, trained_on, "prior", "", _metrics(self_supervised["test"]["prior"])),
-            Row(test, trained_on, "linear", "applied (no test)", _metrics(linear)),
+            *_baseline_rows(test, trained_on, baselines),
             *_network_rows(test, trained_on, "supervised", _demo_stages(supervised)),
             *_network_rows(test, trained_on, "self", _demo_stages(self_supervised))]
 
@@ -133,16 +140,17 @@ def _drive_stages(rows: Sequence[Mapping[str, str]]) -> dict[str, tuple[str, Met
 
 
 def drive_rows(drive: str, trained_on: str, supervised: Sequence[Mapping[str, str]],
-               self_supervised: Sequence[Mapping[str, str]], linear: Mapping[str, Any]) -> list[Row]:
+               self_supervised: Sequence[Mapping[str, str]],
+               baselines: Mapping[str, Mapping[str, Any]]) -> list[Row]:
     """The rows of test drive ``drive`` from the two drive runs' ``results.csv`` rows of that drive
-    (estimates prior, trained, adapted, final) and the linear baseline's metrics."""
+    (estimates prior, trained, adapted, final) and the baselines' metrics (:func:`baseline_metrics`)."""
     test = f"drive {drive}"
     own = _drive_stages(self_supervised)
     prior = own.pop("prior")[1]
     other = _drive_stages(supervised)
     other.pop("prior", None)
     return [Row(test, trained_on, "prior", "", prior),
-            Row(test, trained_on, "linear", "applied (no test)", _metrics(linear)),
+            *_baseline_rows(test, trained_on, baselines),
             *_network_rows(test, trained_on, "supervised", other),
             *_network_rows(test, trained_on, "self", own)]
 
@@ -214,9 +222,10 @@ def comparison_csv(rows: Sequence[Row]) -> str:
 # --------------------------------------------------------------------------- running the tests
 
 
-def linear_metrics(train_caches: Sequence[Path], test_cache: Path) -> Metrics:
-    """The rotation-only linear baseline fit on the ground truth and prior of ``train_caches`` and
-    applied to ``test_cache``'s prior, evaluated as every correction is (``dpc_jax.eval.evaluate``)."""
+def baseline_metrics(train_caches: Sequence[Path], test_cache: Path) -> dict[str, Metrics]:
+    """The rotation-only linear baseline (``linear``) and its constant-only form (``constant``, a
+    per-axis bias), fit on the ground truth and prior of ``train_caches`` and applied to
+    ``test_cache``'s prior, evaluated as every correction is (``dpc_jax.eval.evaluate``)."""
     from dpc_jax.data.sequence_cache import load_cache
     from dpc_jax.eval.evaluation import evaluate
     from dpc_jax.eval.linear_baseline import apply_linear_correction, fit_linear_correction
@@ -227,9 +236,13 @@ def linear_metrics(train_caches: Sequence[Path], test_cache: Path) -> Metrics:
             raise ValueError(f"{path}: no ground truth to fit or evaluate the linear baseline")
         return cache.gt, cache.prior
 
-    model = fit_linear_correction([pair(p) for p in train_caches], rotation_only=True)
+    train = [pair(p) for p in train_caches]
     gt, prior = pair(test_cache)
-    return _metrics(evaluate(gt, {"linear": apply_linear_correction(model, prior)}).estimates["linear"])
+    estimates = {kind: apply_linear_correction(
+        fit_linear_correction(train, rotation_only=True, constant_only=kind == "constant"), prior)
+        for kind in ("linear", "constant")}
+    evaluation = evaluate(gt, estimates)
+    return {kind: _metrics(evaluation.estimates[kind]) for kind in estimates}
 
 
 def share(source: Path, target: Path, names: Sequence[str]) -> None:
@@ -325,12 +338,13 @@ def run_drives(args: argparse.Namespace, namespace: Mapping[str, Any],
     for test in drives:
         train = next(d for d in drives if d != test)
         first, end = drives[train]["train_frames"]
-        linear = linear_metrics([own_dir / "cache" / f"{train}_vo_train"], own_dir / "cache" / f"{test}_vo")
+        baselines = baseline_metrics([own_dir / "cache" / f"{train}_vo_train"],
+                                     own_dir / "cache" / f"{test}_vo")
 
         def of(results: list[dict[str, str]], test: str = test) -> list[dict[str, str]]:
             return [r for r in results if r["drive"] == test and r["prior"] == "vo"]
 
-        rows += drive_rows(test, f"drive {train}, frames {first}–{end - 1}", of(other), of(own), linear)
+        rows += drive_rows(test, f"drive {train}, frames {first}–{end - 1}", of(other), of(own), baselines)
     return rows
 
 
@@ -344,8 +358,8 @@ def run_seed(seed: int, args: argparse.Namespace, namespace: Mapping[str, Any], 
     share(own_dir, other_dir, ("data", "vo", "cache"))
     other = finished_demo(configs["supervised"], other_dir, say, progress)
     train = [name for name, role in configs["self"].sequences.items() if role == "train"]
-    linear = linear_metrics([own_dir / "cache" / n for n in train], own_dir / "cache" / "test")
-    return demo_rows(seed, other, own, linear, ", ".join(train))
+    baselines = baseline_metrics([own_dir / "cache" / n for n in train], own_dir / "cache" / "test")
+    return demo_rows(seed, other, own, baselines, ", ".join(train))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -395,7 +409,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     notes = [
         "Rows: the prior; the linear baseline (a correction linear in the prior's step, rotation only, "
-        "fit by least squares on the training sequences' ground truth: **supervised**); Stereo DPC "
+        "fit by least squares on the training sequences' ground truth: **supervised**) and its constant "
+        "term alone (the mean correction per step: a bias, which does not depend on the speed); Stereo DPC "
         "trained with DPC-Net's loss on the training sequences' ground truth (**supervised**) and the same "
         "network trained self-supervised, each as trained, adapted to the test sequence's images "
         "(self-supervised, no ground truth) and final (what the acceptance tests and the choice keep). "

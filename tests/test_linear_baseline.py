@@ -56,6 +56,17 @@ def test_fit_is_numpy_least_squares_on_noisy_data() -> None:
     np.testing.assert_allclose(got, expected.T, rtol=1e-8, atol=1e-14)
 
 
+def test_constant_only_fit_is_the_mean_correction_and_ignores_the_step() -> None:
+    rng = np.random.default_rng(2)
+    xi_vo = np.concatenate([0.3 * rng.normal(size=(200, 3)), 0.02 * rng.normal(size=(200, 3))], axis=1)
+    xi_gt = 1e-3 * rng.normal(size=(200, 6)) + 0.5 * xi_vo  # a gain the constant model must not take
+    with jax.enable_x64(True):
+        got = np.asarray(fit_weights(xi_vo, xi_gt, rotation_only=True, constant_only=True))
+    np.testing.assert_array_equal(got[:, :6], 0.0)
+    np.testing.assert_array_equal(got[:3], 0.0)
+    np.testing.assert_allclose(got[3:, 6], xi_gt[:, 3:].sum(axis=0) / 200, rtol=1e-12)
+
+
 def test_planted_constant_bias_is_learned_and_removed_on_another_sequence() -> None:
     bias = np.array([0.0, 0.0, 0.0, 1e-4, -3e-4, 2.5e-4])  # rad per step, rotation only
     train = [_pair(2, 400, bias), _pair(3, 300, bias)]

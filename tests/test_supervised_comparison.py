@@ -57,9 +57,13 @@ def _drive_csv(drive: str, prior_t: float | None, scale: float, decision: str) -
              **cells(f)} for e, d, f in rows]
 
 
+BASELINES_0 = {"linear": _values(9.0, 1.0, 1.0), "constant": _values(9.5, 2.0, 1.0)}
+BASELINES_1 = {"linear": _values(5.0, 2.0, 1.0), "constant": _values(9.5, 2.0, 1.0)}
+
+
 def test_demo_rows_keep_every_stage_its_decision_and_the_prior(comparison: Any) -> None:
     rows = comparison.demo_rows(3, _demo(0.5, 0.4, "adapted"), _demo(0.8, 1.2, "trained"),
-                                _values(9.0, 1.0, 1.0), "train0, train1")
+                                BASELINES_0, "train0, train1")
     assert [r.kind for r in rows] == list(comparison.KINDS)
     by_kind = {r.kind: r for r in rows}
     assert {r.test for r in rows} == {"demo seed 3"} and {r.trained_on for r in rows} == {"train0, train1"}
@@ -77,7 +81,8 @@ def test_demo_rows_keep_every_stage_its_decision_and_the_prior(comparison: Any) 
 def test_a_demo_without_adaptation_and_kept_prior(comparison: Any) -> None:
     summary = _demo(1.1, 1.0, "prior")
     del summary["test"]["adapted"], summary["decisions"]["adapted"]
-    rows = comparison.demo_rows(0, summary, summary, _values(None, None, 1.0), "train0")
+    rows = comparison.demo_rows(0, summary, summary, {"linear": _values(None, None, 1.0),
+                                                      "constant": _values(None, None, 1.0)}, "train0")
     kinds = [r.kind for r in rows]
     assert "self_adapted" not in kinds and "supervised_adapted" not in kinds
     assert {r.decision for r in rows if r.kind.endswith("_final")} == {"prior"}
@@ -87,7 +92,8 @@ def test_a_demo_without_adaptation_and_kept_prior(comparison: Any) -> None:
 def test_drive_rows_from_the_results_csv(comparison: Any) -> None:
     rows = comparison.drive_rows("0005", "drive 0001, frames 0–79",
                                  _drive_csv("0005", None, 0.9, "rotation_xz"),
-                                 _drive_csv("0005", None, 0.95, "none"), _values(None, None, 0.7))
+                                 _drive_csv("0005", None, 0.95, "none"),
+                                 {"linear": _values(None, None, 0.7), "constant": _values(None, None, 0.75)})
     assert [r.kind for r in rows] == list(comparison.KINDS)
     by_kind = {r.kind: r for r in rows}
     assert by_kind["prior"].metrics["m_ate_trans_m"] == pytest.approx(0.8)
@@ -101,16 +107,17 @@ def test_drive_rows_from_the_results_csv(comparison: Any) -> None:
 
 def test_markdown_csv_and_the_change_over_seeds(comparison: Any) -> None:
     rows = [*comparison.demo_rows(0, _demo(0.5, 0.4, "adapted"), _demo(0.8, 1.2, "trained"),
-                                  _values(9.0, 1.0, 1.0), "train0, train1"),
+                                  BASELINES_0, "train0, train1"),
             *comparison.demo_rows(1, _demo(0.9, 1.1, "trained"), _demo(0.3, 0.6, "trained"),
-                                  _values(5.0, 2.0, 1.0), "train0, train1"),
+                                  BASELINES_1, "train0, train1"),
             *comparison.drive_rows("0005", "drive 0001, frames 0–79", _drive_csv("0005", None, 0.9, "none"),
-                                   _drive_csv("0005", None, 0.95, "none"), _values(None, None, 0.7))]
+                                   _drive_csv("0005", None, 0.95, "none"),
+                                 {"linear": _values(None, None, 0.7), "constant": _values(None, None, 0.75)})]
     text = comparison.comparison_markdown(rows, ["a note"])
     lines = text.splitlines()
     assert lines[2] == "a note"
     table = [line for line in lines if line.startswith("| demo seed") or line.startswith("| drive")]
-    assert len(table) == len(rows) == 2 * 8 + 8
+    assert len(table) == len(rows) == 2 * 9 + 9
     assert "| drive 0005 | drive 0001, frames 0–79 | prior (our VO) |  | — | — | 0.8 |" in text
     linear_row = ("| demo seed 0 | train0, train1 | linear baseline, **supervised** (rotation) | "
                   "applied (no test) |")
@@ -126,7 +133,7 @@ def test_markdown_csv_and_the_change_over_seeds(comparison: Any) -> None:
     assert "over the demo seeds (0, 1)" in text
 
     parsed = list(csv.DictReader(io.StringIO(comparison.comparison_csv(rows))))
-    assert [r["row"] for r in parsed[:8]] == list(comparison.KINDS)
+    assert [r["row"] for r in parsed[:9]] == list(comparison.KINDS)
     assert parsed[0]["test"] == "demo seed 0" and float(parsed[0]["seg_trans_pct"]) == 10.0
     assert parsed[-1]["seg_trans_pct"] == ""
     assert float(parsed[-1]["m_ate_trans_m"]) == pytest.approx(0.8 * 0.95)
@@ -134,10 +141,12 @@ def test_markdown_csv_and_the_change_over_seeds(comparison: Any) -> None:
 
 def test_no_seed_no_summary_and_a_missing_metric_is_na(comparison: Any) -> None:
     drive = comparison.drive_rows("0001", "drive 0005, frames 0–67", _drive_csv("0001", 0.6, 0.9, "none"),
-                                  _drive_csv("0001", 0.6, 0.95, "none"), _values(0.5, 0.5, 0.7))
+                                  _drive_csv("0001", 0.6, 0.95, "none"),
+                                  {"linear": _values(0.5, 0.5, 0.7), "constant": _values(0.5, 0.5, 0.7)})
     assert comparison.change_summary(drive) == []
     short = comparison.demo_rows(0, _demo(0.5, 0.4, "adapted"), _demo(0.8, 1.2, "trained"),
-                                 _values(None, None, 1.0), "train0")
+                                 {"linear": _values(None, None, 1.0), "constant": _values(None, None, 1.0)},
+                                 "train0")
     for row in short:
         row.metrics["seg_trans_pct"] = None
     summary = comparison.change_summary(short)

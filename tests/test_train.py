@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import itertools
 import json
 import os
@@ -105,6 +106,8 @@ def test_pose_warmup_masks_the_pose_head_and_then_starts_adam_afresh() -> None:
                          weight_decay=0.0, pose_warmup_epochs=1, pose_warmup_steps=1)
     warmup = config.warmup_steps(3)
     assert warmup == 4
+    # The supervised loss sees only ξ_corr: holding it at 0 would leave nothing to learn.
+    assert dataclasses.replace(config, supervision="supervised").warmup_steps(3) == 0
     _, history = _adam_tree_run(config, 3, 6)
     start = np.array([0.3, -1.0])
     for k in range(warmup):  # no pose update while warming up, the rest trains

@@ -8,7 +8,9 @@ prior needs is ``ξ_gt = Log(G_{k+1,k} · inv(T_vo_{k+1,k}))`` (:func:`dpc_jax.e
 
 fit by ordinary least squares over all training steps, one output axis at a time. With
 ``rotation_only`` only the rotation rows are fit and the translation rows are zero (ss-DPC-Net's
-setting for stereo priors). It is applied exactly as the network's correction,
+setting for stereo priors). With ``constant_only`` only the constant column is fit (the mean
+correction per step, a per-axis bias): the gains on the prior's step extrapolate poorly to a log
+driven at other speeds than the training one, a bias does not depend on them. It is applied exactly as the network's correction,
 ``T* = Exp(ξ_corr) · T_vo`` (:func:`dpc_jax.geometry.correction.corrected_trajectory`), so its
 numbers compare with a network's.
 
@@ -42,12 +44,15 @@ def design_matrix(xi_vo: ArrayLike) -> Array:
     return jnp.concatenate([xi_vo, jnp.ones_like(xi_vo[:, :1])], axis=1)
 
 
-def fit_weights(xi_vo: ArrayLike, xi_gt: ArrayLike, rotation_only: bool = True) -> Array:
+def fit_weights(
+    xi_vo: ArrayLike, xi_gt: ArrayLike, rotation_only: bool = True, constant_only: bool = False
+) -> Array:
     """Least-squares ``W [6, 7]`` with ``xi_gt ≈ design_matrix(xi_vo) @ Wᵀ`` (both ``[M, 6]``).
 
     Each output axis is an independent least-squares problem; with ``rotation_only`` the rows of
     ρ are zero. Needs ``M ≥ 7`` steps whose features span the 7 dimensions (else the minimum-norm
-    solution is returned, as ``jnp.linalg.lstsq`` does).
+    solution is returned, as ``jnp.linalg.lstsq`` does). ``constant_only``: every gain is zero and
+    the constant column is the least-squares constant, the mean of ``xi_gt`` per axis.
     """
     import jax.numpy as jnp
 
@@ -57,11 +62,14 @@ def fit_weights(xi_vo: ArrayLike, xi_gt: ArrayLike, rotation_only: bool = True) 
         raise ValueError(f"ground-truth corrections must have shape {(x.shape[0], 6)}, got {y.shape}")
     if x.shape[0] < x.shape[1]:
         raise ValueError(f"need at least {x.shape[1]} steps to fit the coefficients, got {x.shape[0]}")
-    # Columns scaled to unit RMS so the solve is well conditioned (steps in m and rad differ by ~10³).
-    scale = jnp.sqrt(jnp.mean(x * x, axis=0))
-    scale = jnp.where(scale > 0, scale, 1.0)
-    solution, *_ = jnp.linalg.lstsq(x / scale, y)
-    weights = (solution / scale[:, None]).T
+    if constant_only:
+        weights = jnp.zeros((6, x.shape[1]), x.dtype).at[:, -1].set(jnp.mean(y, axis=0))
+    else:
+        # Columns scaled to unit RMS so the solve is well conditioned (steps in m and rad differ by ~10³).
+        scale = jnp.sqrt(jnp.mean(x * x, axis=0))
+        scale = jnp.where(scale > 0, scale, 1.0)
+        solution, *_ = jnp.linalg.lstsq(x / scale, y)
+        weights = (solution / scale[:, None]).T
     if rotation_only:
         weights = weights.at[:3].set(0.0)
     return weights
@@ -84,6 +92,7 @@ class LinearCorrection:
     weights: np.ndarray
     rotation_only: bool
     steps: int  # number of training steps it was fit on
+    constant_only: bool = False
 
 
 def sequence_steps(gt: np.ndarray, prior: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -111,14 +120,14 @@ def sequence_steps(gt: np.ndarray, prior: np.ndarray) -> tuple[np.ndarray, np.nd
 
 
 def fit_linear_correction(
-    sequences: Sequence[tuple[np.ndarray, np.ndarray]], rotation_only: bool = True
+    sequences: Sequence[tuple[np.ndarray, np.ndarray]], rotation_only: bool = True, constant_only: bool = False
 ) -> LinearCorrection:
     """Fit on training sequences ``[(ground truth [N, 4, 4], prior [N, 4, 4]), …]`` (all steps pooled)."""
-    return fit_from_steps([sequence_steps(gt, prior) for gt, prior in sequences], rotation_only)
+    return fit_from_steps([sequence_steps(gt, prior) for gt, prior in sequences], rotation_only, constant_only)
 
 
 def fit_from_steps(
-    pairs: Sequence[tuple[np.ndarray, np.ndarray]], rotation_only: bool = True
+    pairs: Sequence[tuple[np.ndarray, np.ndarray]], rotation_only: bool = True, constant_only: bool = False
 ) -> LinearCorrection:
     """Fit on the :func:`sequence_steps` ``(ξ_vo, ξ_gt)`` of training sequences (all steps pooled)."""
     import jax
@@ -128,8 +137,9 @@ def fit_from_steps(
     xi_vo = np.concatenate([p[0] for p in pairs])
     xi_gt = np.concatenate([p[1] for p in pairs])
     with jax.enable_x64(True):
-        weights = np.asarray(fit_weights(xi_vo, xi_gt, rotation_only), np.float64)
-    return LinearCorrection(weights=weights, rotation_only=rotation_only, steps=int(xi_vo.shape[0]))
+        weights = np.asarray(fit_weights(xi_vo, xi_gt, rotation_only, constant_only), np.float64)
+    return LinearCorrection(weights=weights, rotation_only=rotation_only, steps=int(xi_vo.shape[0]),
+                            constant_only=constant_only)
 
 
 def apply_linear_correction(model: LinearCorrection, prior: np.ndarray) -> np.ndarray:

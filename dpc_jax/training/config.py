@@ -284,7 +284,10 @@ class TrainConfig:
         return uses_flow(self.method, self.model_config())
 
     def warmup_steps(self, steps_per_epoch: int) -> int:
-        """Optimizer steps during which the loss sees ξ_corr = 0."""
+        """Optimizer steps during which the loss sees ξ_corr = 0: none with the supervised loss,
+        which sees nothing but ξ_corr (held at 0 it would give every weight a zero gradient)."""
+        if self.supervision == "supervised":
+            return 0
         return self.pose_warmup_epochs * steps_per_epoch + self.pose_warmup_steps
 
 
