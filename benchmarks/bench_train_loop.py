@@ -1,39 +1,41 @@
-"""Loop efficiency: the real training epoch and the real correction against their isolated jitted steps.
+"""Loop efficiency: the real training epoch and correction against their isolated jitted steps.
 
     python benchmarks/bench_train_loop.py              # both methods, reference preset, 240x376, batch 8
     python benchmarks/bench_train_loop.py --method ss_dpc --steps 10 --rounds 2
     python benchmarks/bench_train_loop.py --cache ROOT --train 00 --validation 01 --correct 02 --json out.json
 
 Training: samples/s of one epoch as ``dpc-jax train`` runs it (``dpc_jax.training.loop``: the
-prepared cache read by ``TrainLoader`` with its background workers, frame-skip augmentation on,
-flow for ss-DPC-Net, the per-step metrics fetched, checked and logged to TensorBoard), against
-samples/s of the same jitted train step called back to back on one batch already on the device
-(the most the loop could reach). Both run on the same state, alternating epoch and isolated
-steps ``--rounds`` times after a warm-up; the medians and their ratio (the loop efficiency) are
-printed; the whole epoch's wall time counts (its start: threads, the first batch), and beside it
-the rate the loop itself reports (``samples_per_s`` of ``metrics.csv``: from its first step's end
-to its last). Validation and checkpoints are not part of the epoch measured.
+prepared cache read by ``TrainLoader`` with its background workers, frame-skip augmentation on, flow
+for ss-DPC-Net, the per-step metrics fetched, checked and logged to TensorBoard), against samples/s
+of the same jitted train step called back to back on the same epoch's batches already on the device
+(the most the loop could reach: the step over the same data, nothing feeding it). Both run on the
+same state, alternating epoch and isolated steps ``--rounds`` times after a warm-up; the medians and
+their ratio (the loop efficiency) are printed; the whole epoch's wall time counts (its start:
+threads, the first batch), and beside it the rate the loop itself reports (``samples_per_s`` of
+``metrics.csv``: from its first step's end to its last). Validation and checkpoints are not part of
+the epoch measured.
 
 Correction: frames/s of ``dpc_jax.correct.correct_cache`` over a whole sequence (reading the cache,
-the prediction, Δ — for Stereo DPC with the StereoSGBM depth prepared with the cache, as
-``dpc-jax prepare`` writes it — the acceptance test, the trajectories and their evaluation)
-against frames/s of the isolated inference step on one device-resident batch, alternating
-likewise. And batches/s of the input pipeline alone (the training loader with its transfer to the
-device, nothing consuming): what it could feed a faster device.
+the prediction, Δ — for Stereo DPC with the StereoSGBM depth prepared with the cache, as ``dpc-jax
+prepare`` writes it — the acceptance test, the trajectories and their evaluation) against frames/s
+of the isolated inference step over the sequence's batches, all on the device before the clock
+starts, alternating likewise. And batches/s of the input pipeline alone (the training loader with
+its transfer to the device, nothing consuming): what it could feed a faster device.
 
 Without ``--cache`` the script writes a synthetic cache (random frames and flow with the layout of
-a prepared one; content does not change the cost of a step) in a temporary folder, sized for
-``--steps`` steps per epoch, with a sequence of ``--correct-frames`` frames to correct (a
-correction's fixed costs, the evaluation of its trajectories above all, weigh on a short
-sequence), and removes it at the end. The network is the preset's with the
-training defaults. The device and the CPU are named in the header; ``--json FILE`` (``-``: stdout)
-writes the figures as one JSON object.
+a prepared one) in a temporary folder, sized for ``--steps`` steps per epoch, with a sequence of
+``--correct-frames`` frames to correct (a correction's fixed costs, the evaluation of its
+trajectories above all, weigh on a short sequence), and removes it at the end. The network is the
+preset's with the training defaults. The device and the CPU are named in the header; ``--json
+FILE`` (``-``: stdout) writes the figures as one JSON object.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import itertools
 import json
 import math
 import os
@@ -101,8 +103,12 @@ def bench_method(
     record: dict[str, Any] = {"method": method, "steps_per_epoch": steps}
     with tempfile.TemporaryDirectory(prefix="dpc_loop_log_") as logdir:
         log = loop.MetricsLog(Path(logdir), 0, 0, enabled=True)
-        # Isolated: the first batch of epoch 0, on the device once; keys made before the clock starts.
-        batch = parallel.shard_batch(next(iter(data.loader.epoch(0))), mesh)
+        # Isolated: the batches of epoch 0, on the device before the clock starts (distinct batches:
+        # a step's gathers run faster over one batch repeated, whose data stays in the CPU's
+        # caches); keys made before the clock starts too.
+        with contextlib.closing(data.loader.epoch(0)) as stream:
+            batches = [parallel.shard_batch(b, mesh) for b in itertools.islice(stream, steps)]
+        batch = batches[0]
         base = jax.random.key(config.seed)
         keys = [jax.random.fold_in(base, s) for s in range(steps)]
         # The step as the loop runs it: graph definition bound, state as its flat list of arrays.
@@ -117,8 +123,8 @@ def bench_method(
         def isolated(state: Any) -> tuple[Any, float]:
             leaves = jax.tree.leaves(state)
             began = time.perf_counter()
-            for key in keys:
-                leaves, metrics = bound(leaves, batch, key)
+            for key, resident in zip(keys, batches, strict=True):
+                leaves, metrics = bound(leaves, resident, key)
             jax.block_until_ready((leaves, metrics))
             rate = steps * args.batch / (time.perf_counter() - began)
             return jax.tree.unflatten(treedef, leaves), rate
@@ -188,17 +194,18 @@ def bench_method(
     # The same inputs the correction's step gets: the cache's stereo depth where its test uses it,
     # and every rotation axis for Δ of the whole rotation.
     stereo = stereo_depth_of(cache, default_acceptance_depth(run))
-    one = jax.device_put(next(iter(iterate_sequence(cache, size, flow=config.use_flow, stereo_depth=stereo))))
+    # The sequence's batches, on the device before the clock starts.
+    resident = [jax.device_put(b) for b in iterate_sequence(cache, size, flow=config.use_flow,
+                                                            stereo_depth=stereo)]
     axes = np.ones(3, np.float32)
-    calls = math.ceil(pairs / size)
 
     def predict_isolated() -> float:
         began = time.perf_counter()
         out = None
-        for _ in range(calls):
-            out = predict(prepared_leaves, one, axes)
+        for batch in resident:
+            out = predict(prepared_leaves, batch, axes)
         jax.block_until_ready(out)
-        return calls * size / (time.perf_counter() - began)
+        return len(resident) * size / (time.perf_counter() - began)
 
     def correct_whole() -> float:
         began = time.perf_counter()
