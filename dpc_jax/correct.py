@@ -238,8 +238,10 @@ def correct_cache(
             mask = component_mask(rotation_component(axes))
             if depth == "sgbm" and run.config.method == "stereo_dpc" and not run.config.learn_ssim_weight:
                 # Δ with stereo depth needs no network (dpc_jax.judge): no second pass of it.
+                # L(0) is the prediction's, measured with the same depth on the same pairs.
                 return correction_effects(cache, prediction.xi_corr, {axes: mask}, run.config.loss_config(),
-                                          batch_size or run.config.batch_size)[axes]
+                                          batch_size or run.config.batch_size,
+                                          none=prediction.photometric)[axes]
             again = run_prediction(run, cache, batch_size=batch_size, acceptance_depth=depth,
                                    rotation_axes=mask[3:], progress=progress)
             return again.delta["rotation"]

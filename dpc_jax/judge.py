@@ -31,14 +31,16 @@ from dpc_jax.nn.outputs import BranchOutputs, DPCOutputs
 
 
 @functools.partial(jax.jit, static_argnames="config")
-def _effects(batch: Batch, xi: jax.Array, masks: jax.Array, config: StereoDPCLossConfig) -> jax.Array:
+def _effects(batch: Batch, xi: jax.Array, masks: jax.Array, config: StereoDPCLossConfig,
+             none: jax.Array | None = None) -> jax.Array:
     """Δ ``[C, B]`` of ``xi [B, 6] ⊙ masks[c] [6]`` for each of the ``C`` masks (module docstring),
-    with ``batch.stereo_depth``."""
+    with ``batch.stereo_depth``; ``none``: ``L(0)`` ``[B]`` if already measured, else measured here."""
     assert batch.stereo_depth is not None
     ones = jnp.ones(batch.stereo_depth[0].shape[:1] + batch.stereo_depth[0].shape[2:], jnp.float32)
     branch = BranchOutputs(ones, ones)
     outputs, valid = with_stereo_depth(DPCOutputs(jnp.zeros_like(xi), branch, branch), batch.stereo_depth)
-    none = temporal_pair_errors(outputs, batch, config, valid)
+    if none is None:
+        none = temporal_pair_errors(outputs, batch, config, valid)
     return jnp.stack([temporal_pair_errors(outputs._replace(xi_corr=xi * masks[c]), batch, config, valid)
                       - none for c in range(masks.shape[0])])
 
@@ -49,13 +51,16 @@ def correction_effects(
     masks: Mapping[str, np.ndarray],
     config: SSDPCLossConfig | StereoDPCLossConfig,
     batch_size: int = 8,
+    none: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """Δ of ``xi_corr ⊙ mask`` on every pair of ``cache`` for each named mask → ``{name: [N-1]}``.
 
     ``xi_corr``: ``[N-1, 6]`` corrections ``[ρ (m), φ (rad)]`` of the cache's consecutive pairs
     (e.g. predicted on another cache of the same frames); ``masks``: ``{name: [6]}`` weights of
     the entries of ξ (0/1 to select, or a scale); ``config``: the loss whose temporal error is
-    measured. Depth: the cache's StereoSGBM depth (computed now if it holds none).
+    measured. Depth: the cache's StereoSGBM depth (computed now if it holds none). ``none``:
+    ``L(0)`` ``[N-1]`` of every pair when already measured on this cache with this depth (a
+    prediction's ``photometric``), which spares its evaluation; else measured here.
     """
     if not isinstance(config, StereoDPCLossConfig):
         raise ValueError(f"{cache.path}: judging needs both cameras (Stereo DPC's loss), got "
@@ -67,6 +72,8 @@ def correction_effects(
                          f"got {xi_corr.shape}")
     if not masks:
         raise ValueError("no mask to judge")
+    if none is not None and np.shape(none) != (pairs,):
+        raise ValueError(f"{cache.path}: L(0) must be [{pairs}], got {np.shape(none)}")
     names = list(masks)
     stacked = jnp.asarray(np.stack([np.asarray(masks[n], np.float32) for n in names]))
     stereo = stereo_depth_of(cache, "sgbm")
@@ -75,7 +82,8 @@ def correction_effects(
     out: list[np.ndarray] = []
     for index, batch in enumerate(iterate_sequence(cache, size, flow=False, stereo_depth=stereo)):
         rows = np.minimum(np.arange(index * size, (index + 1) * size), pairs - 1)
-        effects: Any = _effects(batch, jnp.asarray(xi_corr[rows]), stacked, config=config)
+        known = None if none is None else jnp.asarray(np.asarray(none, np.float32)[rows])
+        effects: Any = _effects(batch, jnp.asarray(xi_corr[rows]), stacked, config=config, none=known)
         out.append(np.asarray(effects, np.float64)[:, np.asarray(batch.weight) > 0])
     merged = np.concatenate(out, axis=1)
     return {name: merged[i] for i, name in enumerate(names)}

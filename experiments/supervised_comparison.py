@@ -8,10 +8,10 @@ Test data: the synthetic demo's held-out test sequence per seed (``--seeds``, de
 two real KITTI raw drives, each corrected by networks trained on the other (prior: our VO;
 ``--skip-drives`` leaves them out). Rows per test: the prior; the linear baseline
 (``dpc_jax.eval.linear_baseline``, rotation only, fit by least squares on the training sequences'
-ground truth: **supervised**) and its constant term alone (a per-axis bias); Stereo DPC trained with DPC-Net's supervised loss (**supervised**:
-its training reads the ground truth) as trained, adapted to the test sequence (self-supervised) and
-final; the same network trained self-supervised, as trained, adapted and final. Each network row
-carries its ground-truth-free acceptance decision.
+ground truth: **supervised**) and its constant term alone (a per-axis bias); Stereo DPC trained with
+DPC-Net's supervised loss (**supervised**: its training reads the ground truth) as trained, adapted
+to the test sequence (self-supervised) and final; the same network trained self-supervised, as
+trained, adapted and final. Each network row carries its ground-truth-free acceptance decision.
 
 The demo runs through ``dpc_jax.pipelines.demo`` into ``WORKDIR/seed_K`` (self-supervised; the
 layout of ``demo_seeds.py``) and ``WORKDIR/supervised/seed_K``; the drives through

@@ -483,6 +483,15 @@ def test_a_judge_measures_the_same_delta_without_the_network(setup: dict, run) -
                                 run.config.loss_config(), batch_size=4)
     for name in names:
         np.testing.assert_allclose(judged[name], prediction.delta[name], rtol=1e-4, atol=1e-7)  # float32
+    # With the prediction's L(0) given, the same Δ without measuring L(0) again.
+    reused = correction_effects(cache, prediction.xi_corr, {"rotation_xz": component_mask("rotation_xz")},
+                                run.config.loss_config(), batch_size=4, none=prediction.photometric)
+    measured = correction_effects(cache, prediction.xi_corr, {"rotation_xz": component_mask("rotation_xz")},
+                                  run.config.loss_config(), batch_size=4)
+    np.testing.assert_allclose(reused["rotation_xz"], measured["rotation_xz"], rtol=1e-4, atol=1e-7)
+    with pytest.raises(ValueError, match=r"L\(0\) must be \[9\]"):
+        correction_effects(cache, prediction.xi_corr, {"full": np.ones(6)}, run.config.loss_config(),
+                           none=prediction.photometric[:-1])
     halved = correction_effects(cache, prediction.xi_corr, {"half": 0.5 * component_mask("full")},
                                 run.config.loss_config())["half"]
     alone = correction_effects(cache, 0.5 * prediction.xi_corr, {"full": component_mask("full")},

@@ -10,9 +10,9 @@ fit by ordinary least squares over all training steps, one output axis at a time
 ``rotation_only`` only the rotation rows are fit and the translation rows are zero (ss-DPC-Net's
 setting for stereo priors). With ``constant_only`` only the constant column is fit (the mean
 correction per step, a per-axis bias): the gains on the prior's step extrapolate poorly to a log
-driven at other speeds than the training one, a bias does not depend on them. It is applied exactly as the network's correction,
-``T* = Exp(ξ_corr) · T_vo`` (:func:`dpc_jax.geometry.correction.corrected_trajectory`), so its
-numbers compare with a network's.
+driven at other speeds than the training one, a bias does not depend on them. It is applied
+exactly as the network's correction, ``T* = Exp(ξ_corr) · T_vo``
+(:func:`dpc_jax.geometry.correction.corrected_trajectory`), so its numbers compare with a network's.
 
 The math (:func:`design_matrix`, :func:`fit_weights`, :func:`predict`) is pure ``jnp``; run it with
 ``jax_enable_x64`` for float64. :func:`fit_linear_correction` and :func:`apply_linear_correction`
@@ -120,10 +120,13 @@ def sequence_steps(gt: np.ndarray, prior: np.ndarray) -> tuple[np.ndarray, np.nd
 
 
 def fit_linear_correction(
-    sequences: Sequence[tuple[np.ndarray, np.ndarray]], rotation_only: bool = True, constant_only: bool = False
+    sequences: Sequence[tuple[np.ndarray, np.ndarray]],
+    rotation_only: bool = True,
+    constant_only: bool = False,
 ) -> LinearCorrection:
     """Fit on training sequences ``[(ground truth [N, 4, 4], prior [N, 4, 4]), …]`` (all steps pooled)."""
-    return fit_from_steps([sequence_steps(gt, prior) for gt, prior in sequences], rotation_only, constant_only)
+    steps = [sequence_steps(gt, prior) for gt, prior in sequences]
+    return fit_from_steps(steps, rotation_only, constant_only)
 
 
 def fit_from_steps(
