@@ -23,6 +23,7 @@ import numpy as np
 
 from dpc_jax.data.pipeline import iterate_sequence
 from dpc_jax.data.sequence_cache import SequenceCache
+from dpc_jax.engine.driver import drive
 from dpc_jax.engine.predict import stereo_depth_of
 from dpc_jax.nn.batch import Batch
 from dpc_jax.nn.config import SSDPCLossConfig, StereoDPCLossConfig
@@ -80,10 +81,22 @@ def correction_effects(
     assert stereo is not None  # "sgbm" always gives a depth
     size = max(1, min(batch_size, pairs))
     out: list[np.ndarray] = []
-    for index, batch in enumerate(iterate_sequence(cache, size, flow=False, stereo_depth=stereo)):
+
+    def put(batch: Batch) -> tuple[Batch, np.ndarray]:
+        return jax.device_put(batch), np.asarray(batch.weight)
+
+    def run(carry: None, item: tuple[Batch, np.ndarray], index: int) -> tuple[None, Any]:
         rows = np.minimum(np.arange(index * size, (index + 1) * size), pairs - 1)
         known = None if none is None else jnp.asarray(np.asarray(none, np.float32)[rows])
-        effects: Any = _effects(batch, jnp.asarray(xi_corr[rows]), stacked, config=config, none=known)
-        out.append(np.asarray(effects, np.float64)[:, np.asarray(batch.weight) > 0])
+        return carry, _effects(item[0], jnp.asarray(xi_corr[rows]), stacked, config=config, none=known)
+
+    def consume(index: int, effects: np.ndarray, item: tuple[Batch, np.ndarray]) -> int:
+        real = item[1] > 0
+        out.append(np.asarray(effects, np.float64)[:, real])
+        return int(real.sum())
+
+    # The step driver: batch k+1 is dispatched before the effects of batch k are fetched.
+    batches = iterate_sequence(cache, size, flow=False, put=put, stereo_depth=stereo)
+    drive(run, None, batches, total=pairs, desc=f"judge {cache.name}", unit="pair", consume=consume)
     merged = np.concatenate(out, axis=1)
     return {name: merged[i] for i, name in enumerate(names)}
