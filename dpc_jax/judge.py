@@ -81,13 +81,14 @@ def correction_effects(
     assert stereo is not None  # "sgbm" always gives a depth
     size = max(1, min(batch_size, pairs))
     out: list[np.ndarray] = []
+    known_none = None if none is None else np.asarray(none, np.float32)
 
     def put(batch: Batch) -> tuple[Batch, np.ndarray]:
         return jax.device_put(batch), np.asarray(batch.weight)
 
     def run(carry: None, item: tuple[Batch, np.ndarray], index: int) -> tuple[None, Any]:
         rows = np.minimum(np.arange(index * size, (index + 1) * size), pairs - 1)
-        known = None if none is None else jnp.asarray(np.asarray(none, np.float32)[rows])
+        known = None if known_none is None else jnp.asarray(known_none[rows])
         return carry, _effects(item[0], jnp.asarray(xi_corr[rows]), stacked, config=config, none=known)
 
     def consume(index: int, effects: np.ndarray, item: tuple[Batch, np.ndarray]) -> int:

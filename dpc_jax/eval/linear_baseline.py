@@ -92,7 +92,6 @@ class LinearCorrection:
     weights: np.ndarray
     rotation_only: bool
     steps: int  # number of training steps it was fit on
-    constant_only: bool = False
 
 
 def sequence_steps(gt: np.ndarray, prior: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -141,8 +140,7 @@ def fit_from_steps(
     xi_gt = np.concatenate([p[1] for p in pairs])
     with jax.enable_x64(True):
         weights = np.asarray(fit_weights(xi_vo, xi_gt, rotation_only, constant_only), np.float64)
-    return LinearCorrection(weights=weights, rotation_only=rotation_only, steps=int(xi_vo.shape[0]),
-                            constant_only=constant_only)
+    return LinearCorrection(weights=weights, rotation_only=rotation_only, steps=int(xi_vo.shape[0]))
 
 
 def apply_linear_correction(model: LinearCorrection, prior: np.ndarray) -> np.ndarray:
