@@ -18,7 +18,7 @@ from test_kitti import write_odometry
 from dpc_jax.cli import main
 from dpc_jax.data.cache import prepare_sequence
 from dpc_jax.data.kitti import open_odometry, open_raw
-from dpc_jax.data.sequence_cache import MANIFEST, load_cache, training_sequences
+from dpc_jax.data.sequence_cache import MANIFEST, flow_step, load_cache, training_sequences
 from dpc_jax.geometry.warp import stereo_warp
 
 RAW = DATA / "kitti-raw"
@@ -69,7 +69,9 @@ def test_flow_is_farneback_of_the_stored_grey_frames(excerpt: Path) -> None:
     expected = cv2.calcOpticalFlowFarneback(
         grey(cache.right[k]), grey(cache.right[k + 1]), None, 0.5, 3, 15, 3, 5, 1.2, 0
     )
-    np.testing.assert_allclose(cache.flows["forward"][k, 1], expected, atol=1e-5)
+    # Stored as int16 units of 1/64 px at this size: within half a unit of OpenCV's float flow.
+    assert flow_step(SIZE) == 1 / 64
+    np.testing.assert_allclose(cache.flows["forward"][k, 1], expected, atol=flow_step(SIZE) / 2 + 1e-6)
     # Driving forward: the image expands away from the focus of expansion, so flow on the
     # left third points left and on the right third points right.
     dx = cache.flows["forward"][k, 0, ..., 0]
@@ -88,7 +90,8 @@ def test_augmentation_flows_pair_the_right_frames(tmp_path: Path) -> None:
         assert cache.flows[kind].shape[0] == 5 - abs(b - a)
         for camera, frames in enumerate((cache.left, cache.right)):
             stored = cache.flows[kind][1, camera]
-            np.testing.assert_allclose(stored, farneback(frames[a], frames[b]), atol=1e-5)
+            half_unit = flow_step((48, 94)) / 2
+            np.testing.assert_allclose(stored, farneback(frames[a], frames[b]), atol=half_unit + 1e-6)
 
 
 def test_the_cache_holds_the_stereo_sgbm_depth_of_its_stored_pairs(excerpt: Path) -> None:
@@ -280,3 +283,41 @@ def test_training_sequences_default_to_every_cached_one_but_validation_and_test(
         training_sequences(tmp_path, (), ("00", "02"), ("05", "07"))
     with pytest.raises(ValueError, match="is not a directory"):
         training_sequences(tmp_path / "missing", (), ("05",), ())
+
+
+def test_a_cache_of_another_format_version_is_refused_in_one_line(tmp_path: Path) -> None:
+    """A version-1 cache (float32 depth and flow) is refused by the reader, which every command
+    reads caches with, naming what rebuilds it; `prepare` with the same options does (the
+    version is part of the input hash)."""
+    write_odometry(tmp_path / "kitti", n=5)
+    seq = open_odometry(tmp_path / "kitti", "00")
+    path = prepare_sequence(seq, seq.poses, tmp_path / "out", size=(10, 16), progress=False)
+    manifest = json.loads((path / MANIFEST).read_text())
+    manifest["version"] = 1
+    (path / MANIFEST).write_text(json.dumps(manifest))
+    refusal = r"cache format version 1, this dpc_jax reads version 2; run the same `dpc-jax prepare` again"
+    with pytest.raises(ValueError, match=refusal):
+        load_cache(path)
+    prepare_sequence(seq, seq.poses, tmp_path / "out", size=(10, 16), progress=False)
+    assert load_cache(path).manifest["version"] == 2
+
+
+@pytest.mark.parametrize("damage", ["truncate", "nan_prior"])
+def test_prepare_rebuilds_a_damaged_cache_instead_of_reusing_it(tmp_path: Path, damage: str) -> None:
+    write_odometry(tmp_path / "kitti", n=5)
+    seq = open_odometry(tmp_path / "kitti", "00")
+    path = prepare_sequence(seq, seq.poses, tmp_path / "out", size=(10, 16), progress=False)
+    good = np.asarray(load_cache(path).left).copy()
+    if damage == "truncate":
+        left = path / "left.npy"
+        left.write_bytes(left.read_bytes()[:-100])
+    else:
+        prior = np.load(path / "prior.npy")
+        prior[2, 0, 3] = np.nan
+        np.save(path / "prior.npy", prior)
+    with pytest.raises(ValueError):
+        load_cache(path)
+    assert prepare_sequence(seq, seq.poses, tmp_path / "out", size=(10, 16), progress=False) == path
+    cache = load_cache(path)
+    np.testing.assert_array_equal(cache.left, good)
+    np.testing.assert_allclose(cache.prior, seq.poses)

@@ -16,14 +16,21 @@ file                  array                meaning
 ``baseline.npy``      float64 []           stereo baseline (m)
 ``indices.npy``       int64 [N]            frame numbers in the source sequence (kept frames)
 ``times.npy``         float64 [N]          frame times (s)
-``flow.npy``          float32 [N-1,2,H,W,2]  Farnebäck flow k → k+1, left (0) and right (1)
-``flow_reverse.npy``  float32 [N-1,2,H,W,2]  flow k+1 → k (stored at index k)
-``flow_skip.npy``     float32 [N-2,2,H,W,2]  flow k → k+2
-``flow_skip_reverse.npy`` float32 [N-2,2,H,W,2]  flow k+2 → k (stored at index k)
-``stereo_inverse_depth.npy`` float32 [N,2,H,W]  StereoSGBM inverse depth (1/m), left (0), right (1)
-``stereo_valid.npy``  bool [N, 2, H, W]    where SGBM found a match (elsewhere the depth is 0)
+``flow.npy``          int16 [N-1,2,H,W,2]  Farnebäck flow k → k+1, left (0) and right (1)
+``flow_reverse.npy``  int16 [N-1,2,H,W,2]  flow k+1 → k (stored at index k)
+``flow_skip.npy``     int16 [N-2,2,H,W,2]  flow k → k+2
+``flow_skip_reverse.npy`` int16 [N-2,2,H,W,2]  flow k+2 → k (stored at index k)
+``stereo_disparity.npy`` int16 [N,2,H,W]   StereoSGBM disparity, 1/16 px, left (0), right (1)
 ``manifest.json``     —                    sources, parameters, input hash, array shapes
 ====================  ===================  ==================================================
+
+Flow is stored in units of ``manifest["flow_step"]`` px (``dpc_jax.data.sequence_cache.flow_step``:
+1/64 px at 240×376, so the rounding stays below 1/128 px) and
+the disparity as the integers StereoSGBM computes (1/16 px, ≤ 0 where it found no match), so the
+inverse depth ``d / (fu·B)`` that the readers decode is bit for bit what the matcher gives; both
+take half the bytes of float32. The reader (:func:`~dpc_jax.data.sequence_cache.load_cache`)
+decodes them where they are indexed and refuses a cache of another format version
+(``manifest["version"]``) with the one line that says to prepare it again.
 
 The stereo depth (``dpc_jax.data.stereo_depth``, on the stored pair) is what the acceptance test
 measures a correction with by default; it is computed once here rather than by every run that
@@ -36,7 +43,8 @@ Identity of the inputs (``manifest["input_hash"]``): SHA-256 over the cache form
 parameters, the calibration/time/pose/prior files by *content* (small), in-memory prior or
 ground-truth arrays by content, and the image files by *path, size and modification time* —
 hashing gigabytes of PNGs on every run would cost more than the check saves; a replaced image
-changes its mtime. Re-running with the same hash finds the complete cache and does nothing.
+changes its mtime. Re-running with the same hash finds the complete cache and reuses it when
+every file still reads as its manifest says (as ``load_cache`` checks it), else rebuilds it.
 
 Atomicity: everything is written into a hidden temporary folder beside the target
 (``.NAME.tmp-<pid>-<random>``), the manifest last, and the folder is renamed into place; a failure
@@ -62,18 +70,26 @@ import jax
 import numpy as np
 
 from dpc_jax._io import atomic_write, install_folder, remove_stale, temp_name
-from dpc_jax._progress import Progress, progress_bar
-from dpc_jax.data.cache_products import FARNEBACK, ordered_map, write_flows, write_stereo_depth
+from dpc_jax._progress import Progress
+from dpc_jax.data.cache_products import FARNEBACK, ordered_map, write_frame_products
 from dpc_jax.data.kitti import StereoSequence, load_image, read_ground_truth
 from dpc_jax.data.poses_io import validate_poses
 from dpc_jax.data.priors import load_prior, rescale_monocular
-from dpc_jax.data.sequence_cache import FLOW_FILES, MANIFEST, STEREO_DEPTH_FILES
+from dpc_jax.data.sequence_cache import (
+    CACHE_VERSION,
+    DISPARITY_FILE,
+    FLOW_FILES,
+    MANIFEST,
+    CacheError,
+    flow_step,
+    load_cache,
+)
+from dpc_jax.data.stereo_depth import sgbm_disparity, sgbm_fits
 from dpc_jax.geometry.camera import scale_intrinsics
 from dpc_jax.geometry.poses import remove_static_frames
 
 log = logging.getLogger(__name__)
 
-CACHE_VERSION = 1
 DEFAULT_SIZE = (240, 376)
 
 
@@ -211,18 +227,25 @@ def prepare_sequence(
     target = out_dir / name
     existing = read_manifest(target)
     if not force and existing is not None and existing.get("input_hash") == digest:
-        log.info("%s: up to date (input hash %s)", target, digest[:12])
-        return target
+        # Same inputs; reused only if every file still reads as the manifest says (what train and
+        # correct check), else rebuilt: a truncated or edited file is not "up to date".
+        try:
+            load_cache(target)
+        except (CacheError, FileNotFoundError) as error:
+            log.warning("%s: rebuilding a damaged cache (%s)", target, error)
+        else:
+            log.info("%s: up to date (input hash %s)", target, digest[:12])
+            return target
 
     kept = _kept_frames(inputs, remove_static)
+    K = _resized_intrinsics(inputs.sequence, size, half_pixel_intrinsics)
     tmp = _new_temp_folder(out_dir, name)
     try:
-        _write_images_and_flows(
-            tmp, inputs.sequence, kept, size, disparity_offset=disparity_offset, flow=flow,
-            flow_augment=flow_augment, label=name, workers=workers, progress=progress,
+        kinds = tuple(FLOW_FILES) if flow_augment else ("forward",) if flow else ()
+        _write_arrays(
+            tmp, inputs.sequence, kept, size, K, disparity_offset=disparity_offset, flow_kinds=kinds,
+            label=name, workers=workers, progress=progress,
         )
-        K = _resized_intrinsics(inputs.sequence, size, half_pixel_intrinsics)
-        write_stereo_depth(tmp, float(K[0, 0]), float(inputs.sequence.baseline), name, workers, progress)
         _write_poses_and_calibration(tmp, inputs, kept, K)
         manifest = _manifest(tmp, name, inputs, prior, digest, parameters, kept, size, K)
         atomic_write(tmp / MANIFEST, json.dumps(manifest, indent=2))
@@ -306,44 +329,41 @@ def _new_temp_folder(out_dir: Path, name: str) -> Path:
     return tmp
 
 
-def _write_images_and_flows(
+def _write_arrays(
     tmp: Path,
     sequence: StereoSequence,
     kept: np.ndarray,
     size: tuple[int, int],
+    K: np.ndarray,
     *,
     disparity_offset: float,
-    flow: bool,
-    flow_augment: bool,
+    flow_kinds: tuple[str, ...],
     label: str,
     workers: int,
     progress: Progress,
 ) -> None:
-    """Write ``left.npy``/``right.npy``, uint8 ``[N, H, W, 3]`` with ``size = (H, W)``, of the ``kept``
-    frames into ``tmp``; with ``flow``, the flows of the stored images too
-    (:func:`~dpc_jax.data.cache_products.write_flows`).
+    """Write the images (uint8 ``[N, H, W, 3]``, ``size = (H, W)``) of the ``kept`` frames into
+    ``tmp`` with their StereoSGBM disparity (when the images are wide enough for it) and the flows
+    of ``flow_kinds``, in one pass (:func:`~dpc_jax.data.cache_products.write_frame_products`).
 
-    ``disparity_offset`` (px at the source resolution) shifts the right images before resizing.
+    Each frame is decoded, resized and matched on one of ``workers`` threads; ``disparity_offset``
+    (px at the source resolution) shifts the right images before resizing.
     """
-    n = kept.size
-    shape = (n, *size, 3)
-    arrays: dict[str, np.ndarray] = {}
-    shifts = {"left": 0.0, "right": float(disparity_offset)}
-    for camera, paths in (("left", sequence.left_paths), ("right", sequence.right_paths)):
-        shift = shifts[camera]
-        out = np.lib.format.open_memmap(tmp / f"{camera}.npy", mode="w+", dtype=np.uint8, shape=shape)
-        frames_iter = ordered_map(
-            lambda p, s=shift: _resized_frame(p, sequence.image_size, size, s), [paths[i] for i in kept],
-            workers,
-        )
-        with progress_bar(n, f"{label} {camera}", progress) as bar:
-            for k, image in enumerate(frames_iter):
-                out[k] = image
-                bar.update(1)
-        out.flush()
-        arrays[camera] = out
-    if flow:
-        write_flows(tmp, arrays["left"], arrays["right"], flow_augment, workers, progress)
+    fu, baseline = float(K[0, 0]), float(sequence.baseline)
+    depth = sgbm_fits(size[1], fu, baseline)
+    if not depth:
+        log.info("%s: images %d px wide are too narrow for StereoSGBM; no stereo depth stored",
+                 label, size[1])
+
+    def frame(i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        left = _resized_frame(sequence.left_paths[i], sequence.image_size, size)
+        right = _resized_frame(sequence.right_paths[i], sequence.image_size, size, float(disparity_offset))
+        return left, right, sgbm_disparity(left, right, fu, baseline) if depth else None
+
+    write_frame_products(
+        tmp, ordered_map(frame, kept.tolist(), workers), kept.size, size, depth=depth,
+        flow_kinds=flow_kinds, flow_step=flow_step(size), label=label, workers=workers, progress=progress,
+    )
 
 
 def _resized_intrinsics(sequence: StereoSequence, size: tuple[int, int], half_pixel: bool) -> np.ndarray:
@@ -404,7 +424,8 @@ def _manifest(
         "K": K.tolist(),
         "has_gt": gt is not None,
         "flows": [k for k, f in FLOW_FILES.items() if (tmp / f).exists()],
-        "stereo_depth": all((tmp / f).exists() for f in STEREO_DEPTH_FILES),
+        "flow_step": flow_step(size),
+        "stereo_depth": (tmp / DISPARITY_FILE).exists(),
     }
 
 

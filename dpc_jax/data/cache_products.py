@@ -1,13 +1,19 @@
-"""What :func:`~dpc_jax.data.cache.prepare_sequence` derives from the stored pairs: Farnebäck flow
-(docs/method.md §6) and the StereoSGBM depth (``dpc_jax.data.stereo_depth``), written into the
-cache folder being built, and the bounded thread-pool map that decodes and derives in parallel.
+"""The arrays of a cache folder being built, written in one streaming pass over its frames.
+
+:func:`~dpc_jax.data.cache.prepare_sequence` hands :func:`write_frame_products` the decoded and
+resized stereo pairs in order; each frame's StereoSGBM disparity (``dpc_jax.data.stereo_depth``)
+is computed with it, and the Farnebäck flows (docs/method.md §6) of the pairs that end at it are
+computed as soon as it arrives, so nothing is read back from the folder and only a few frames are
+in memory at any time, however long the sequence. Arrays are appended to their ``.npy`` files with
+plain writes (:class:`NpyWriter`): written pages are the page cache's, not the process's.
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import TypedDict
 
@@ -15,8 +21,7 @@ import cv2
 import numpy as np
 
 from dpc_jax._progress import Progress, progress_bar
-from dpc_jax.data.sequence_cache import FLOW_FILES, STEREO_DEPTH_FILES
-from dpc_jax.data.stereo_depth import sequence_inverse_depth, sgbm_fits
+from dpc_jax.data.sequence_cache import DISPARITY_FILE, FLOW_FILES, PAIR_KINDS, encode_flow
 
 log = logging.getLogger(__name__)
 
@@ -50,67 +55,114 @@ def farneback_flow(source_grey: np.ndarray, target_grey: np.ndarray) -> np.ndarr
     return flow.astype(np.float32, copy=False)
 
 
-def ordered_map(fn, items: list, workers: int) -> Iterator:
+def ordered_map(fn: Callable, items: Iterable, workers: int) -> Iterator:
     """``map`` over a thread pool (OpenCV releases the GIL), results in order, bounded look-ahead."""
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        pending = []
+        pending: deque[Future] = deque()
         for item in items:
             pending.append(pool.submit(fn, item))
             if len(pending) > 2 * workers:
-                yield pending.pop(0).result()
-        for future in pending:
-            yield future.result()
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
 
 
 def grey(image: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
 
 
-def write_flows(
-    tmp: Path, left: np.ndarray, right: np.ndarray, augment: bool, workers: int, progress: Progress
+class NpyWriter:
+    """A ``.npy`` file of a known ``shape`` and ``dtype`` written row by row (along axis 0).
+
+    The header is written first, then each :meth:`append`'s bytes; closing checks that exactly
+    ``shape[0]`` rows came, so a short file is never left looking complete.
+    """
+
+    def __init__(self, path: Path, dtype: np.dtype | type, shape: tuple[int, ...]) -> None:
+        self.path, self.dtype, self.shape = path, np.dtype(dtype), shape
+        self.rows = 0
+        self._file = path.open("wb")
+        header = {"descr": np.lib.format.dtype_to_descr(self.dtype), "fortran_order": False, "shape": shape}
+        np.lib.format.write_array_header_1_0(self._file, header)
+
+    def append(self, row: np.ndarray) -> None:
+        if row.shape != self.shape[1:]:
+            raise ValueError(f"{self.path}: row of shape {row.shape}, expected {self.shape[1:]}")
+        self._file.write(np.ascontiguousarray(row, self.dtype).tobytes())
+        self.rows += 1
+
+    def close(self) -> None:
+        self._file.close()
+
+    def check_complete(self) -> None:
+        if self.rows != self.shape[0]:
+            raise RuntimeError(f"{self.path}: {self.rows} rows written, expected {self.shape[0]}")
+
+
+def write_frame_products(
+    tmp: Path,
+    frames: Iterator[tuple[np.ndarray, np.ndarray, np.ndarray | None]],
+    n: int,
+    size: tuple[int, int],
+    *,
+    depth: bool,
+    flow_kinds: tuple[str, ...],
+    flow_step: float,
+    label: str,
+    workers: int,
+    progress: Progress,
 ) -> None:
-    n = left.shape[0]
-    kinds = {"forward": (1, False)}
-    if augment:
-        kinds |= {"reverse": (1, True), "skip": (2, False), "skip_reverse": (2, True)}
-    for kind, (step, backward) in kinds.items():
-        count = n - step
-        if count < 1:
-            raise ValueError(f"{n} frames are too few for {kind} flow (needs at least {step + 1})")
-        out = np.lib.format.open_memmap(
-            tmp / FLOW_FILES[kind], mode="w+", dtype=np.float32, shape=(count, 2, *left.shape[1:3], 2)
-        )
+    """Write ``left.npy``/``right.npy`` (uint8 ``[n, H, W, 3]``), with ``depth`` the disparity
+    (int16 ``[n, 2, H, W]``) and the flows of ``flow_kinds`` (int16 ``[n - step, 2, H, W, 2]`` in
+    units of ``flow_step`` px) into ``tmp``.
 
-        def pair_flow(k: int, step: int = step, backward: bool = backward) -> np.ndarray:
-            a, b = (k + step, k) if backward else (k, k + step)
-            return np.stack([
-                farneback_flow(grey(cam[a]), grey(cam[b])) for cam in (left, right)
-            ])
+    ``frames`` yields ``(left, right, disparity or None)`` of each of the ``n`` frames in order.
+    The flows of the pairs ending at frame ``k`` are computed on ``workers`` threads while later
+    frames are decoded; at most ``2·workers`` of them wait to be written.
+    """
+    h, w = size
+    for kind in flow_kinds:
+        if n <= PAIR_KINDS[kind][0]:
+            needed = PAIR_KINDS[kind][0] + 1
+            raise ValueError(f"{n} frames are too few for {kind} flow (needs at least {needed})")
+    writers = {"left": NpyWriter(tmp / "left.npy", np.uint8, (n, h, w, 3)),
+               "right": NpyWriter(tmp / "right.npy", np.uint8, (n, h, w, 3))}
+    if depth:
+        writers["disparity"] = NpyWriter(tmp / DISPARITY_FILE, np.int16, (n, 2, h, w))
+    for kind in flow_kinds:
+        writers[kind] = NpyWriter(tmp / FLOW_FILES[kind], np.int16, (n - PAIR_KINDS[kind][0], 2, h, w, 2))
 
-        results = ordered_map(pair_flow, list(range(count)), workers)
-        with progress_bar(count, f"flow ({kind})", progress, unit="pair") as bar:
-            for k, flow in enumerate(results):
-                out[k] = flow
+    def pair_flow(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        """Flow a → b of both cameras (``a``, ``b``: the grey left and right images of a frame)."""
+        return encode_flow(np.stack([farneback_flow(a[c], b[c]) for c in (0, 1)]), flow_step)
+
+    recent: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=2)  # grey pairs of frames k-2, k-1
+    pending: deque[tuple[str, Future]] = deque()  # flows in the order each kind's file takes them
+    try:
+        with ThreadPoolExecutor(max_workers=workers) as pool, progress_bar(n, label, progress) as bar:
+            for left, right, disparity in frames:
+                writers["left"].append(left)
+                writers["right"].append(right)
+                if disparity is not None:
+                    writers["disparity"].append(disparity)
+                current = (grey(left), grey(right)) if flow_kinds else None
+                for kind in flow_kinds:
+                    step, backward = PAIR_KINDS[kind]
+                    if current is not None and len(recent) >= step:
+                        other = recent[-step]
+                        a, b = (current, other) if backward else (other, current)
+                        pending.append((kind, pool.submit(pair_flow, a, b)))
+                if current is not None:
+                    recent.append(current)
+                while len(pending) > 2 * workers:
+                    kind, future = pending.popleft()
+                    writers[kind].append(future.result())
                 bar.update(1)
-        out.flush()
-        del out
-
-
-def write_stereo_depth(tmp: Path, fu: float, baseline: float, label: str, workers: int,
-                        progress: Progress) -> None:
-    """Write the StereoSGBM inverse depth and validity of the stored pairs of ``tmp`` (``fu``: focal
-    length of the stored images, px; ``baseline``: m), unless they are too narrow for it."""
-    left, right = (np.load(tmp / f"{camera}.npy", mmap_mode="r") for camera in ("left", "right"))
-    n, h, w = left.shape[:3]
-    if not sgbm_fits(w, fu, baseline):
-        log.info("%s: images %d px wide are too narrow for StereoSGBM; no stereo depth stored", label, w)
-        return
-    inverse = np.lib.format.open_memmap(tmp / STEREO_DEPTH_FILES[0], mode="w+", dtype=np.float32,
-                                        shape=(n, 2, h, w))
-    valid = np.lib.format.open_memmap(tmp / STEREO_DEPTH_FILES[1], mode="w+", dtype=bool, shape=(n, 2, h, w))
-
-    with progress_bar(n, f"{label} stereo depth", progress) as bar:
-        sequence_inverse_depth(left, right, fu, baseline, workers=workers, out=(inverse, valid),
-                               done=lambda: bar.update(1))
-    inverse.flush()
-    valid.flush()
+            while pending:
+                kind, future = pending.popleft()
+                writers[kind].append(future.result())
+    finally:
+        for writer in writers.values():
+            writer.close()
+    for writer in writers.values():
+        writer.check_complete()

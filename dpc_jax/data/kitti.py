@@ -34,6 +34,11 @@ import numpy as np
 from dpc_jax.data import poses_io
 from dpc_jax.data.poses_io import validate_poses
 
+# The horizontal fields of view a rectified stereo camera is believed to have (KITTI's colour pair:
+# 81°): a narrower or wider one from the calibration means it was written for another image width.
+MIN_FOV_DEG = 10.0
+MAX_FOV_DEG = 150.0
+
 
 @dataclass(frozen=True)
 class StereoSequence:
@@ -168,11 +173,13 @@ def projection_matrix(entries: dict[str, tuple[int, str]], key: str, path: Path)
 
 
 def stereo_calibration(
-    path: Path, left_key: str, right_key: str
+    path: Path, left_key: str, right_key: str, image_size: tuple[int, int]
 ) -> tuple[np.ndarray, float]:
     """``(K [3, 3], baseline m)`` of a rectified pair from its projection matrices.
 
     ``K`` is the left 3×3 block; ``baseline = (P_left[0, 3] − P_right[0, 3]) / fu`` (docs/method.md §6).
+    ``image_size`` ``(H, W)``: the stored images, which the calibration must fit
+    (:func:`check_intrinsics`; the raw layout's ``S_rect_XX`` too, where the file gives it).
     """
     entries = read_calibration(path)
     p_left = projection_matrix(entries, left_key, path)
@@ -185,6 +192,9 @@ def stereo_calibration(
         )
     if not np.allclose(p_left[:, :3], p_right[:, :3], rtol=1e-6, atol=1e-9):
         raise ValueError(f"{path}: {left_key} and {right_key} differ in K; expected a rectified pair")
+    for key in (left_key, right_key):
+        _check_rectified_size(entries, key, path, image_size)
+    check_intrinsics(K, image_size, f"{path}: {left_key}")
     baseline = float((p_left[0, 3] - p_right[0, 3]) / fu)
     if baseline <= 0:
         raise ValueError(
@@ -192,6 +202,56 @@ def stereo_calibration(
             "(right camera to the right of the left one)"
         )
     return K, baseline
+
+
+def check_intrinsics(K: np.ndarray, image_size: tuple[int, int], where: str) -> None:
+    """Refuse intrinsics ``K`` that cannot belong to images of ``image_size`` ``(H, W)``.
+
+    A calibration written for another resolution (KITTI's full-size ``P2`` beside downscaled images,
+    a ``P_rect`` halved by hand) gives a trajectory that looks plausible and is wrong by metres, so
+    it is caught here: the principal point must lie in the middle half of the image (a scaled
+    calibration moves it towards a corner or out of the image; rectified cameras keep it near the
+    centre) and ``fu`` must give a horizontal field of view between ``MIN_FOV_DEG`` and
+    ``MAX_FOV_DEG``. ``ValueError`` naming ``where`` (the file and key) and the number.
+    """
+    height, width = image_size
+    fu, cu, cv = float(K[0, 0]), float(K[0, 2]), float(K[1, 2])
+    for name, value, extent, axis in (("cu", cu, width, "wide"), ("cv", cv, height, "high")):
+        if not extent / 4 <= value <= 3 * extent / 4:
+            raise ValueError(
+                f"{where}: principal point {name} = {value:.6g} px, but the images are {extent} px {axis}; "
+                f"expected {extent / 4:g} to {3 * extent / 4:g} (the middle half): is the calibration for "
+                f"images of another size ({height}x{width} here)?"
+            )
+    fov = float(np.degrees(2.0 * np.arctan(width / (2.0 * fu))))
+    if not MIN_FOV_DEG <= fov <= MAX_FOV_DEG:
+        raise ValueError(
+            f"{where}: focal length fu = {fu:.6g} px gives a horizontal field of view of {fov:.0f}° for "
+            f"images {width} px wide; expected {MIN_FOV_DEG:g}° to {MAX_FOV_DEG:g}°: is the calibration for "
+            f"images of another size ({height}x{width} here)?"
+        )
+
+
+def _check_rectified_size(
+    entries: dict[str, tuple[int, str]], key: str, path: Path, image_size: tuple[int, int]
+) -> None:
+    """The raw layout's ``S_rect_XX: W H`` (beside ``P_rect_XX``) must equal the images' size."""
+    if not key.startswith("P_rect_"):
+        return
+    size_key = "S_rect_" + key.removeprefix("P_rect_")
+    if size_key not in entries:
+        return
+    number, values = entries[size_key]
+    try:
+        width, height = (float(v) for v in values.split())
+    except ValueError:
+        raise ValueError(f"{path}, line {number}: {size_key} must hold 2 numbers (width height), "
+                         f"got {values.strip()!r}") from None
+    if (height, width) != (float(image_size[0]), float(image_size[1])):
+        raise ValueError(
+            f"{path}, line {number}: {size_key} is {width:g}x{height:g} (width x height) but the images are "
+            f"{image_size[1]}x{image_size[0]}; {key} describes images of another size"
+        )
 
 
 def _read_times(path: Path, n: int) -> np.ndarray:
@@ -262,7 +322,8 @@ def open_odometry(root: str | Path, sequence: str | int, grey: bool = False) -> 
     cams = (0, 1) if grey else (2, 3)
     left, right = _pair_files(seq_dir / f"image_{cams[0]}", seq_dir / f"image_{cams[1]}")
     calib_path = seq_dir / "calib.txt"
-    K, baseline = stereo_calibration(calib_path, f"P{cams[0]}", f"P{cams[1]}")
+    image_size = _image_size(left[0])
+    K, baseline = stereo_calibration(calib_path, f"P{cams[0]}", f"P{cams[1]}", image_size)
     times_path = seq_dir / "times.txt"
     times = _read_times(times_path, len(left))
     pose_path = root / "poses" / f"{name}.txt"
@@ -273,7 +334,7 @@ def open_odometry(root: str | Path, sequence: str | int, grey: bool = False) -> 
         sources.append(pose_path)
     return StereoSequence(
         name=name, left_paths=left, right_paths=right, K=K, baseline=baseline,
-        image_size=_image_size(left[0]), times=times, poses=poses, sources=tuple(sources),
+        image_size=image_size, times=times, poses=poses, sources=tuple(sources),
     )
 
 
@@ -333,7 +394,8 @@ def open_raw(
     left_dir, right_dir, left_key, right_key = _RAW_PAIRS[raw_cameras(drive_dir, cameras)]
     left, right = _pair_files(drive_dir / left_dir / "data", drive_dir / right_dir / "data")
     calib_path = root / date / "calib_cam_to_cam.txt"
-    K, baseline = stereo_calibration(calib_path, left_key, right_key)
+    image_size = _image_size(left[0])
+    K, baseline = stereo_calibration(calib_path, left_key, right_key, image_size)
     times_path = drive_dir / left_dir / "timestamps.txt"
     times = _read_timestamps(times_path, len(left))
     sources = [calib_path, times_path]
@@ -347,5 +409,5 @@ def open_raw(
             sources.append(Path(poses))
     return StereoSequence(
         name=drive_name, left_paths=left, right_paths=right, K=K, baseline=baseline,
-        image_size=_image_size(left[0]), times=times, poses=gt, sources=tuple(sources),
+        image_size=image_size, times=times, poses=gt, sources=tuple(sources),
     )

@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 
 from dpc_jax.data.holdout import touches
-from dpc_jax.data.sequence_cache import PAIR_KINDS, SequenceCache, load_cache
+from dpc_jax.data.sequence_cache import PAIR_KINDS, SequenceCache, StereoDepth, load_cache
 from dpc_jax.data.splits import training_names
 from dpc_jax.geometry.poses import invert_poses, log_poses
 from dpc_jax.nn.batch import Batch
@@ -146,7 +146,7 @@ def _check_compatible(caches: list[SequenceCache]) -> None:
 
 def _assemble(
     caches: list[SequenceCache], table: _SampleTable, rows: np.ndarray, weight: np.ndarray, use_flow: bool,
-    stereo_depth: tuple[np.ndarray, np.ndarray] | None = None,
+    stereo_depth: StereoDepth | None = None,
 ) -> Batch:
     """Gather the samples ``rows`` of ``table`` into one Batch of numpy arrays; ``stereo_depth``:
     ``(inverse depth, valid)`` ``[N, camera, H, W]`` of every frame of a single cache, gathered into
@@ -181,7 +181,7 @@ def _assemble(
 
 
 def _pair_depth(
-    stereo_depth: tuple[np.ndarray, np.ndarray], table: _SampleTable, rows: np.ndarray
+    stereo_depth: StereoDepth, table: _SampleTable, rows: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """The frames ``(source, target)`` of samples ``rows`` → ``[B, camera, frame, H, W]`` each."""
     frames = np.stack([table.source[rows], table.target[rows]], axis=1)  # [B, frame]
@@ -322,7 +322,7 @@ def iterate_sequence(
     workers: int = 1,
     depth: int = 4,
     put: Callable[[Batch], Any] | None = None,
-    stereo_depth: tuple[np.ndarray, np.ndarray] | None = None,
+    stereo_depth: StereoDepth | None = None,
 ) -> Generator[Any, None, None]:
     """The forward pairs ``(k, k+1)``, k = 0 … N-2, of one sequence in order, in fixed-size batches.
 

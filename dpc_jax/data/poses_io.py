@@ -31,66 +31,15 @@ from pathlib import Path
 import numpy as np
 
 from dpc_jax._io import InputWarning, atomic_write
-from dpc_jax.geometry.poses import invert_poses
+
+# validate_poses lives with the pose algebra (pure numpy) so that the API functions of
+# dpc_jax.geometry check their poses as the readers do; re-exported here, where it began.
+from dpc_jax.geometry.poses import invert_poses, validate_poses
 
 FORMATS = ("kitti", "tum", "mat")
 WRITE_FORMATS = ("kitti", "tum")
 MAT_KEYS = ("poses_gt", "poses_est")
 TUM_GAP_FACTOR = 10.0
-
-
-
-# ----------------------------------------------------------------------------- validation
-
-
-def validate_poses(
-    poses: np.ndarray, source: str = "poses", tolerance: float = 1e-3
-) -> np.ndarray:
-    """Check and clean homogeneous poses read from a file (numpy, float64).
-
-    ``poses``: ``[N, 4, 4]`` or ``[N, 3, 4]``. Returns ``[N, 4, 4]`` float64 whose rotation
-    blocks are projected onto SO(3) and whose bottom rows are exactly ``[0, 0, 0, 1]``.
-
-    Raises ``ValueError`` naming ``source`` and the pose index when a pose holds a non-finite
-    value, when its rotation block deviates from orthonormality by more than ``tolerance``
-    (max |RᵀR − I|), when its determinant is not positive, or when a given bottom row is not
-    ``[0, 0, 0, 1]`` within ``tolerance``. Deviations below ``tolerance`` (rounding in text
-    files) are silently projected away.
-    """
-    arr = np.asarray(poses, dtype=np.float64)
-    if arr.ndim != 3 or arr.shape[1:] not in ((4, 4), (3, 4)):
-        raise ValueError(f"{source}: expected poses of shape [N, 4, 4] or [N, 3, 4], got {arr.shape}")
-    finite = np.isfinite(arr).all(axis=(1, 2))
-    if not finite.all():
-        i = int(np.argmin(finite))
-        raise ValueError(f"{source}: pose {i} contains a non-finite value (NaN or inf)")
-    if arr.shape[1] == 4:
-        bottom_dev = np.abs(arr[:, 3, :] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=1)
-        bad = np.flatnonzero(bottom_dev > tolerance)
-        if bad.size:
-            i = int(bad[0])
-            raise ValueError(
-                f"{source}: pose {i} has bottom row {arr[i, 3].tolist()}, expected [0, 0, 0, 1]"
-            )
-    rotation = arr[:, :3, :3]
-    gram = np.einsum("nji,njk->nik", rotation, rotation)
-    deviation = np.abs(gram - np.eye(3)).max(axis=(1, 2))
-    det = np.linalg.det(rotation)
-    bad = np.flatnonzero((deviation > tolerance) | (det <= 0.0))
-    if bad.size:
-        i = int(bad[0])
-        raise ValueError(
-            f"{source}: pose {i} is not rigid: max |RᵀR − I| = {deviation[i]:.3g} "
-            f"(tolerance {tolerance:g}), det R = {det[i]:.6g}"
-        )
-    u, _, vt = np.linalg.svd(rotation)
-    d = np.sign(np.linalg.det(u @ vt))
-    u[:, :, 2] *= d[:, None]
-    out = np.zeros((arr.shape[0], 4, 4))
-    out[:, :3, :3] = u @ vt
-    out[:, :3, 3] = arr[:, :3, 3]
-    out[:, 3, 3] = 1.0
-    return out
 
 
 # ----------------------------------------------------------------------------- text parsing
@@ -355,11 +304,10 @@ def read_trajectory(
 
 
 def _check_writable(poses: np.ndarray) -> np.ndarray:
+    """``poses`` as float64, refused (``ValueError`` naming ``poses``) where a reader would refuse the
+    file: a writer never makes a trajectory that cannot be read back. Written as given, unprojected."""
     arr = np.asarray(poses, dtype=np.float64)
-    if arr.ndim != 3 or arr.shape[1:] not in ((4, 4), (3, 4)):
-        raise ValueError(f"poses must have shape [N, 4, 4] or [N, 3, 4], got {arr.shape}")
-    if not np.isfinite(arr).all():
-        raise ValueError("poses contain a non-finite value (NaN or inf)")
+    validate_poses(arr, source="poses")
     return arr
 
 
@@ -379,6 +327,13 @@ def write_tum(
     stamps = np.arange(n, dtype=np.float64) if timestamps is None else np.asarray(timestamps, np.float64)
     if stamps.shape != (n,) or not np.isfinite(stamps).all():
         raise ValueError(f"timestamps must be {n} finite numbers, got shape {stamps.shape}")
+    back = np.flatnonzero(np.diff(stamps) <= 0)
+    if back.size:
+        i = int(back[0]) + 1
+        raise ValueError(
+            f"timestamps: {stamps[i]:.15g} (pose {i}) does not increase after {stamps[i - 1]:.15g} "
+            f"(pose {i - 1}); read_tum refuses such a file, so the times must increase"
+        )
     q = _rotation_to_quaternion(validate_poses(arr, source="poses to write")[:, :3, :3])
     rows = np.concatenate([stamps[:, None], arr[:, :3, 3], q], axis=1)
     atomic_write(path, "".join(" ".join(f"{v:.17g}" for v in row) + "\n" for row in rows))

@@ -9,11 +9,14 @@ checks of :mod:`dpc_jax.data.poses_io` only, so the command line checks a cache 
 
 from __future__ import annotations
 
+import functools
 import json
+import math
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -21,16 +24,91 @@ from dpc_jax.data.poses_io import validate_poses
 from dpc_jax.data.splits import training_names
 
 MANIFEST = "manifest.json"
+# The format written by dpc_jax.data.cache.prepare_sequence; a cache of another version is refused.
+# Version 2 stores SGBM's fixed-point disparity and fixed-point flow as int16 (version 1: float32).
+CACHE_VERSION = 2
 FLOW_FILES = {
     "forward": "flow.npy",
     "reverse": "flow_reverse.npy",
     "skip": "flow_skip.npy",
     "skip_reverse": "flow_skip_reverse.npy",
 }
-# StereoSGBM inverse depth of both cameras and its validity (dpc_jax.data.stereo_depth), when prepared.
-STEREO_DEPTH_FILES = ("stereo_inverse_depth.npy", "stereo_valid.npy")
+# StereoSGBM disparity of both cameras (dpc_jax.data.stereo_depth), when prepared.
+DISPARITY_FILE = "stereo_disparity.npy"
+# StereoSGBM's fixed point: disparities are integers in 1/16 px, and ≤ 0 where no match was found.
+DISPARITY_UNITS = 16
 # Pair kind → (frame step, backward): see :mod:`dpc_jax.data.pipeline`.
 PAIR_KINDS = {"forward": (1, False), "reverse": (1, True), "skip": (2, False), "skip_reverse": (2, True)}
+
+
+class Decoded:
+    """A read-only array stored in a compact form and decoded where it is indexed.
+
+    ``decoded[index]`` reads ``stored[index]`` (from a memory map: only the indexed frames) and
+    returns ``decode`` of it, so an epoch never holds more than its batches in decoded form.
+    ``shape`` is the stored shape (the decoders keep it); ``np.asarray`` decodes everything.
+    """
+
+    def __init__(self, stored: np.ndarray, decode: Callable[[np.ndarray], np.ndarray]) -> None:
+        self.stored = stored
+        self._decode = decode
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return tuple(self.stored.shape)
+
+    def __len__(self) -> int:
+        return int(self.stored.shape[0])
+
+    def __getitem__(self, index: Any) -> np.ndarray:
+        return self._decode(np.asarray(self.stored[index]))
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        decoded = self._decode(np.asarray(self.stored))
+        return decoded if dtype is None else decoded.astype(dtype)
+
+
+# What the readers index: a numpy array (or memory map), or a compact one decoded on indexing.
+Frames = np.ndarray | Decoded
+# (inverse depth float32 [N, camera, H, W] 1/m, valid bool [N, camera, H, W]) of every frame.
+StereoDepth = tuple[Frames, Frames]
+
+
+def flow_step(size: tuple[int, int]) -> float:
+    """Pixels per unit of the stored int16 flow of images of ``size = (H, W)``: a power of two such
+    that ±32767 units cover ±(the next power of two ≥ max(H, W)) px, i.e. any flow that stays in
+    the image; 1/64 px at 240×376, a rounding error of at most 1/128 px."""
+    return 2.0 ** math.ceil(math.log2(max(size))) / 32768.0
+
+
+def encode_flow(flow: np.ndarray, step: float) -> np.ndarray:
+    """float flow (px) → int16 units of ``step`` px (:func:`flow_step`), rounded to nearest; flow
+    beyond the range (it points out of the image) is clipped."""
+    return np.clip(np.rint(flow / step), -32767, 32767).astype(np.int16)
+
+
+def decode_flow(units: np.ndarray, step: float) -> np.ndarray:
+    """int16 flow units → float32 px (the inverse of :func:`encode_flow` up to its rounding)."""
+    return units.astype(np.float32) * np.float32(step)
+
+
+def inverse_depth_from_disparity(fixed: np.ndarray, focal_baseline: float) -> np.ndarray:
+    """SGBM's fixed-point disparity (int16, 1/16 px) → float32 inverse depth ``d / (fu·B)`` (1/m),
+    0 where there is no match (``d ≤ 0``); same shape. ``focal_baseline``: fu (px) times B (m)."""
+    disparity = fixed.astype(np.float32) / np.float32(DISPARITY_UNITS)
+    return np.where(disparity > 0.0, disparity / focal_baseline, 0.0).astype(np.float32)
+
+
+def disparity_valid(fixed: np.ndarray) -> np.ndarray:
+    """Where SGBM's fixed-point disparity holds a match (bool, same shape)."""
+    return fixed > 0
+
+
+def stereo_depth_views(fixed: np.ndarray, focal_baseline: float) -> tuple[Decoded, Decoded]:
+    """``(inverse depth, valid)`` views of stored fixed-point disparity ``[N, camera, H, W]``, each
+    decoded where indexed (float32 1/m and bool; :func:`inverse_depth_from_disparity`)."""
+    return (Decoded(fixed, lambda d: inverse_depth_from_disparity(d, focal_baseline)),
+            Decoded(fixed, disparity_valid))
 
 
 @dataclass(frozen=True)
@@ -47,11 +125,11 @@ class SequenceCache:
     baseline: float
     indices: np.ndarray
     times: np.ndarray
-    flows: dict[str, np.ndarray]
+    flows: dict[str, Frames]  # float32 px where indexed (stored as int16, :func:`decode_flow`)
     manifest: dict
-    # (inverse depth float32 [N, 2, H, W] 1/m, valid bool [N, 2, H, W]), camera axis (left, right);
-    # None in a cache prepared without it.
-    stereo_depth: tuple[np.ndarray, np.ndarray] | None = None
+    # (inverse depth float32 [N, 2, H, W] 1/m, valid bool [N, 2, H, W]) where indexed, camera axis
+    # (left, right), decoded from the stored disparity; None in a cache prepared without it.
+    stereo_depth: StereoDepth | None = None
 
     def __len__(self) -> int:
         return int(self.left.shape[0])
@@ -77,6 +155,15 @@ def _read_manifest(path: Path) -> dict:
         raise CacheError(f"{path}: not valid JSON ({error}); prepare the cache again") from None
     if not isinstance(manifest, dict):
         raise CacheError(f"{path}: expected a JSON object, got {type(manifest).__name__}")
+    if manifest.get("version") != CACHE_VERSION:
+        raise CacheError(
+            f"{path}: cache format version {manifest.get('version')}, this dpc_jax reads version "
+            f"{CACHE_VERSION}; run the same `dpc-jax prepare` again to rebuild it"
+        )
+    if manifest.get("flows") and not (isinstance(manifest.get("flow_step"), float)
+                                      and manifest["flow_step"] > 0):
+        raise CacheError(f"{path}: field 'flow_step' is missing or not a positive number; "
+                         "prepare the cache again")
     for key, kind in _MANIFEST_KEYS.items():
         if not isinstance(manifest.get(key), kind):
             raise CacheError(
@@ -147,15 +234,15 @@ def load_cache(path: str | os.PathLike[str]) -> SequenceCache:
 
     left = array("left.npy", (n, h, w, 3), "uint8", mmap=True)
     right = array("right.npy", (n, h, w, 3), "uint8", mmap=True)
-    flows = {
-        kind: array(FLOW_FILES[kind], (n - PAIR_KINDS[kind][0], 2, h, w, 2), "float32", mmap=True)
+    step = float(manifest.get("flow_step", 1.0))
+    flows: dict[str, Frames] = {
+        kind: Decoded(array(FLOW_FILES[kind], (n - PAIR_KINDS[kind][0], 2, h, w, 2), "int16", mmap=True),
+                      functools.partial(decode_flow, step=step))
         for kind in manifest["flows"]
     }
-    stereo_depth = None
+    disparity = None
     if manifest.get("stereo_depth"):
-        inverse, valid = (array(f, (n, 2, h, w), dtype, mmap=True)
-                          for f, dtype in zip(STEREO_DEPTH_FILES, ("float32", "bool"), strict=True))
-        stereo_depth = (inverse, valid)
+        disparity = array(DISPARITY_FILE, (n, 2, h, w), "int16", mmap=True)
     prior = array("prior.npy", (n, 4, 4), "float64")
     _check_finite_poses(path / "prior.npy", prior)
     gt = None
@@ -171,6 +258,10 @@ def load_cache(path: str | os.PathLike[str]) -> SequenceCache:
             raise CacheError(
                 f"{path / file}: holds a value that is not finite (NaN or inf); prepare the cache again"
             )
+    stereo_depth = None
+    if disparity is not None:
+        # The product prepare matched with (dpc_jax.data.cache_products), from the same stored values.
+        stereo_depth = stereo_depth_views(disparity, float(K[0, 0]) * float(baseline))
     return SequenceCache(
         path=path,
         name=manifest["name"],

@@ -10,11 +10,12 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numpy as np
+
+from dpc_jax.data.sequence_cache import disparity_valid, inverse_depth_from_disparity
 
 # Nearest depth (m) the disparity search covers; nearer pixels are left out (invalid).
 MIN_DEPTH = 1.5
@@ -45,55 +46,59 @@ def sgbm_fits(width: int, fu: float, baseline: float, block: int = 5) -> bool:
     return width - search > block // 2
 
 
-def sgbm_inverse_depth(
+def sgbm_disparity(
     left: np.ndarray, right: np.ndarray, fu: float, baseline: float, block: int = 5
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Inverse depth (1/m) of both cameras of one rectified pair by StereoSGBM.
+) -> np.ndarray:
+    """StereoSGBM disparity of both cameras of one rectified pair, in SGBM's own fixed point.
 
     ``left``, ``right``: uint8 ``[H, W, 3]`` RGB (or ``[H, W]`` grey); ``fu``: focal length (px)
-    of these images; ``baseline`` (m). Returns ``(inv_left, valid_left, inv_right, valid_right)``,
-    float32 / bool ``[H, W]``; invalid pixels (no match, occluded, nearer than
-    :data:`MIN_DEPTH`) hold 0. The right camera's disparity is computed by matching the mirrored
-    pair (the right image becomes the reference).
+    of these images; ``baseline`` (m). Returns int16 ``[camera, H, W]`` (left, right) in 1/16 px
+    (``DISPARITY_UNITS``), ≤ 0 where there is no match (occluded, or nearer than
+    :data:`MIN_DEPTH`): exactly what OpenCV computes, 2 bytes a pixel, which is what a cache
+    stores. The right camera's disparity is computed by matching the mirrored pair (the right
+    image becomes the reference).
     """
     if left.shape != right.shape or left.dtype != np.uint8:
         raise ValueError(f"need two uint8 images of one size, got {left.dtype} {left.shape}, {right.shape}")
     if not (fu > 0 and baseline > 0):
         raise ValueError(f"fu and baseline must be positive, got {fu}, {baseline}")
-    focal_baseline = float(fu) * float(baseline)
-    matcher = _matcher(focal_baseline / MIN_DEPTH, block)
+    matcher = _matcher(float(fu) * float(baseline) / MIN_DEPTH, block)
     grey_l, grey_r = _grey(left), _grey(right)
-    out = []
-    for reference, other, mirrored in ((grey_l, grey_r, False), (grey_r, grey_l, True)):
-        if mirrored:
-            reference, other = reference[:, ::-1].copy(), other[:, ::-1].copy()
-        disparity = matcher.compute(reference, other).astype(np.float32) / 16.0
-        if mirrored:
-            disparity = disparity[:, ::-1]
-        valid = disparity > 0.0
-        out += [np.where(valid, disparity / focal_baseline, 0.0).astype(np.float32), valid]
-    return out[0], out[1], out[2], out[3]
+    out = np.empty((2, *grey_l.shape), np.int16)
+    out[0] = matcher.compute(grey_l, grey_r)
+    out[1] = matcher.compute(grey_r[:, ::-1].copy(), grey_l[:, ::-1].copy())[:, ::-1]
+    return out
+
+
+def sgbm_inverse_depth(
+    left: np.ndarray, right: np.ndarray, fu: float, baseline: float, block: int = 5
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Inverse depth (1/m) of both cameras of one rectified pair by StereoSGBM
+    (:func:`sgbm_disparity`, ``1/Z = d / (fu · B)``).
+
+    Returns ``(inv_left, valid_left, inv_right, valid_right)``, float32 / bool ``[H, W]``;
+    invalid pixels hold 0.
+    """
+    fixed = sgbm_disparity(left, right, fu, baseline, block)
+    inverse = inverse_depth_from_disparity(fixed, float(fu) * float(baseline))
+    valid = disparity_valid(fixed)
+    return inverse[0], valid[0], inverse[1], valid[1]
 
 
 def sequence_inverse_depth(
     left: np.ndarray, right: np.ndarray, fu: float, baseline: float, *, workers: int | None = None,
-    out: tuple[np.ndarray, np.ndarray] | None = None, done: Callable[[], object] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`sgbm_inverse_depth` of every frame: ``left``/``right`` uint8 ``[N, H, W, 3]`` →
     ``(inverse depth float32 [N, 2, H, W], valid bool [N, 2, H, W])``, camera axis (left, right).
 
     ``workers`` threads match frames in parallel (OpenCV releases the GIL; default: CPU count);
-    each frame's result does not depend on them. ``out``: arrays of those shapes to fill (e.g.
-    memory maps) instead of new ones; ``done`` is called once per finished frame (progress).
+    each frame's result does not depend on them.
     """
-    shape = (left.shape[0], 2, *left.shape[1:3])
-    inv, valid = out if out is not None else (np.zeros(shape, np.float32), np.zeros(shape, bool))
+    fixed = np.empty((left.shape[0], 2, *left.shape[1:3]), np.int16)
 
     def frame(k: int) -> None:
-        inv[k, 0], valid[k, 0], inv[k, 1], valid[k, 1] = sgbm_inverse_depth(left[k], right[k], fu, baseline)
-        if done is not None:
-            done()
+        fixed[k] = sgbm_disparity(left[k], right[k], fu, baseline)
 
     with ThreadPoolExecutor(workers or os.cpu_count() or 1) as pool:
         list(pool.map(frame, range(left.shape[0])))
-    return inv, valid
+    return inverse_depth_from_disparity(fixed, float(fu) * float(baseline)), disparity_valid(fixed)

@@ -23,7 +23,7 @@ from jax.sharding import Mesh
 
 from dpc_jax._progress import Progress
 from dpc_jax.data.pipeline import iterate_sequence
-from dpc_jax.data.sequence_cache import SequenceCache, load_cache
+from dpc_jax.data.sequence_cache import SequenceCache, StereoDepth, load_cache
 from dpc_jax.engine import backend, parallel
 from dpc_jax.engine.driver import drive
 from dpc_jax.nn.batch import Batch
@@ -91,7 +91,7 @@ def predict_sequence(
     *,
     batch_size: int,
     use_flow: bool,
-    stereo_depth: tuple[np.ndarray, np.ndarray] | None = None,
+    stereo_depth: StereoDepth | None = None,
     mesh: Mesh | None = None,
     rotation_axes: np.ndarray | None = None,
     progress: Progress = False,
@@ -155,7 +155,7 @@ def predict_sequence(
     )
 
 
-def stereo_depth_of(cache: SequenceCache, acceptance_depth: str) -> tuple[np.ndarray, np.ndarray] | None:
+def stereo_depth_of(cache: SequenceCache, acceptance_depth: str) -> StereoDepth | None:
     """The independent stereo depth of every frame of ``cache`` for ``acceptance_depth == "sgbm"``
     (the one prepared with the cache, else computed now), else None (the network's own depth)."""
     if acceptance_depth == "network":

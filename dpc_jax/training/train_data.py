@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from dpc_jax.config import ConfigError
+from dpc_jax.data.sequence_cache import StereoDepth
 from dpc_jax.engine.predict import stereo_depth_of
 from dpc_jax.training.config import TrainConfig
 
@@ -23,7 +24,7 @@ class ValidationSequence:
     cache: Any
     prior: np.ndarray
     ground_truth: np.ndarray | None
-    stereo_depth: tuple[np.ndarray, np.ndarray] | None = None
+    stereo_depth: StereoDepth | None = None
 
 
 @dataclass(frozen=True)
