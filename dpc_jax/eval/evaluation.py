@@ -31,7 +31,13 @@ from typing import cast
 import numpy as np
 
 from dpc_jax.eval.diagnosis import Diagnosis
-from dpc_jax.geometry.poses import compose, invert_poses, relative_poses, remove_static_frames
+from dpc_jax.geometry.poses import (
+    compose,
+    invert_poses,
+    relative_poses,
+    remove_static_frames,
+    validate_poses,
+)
 
 SUMMARY_KEYS: tuple[str, ...] = (
     "m_ate_trans_m",
@@ -147,12 +153,37 @@ def evaluate(
     each estimate's error composition (:func:`dpc_jax.eval.diagnosis.diagnose`, on the evaluated
     frames; ``focal_px`` for the pixel shift) as ``result.diagnoses`` and the summary's
     ``"diagnosis"``. ``precision``: ``float64`` or ``float32`` (module docstring). Raises
-    ``ValueError`` for mismatched lengths (both counts named), bad labels or shapes.
+    ``ValueError`` (one line naming the argument) for mismatched lengths (both counts named), bad labels
+    or shapes, poses that the trajectory readers would refuse (:func:`~dpc_jax.geometry.poses.validate_poses`:
+    non-finite, not rigid, a bottom row other than ``[0, 0, 0, 1]``, as transposed matrices have), a
+    ``rpe_delta`` that is not a whole number of frames, and ``focal_px`` without ``diagnose``.
     """
+    x64 = _x64(precision)
+    gt, estimates = _checked_arguments(gt, estimates, rpe_delta, diagnose, focal_px)
     import jax
 
-    with jax.enable_x64(_x64(precision)):
+    with jax.enable_x64(x64):
         return _evaluate(gt, estimates, remove_static, align, rpe_delta, static_prior, diagnose, focal_px)
+
+
+def _checked_arguments(
+    gt: np.ndarray, estimates: Mapping[str, np.ndarray] | np.ndarray, rpe_delta: int, diagnose: bool,
+    focal_px: float | None,
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The checks of :func:`evaluate` that need no JAX; returns the poses float64, as given (checked,
+    not projected, so that the metrics of exact trajectories stay exact)."""
+    if isinstance(rpe_delta, bool) or not isinstance(rpe_delta, (int, np.integer)):
+        raise ValueError(f"rpe_delta must be a whole number of frames, got {rpe_delta!r}")
+    if focal_px is not None and not diagnose:
+        raise ValueError(f"focal_px={focal_px!r} is used only with diagnose=True (the pixel shift of the "
+                         "error composition); pass diagnose=True or leave focal_px out")
+    if not isinstance(estimates, Mapping):
+        estimates = {"est": estimates}
+    validate_poses(gt, "gt")
+    for label, est in estimates.items():
+        validate_poses(est, f"estimates[{label!r}]")
+    arrays = {label: np.asarray(est, np.float64) for label, est in estimates.items()}
+    return np.asarray(gt, np.float64), arrays
 
 
 def segment_summary(gt: np.ndarray, est: np.ndarray, precision: str = "float64") -> tuple[float, float]:

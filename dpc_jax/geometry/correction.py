@@ -10,7 +10,7 @@ from jax import Array
 from jax.typing import ArrayLike
 
 from dpc_jax.geometry.lie import se3_exp
-from dpc_jax.geometry.poses import compose, relative_poses
+from dpc_jax.geometry.poses import compose, relative_poses, validate_poses
 
 
 def apply_correction(xi_corr: ArrayLike, T_vo: ArrayLike, rotation_only: bool = False) -> Array:
@@ -42,6 +42,10 @@ def corrected_trajectory(
     camera-to-world VO trajectory; ``first_pose``: ``[4, 4]``. The exponential and the products
     run in float64 (in a local ``enable_x64`` scope), so ξ_corr = 0 gives back the prior's steps
     exactly and the composition drifts only by float64 rounding.
+
+    ``ValueError`` naming the argument for a prior or first pose that the trajectory readers would
+    refuse (:func:`~dpc_jax.geometry.poses.validate_poses`) and for a non-finite correction, which
+    would make every later pose NaN.
     """
     xi_corr = np.asarray(xi_corr, np.float64)
     prior = np.asarray(prior, np.float64)
@@ -49,6 +53,13 @@ def corrected_trajectory(
         raise ValueError(
             f"need xi_corr [N-1, 6] for a prior [N, 4, 4], got {xi_corr.shape} and {prior.shape}"
         )
+    # Checked, not replaced by the projected poses: ξ_corr = 0 must give back the prior's steps exactly.
+    validate_poses(prior, "prior")
+    validate_poses(np.asarray(first_pose, np.float64)[None], "first_pose")
+    bad = np.flatnonzero(~np.isfinite(xi_corr).all(axis=1))
+    if bad.size:
+        raise ValueError(f"xi_corr: the correction of pair {int(bad[0])} is not finite (NaN or inf); "
+                         f"{bad.size} of {xi_corr.shape[0]} pairs are")
     with jax.enable_x64(True):
         corrected = np.asarray(apply_correction(xi_corr, relative_poses(prior), rotation_only), np.float64)
     return compose(corrected, first_pose)

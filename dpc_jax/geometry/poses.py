@@ -24,6 +24,57 @@ _MIN_BUCKET = 1024
 _Compiled = Callable[[np.ndarray], tuple[Any, ...]]
 
 
+def validate_poses(
+    poses: np.ndarray, source: str = "poses", tolerance: float = 1e-3
+) -> np.ndarray:
+    """Check and clean homogeneous poses (numpy, float64): those read from a file, and the poses
+    every API function that takes a trajectory is given.
+
+    ``poses``: ``[N, 4, 4]`` or ``[N, 3, 4]``. Returns ``[N, 4, 4]`` float64 whose rotation
+    blocks are projected onto SO(3) and whose bottom rows are exactly ``[0, 0, 0, 1]``.
+
+    Raises ``ValueError`` naming ``source`` and the pose index when a pose holds a non-finite
+    value, when its rotation block deviates from orthonormality by more than ``tolerance``
+    (max |RᵀR − I|), when its determinant is not positive, or when a given bottom row is not
+    ``[0, 0, 0, 1]`` within ``tolerance``. Deviations below ``tolerance`` (rounding in text
+    files) are silently projected away.
+    """
+    arr = np.asarray(poses, dtype=np.float64)
+    if arr.ndim != 3 or arr.shape[1:] not in ((4, 4), (3, 4)):
+        raise ValueError(f"{source}: expected poses of shape [N, 4, 4] or [N, 3, 4], got {arr.shape}")
+    finite = np.isfinite(arr).all(axis=(1, 2))
+    if not finite.all():
+        i = int(np.argmin(finite))
+        raise ValueError(f"{source}: pose {i} contains a non-finite value (NaN or inf)")
+    if arr.shape[1] == 4:
+        bottom_dev = np.abs(arr[:, 3, :] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=1)
+        bad = np.flatnonzero(bottom_dev > tolerance)
+        if bad.size:
+            i = int(bad[0])
+            raise ValueError(
+                f"{source}: pose {i} has bottom row {arr[i, 3].tolist()}, expected [0, 0, 0, 1]"
+            )
+    rotation = arr[:, :3, :3]
+    gram = np.einsum("nji,njk->nik", rotation, rotation)
+    deviation = np.abs(gram - np.eye(3)).max(axis=(1, 2))
+    det = np.linalg.det(rotation)
+    bad = np.flatnonzero((deviation > tolerance) | (det <= 0.0))
+    if bad.size:
+        i = int(bad[0])
+        raise ValueError(
+            f"{source}: pose {i} is not rigid: max |RᵀR − I| = {deviation[i]:.3g} "
+            f"(tolerance {tolerance:g}), det R = {det[i]:.6g}"
+        )
+    u, _, vt = np.linalg.svd(rotation)
+    d = np.sign(np.linalg.det(u @ vt))
+    u[:, :, 2] *= d[:, None]
+    out = np.zeros((arr.shape[0], 4, 4))
+    out[:, :3, :3] = u @ vt
+    out[:, :3, 3] = arr[:, :3, 3]
+    out[:, 3, 3] = 1.0
+    return out
+
+
 def invert_poses(poses: np.ndarray) -> np.ndarray:
     """Closed-form inverse of rigid transforms ``[..., 4, 4]``: :func:`rigid.inverse` in numpy."""
     return rigid.inverse(np.asarray(poses), np)
