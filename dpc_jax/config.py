@@ -112,9 +112,9 @@ def from_dict(cls: type[T], data: Mapping[str, Any], where: str = "config") -> T
         values[key] = _check_value(value, hints[key], f"{where}.{key}")
     try:
         return cls(**values)
-    except ConfigError:
-        raise
-    except ValueError as error:  # a check of a nested dataclass built from the fields (not a ConfigError)
+    # The dataclass's own checks (a ConfigError) and those of a nested dataclass built from the fields
+    # (a ValueError) do not know the source: name it.
+    except ValueError as error:
         raise ConfigError(f"{where}: {error}") from None
 
 

@@ -46,6 +46,7 @@ from dpc_jax.acceptance import (
     scale_correction,
 )
 from dpc_jax.data.poses_io import WRITE_FORMATS, write_kitti_poses, write_tum
+from dpc_jax.data.priors import prior_for_cache
 from dpc_jax.data.sequence_cache import SequenceCache, load_cache
 from dpc_jax.eval.evaluation import Evaluation
 from dpc_jax.inference import SequencePrediction, TrainedRun, run_prediction
@@ -62,35 +63,6 @@ class AdaptationSummary(TypedDict):
     held_out: int
     holdout_every: int
     source_epoch: int
-
-
-def prior_for_cache(
-    cache: SequenceCache, source: str | os.PathLike | np.ndarray, format: str | None = None
-) -> np.ndarray:
-    """A replacement VO prior for the frames of ``cache`` → ``[len(cache), 4, 4]`` float64.
-
-    ``source`` (array, or KITTI/TUM/``.mat`` file as in :func:`dpc_jax.data.poses_io.read_trajectory`)
-    holds either one pose per cached frame, or one pose per frame of the source range the cache
-    was prepared from (``manifest["n_source_frames"]``), of which the cached frames
-    (``cache.indices``) are taken. It is used as is (no monocular rescaling).
-    """
-    from dpc_jax.data.poses_io import read_trajectory, validate_poses
-
-    n = len(cache)
-    n_source = int(cache.manifest.get("n_source_frames", n))
-    start = int(cache.manifest.get("parameters", {}).get("frames", [0])[0])
-    if isinstance(source, np.ndarray):
-        label, poses = "prior array", validate_poses(source, "prior array")
-    else:
-        label, poses = str(source), read_trajectory(source, format)
-    if poses.shape[0] == n:
-        return poses
-    if poses.shape[0] == n_source:
-        return poses[np.asarray(cache.indices) - start]
-    expected = f"{n}" if n_source == n else f"{n}, one per cached frame, or {n_source}, one per source frame"
-    raise ValueError(
-        f"{label}: {poses.shape[0]} prior poses for the sequence in {cache.path}; expected {expected}"
-    )
 
 
 @dataclass(frozen=True)

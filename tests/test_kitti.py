@@ -56,11 +56,15 @@ def write_odometry(
         for k in range(n):
             img = images[cam][k] if cam < 2 else cv2.cvtColor(images[cam][k], cv2.COLOR_RGB2BGR)
             assert cv2.imwrite(str(folder / f"{k:06d}.png"), img)
+    # FU, CU, FV, CV describe the default 20×32 images; other sizes get them scaled (pixel centres at
+    # integers), as a calibration must fit its images (dpc_jax.data.kitti.check_intrinsics).
+    sx, sy = size[1] / 32, size[0] / 20
+    fu, cu, fv, cv = FU * sx, (CU + 0.5) * sx - 0.5, FV * sy, (CV + 0.5) * sy - 0.5
     calib = [
-        f"P0: {projection_row(FU, CU, FV, CV, 0.0)}",
-        f"P1: {projection_row(FU, CU, FV, CV, -FU * BASELINE_GREY)}",
-        f"P2: {projection_row(FU, CU, FV, CV, FU * 0.06)}",
-        f"P3: {projection_row(FU, CU, FV, CV, FU * (0.06 - BASELINE_COLOUR))}",
+        f"P0: {projection_row(fu, cu, fv, cv, 0.0)}",
+        f"P1: {projection_row(fu, cu, fv, cv, -fu * BASELINE_GREY)}",
+        f"P2: {projection_row(fu, cu, fv, cv, fu * 0.06)}",
+        f"P3: {projection_row(fu, cu, fv, cv, fu * (0.06 - BASELINE_COLOUR))}",
         "Tr: " + " ".join(["0"] * 12),
     ]
     (seq / "calib.txt").write_text("\n".join(calib) + "\n")

@@ -12,6 +12,7 @@ import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from dpc_jax._io import foreign_folder_problem, is_stream, overlap_problem
 from dpc_jax.acceptance import rotation_axes_words
 from dpc_jax.cli._common import (
     Formatter,
@@ -21,6 +22,8 @@ from dpc_jax.cli._common import (
     import_jax,
     input_problem,
     output_problem,
+    path_option,
+    path_text,
     restore_problem,
 )
 from dpc_jax.data.holdout import MIN_EVERY, adaptable_pairs, held_out_pairs
@@ -28,12 +31,16 @@ from dpc_jax.data.holdout import MIN_EVERY, adaptable_pairs, held_out_pairs
 if TYPE_CHECKING:
     from dpc_jax.adapt import Adaptation
     from dpc_jax.correct import Correction
+    from dpc_jax.data.kitti import StereoSequence
     from dpc_jax.data.sequence_cache import SequenceCache
     from dpc_jax.inference import TrainedRun
 
 HELP = "Correct a VO trajectory with a trained network (T* = Exp(xi_corr) T_vo); evaluate it against GT."
 # Restart with huge-page malloc (dpc_jax.hugepages): the network runs about a quarter faster.
 HUGE_PAGES = True
+# --holdout-every when not given (AdaptConfig's default): the option has no argparse default, so that
+# giving it without --adapt can be refused.
+HOLDOUT_EVERY = 5
 
 EPILOG = """The sequence (--data, one of):
   a prepared cache   --data cache/05   (from `dpc-jax prepare`; corrects its own prior unless --prior)
@@ -58,34 +65,36 @@ examples:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = EPILOG
     parser.formatter_class = Formatter
-    parser.add_argument("--checkpoint", required=True, type=Path, metavar="WORKDIR",
+    parser.add_argument("--checkpoint", required=True, type=path_option, metavar="WORKDIR",
                         help="training run folder (dpc-jax train --workdir)")
     parser.add_argument("--select", choices=("delta", "gradient", "loop", "last"), default="delta",
                         help="epoch: most negative validation Δ (none if no epoch beats no correction), best "
                         "validation gradient loss, most loop closures, or the newest")
     data = parser.add_mutually_exclusive_group(required=True)
-    data.add_argument("--data", type=Path, metavar="CACHE", help="a prepared sequence cache folder")
-    data.add_argument("--kitti-odometry", type=Path, metavar="ROOT",
+    data.add_argument("--data", type=path_option, metavar="CACHE", help="a prepared sequence cache folder")
+    data.add_argument("--kitti-odometry", type=path_option, metavar="ROOT",
                       help="odometry (or synthetic) layout root")
-    data.add_argument("--kitti-raw", type=Path, metavar="ROOT", help="raw layout root (holds DATE/)")
+    data.add_argument("--kitti-raw", type=path_option, metavar="ROOT", help="raw layout root (holds DATE/)")
     parser.add_argument("--sequence", metavar="XX", help="odometry sequence")
     parser.add_argument("--date", metavar="YYYY_MM_DD", help="raw: recording date, e.g. 2011_09_26")
     parser.add_argument("--drive", metavar="NNNN", help="raw: drive number")
     parser.add_argument("--grey", action="store_true",
                         help="raw inputs: the grey pair (odometry: image_0/image_1; raw: image_00/image_01); "
                         "default: the colour pair, or for a raw drive without one its grey pair")
-    parser.add_argument("--prior", metavar="FILE",
+    parser.add_argument("--prior", type=path_text, metavar="FILE",
                         help="VO estimate to correct (KITTI/TUM text or .mat); required with raw inputs")
     parser.add_argument("--prior-format", choices=("kitti", "tum", "mat"), help="override the extension")
-    parser.add_argument("--gt", metavar="FILE", help="raw inputs: ground-truth pose file (KITTI/TUM/.mat)")
-    parser.add_argument("--cache", type=Path, metavar="DIR", help="raw inputs: keep the prepared cache here")
+    parser.add_argument("--gt", type=path_text, metavar="FILE",
+                        help="raw inputs: ground-truth pose file (KITTI/TUM/.mat)")
+    parser.add_argument("--cache", type=path_option, metavar="DIR",
+                        help="raw inputs: keep the prepared cache here")
     parser.add_argument("--frames", type=frame_range, metavar="START:STOP",
                         help="raw inputs: only these frames")
     parser.add_argument("--remove-static", action="store_true",
                         help="raw inputs: drop static frames first (ss-DPC-Net rule, read on the prior)")
     parser.add_argument("--mono-rescale", action="store_true",
                         help="raw inputs: rescale each prior step to the ground-truth step (monocular VO)")
-    parser.add_argument("--out", required=True, type=Path, metavar="FILE", help="corrected trajectory")
+    parser.add_argument("--out", required=True, type=path_option, metavar="FILE", help="corrected trajectory")
     parser.add_argument("--format", choices=("kitti", "tum"), default="kitti", help="format of --out")
     parser.add_argument("--rotation-only", action=argparse.BooleanOptionalAction, default=None,
                         help="apply only the rotation of the correction (default: the run's rotation_only)")
@@ -98,7 +107,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="depth Δ is measured with: sgbm, StereoSGBM on the cached pair (default for a "
                         "stereo run), or network, the network's own depth")
     judge = parser.add_mutually_exclusive_group()
-    judge.add_argument("--judge", type=Path, metavar="CACHE",
+    judge.add_argument("--judge", type=path_option, metavar="CACHE",
                        help="with --data: the same frames prepared at a larger size; the acceptance test is "
                        "measured there (StereoSGBM depth, no network) and picks the scale of the correction")
     judge.add_argument("--judge-size", type=image_size, metavar="HxW",
@@ -108,12 +117,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "ground truth); its correction is applied only if it passes its test and beats the "
                         "network as trained on the kept-out pairs; the adapted network and its log go to "
                         "OUT's stem + '.adapted/'")
-    parser.add_argument("--holdout-every", type=int, default=5, metavar="K",
+    parser.add_argument("--holdout-every", type=int, metavar="K",
                         help="with --adapt: every K-th frame pair (K >= 4) is kept out of adaptation with "
-                        "every pair that touches its frames, for the test")
+                        f"every pair that touches its frames, for the test (default: {HOLDOUT_EVERY})")
     parser.add_argument("--adapt-lr", type=float, metavar="LR",
                         help="with --adapt: learning rate (default: the run's)")
-    parser.add_argument("--report", type=Path, metavar="DIR",
+    parser.add_argument("--report", type=path_option, metavar="DIR",
                         help="write report.md (the acceptance test; with ground truth also the metrics, "
                         "CSV tables, plots, metrics.json) and summary.json")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -150,9 +159,15 @@ def _check_arguments(args: argparse.Namespace) -> str | None:
         return f"--batch-size must be >= 1, got {args.batch_size}"
     if not 0.0 < args.alpha < 1.0:
         return f"--alpha must be in (0, 1), got {args.alpha}"
-    if args.adapt < 0 or args.holdout_every < MIN_EVERY:
-        return (f"--adapt must be >= 0 and --holdout-every >= {MIN_EVERY}, got {args.adapt} and "
-                f"{args.holdout_every}")
+    adapt_options = (("--holdout-every", args.holdout_every), ("--adapt-lr", args.adapt_lr))
+    adapt_only = [f"{option} {value}" for option, value in adapt_options if value is not None]
+    if adapt_only and not args.adapt:
+        return (f"{', '.join(adapt_only)}: only used with --adapt STEPS (fine-tuning on the sequence), "
+                "which is not given")
+    if args.adapt < 0:
+        return f"--adapt {args.adapt}: expected 0 (no adaptation) or more steps"
+    if _holdout_every(args) < MIN_EVERY:
+        return f"--holdout-every {args.holdout_every}: expected {MIN_EVERY} or more"
     if args.judge is not None and args.data is None:
         return "--judge CACHE goes with --data (raw inputs: --judge-size HxW)"
     if args.judge_size is not None and args.data is not None:
@@ -168,9 +183,52 @@ def _check_arguments(args: argparse.Namespace) -> str | None:
                or (output_problem(adapted_path(args.out), "--adapt", folder=True) if args.adapt else None))
     if problem is not None:
         return problem
+    if args.adapt and is_stream(args.out):
+        return (f"--adapt: the adapted network goes beside --out (OUT's stem + '.adapted/'), and --out "
+                f"{args.out} is a stream; give --out a file")
+    problem = overlap_problem(
+        [("--checkpoint", args.checkpoint), ("--data", args.data), ("--judge", args.judge),
+         ("--kitti-odometry", args.kitti_odometry), ("--kitti-raw", args.kitti_raw), ("--prior", args.prior),
+         ("--gt", args.gt)],
+        [("--out", args.out), ("--report", args.report), ("--cache", args.cache),
+         ("--adapt", adapted_path(args.out) if args.adapt else None)])
+    if problem is not None:
+        return problem
+    if args.cache is not None:
+        problem = _cache_folders_problem(args)
+        if problem is not None:
+            return problem
     if not (args.checkpoint / "checkpoints" / "config.json").is_file():
         return (f"--checkpoint {args.checkpoint}: not a training run (expected "
                 f"{args.checkpoint / 'checkpoints' / 'config.json'}, written by `dpc-jax train`)")
+    return None
+
+
+def _open_sequence(args: argparse.Namespace) -> StereoSequence:
+    """The sequence of the raw inputs (``--kitti-odometry`` or ``--kitti-raw``), opened (no JAX)."""
+    from dpc_jax.data.kitti import open_odometry, open_raw
+
+    if args.kitti_odometry is not None:
+        return open_odometry(args.kitti_odometry, args.sequence, grey=args.grey)
+    return open_raw(args.kitti_raw, args.date, args.drive, cameras="grey" if args.grey else "auto")
+
+
+def _cache_folders_problem(args: argparse.Namespace) -> str | None:
+    """Why a folder that preparing the raw inputs into ``--cache`` would replace (``CACHE/NAME``, and
+    ``CACHE/NAME_judge`` with ``--judge-size``) is not a cache, or None. The sequence is opened for its
+    name (its files listed, no JAX); a sequence that cannot be opened is reported here."""
+    from dpc_jax.data.sequence_cache import MANIFEST
+
+    try:
+        name = _open_sequence(args).name
+    except (OSError, ValueError, KeyError) as error:
+        return str(error)
+    names = [name] + ([f"{name}_judge"] if args.judge_size is not None else [])
+    for folder in names:
+        problem = foreign_folder_problem(args.cache / folder, f"--cache {args.cache}", marker=MANIFEST,
+                                         made_by="a cache of `dpc-jax prepare`")
+        if problem is not None:
+            return problem
     return None
 
 
@@ -180,7 +238,7 @@ def _holdout_problem(args: argparse.Namespace, n_frames: int, where: Path | str)
     none of its frames."""
     if not args.adapt:
         return None
-    every, n_pairs = args.holdout_every, n_frames - 1
+    every, n_pairs = _holdout_every(args), n_frames - 1
     held, adaptable = held_out_pairs(n_pairs, every).size, adaptable_pairs(n_pairs, every).size
     if held and adaptable:
         return None
@@ -190,6 +248,61 @@ def _holdout_problem(args: argparse.Namespace, n_frames: int, where: Path | str)
     return (f"--holdout-every {every}: keeps {held} of the {n_pairs} frame pairs of {where} out of "
             f"adaptation and leaves {adaptable} that touch none of their frames, but its test needs at "
             f"least one kept out and one to adapt on{hint}")
+
+
+def _run_problem(args: argparse.Namespace, checked: SequenceCache | None) -> str | None:
+    """The first option or input that does not fit the run's stored config (its method, image size and
+    flow), or None; read without JAX, so such a mistake costs no JAX start-up. ``checked``: the
+    ``--data`` cache, loaded (None: raw inputs, prepared later at the run's size)."""
+    import numpy as np
+
+    from dpc_jax import config as config_lib
+    from dpc_jax.data.priors import prior_for_cache
+    from dpc_jax.data.sequence_cache import load_cache
+    from dpc_jax.training.config import TrainConfig
+
+    stored = args.checkpoint / "checkpoints" / "config.json"
+    try:
+        config = config_lib.load_file(stored, TrainConfig)
+    except ValueError as error:
+        return f"--checkpoint {args.checkpoint}: {error}"
+    method = f"the run {args.checkpoint} is {config.method}, which has no stereo pair"
+    if config.method != "stereo_dpc":
+        if args.acceptance_depth == "sgbm":
+            return f"--acceptance-depth sgbm: StereoSGBM depth needs a stereo run (stereo_dpc); {method}"
+        judge = (f"--judge {args.judge}" if args.judge is not None
+                 else f"--judge-size {args.judge_size[0]}x{args.judge_size[1]}" if args.judge_size else None)
+        if judge is not None:
+            return f"{judge}: a judge measures Δ with stereo depth (stereo_dpc); {method}"
+    if checked is None:
+        return None
+    h, w = config.resolved_image_size
+    if checked.image_size != (h, w):
+        return (f"--data {args.data}: images are {checked.image_size[0]}x{checked.image_size[1]}, but the "
+                f"run {args.checkpoint} was trained at {h}x{w}; prepare the sequence with --size {h}x{w}")
+    if config.use_flow and "forward" not in checked.flows:
+        return (f"--data {args.data}: no forward flow in the cache, which the network of {args.checkpoint} "
+                f"({config.method}) reads; prepare it with `dpc-jax prepare ... --flow`")
+    if args.judge is not None:
+        try:
+            judged = load_cache(args.judge)
+        except (OSError, ValueError) as error:
+            return f"--judge {error}"
+        same = judged.manifest.get("sequence") == checked.manifest.get("sequence")
+        if not same or not np.array_equal(np.asarray(judged.indices), np.asarray(checked.indices)):
+            return (f"--judge {args.judge}: holds frames other than those of --data {args.data}; a judge "
+                    "must be the same frames prepared at another size")
+    if args.prior is not None:
+        try:
+            prior_for_cache(checked, args.prior, args.prior_format)
+        except (OSError, ValueError) as error:
+            return f"--prior {error}"
+    return None
+
+
+def _holdout_every(args: argparse.Namespace) -> int:
+    """``--holdout-every``, or its default when not given."""
+    return HOLDOUT_EVERY if args.holdout_every is None else int(args.holdout_every)
 
 
 def adapted_path(out: Path) -> Path:
@@ -208,7 +321,9 @@ def run(args: argparse.Namespace) -> int:
         checked = load_cache(args.data) if args.data is not None else None
     except (OSError, ValueError) as error:
         return _error(str(error))
-    problem = None if checked is None else _holdout_problem(args, len(checked), checked.path)
+    problem = _run_problem(args, checked)
+    if problem is None and checked is not None:
+        problem = _holdout_problem(args, len(checked), checked.path)
     if problem is not None:
         return _error(problem)
     import_jax()
@@ -247,12 +362,8 @@ def _sequence(
         return checked, args.prior, args.judge
     from dpc_jax._io import remove_stale
     from dpc_jax.data.cache import prepare_sequence
-    from dpc_jax.data.kitti import open_odometry, open_raw
 
-    if args.kitti_odometry is not None:
-        sequence = open_odometry(args.kitti_odometry, args.sequence, grey=args.grey)
-    else:
-        sequence = open_raw(args.kitti_raw, args.date, args.drive, cameras="grey" if args.grey else "auto")
+    sequence = _open_sequence(args)
     problem = frames_problem(args.frames, len(sequence), sequence.name)
     if problem is not None:
         raise ValueError(problem)
@@ -300,7 +411,7 @@ def _correct(
     cache = load_cache(cache) if not isinstance(cache, SequenceCache) else cache
     if prior is not None:
         cache = dataclasses.replace(cache, prior=prior_for_cache(cache, prior, args.prior_format))
-    how = AdaptConfig(args.adapt, holdout_every=args.holdout_every, learning_rate=args.adapt_lr)
+    how = AdaptConfig(args.adapt, holdout_every=_holdout_every(args), learning_rate=args.adapt_lr)
     trained = correct_cache(run_, cache, progress=show, **options)
     adaptation, adapted = adapt_and_correct(run_, cache, how, progress=show, **options)
     _, correction = choose(trained, adapted)
@@ -328,6 +439,9 @@ def _write_outputs(
             save_adapted(outputs.folder(adapted_path(args.out)), adaptation,
                          {"delta": adapted.acceptance.mean_delta})
         outputs.commit()
+    if is_stream(args.out):
+        # A stream takes the trajectory only; the frame list staged beside it is not made.
+        return [args.out]
     return [args.out.parent / path.name for path in staged]
 
 
@@ -353,8 +467,9 @@ def _print_summary(
           f"(network: epoch {run_.epoch} of {args.checkpoint}, {criterion}) -> "
           f"{', '.join(map(str, written))}")
     if not correction.all_source_frames:
+        where = f"frame numbers in {written[-1]}" if len(written) > 1 else "no frame list beside a stream"
         print(f"note: the trajectory holds {correction.frames.size} cached frames, not every source frame "
-              f"(frame numbers in {written[-1]})")
+              f"({where})")
     if correction.evaluation is None:
         print("no ground truth: nothing to evaluate")
     else:

@@ -8,9 +8,11 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from dpc_jax.cli._common import Formatter, import_jax, output_problem, restore_problem
+from dpc_jax._io import foreign_folder_problem, overlap_problem
+from dpc_jax.cli._common import Formatter, import_jax, output_problem, path_option, restore_problem
 
 if TYPE_CHECKING:
+    from dpc_jax.data.sequence_cache import SequenceCache
     from dpc_jax.training.config import TrainConfig
 
 HELP = "Train ss-DPC-Net or Stereo DPC on prepared sequences (checkpoints, metrics.csv, TensorBoard)."
@@ -34,11 +36,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--config",
         required=True,
-        type=Path,
+        type=path_option,
         metavar="FILE",
         help="experiments/configs/NAME.py defining CONFIG (or a config.json of a run)",
     )
-    parser.add_argument("--workdir", required=True, type=Path, metavar="DIR", help="run folder")
+    parser.add_argument("--workdir", required=True, type=path_option, metavar="DIR", help="run folder")
     parser.add_argument(
         "--resume",
         action="store_true",
@@ -56,7 +58,12 @@ def run(args: argparse.Namespace) -> int:
     from dpc_jax.config import ConfigError
     from dpc_jax.training.config import TrainConfig
 
-    problem = output_problem(args.workdir, "--workdir", folder=True)
+    # The run writes checkpoints, metrics.csv and tensorboard/ into the workdir: it must be new,
+    # empty or a training run.
+    problem = (output_problem(args.workdir, "--workdir", folder=True)
+               or overlap_problem([("--config", args.config)], [("--workdir", args.workdir)])
+               or foreign_folder_problem(args.workdir, f"--workdir {args.workdir}",
+                                         marker="checkpoints/config.json", made_by="a training run"))
     if problem is not None:
         print(f"dpc-jax train: error: {problem}", file=sys.stderr)
         return 2
@@ -65,7 +72,9 @@ def run(args: argparse.Namespace) -> int:
     except ConfigError as error:
         print(f"dpc-jax train: error: {error}", file=sys.stderr)
         return 2
-    problem = _cache_problem(config)
+    problem = (overlap_problem([("--config's cache_root", config.cache_root or None)],
+                               [("--workdir", args.workdir)])
+               or _options_problem(args, config) or _cache_problem(config, args.config))
     if problem is not None:
         print(f"dpc-jax train: error: {problem}", file=sys.stderr)
         return 2
@@ -103,7 +112,49 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cache_problem(config: TrainConfig) -> str | None:
+def _options_problem(args: argparse.Namespace, config: TrainConfig) -> str | None:
+    """The first option that cannot take effect or does not fit the workdir, or None (no JAX needed).
+
+    The multi-host flags are refused without ``distributed=True`` rather than switching it on: the
+    config is what a resumed run must match, so the run's way of training stays in the config and
+    two hosts started with flags but no such config cannot train independently into one workdir.
+    """
+    from dpc_jax.config import ConfigError
+    from dpc_jax.training.workdir import check_workdir
+
+    if args.workers < 0:
+        return f"--workers {args.workers}: expected 0 (load in the main thread) or more threads"
+    flags = {"--coordinator-address": args.coordinator_address, "--num-processes": args.num_processes,
+             "--process-id": args.process_id}
+    given = [name for name, value in flags.items() if value is not None]
+    if given and not config.distributed:
+        return (f"{', '.join(given)}: multi-host flags, but {args.config} does not set distributed=True, so "
+                "this process would train alone; set distributed=True in the config, or leave them out")
+    address = args.coordinator_address
+    if address is not None:
+        host, _, port = address.rpartition(":")
+        if not host or not port.isdigit() or not 1 <= int(port) <= 65535:
+            return f"--coordinator-address {address!r}: expected HOST:PORT (such as 10.0.0.1:1234)"
+    if args.num_processes is not None and args.num_processes < 1:
+        return f"--num-processes {args.num_processes}: expected 1 or more"
+    if args.process_id is not None:
+        if args.process_id < 0:
+            return f"--process-id {args.process_id}: expected 0 or more"
+        if args.num_processes is not None and args.process_id >= args.num_processes:
+            return (f"--process-id {args.process_id}: expected 0 to {args.num_processes - 1} for "
+                    f"--num-processes {args.num_processes}")
+    stored = Path(args.workdir) / "checkpoints" / "config.json"
+    if args.resume and not stored.is_file():
+        return (f"--resume: {args.workdir} holds no training run to continue (no {stored}); "
+                "leave out --resume to start one")
+    try:
+        check_workdir(config, args.workdir, args.resume)
+    except ConfigError as error:
+        return str(error)
+    return None
+
+
+def _cache_problem(config: TrainConfig, config_name: str | Path) -> str | None:
     """The first problem of the caches the run reads (its training and validation sequences, chosen as
     :func:`~dpc_jax.training.train_data.open_data` does; a resumed run reads the same), or None. Checked
     without JAX, so a missing or damaged cache costs no JAX start-up."""
@@ -117,13 +168,18 @@ def _cache_problem(config: TrainConfig) -> str | None:
                   for name in [*train, *config.validation_sequences]}
     except (OSError, ValueError) as error:
         return str(error)
-    if not config.use_flow:
-        return None
+    h, w = config.resolved_image_size
+    for cache in caches.values():
+        if cache.image_size != (h, w):
+            return (f"{cache.path}: images are {cache.image_size[0]}x{cache.image_size[1]}, but "
+                    f"{config_name} asks for image_size {h}x{w}; prepare the cache with --size {h}x{w} or "
+                    "set image_size to the cache's")
+    kinds = _pair_kinds(config)
+    problem = _batch_problem(config, [caches[name] for name in train], kinds, config_name)
+    if problem is not None or not config.use_flow:
+        return problem
     # The flows the network reads, as the training loader asks for them: its pair kinds for a
     # training sequence, consecutive pairs for a validation one.
-    kinds = ["forward"] + (["skip"] if config.frame_skip else [])
-    if config.reverse:
-        kinds += ["reverse"] + (["skip_reverse"] if config.frame_skip else [])
     for name, cache in caches.items():
         needed = kinds if name in train else ["forward"]
         missing = [kind for kind in needed if kind not in cache.flows]
@@ -134,3 +190,26 @@ def _cache_problem(config: TrainConfig) -> str | None:
                     f"{config.method!r} reads (frame_skip={config.frame_skip}, reverse={config.reverse}); "
                     f"prepare it with `dpc-jax prepare ... {how}`{alternative}")
     return None
+
+
+def _pair_kinds(config: TrainConfig) -> list[str]:
+    """The pair kinds the training loader reads (``dpc_jax.data.pipeline.TrainLoader``)."""
+    kinds = ["forward"] + (["skip"] if config.frame_skip else [])
+    if config.reverse:
+        kinds += ["reverse"] + (["skip_reverse"] if config.frame_skip else [])
+    return kinds
+
+
+def _batch_problem(
+    config: TrainConfig, train: list[SequenceCache], kinds: list[str], config_name: str | Path
+) -> str | None:
+    """Why the training caches hold fewer samples than one batch, or None: the loader's samples are
+    one per frame pair of each kind it reads."""
+    from dpc_jax.data.sequence_cache import PAIR_KINDS
+
+    samples = sum(max(len(cache) - PAIR_KINDS[kind][0], 0) for cache in train for kind in kinds)
+    if samples >= config.batch_size:
+        return None
+    return (f"{config_name}: batch_size {config.batch_size} is more than the {samples} training samples of "
+            f"{', '.join(str(cache.path) for cache in train)} (pair kinds {', '.join(kinds)}); lower "
+            "batch_size or prepare more frames")

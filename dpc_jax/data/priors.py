@@ -7,13 +7,18 @@ one pose per camera frame. The network sees the relative poses ``T_vo_{t+1,t}`` 
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from dpc_jax.data import poses_io
 from dpc_jax.data.poses_io import validate_poses
 from dpc_jax.geometry.poses import compose, log_poses, relative_poses
+
+if TYPE_CHECKING:
+    from dpc_jax.data.sequence_cache import SequenceCache
 
 
 def load_prior(
@@ -40,6 +45,34 @@ def load_prior(
             f"{label}: {poses.shape[0]} prior poses for {n_frames} frames; expected one pose per frame"
         )
     return poses
+
+
+def prior_for_cache(
+    cache: SequenceCache, source: str | os.PathLike[str] | np.ndarray, format: str | None = None
+) -> np.ndarray:
+    """A replacement VO prior for the frames of ``cache`` → ``[len(cache), 4, 4]`` float64.
+
+    ``source`` (array, or KITTI/TUM/``.mat`` file as in :func:`dpc_jax.data.poses_io.read_trajectory`)
+    holds either one pose per cached frame, or one pose per frame of the source range the cache
+    was prepared from (``manifest["n_source_frames"]``), of which the cached frames
+    (``cache.indices``) are taken. It is used as is (no monocular rescaling). Needs no JAX, so the
+    command line checks a ``--prior`` with it before JAX starts.
+    """
+    n = len(cache)
+    n_source = int(cache.manifest.get("n_source_frames", n))
+    start = int(cache.manifest.get("parameters", {}).get("frames", [0])[0])
+    if isinstance(source, np.ndarray):
+        label, poses = "prior array", validate_poses(source, "prior array")
+    else:
+        label, poses = str(source), poses_io.read_trajectory(source, format)
+    if poses.shape[0] == n:
+        return poses
+    if poses.shape[0] == n_source:
+        return poses[np.asarray(cache.indices) - start]
+    expected = f"{n}" if n_source == n else f"{n}, one per cached frame, or {n_source}, one per source frame"
+    raise ValueError(
+        f"{label}: {poses.shape[0]} prior poses for the sequence in {cache.path}; expected {expected}"
+    )
 
 
 def relative_xi(poses: np.ndarray) -> np.ndarray:
