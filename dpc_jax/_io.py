@@ -17,13 +17,19 @@ output-path checks, and the removal of temporary folders that killed runs left b
   The rule for folders, the same for every command: missing parent folders are created when the
   outputs are written (never when the run fails before), and the nearest existing one must be a
   writable folder.
+* :func:`overlap_problem`, :func:`foreign_folder_problem`, :func:`nonempty_path`: the rule that keeps
+  an output from destroying an input, the same for every command and checked before any work: no
+  output path may be, contain or lie inside an input or another output of the command (by resolved
+  path and by inode); a folder a command would replace must be one it made; an empty path is
+  refused. Outputs named after another (a ``.csv`` beside a trajectory) are not made beside a
+  stream (:func:`is_stream`).
 * Temporary names carry the writing process's id (:func:`temp_name`); :func:`remove_stale` removes
   the ones whose process is gone (``kill -9``, a power cut), never those of a live run.
 
 This module holds :class:`InputWarning` and the output checks (:func:`writable`,
-:func:`output_problem`); the writers live in :mod:`dpc_jax._atomic_write` (output targets, the
-atomic writer, streams, :func:`install_folder`), :mod:`dpc_jax._output_set` (output sets) and
-:mod:`dpc_jax._temporaries` (temporary names, stale removal), and are imported from here.
+:func:`output_problem`, the overlap rule); the writers live in :mod:`dpc_jax._atomic_write` (output
+targets, the atomic writer, streams, :func:`install_folder`), :mod:`dpc_jax._output_set` (output
+sets) and :mod:`dpc_jax._temporaries` (temporary names, stale removal), and are imported from here.
 """
 
 from __future__ import annotations
@@ -37,15 +43,21 @@ from dpc_jax._output_set import STAGING_PREFIX, OutputSet, new_folders_removed_o
 from dpc_jax._temporaries import remove_stale, temp_name
 
 __all__ = [
+    "EMPTY_PATH",
     "STAGING_PREFIX",
     "InputWarning",
     "OutputKind",
     "OutputSet",
     "atomic_write",
+    "foreign_folder_problem",
     "install_folder",
+    "is_stdout",
+    "is_stream",
     "new_folders_removed_on_failure",
+    "nonempty_path",
     "output_problem",
     "output_target",
+    "overlap_problem",
     "remove_stale",
     "stream_write",
     "temp_name",
@@ -112,3 +124,121 @@ def output_problem(path: str | os.PathLike[str], option: str, *, folder: bool = 
     if not writable(existing):
         return f"{label}: folder {existing} is not writable"
     return None
+
+
+# ----------------------------------------------------------------------------- the overlap rule
+
+EMPTY_PATH = "expected a path, got an empty one (which would mean the current folder)"
+
+
+def nonempty_path(text: str) -> str:
+    """``text``, a path option's value, unless it is empty: ``Path("")`` is the current folder, so an
+    unset shell variable would otherwise write into (or replace) whatever folder the user is in.
+    Raises ValueError (:data:`EMPTY_PATH`)."""
+    if not text:
+        raise ValueError(EMPTY_PATH)
+    return text
+
+
+# One place on the way to a path: the resolved folder or file, with its (st_dev, st_ino) where it
+# exists. The path compares links and "./", ".." spellings; the inode, hard links and bind mounts.
+_Place = tuple[str, tuple[int, int] | None]
+
+
+def _places(path: str | os.PathLike[str]) -> list[_Place]:
+    """``path`` resolved, then each folder above it, with their inodes: where the path is, outermost last."""
+    resolved = Path(os.path.realpath(path))
+    places: list[_Place] = []
+    for place in (resolved, *resolved.parents):
+        try:
+            status = os.stat(place)
+        except OSError:
+            places.append((str(place), None))
+        else:
+            places.append((str(place), (status.st_dev, status.st_ino)))
+    return places
+
+
+def _same(a: _Place, b: _Place) -> bool:
+    return a[0] == b[0] or (a[1] is not None and a[1] == b[1])
+
+
+def _relation(output: list[_Place], other: list[_Place]) -> str | None:
+    """How the output's path stands to another path: ``"is"``, ``"lies inside"``, ``"contains"`` or None."""
+    if _same(output[0], other[0]):
+        return "is"
+    if any(_same(place, other[0]) for place in output[1:]):
+        return "lies inside"
+    if any(_same(place, output[0]) for place in other[1:]):
+        return "contains"
+    return None
+
+
+def is_stream(path: str | os.PathLike[str]) -> bool:
+    """Whether an output written to ``path`` is streamed (:func:`output_target`): no file is made
+    there, so nothing may be made beside it either (a ``.csv`` beside ``/dev/stdout``)."""
+    try:
+        return output_target(path)[0] == "stream"
+    except OSError:
+        return False
+
+
+def is_stdout(path: str | os.PathLike[str]) -> bool:
+    """Whether ``path`` streams into this process's standard output (``/dev/stdout``, ``/dev/fd/1``,
+    the terminal or pipe it is on), where what the command prints would follow the output."""
+    if not is_stream(path):
+        return False
+    try:
+        return os.path.samestat(os.stat(path), os.fstat(1))
+    except OSError:
+        return False
+
+
+Named = tuple[str, str | os.PathLike[str] | None]  # (option, path); a None path was not given
+
+
+def overlap_problem(inputs: list[Named], outputs: list[Named]) -> str | None:
+    """Why an output would overwrite an input or another output of the same command, or None.
+
+    The rule of every command: no output path may be, contain or lie inside an input or another
+    output, compared by resolved path (symbolic links, ``./`` and ``..`` spellings) and by inode
+    (hard links, bind mounts). A stream output (``/dev/null``, ``/dev/stdout``, a FIFO) replaces
+    nothing and is not compared. ``inputs`` and ``outputs`` are ``(option, path)`` pairs, the option
+    as the message names it; a None path was not given.
+    """
+    given_inputs = [(option, path, _places(path)) for option, path in inputs if path is not None]
+    given_outputs = [(option, path, _places(path)) for option, path in outputs
+                     if path is not None and not is_stream(path)]
+    for index, (option, path, places) in enumerate(given_outputs):
+        for other_option, other_path, other_places in given_inputs:
+            relation = _relation(places, other_places)
+            if relation is not None:
+                return (f"{option} {path}: {relation} the input {other_option} {other_path}; an output "
+                        "must not be, contain or lie inside an input")
+        for other_option, other_path, other_places in given_outputs[:index]:
+            relation = _relation(places, other_places)
+            if relation is not None:
+                return (f"{option} {path}: {relation} the output {other_option} {other_path}; give each "
+                        "output a path of its own")
+    return None
+
+
+def foreign_folder_problem(
+    folder: str | os.PathLike[str], label: str, *, marker: str, made_by: str
+) -> str | None:
+    """Why the command may not replace (or write over) ``folder``, or None.
+
+    A folder a command replaces must be one it made, recognised by its ``marker`` (a path inside
+    it: a cache's ``manifest.json``, a run's ``checkpoints/config.json``, a rendered sequence's
+    ``synth.json``); a missing or empty folder is free. ``label``: the option and its value, which
+    the message starts with; ``made_by``: what such a folder is, for the message.
+    """
+    folder = Path(folder)
+    if not folder.exists() and not folder.is_symlink():
+        return None
+    if not folder.is_dir():
+        return f"{label}: {folder} exists and is not a folder, so it cannot be replaced by {made_by}"
+    if (folder / marker).is_file() or not any(folder.iterdir()):
+        return None
+    return (f"{label}: {folder} holds files but is not {made_by} (no {marker}), and this command would "
+            "write over it; move it away or choose another path")

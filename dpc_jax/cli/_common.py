@@ -3,8 +3,11 @@ input- and output-path checks, the import of JAX that ends the checks, progress 
 one-line report of a checkpoint that cannot be read.
 
 Output paths follow one rule in every command (``dpc_jax._io``): missing parent folders are
-created when the outputs are written, the nearest existing folder must be writable, and this is
-checked before any work starts (:func:`output_problem`).
+created when the outputs are written, the nearest existing folder must be writable, no output may
+be, contain or lie inside an input or another output, a folder the command would replace must be one
+it made, and an empty path is refused (:func:`path_option`); this is checked before any work starts
+(:func:`output_problem`, :func:`~dpc_jax._io.overlap_problem`,
+:func:`~dpc_jax._io.foreign_folder_problem`).
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ import threading
 from pathlib import Path
 from typing import Literal
 
+from dpc_jax._io import nonempty_path
 from dpc_jax._io import output_problem as _output_problem
 
 # Above this many pixels per image, --size needs --allow-large: 4 MP is 8.6 times a KITTI image
@@ -42,8 +46,23 @@ class Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsH
         return super()._get_help_string(action)
 
     def _get_default_metavar_for_optional(self, action: argparse.Action) -> str:
-        metavars: dict[object, str] = {int: "N", float: "X", Path: "PATH"}
+        metavars: dict[object, str] = {int: "N", float: "X", path_option: "PATH"}
         return metavars.get(action.type, "VALUE")
+
+
+def path_text(text: str) -> str:
+    """argparse type of a path option kept as text (a ``{seq}`` template, ``-`` for stdout): the
+    text, unless it is empty (:func:`~dpc_jax._io.nonempty_path`)."""
+    try:
+        return nonempty_path(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+
+
+def path_option(text: str) -> Path:
+    """argparse type of a path option: ``Path(text)``, unless ``text`` is empty (``Path("")`` would
+    be the current folder)."""
+    return Path(path_text(text))
 
 
 def image_size(text: str) -> tuple[int, int]:

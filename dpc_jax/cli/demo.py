@@ -7,7 +7,15 @@ import logging
 import sys
 from pathlib import Path
 
-from dpc_jax.cli._common import Formatter, import_jax, input_problem, output_problem, restore_problem
+from dpc_jax._io import foreign_folder_problem, overlap_problem
+from dpc_jax.cli._common import (
+    Formatter,
+    import_jax,
+    input_problem,
+    output_problem,
+    path_option,
+    restore_problem,
+)
 
 HELP = "Synthetic end-to-end demo: train Stereo DPC on rendered sequences, correct our VO, write a report."
 # Restart with huge-page malloc (dpc_jax.hugepages): the demo's time goes to training.
@@ -25,17 +33,36 @@ up to date."""
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = EPILOG
     parser.formatter_class = Formatter
-    parser.add_argument("--out", type=Path, default=Path("dpc_demo"),
+    parser.add_argument("--out", type=path_option, default=Path("dpc_demo"),
                         metavar="DIR",
                         help="output folder (data, priors, caches, run, report.md); re-running reuses it")
-    parser.add_argument("--config", type=Path, metavar="FILE",
+    parser.add_argument("--config", type=path_option, metavar="FILE",
                         help="a Python file defining CONFIG = DemoConfig(...) or a dict of its fields "
                         "(default: the built-in demo, experiments/configs/synthetic_demo.py)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
+def _replaced_problem(out: Path, names: list[str]) -> str | None:
+    """Why a folder the demo would replace under ``out`` is not one it made, or None: a rendered
+    sequence (``data/sequences/NAME``, with ``synth.json``), a cache (``cache/NAME``, with
+    ``manifest.json``) or the training run (``run``); the layout of :mod:`dpc_jax.pipelines.demo`."""
+    from dpc_jax.data.sequence_cache import MANIFEST
+
+    label = f"--out {out}"
+    folders = [(out / "data" / "sequences" / name, "synth.json", "a sequence `dpc-jax synth` rendered")
+               for name in names]
+    folders += [(out / "cache" / name, MANIFEST, "a cache of `dpc-jax prepare`") for name in names]
+    folders.append((out / "run", "checkpoints/config.json", "a training run"))
+    for folder, marker, made_by in folders:
+        problem = foreign_folder_problem(folder, label, marker=marker, made_by=made_by)
+        if problem is not None:
+            return problem
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
-    problem = output_problem(args.out, "--out", folder=True) or input_problem(args.config, "--config")
+    problem = (output_problem(args.out, "--out", folder=True) or input_problem(args.config, "--config")
+               or overlap_problem([("--config", args.config)], [("--out", args.out)]))
     if problem is not None:
         print(f"dpc-jax demo: error: {problem}", file=sys.stderr)
         return 2
@@ -47,6 +74,10 @@ def run(args: argparse.Namespace) -> int:
         config = load_file(args.config, DemoConfig) if args.config is not None else DemoConfig()
     except ConfigError as error:
         print(f"dpc-jax demo: error: {error}", file=sys.stderr)
+        return 2
+    problem = _replaced_problem(args.out, list(config.sequences))
+    if problem is not None:
+        print(f"dpc-jax demo: error: {problem}", file=sys.stderr)
         return 2
     import_jax()
     from dpc_jax.pipelines.demo import DemoError, run_demo

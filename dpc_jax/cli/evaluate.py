@@ -12,7 +12,8 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from dpc_jax.cli._common import Formatter, import_jax, input_problem, output_problem
+from dpc_jax._io import is_stdout, overlap_problem
+from dpc_jax.cli._common import Formatter, import_jax, input_problem, output_problem, path_option, path_text
 
 if TYPE_CHECKING:
     import numpy as np
@@ -34,14 +35,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = EPILOG
     parser.formatter_class = Formatter
     source = parser.add_mutually_exclusive_group(required=True)
-    source.add_argument("--gt", type=Path, metavar="FILE",
+    source.add_argument("--gt", type=path_option, metavar="FILE",
                         help="ground-truth trajectory (.mat: its poses_gt)")
     source.add_argument(
-        "--mat", type=Path, metavar="FILE",
+        "--mat", type=path_option, metavar="FILE",
         help="ss-DPC-Net .mat holding poses_gt and poses_est (label 'est')",
     )
     parser.add_argument(
-        "--est", type=Path, action="append", default=[], metavar="FILE",
+        "--est", type=path_option, action="append", default=[], metavar="FILE",
         help="estimated trajectory (repeatable; with --gt; .mat: its poses_est)",
     )
     parser.add_argument(
@@ -69,12 +70,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--focal", type=float, default=None, metavar="PX",
         help="with --diagnose: focal length (px) for the mean rotation's image shift per step",
     )
-    parser.add_argument("--json", metavar="PATH", help="write the metrics as JSON to PATH ('-': stdout)")
+    parser.add_argument("--json", type=path_text, metavar="PATH",
+                        help="write the metrics as JSON to PATH ('-': stdout; there, as to /dev/stdout, "
+                        "instead of the table)")
     parser.add_argument(
-        "--report", type=Path, metavar="DIR", help="write report.md, CSV tables and PNG plots"
+        "--report", type=path_option, metavar="DIR", help="write report.md, CSV tables and PNG plots"
     )
     parser.add_argument(
-        "--export", type=Path, metavar="DIR", help="write every trajectory as KITTI and TUM text (evo)"
+        "--export", type=path_option, metavar="DIR", help="write every trajectory as KITTI and TUM text (evo)"
     )
 
 
@@ -128,6 +131,9 @@ def run(args: argparse.Namespace) -> int:
         or output_problem(None if args.json == "-" else args.json, "--json")
         or output_problem(args.report, "--report", folder=True)
         or output_problem(args.export, "--export", folder=True)
+        or overlap_problem([("--mat", args.mat), ("--gt", args.gt), *(("--est", path) for path in args.est)],
+                           [("--json", None if args.json == "-" else args.json), ("--report", args.report),
+                            ("--export", args.export)])
     )
     if problem is not None:
         return _error(problem)
@@ -166,7 +172,9 @@ def run(args: argparse.Namespace) -> int:
         outputs.commit()
     if args.json == "-":
         sys.stdout.write(result.to_json())
-    else:
+    elif args.json is None or not is_stdout(args.json):
+        # The table would follow the JSON that --json /dev/stdout streamed there, which no JSON
+        # reader then accepts.
         sys.stdout.write(format_table(result))
         if result.diagnoses:
             from dpc_jax.eval.diagnosis import format_diagnosis

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from dpc_jax._io import foreign_folder_problem, overlap_problem
 from dpc_jax.cli._common import (
     Formatter,
     finite_problem,
@@ -16,12 +17,15 @@ from dpc_jax.cli._common import (
     import_jax,
     input_problem,
     output_problem,
+    path_option,
+    path_text,
     progress_mode,
     size_problem,
 )
 
 if TYPE_CHECKING:
     from dpc_jax._progress import Progress
+    from dpc_jax.data.kitti import StereoSequence
 
 HELP = "Decode, resize and cache stereo sequences with their VO prior (and optical flow) for training."
 # No huge-page restart (dpc_jax.hugepages): decoding, resizing and flow gain nothing from it.
@@ -42,22 +46,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = EPILOG
     parser.formatter_class = Formatter
     layout = parser.add_mutually_exclusive_group(required=True)
-    layout.add_argument("--kitti-odometry", type=Path, metavar="ROOT",
+    layout.add_argument("--kitti-odometry", type=path_option, metavar="ROOT",
                         help="odometry layout root (holds sequences/ and poses/); also the synthetic layout")
-    layout.add_argument("--kitti-raw", type=Path, metavar="ROOT", help="raw layout root (holds DATE/)")
+    layout.add_argument("--kitti-raw", type=path_option, metavar="ROOT", help="raw layout root (holds DATE/)")
     parser.add_argument("--sequence", nargs="+", default=[], metavar="XX", help="odometry sequence(s)")
     parser.add_argument("--grey", action="store_true",
                         help="the grey pair (odometry: image_0/image_1; raw: image_00/image_01); default: "
                         "the colour pair, or for a raw drive without one its grey pair")
     parser.add_argument("--date", metavar="YYYY_MM_DD", help="raw: recording date, e.g. 2011_09_26")
     parser.add_argument("--drive", nargs="+", default=[], metavar="NNNN", help="raw: drive number(s)")
-    parser.add_argument("--prior", required=True, metavar="FILE",
+    parser.add_argument("--prior", required=True, type=path_text, metavar="FILE",
                         help="VO estimate per frame (KITTI/TUM text or .mat); '{seq}' = sequence name")
     parser.add_argument("--prior-format", choices=("kitti", "tum", "mat"),
                         help="format of --prior (default: from the extension or the column count)")
-    parser.add_argument("--gt", metavar="FILE",
+    parser.add_argument("--gt", type=path_text, metavar="FILE",
                         help="ground-truth pose file (KITTI/TUM/.mat); '{seq}' allowed")
-    parser.add_argument("--out", required=True, type=Path, metavar="CACHE_DIR", help="cache root folder")
+    parser.add_argument("--out", required=True, type=path_option, metavar="CACHE_DIR",
+                        help="cache root folder")
     parser.add_argument("--size", type=image_size, default=(240, 376), metavar="HxW",
                         help="stored image size (default: 240x376)")
     parser.add_argument("--allow-large", action="store_true",
@@ -93,6 +98,28 @@ def _manifest_identity(folder: Path) -> tuple[int, int] | None:
     return st.st_ino, st.st_mtime_ns
 
 
+def _poses_problem(
+    sequence: StereoSequence, prior: str, gt: str | None, args: argparse.Namespace
+) -> str | None:
+    """Why the prior or the ``--gt`` file does not hold one rigid pose per frame of ``sequence``, or None.
+
+    Read for every sequence before the first is built, so a wrong file of the second sequence does
+    not fail after the first has been prepared; the cache reads them again (a few ms) when it builds.
+    """
+    from dpc_jax.data.kitti import read_ground_truth
+    from dpc_jax.data.priors import load_prior
+
+    n = len(sequence)
+    try:
+        load_prior(prior, n, args.prior_format, frames=args.frames)
+        poses = None if gt is None else read_ground_truth(gt)
+    except (OSError, ValueError) as error:
+        return str(error)
+    if poses is not None and poses.shape[0] != n:
+        return f"{gt}: {poses.shape[0]} ground-truth poses for {n} frames; expected one per frame"
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
     if args.kitti_odometry is not None:
         if not args.sequence or args.date or args.drive:
@@ -106,13 +133,17 @@ def run(args: argparse.Namespace) -> int:
                           "put {seq} in the path where the sequence name goes")
     problem = (input_problem(args.kitti_odometry, "--kitti-odometry", folder=True)
                or input_problem(args.kitti_raw, "--kitti-raw", folder=True)
-               or output_problem(args.out, "--out", folder=True) or size_problem(args.size, args.allow_large)
+               or output_problem(args.out, "--out", folder=True)
+               or overlap_problem([("--kitti-odometry", args.kitti_odometry),
+                                   ("--kitti-raw", args.kitti_raw)], [("--out", args.out)])
+               or size_problem(args.size, args.allow_large)
                or finite_problem(disparity_offset=args.disparity_offset))
     if problem is not None:
         return _error(problem)
     # Every sequence is opened (its files listed, calibration and times read: OpenCV, no JAX) and
     # its prior and ground-truth files found before the first one is prepared.
     from dpc_jax.data.kitti import open_odometry, open_raw
+    from dpc_jax.data.sequence_cache import MANIFEST
 
     sequences = []
     for key in args.sequence or args.drive:
@@ -129,6 +160,15 @@ def run(args: argparse.Namespace) -> int:
         prior = args.prior.replace("{seq}", sequence.name)
         gt = None if args.gt is None else args.gt.replace("{seq}", sequence.name)
         problem = input_problem(prior, "--prior") or input_problem(gt, "--gt")
+        if problem is not None:
+            return _error(f"{key}: {problem}", status=1)
+        # The cache replaces OUT/NAME: a folder there must be a cache (data.cache checks no more).
+        problem = overlap_problem([("--prior", prior), ("--gt", gt)], [("--out", args.out)]) or (
+            foreign_folder_problem(args.out / sequence.name, f"--out {args.out}", marker=MANIFEST,
+                                   made_by="a cache of `dpc-jax prepare`"))
+        if problem is not None:
+            return _error(problem)
+        problem = _poses_problem(sequence, prior, gt, args)
         if problem is not None:
             return _error(f"{key}: {problem}", status=1)
         sequences.append((key, sequence, prior, gt))

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
 from dpc_jax.cli._common import (
     Formatter,
@@ -12,6 +11,7 @@ from dpc_jax.cli._common import (
     image_size,
     import_jax,
     output_problem,
+    path_option,
     progress_mode,
     size_problem,
 )
@@ -32,7 +32,7 @@ The same command gives byte-identical files. Images above 4 megapixels need --al
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = EPILOG
     parser.formatter_class = Formatter
-    parser.add_argument("--out", required=True, type=Path, metavar="DIR",
+    parser.add_argument("--out", required=True, type=path_option, metavar="DIR",
                         help="output root (receives sequences/XX and poses/XX.txt)")
     parser.add_argument("--sequences", type=int, default=4, metavar="N",
                         help="number of sequences (named 00, 01, ...)")
@@ -56,13 +56,48 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="no progress bar (off a terminal: no progress lines)")
 
 
+# The fields of SynthConfig (and write_sequences' sequences) that are options of this command, as
+# their messages begin with them.
+_OPTIONS = {"sequences": "--sequences", "frames": "--frames", "seed": "--seed", "moving_objects": "--moving-objects",
+            "illumination_drift": "--illumination-drift", "noise": "--noise",
+            "disparity_offset": "--disparity-offset", "image size": "--size"}
+
+
+def _option_message(message: str) -> str:
+    """A message of SynthConfig's checks ("noise must be >= 0, got -1.0") with the option's name in
+    place of the field's, so that it names what the user typed."""
+    field = message.split(" must ", 1)[0]
+    return _OPTIONS[field] + message[len(field):] if field in _OPTIONS else message
+
+
 def _error(message: str) -> int:
     print(f"dpc-jax synth: error: {message}", file=sys.stderr)
     return 2
 
 
+def _replaced_problem(args: argparse.Namespace) -> str | None:
+    """With ``--overwrite``: why a sequence folder the run would replace is not one ``synth`` rendered
+    (no ``synth.json``; a real KITTI sequence, say), or None. The folders that exist are looked at,
+    not every name ``--sequences`` allows."""
+    root = args.out / "sequences"
+    if not args.overwrite or not root.is_dir():
+        return None
+    from dpc_jax._io import foreign_folder_problem
+
+    for entry in sorted(root.iterdir()):
+        name = entry.name
+        if not (name.isdigit() and name == f"{int(name):02d}" and int(name) < args.sequences):
+            continue  # not one of the sequences 00, 01, ... this run writes
+        problem = foreign_folder_problem(entry, f"--out {args.out}", marker="synth.json",
+                                         made_by="a sequence `dpc-jax synth` rendered")
+        if problem is not None:
+            return problem
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
-    problem = (output_problem(args.out, "--out", folder=True) or size_problem(args.size, args.allow_large)
+    problem = (output_problem(args.out, "--out", folder=True) or _replaced_problem(args)
+               or size_problem(args.size, args.allow_large)
                or finite_problem(illumination_drift=args.illumination_drift, noise=args.noise,
                                  disparity_offset=args.disparity_offset))
     if problem is not None:
@@ -82,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
     except FileExistsError as err:
         return _error(f"{err}; pass --overwrite to replace them")
     except ValueError as err:
-        return _error(str(err))
+        return _error(_option_message(str(err)))
     for path in paths:
         print(path)
     return 0

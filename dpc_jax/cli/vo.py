@@ -15,6 +15,7 @@ from dpc_jax.cli._common import (
     import_jax,
     input_problem,
     output_problem,
+    path_option,
 )
 
 HELP = "Classical stereo visual odometry (libviso2-s-like): write the trajectory and a per-frame CSV."
@@ -31,7 +32,8 @@ truth's first pose with --start gt. The CSV (default: OUT with suffix .csv) has 
 frame, inliers, status (ok | constant_velocity), disparity_offset_px, time_s. With ground truth the
 m-ATE and final-position error are printed. OUT with suffix .json summarises the run (frames, fallbacks and
 their share, median inliers, final offset, and a warning when more than 5 % of the pairs fell back to constant
-velocity, which is also printed on stderr). The three files are written together or not at all."""
+velocity, which is also printed on stderr). The three files are written together or not at all; beside a
+stream (--out /dev/stdout) no file is made: only the trajectory, and the CSV where --csv names it."""
 
 
 
@@ -40,20 +42,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = EPILOG
     parser.formatter_class = Formatter
     layout = parser.add_mutually_exclusive_group(required=True)
-    layout.add_argument("--kitti-odometry", type=Path, metavar="ROOT",
+    layout.add_argument("--kitti-odometry", type=path_option, metavar="ROOT",
                         help="odometry layout root (holds sequences/ and poses/); also the synthetic layout")
-    layout.add_argument("--kitti-raw", type=Path, metavar="ROOT", help="raw layout root (holds DATE/)")
+    layout.add_argument("--kitti-raw", type=path_option, metavar="ROOT", help="raw layout root (holds DATE/)")
     parser.add_argument("--sequence", metavar="XX", help="odometry: sequence")
     parser.add_argument("--grey", action="store_true",
                         help="the grey pair (odometry: image_0/image_1; raw: image_00/image_01); default: "
                         "the colour pair, or for a raw drive without one its grey pair")
     parser.add_argument("--date", metavar="YYYY_MM_DD", help="raw: recording date, e.g. 2011_09_26")
     parser.add_argument("--drive", metavar="NNNN", help="raw: drive number")
-    parser.add_argument("--gt", type=Path, metavar="FILE",
+    parser.add_argument("--gt", type=path_option, metavar="FILE",
                         help="raw: ground truth (KITTI/TUM text or .mat, its poses_gt)")
-    parser.add_argument("--out", required=True, type=Path, metavar="POSES_TXT",
+    parser.add_argument("--out", required=True, type=path_option, metavar="POSES_TXT",
                         help="trajectory file to write")
-    parser.add_argument("--csv", type=Path, metavar="FILE",
+    parser.add_argument("--csv", type=path_option, metavar="FILE",
                         help="per-frame CSV (default: OUT with suffix .csv)")
     parser.add_argument("--start", choices=("identity", "gt"), default="identity",
                         help="first pose of the written trajectory")
@@ -83,9 +85,12 @@ class _UsageError(Exception):
     pass
 
 
-def _same_file_problem(out: Path, csv_path: Path, json_path: Path) -> str | None:
-    """Why the trajectory, the CSV and the summary would not be three files (one overwriting
-    another), or None. Symbolic links are followed; a stream (``/dev/stdout``) may take several."""
+def _same_file_problem(out: Path, csv_path: Path | None, json_path: Path | None) -> str | None:
+    """Why the trajectory, the CSV and the summary would not be three files because of the names
+    derived from ``--out``, or None: the one rule (:func:`~dpc_jax._io.overlap_problem`) finds these
+    too, this says which name to change. None paths (beside a stream) are not written."""
+    if json_path is None or csv_path is None:
+        return None
     from dpc_jax._io import output_target
 
     targets = {name: output_target(path) for name, path in (("--out", out), ("csv", csv_path),
@@ -102,15 +107,22 @@ def _same_file_problem(out: Path, csv_path: Path, json_path: Path) -> str | None
 
 
 def run(args: argparse.Namespace) -> int:
-    csv_path = args.csv if args.csv is not None else args.out.with_suffix(".csv")
-    json_path = args.out.with_suffix(".json")
+    from dpc_jax._io import is_stream, overlap_problem
+
+    # Nothing is made beside a stream (/dev/stdout, /dev/null, a FIFO): only what was asked is
+    # written, the trajectory and a --csv given, never /dev/stdout.csv.
+    streamed = is_stream(args.out)
+    csv_path = args.csv if args.csv is not None or streamed else args.out.with_suffix(".csv")
+    json_path = None if streamed else args.out.with_suffix(".json")
     problem = (input_problem(args.kitti_odometry, "--kitti-odometry", folder=True)
                or input_problem(args.kitti_raw, "--kitti-raw", folder=True) or input_problem(args.gt, "--gt")
                or output_problem(args.out, "--out") or output_problem(csv_path, "--csv")
                or output_problem(json_path, "--out")
                or finite_problem(disparity_offset=args.disparity_offset))
     if problem is None:
-        problem = _same_file_problem(args.out, csv_path, json_path)
+        problem = _same_file_problem(args.out, csv_path, json_path) or overlap_problem(
+            [("--kitti-odometry", args.kitti_odometry), ("--kitti-raw", args.kitti_raw), ("--gt", args.gt)],
+            [("--out", args.out), ("--csv", csv_path), ("--out (its .json summary)", json_path)])
     if problem is not None:
         print(f"dpc-jax vo: error: {problem}", file=sys.stderr)
         return 2
@@ -148,9 +160,11 @@ def run(args: argparse.Namespace) -> int:
     counts = summary(result)
     with OutputSet() as outputs:
         write_kitti_poses(outputs.file(args.out), result.poses)
-        atomic_write(outputs.file(csv_path), per_frame_table(result))
-        record = json.dumps({"sequence": sequence.name, **counts}, indent=2) + "\n"
-        atomic_write(outputs.file(json_path), record)
+        if csv_path is not None:
+            atomic_write(outputs.file(csv_path), per_frame_table(result))
+        if json_path is not None:
+            record = json.dumps({"sequence": sequence.name, **counts}, indent=2) + "\n"
+            atomic_write(outputs.file(json_path), record)
         outputs.commit()
 
     rate = len(result.times) / result.times.sum()
@@ -174,5 +188,6 @@ def run(args: argparse.Namespace) -> int:
             f"vs ground truth: m-ATE {float(trans):.3f} m / {float(rot):.3f} deg, "
             f"final-position error {final:.3f} m"
         )
-    print(f"wrote {args.out}, {csv_path} and {json_path}")
+    written = [str(path) for path in (args.out, csv_path, json_path) if path is not None]
+    print(f"wrote {', '.join(written)}")
     return 0
