@@ -26,7 +26,15 @@ import numpy as np
 from machine import this_cpu
 
 from dpc_jax.data.pipeline import TrainLoader
-from dpc_jax.data.sequence_cache import FLOW_FILES, MANIFEST, PAIR_KINDS, STEREO_DEPTH_FILES, load_cache
+from dpc_jax.data.sequence_cache import (
+    CACHE_VERSION,
+    DISPARITY_FILE,
+    FLOW_FILES,
+    MANIFEST,
+    PAIR_KINDS,
+    flow_step,
+    load_cache,
+)
 
 
 def write_random_cache(
@@ -41,20 +49,20 @@ def write_random_cache(
         np.save(path / f"{camera}.npy", rng.integers(0, 256, (frames, h, w, 3), dtype=np.uint8))
     for kind in flow_kinds:
         count = frames - PAIR_KINDS[kind][0]
-        flow = np.lib.format.open_memmap(path / FLOW_FILES[kind], "w+", np.float32, (count, 2, h, w, 2))
+        # int16 units of flow_step px, as prepare stores flow: about ±2 px.
+        flow = np.lib.format.open_memmap(path / FLOW_FILES[kind], "w+", np.int16, (count, 2, h, w, 2))
         for k in range(count):
-            flow[k] = rng.standard_normal((2, h, w, 2), dtype=np.float32)
+            flow[k] = rng.integers(-2 / flow_step(size), 2 / flow_step(size), (2, h, w, 2), dtype=np.int16)
         flow.flush()
         del flow
-    # The StereoSGBM depth a prepared cache holds (dpc_jax.data.cache), random: 2 to 100 m, 80 % matched.
-    inverse = np.lib.format.open_memmap(path / STEREO_DEPTH_FILES[0], "w+", np.float32, (frames, 2, h, w))
-    valid = np.lib.format.open_memmap(path / STEREO_DEPTH_FILES[1], "w+", bool, (frames, 2, h, w))
+    # The StereoSGBM disparity a prepared cache holds (dpc_jax.data.cache), in SGBM's 1/16 px: random,
+    # 0 to 40 px, 80 % matched.
+    disparity = np.lib.format.open_memmap(path / DISPARITY_FILE, "w+", np.int16, (frames, 2, h, w))
     for k in range(frames):
-        valid[k] = rng.random((2, h, w)) < 0.8
-        inverse[k] = np.where(valid[k], rng.uniform(0.01, 0.5, (2, h, w)), 0).astype(np.float32)
-    inverse.flush()
-    valid.flush()
-    del inverse, valid
+        matched = rng.random((2, h, w)) < 0.8
+        disparity[k] = np.where(matched, rng.integers(1, 640, (2, h, w)), -16)
+    disparity.flush()
+    del disparity
     # A straight drive at 1.2 m per frame with a small sway, so priors and corrections are not all equal.
     poses = np.tile(np.eye(4), (frames, 1, 1))
     poses[:, 2, 3] = np.arange(frames) * 1.2
@@ -65,8 +73,8 @@ def write_random_cache(
     np.save(path / "baseline.npy", np.float64(0.54))
     np.save(path / "indices.npy", np.arange(frames))
     np.save(path / "times.npy", np.arange(frames) * 0.1)
-    manifest = {"name": path.name, "n_frames": frames, "image_size": [h, w], "has_gt": True,
-                "flows": list(flow_kinds), "stereo_depth": True}
+    manifest = {"version": CACHE_VERSION, "name": path.name, "n_frames": frames, "image_size": [h, w],
+                "has_gt": True, "flows": list(flow_kinds), "flow_step": flow_step(size), "stereo_depth": True}
     (path / MANIFEST).write_text(json.dumps(manifest))
     for file in path.iterdir():  # finish the write-back now, not during the timed epochs
         with file.open("rb") as f:
