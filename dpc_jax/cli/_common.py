@@ -25,6 +25,8 @@ from typing import Literal
 from dpc_jax._io import nonempty_path
 from dpc_jax._io import output_problem as _output_problem
 
+# The largest --disparity-offset, as a share of the image width (SynthConfig's bound too).
+MAX_OFFSET_SHARE = 0.05
 # Above this many pixels per image, --size needs --allow-large: 4 MP is 8.6 times a KITTI image
 # (375×1242); a synthetic stereo frame at 4 MP takes about 60 MB (two PNGs, two float32 depths).
 MAX_PIXELS = 4_000_000
@@ -94,6 +96,17 @@ def frame_range(text: str) -> tuple[int, int]:
     if not 0 <= start < stop:
         raise argparse.ArgumentTypeError(f"expected 0 <= START < STOP, got {text!r}")
     return start, stop
+
+
+def offset_problem(offset: float, width: int, name: str) -> str | None:
+    """Why ``--disparity-offset`` is too large for the ``width``-pixel-wide images of the sequence
+    ``name``, or None. A rig's disparity calibration residual is a pixel or two (KITTI's colour pair:
+    about 1.2 px at 1242 px); 5 % of the width, the bound ``synth`` renders, is already far beyond,
+    and a larger one makes every match fail, which the VO would report as bad images."""
+    if abs(offset) < MAX_OFFSET_SHARE * width:
+        return None
+    return (f"--disparity-offset {offset:g}: the images of {name} are {width} px wide; expected a "
+            f"calibration residual of a few pixels (less than {MAX_OFFSET_SHARE * width:g} px in magnitude)")
 
 
 def finite_problem(**options: float) -> str | None:

@@ -16,6 +16,7 @@ from dpc_jax.cli._common import (
     image_size,
     import_jax,
     input_problem,
+    offset_problem,
     output_problem,
     path_option,
     path_text,
@@ -154,7 +155,8 @@ def run(args: argparse.Namespace) -> int:
                 sequence = open_raw(args.kitti_raw, args.date, key, cameras="grey" if args.grey else "auto")
         except (OSError, ValueError, KeyError) as error:
             return _error(f"{key}: {error}", status=1)
-        problem = frames_problem(args.frames, len(sequence), sequence.name)
+        problem = (frames_problem(args.frames, len(sequence), sequence.name)
+                   or offset_problem(args.disparity_offset, sequence.image_size[1], sequence.name))
         if problem is not None:
             return _error(problem)
         prior = args.prior.replace("{seq}", sequence.name)

@@ -58,9 +58,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 # The fields of SynthConfig (and write_sequences' sequences) that are options of this command, as
 # their messages begin with them.
-_OPTIONS = {"sequences": "--sequences", "frames": "--frames", "seed": "--seed", "moving_objects": "--moving-objects",
-            "illumination_drift": "--illumination-drift", "noise": "--noise",
-            "disparity_offset": "--disparity-offset", "image size": "--size"}
+_OPTIONS = {"sequences": "--sequences", "frames": "--frames", "seed": "--seed",
+            "moving_objects": "--moving-objects", "illumination_drift": "--illumination-drift",
+            "noise": "--noise", "disparity_offset": "--disparity-offset", "image size": "--size"}
 
 
 def _option_message(message: str) -> str:

@@ -14,6 +14,7 @@ from dpc_jax.cli._common import (
     frames_problem,
     import_jax,
     input_problem,
+    offset_problem,
     output_problem,
     path_option,
 )
@@ -135,7 +136,9 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         sequence = _open(args)
-        if (problem := frames_problem(args.frames, len(sequence), sequence.name)) is not None:
+        problem = (frames_problem(args.frames, len(sequence), sequence.name)
+                   or offset_problem(args.disparity_offset, sequence.image_size[1], sequence.name))
+        if problem is not None:
             raise _UsageError(problem)
         if args.frames is not None:
             sequence = sequence.select(*args.frames)

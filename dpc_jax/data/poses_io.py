@@ -271,8 +271,8 @@ def detect_format(path: str | os.PathLike[str]) -> str:
     if len(fields) == 8:
         return "tum"
     raise ValueError(
-        f"{path}, line {number}: cannot tell the format: {len(fields)} columns, expected 12 (KITTI) "
-        "or 8 (TUM); pass the format explicitly"
+        f"{path}, line {number}: {len(fields)} columns; expected a trajectory of 12 (KITTI: the 3×4 pose "
+        "row-major) or 8 (TUM: time tx ty tz qx qy qz qw) numbers per line, or a .mat file"
     )
 
 

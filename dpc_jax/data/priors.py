@@ -22,14 +22,16 @@ if TYPE_CHECKING:
 
 
 def load_prior(
-    source: str | Path | np.ndarray, n_frames: int, format: str | None = None
+    source: str | Path | np.ndarray, n_frames: int, format: str | None = None,
+    *, frames: tuple[int, int] | None = None,
 ) -> np.ndarray:
     """VO estimate ``[N, 4, 4]`` float64, checked to hold one rigid pose per frame.
 
     ``source``: an array ``[N, 4, 4]`` or ``[N, 3, 4]``, or a file: KITTI pose text, TUM text, or
     the ss-DPC-Net ``.mat`` layout (its ``poses_est``). ``format`` (``kitti``|``tum``|``mat``)
     overrides the guess from the extension. Raises ``ValueError`` naming the source when the
-    count differs from ``n_frames`` or a pose is not rigid.
+    count differs from ``n_frames`` or a pose is not rigid. ``frames``: the ``(start, stop)`` range
+    that will be cut from the sequence, named in the error when the prior holds only that range.
     """
     if isinstance(source, np.ndarray):
         label = "prior array"
@@ -41,8 +43,13 @@ def load_prior(
             raise ValueError(f"{path}: unknown prior format {format!r}; expected one of {poses_io.FORMATS}")
         poses = poses_io.read_trajectory(path, format)
     if poses.shape[0] != n_frames:
+        hint = ""
+        if frames is not None and poses.shape[0] == frames[1] - frames[0]:
+            hint = (f" of the whole sequence, also with frames {frames[0]}:{frames[1]} (the range is cut "
+                    "after the prior is read: give the trajectory of every frame, such as `dpc-jax vo` "
+                    "writes without --frames)")
         raise ValueError(
-            f"{label}: {poses.shape[0]} prior poses for {n_frames} frames; expected one pose per frame"
+            f"{label}: {poses.shape[0]} prior poses for {n_frames} frames; expected one pose per frame{hint}"
         )
     return poses
 

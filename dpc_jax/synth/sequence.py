@@ -57,16 +57,21 @@ class SynthConfig:
     def __post_init__(self) -> None:
         if self.frames < 2:
             raise ValueError(f"frames must be at least 2, got {self.frames}")
+        if self.seed < 0:  # sequence i is seeded with seed + i, and numpy's seeds are not negative
+            raise ValueError(f"seed must be >= 0, got {self.seed}")
         if self.height < 8 or self.width < 8:
             raise ValueError(f"image size must be at least 8×8, got {self.height}×{self.width}")
         if self.moving_objects < 0:
             raise ValueError(f"moving_objects must be >= 0, got {self.moving_objects}")
         if not (0.0 <= self.illumination_drift < 1.0):
             raise ValueError(f"illumination_drift must be in [0, 1), got {self.illumination_drift}")
-        if self.noise < 0 or self.baseline <= 0 or self.fps <= 0:
-            raise ValueError("noise must be >= 0, baseline and fps > 0")
+        if self.noise < 0:
+            raise ValueError(f"noise must be >= 0, got {self.noise}")
+        if self.baseline <= 0 or self.fps <= 0:
+            raise ValueError(f"baseline and fps must be > 0, got {self.baseline} and {self.fps}")
         if not abs(self.disparity_offset) < 0.05 * self.width:
-            raise ValueError(f"disparity_offset must be a few pixels at most, got {self.disparity_offset}")
+            raise ValueError(f"disparity_offset must be a few pixels at most (less than 5 % of the width, "
+                             f"{0.05 * self.width:g} px), got {self.disparity_offset}")
 
 
 @dataclass(frozen=True)

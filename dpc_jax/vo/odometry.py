@@ -299,8 +299,16 @@ def run_vo_frames(
 
 
 def _sequence_frames(sequence: StereoSequence) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-    for left_path, right_path in zip(sequence.left_paths, sequence.right_paths, strict=True):
-        yield load_image(left_path, grey=True), load_image(right_path, grey=True)
+    """The grey pairs of ``sequence``; ``ValueError`` naming the file and frame for an image whose size
+    is not the sequence's (the size its calibration was checked against)."""
+    h, w = sequence.image_size
+    for k, paths in enumerate(zip(sequence.left_paths, sequence.right_paths, strict=True)):
+        pair = tuple(load_image(path, grey=True) for path in paths)
+        for path, image in zip(paths, pair, strict=True):
+            if image.shape != (h, w):
+                raise ValueError(f"{path}: image is {image.shape[0]}×{image.shape[1]} (frame {k}), expected "
+                                 f"{h}×{w} like the sequence's first frame")
+        yield pair[0], pair[1]
 
 
 def run_vo(
