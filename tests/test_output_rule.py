@@ -221,21 +221,21 @@ def test_folders_a_command_did_not_make_are_refused(
     assert _snapshot(tmp_path) == before
 
 
-def test_nothing_is_made_beside_a_stream(
-    kitti: Path, tmp_path: Path, capfd: pytest.CaptureFixture[str]
-) -> None:
-    """``vo --out /dev/null`` makes no ``/dev/null.csv``; ``evaluate --json /dev/stdout`` prints only
-    the JSON."""
-    made = [Path("/dev/null.csv"), Path("/dev/null.json")]
+def test_nothing_is_made_beside_a_stream(kitti: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    """``vo --out /dev/stdout`` makes no ``/dev/stdout.csv`` and prints only the trajectory there;
+    ``evaluate --json /dev/stdout`` prints only the JSON."""
+    made = [Path("/dev/stdout.csv"), Path("/dev/stdout.json")]
+    capfd.readouterr()
     try:
-        assert main(["vo", "--kitti-odometry", str(kitti), "--sequence", "00", "--out", "/dev/null",
+        assert main(["vo", "--kitti-odometry", str(kitti), "--sequence", "00", "--out", "/dev/stdout",
                      "--no-progress"]) == 0
         assert not any(path.exists() for path in made)
     finally:
         for path in made:
             if path.is_file():
                 path.unlink()
+    rows = [line.split() for line in capfd.readouterr().out.splitlines()]
+    assert len(rows) == 6 and all(len(row) == 12 for row in rows)
     gt = kitti / "poses" / "00.txt"
-    capfd.readouterr()
     assert main(["evaluate", "--gt", str(gt), "--est", str(gt), "--json", "/dev/stdout"]) == 0
     assert "m_ate" in json.dumps(json.loads(capfd.readouterr().out))

@@ -12,7 +12,7 @@ import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from dpc_jax._io import foreign_folder_problem, is_stream, overlap_problem
+from dpc_jax._io import foreign_folder_problem, is_stdout, is_stream, overlap_problem
 from dpc_jax.acceptance import rotation_axes_words
 from dpc_jax.cli._common import (
     Formatter,
@@ -344,7 +344,10 @@ def run(args: argparse.Namespace) -> int:
         except (OSError, ValueError, KeyError) as error:
             return _error(str(error))
     written = _write_outputs(args, correction, adaptation, adapted)
-    _print_summary(args, run_, correction, adaptation, written)
+    # With the trajectory on standard output, the summary goes to stderr, so that what reads standard
+    # output gets the trajectory alone.
+    with contextlib.redirect_stdout(sys.stderr) if is_stdout(args.out) else contextlib.nullcontext():
+        _print_summary(args, run_, correction, adaptation, written)
     return 0
 
 

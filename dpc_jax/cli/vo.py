@@ -34,7 +34,8 @@ frame, inliers, status (ok | constant_velocity), disparity_offset_px, time_s. Wi
 m-ATE and final-position error are printed. OUT with suffix .json summarises the run (frames, fallbacks and
 their share, median inliers, final offset, and a warning when more than 5 % of the pairs fell back to constant
 velocity, which is also printed on stderr). The three files are written together or not at all; beside a
-stream (--out /dev/stdout) no file is made: only the trajectory, and the CSV where --csv names it."""
+stream (--out /dev/stdout) no file is made: only the trajectory, and the CSV where --csv names it; with
+either on standard output, the lines this command prints go to stderr."""
 
 
 
@@ -108,7 +109,7 @@ def _same_file_problem(out: Path, csv_path: Path | None, json_path: Path | None)
 
 
 def run(args: argparse.Namespace) -> int:
-    from dpc_jax._io import is_stream, overlap_problem
+    from dpc_jax._io import is_stdout, is_stream, overlap_problem
 
     # Nothing is made beside a stream (/dev/stdout, /dev/null, a FIFO): only what was asked is
     # written, the trajectory and a --csv given, never /dev/stdout.csv.
@@ -170,12 +171,16 @@ def run(args: argparse.Namespace) -> int:
             atomic_write(outputs.file(json_path), record)
         outputs.commit()
 
+    # With the trajectory (or the CSV) on standard output, the summary goes to stderr, so that what
+    # reads standard output gets the file alone.
+    report = sys.stderr if any(is_stdout(path) for path in (args.out, csv_path) if path is not None) else None
     rate = len(result.times) / result.times.sum()
     print(
         f"{sequence.name}: {len(result.poses)} frames, {rate:.1f} frames/s (VO only), "
         f"median inliers {int(np.median(result.inliers))}, constant-velocity fallbacks {counts['fallbacks']}"
         f" ({100 * counts['fallback_share']:.1f} %), "
-        f"disparity offset {result.disparity_offset[-1]:+.2f} px"
+        f"disparity offset {result.disparity_offset[-1]:+.2f} px",
+        file=report,
     )
     if counts["warning"] is not None:
         print(f"dpc-jax vo: warning: {sequence.name}: {counts['warning']}", file=sys.stderr)
@@ -189,8 +194,9 @@ def run(args: argparse.Namespace) -> int:
         final = float(np.linalg.norm(est[-1, :3, 3] - gt[-1, :3, 3]))
         print(
             f"vs ground truth: m-ATE {float(trans):.3f} m / {float(rot):.3f} deg, "
-            f"final-position error {final:.3f} m"
+            f"final-position error {final:.3f} m",
+            file=report,
         )
     written = [str(path) for path in (args.out, csv_path, json_path) if path is not None]
-    print(f"wrote {', '.join(written)}")
+    print(f"wrote {', '.join(written)}", file=report)
     return 0
