@@ -50,9 +50,10 @@ Raw inputs are prepared on the fly at the run's image size (with flow when the n
 --cache DIR (kept, reused when up to date) or a temporary folder. Ground truth: poses/XX.txt (odometry),
 else --gt, else the poses_gt of a .mat prior; a cache keeps the ground truth it was prepared with.
 
-Frames: the trajectory has one pose per cached frame. When static frames were removed (--remove-static
-here or at prepare time) or a frame range was cached, the source frame number of every pose is written to
-OUT's stem + '.frames.txt' (corrected.txt -> corrected.frames.txt). TUM output uses the frame times.
+Frames: the trajectory has one pose per cached frame. When the cached frames are not the source frames
+0, 1, 2, ... (static frames removed by --remove-static here or at prepare time, or a frame range not
+starting at 0), the source frame number of every pose is written to OUT's stem + '.frames.txt'
+(corrected.txt -> corrected.frames.txt). TUM output uses the frame times.
 
 examples:
   dpc-jax correct --checkpoint runs/kitti_00 --data cache/00 --out corrected_00.txt --report report_00

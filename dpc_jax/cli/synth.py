@@ -51,7 +51,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--disparity-offset", type=float, default=0.0, metavar="PX",
                         help="stereo calibration residual: every disparity measured with the written "
                         "calib.txt is PX larger than fu·B/Z (KITTI's colour pair: about -1.2 px at 1242 px)")
-    parser.add_argument("--overwrite", action="store_true", help="replace existing sequences")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace those of the sequences 00 to N-1 that exist (without it, any of them "
+                        "existing is refused; sequences numbered N and above are left alone)")
     parser.add_argument("--no-progress", action="store_true",
                         help="no progress bar (off a terminal: no progress lines)")
 

@@ -24,9 +24,11 @@ EPILOG = """examples:
   dpc-jax train --config experiments/configs/own_data.py --workdir runs/own_data --resume
 experiments/configs/own_data.py is the minimal config for a cache of your own (from `dpc-jax prepare`).
 The config file defines CONFIG = TrainConfig(...) or a dict of its fields (see dpc_jax.training.config).
-Outputs in WORKDIR: checkpoints/{epochs,best_gradient_loss,best_loop_closures}/EPOCH, checkpoints/config.json,
-checkpoints/split.json, metrics.csv, tensorboard/. Several hosts: set distributed=True in the config and
-pass --coordinator-address/--num-processes/--process-id on each host (or nothing on clusters JAX detects)."""
+Outputs in WORKDIR: checkpoints/{epochs,best_gradient_loss,best_loop_closures,best_delta}/EPOCH
+(best_delta: the epoch of most negative validation Δ, once one beats no correction; `correct --select delta`,
+its default, reads it), checkpoints/config.json, checkpoints/split.json, metrics.csv, tensorboard/.
+Several hosts: set distributed=True in the config and pass --coordinator-address/--num-processes/--process-id
+on each host (or nothing on clusters JAX detects); the flags are refused without distributed=True."""
 
 
 

@@ -61,7 +61,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="per-frame CSV (default: OUT with suffix .csv)")
     parser.add_argument("--start", choices=("identity", "gt"), default="identity",
                         help="first pose of the written trajectory")
-    parser.add_argument("--frames", type=frame_range, metavar="START:STOP", help="use only these frames")
+    parser.add_argument("--frames", type=frame_range, metavar="START:STOP",
+                        help="use only these frames (the trajectory then holds their poses only; a prior "
+                        "for `prepare`/`correct` holds one pose per frame of the whole sequence)")
     parser.add_argument("--disparity-offset", type=float, default=0.0, metavar="PX",
                         help="disparity offset (px added to measured disparities); the starting value "
                              "of the online estimate unless --fixed-offset")
