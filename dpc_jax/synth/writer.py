@@ -59,6 +59,14 @@ def _imwrite(path: Path, image: np.ndarray) -> None:
         raise OSError(f"could not write {path}")
 
 
+def _save(path: Path, array: np.ndarray) -> None:
+    """``np.save``, whose error on a full disk ("6144 requested and 3040 written") names no file."""
+    try:
+        np.save(path, array)
+    except OSError as error:
+        raise OSError(f"could not write {path} ({error})") from None
+
+
 def write_sequence(out: Path | str, name: str, config: SynthConfig, overwrite: bool = False,
                    on_frame: Callable[[], None] | None = None) -> Path:
     """Render ``config`` and write it as sequence ``name`` under ``out`` (KITTI layout).
@@ -84,8 +92,8 @@ def write_sequence(out: Path | str, name: str, config: SynthConfig, overwrite: b
             stem = f"{frame.index:06d}"
             _imwrite(dirs["image_2"] / f"{stem}.png", frame.left[..., ::-1])
             _imwrite(dirs["image_3"] / f"{stem}.png", frame.right[..., ::-1])
-            np.save(dirs["depth_2"] / f"{stem}.npy", frame.depth_left)
-            np.save(dirs["depth_3"] / f"{stem}.npy", frame.depth_right)
+            _save(dirs["depth_2"] / f"{stem}.npy", frame.depth_left)
+            _save(dirs["depth_3"] / f"{stem}.npy", frame.depth_right)
             _imwrite(dirs["moving_2"] / f"{stem}.png", frame.moving_left.astype(np.uint8) * 255)
             _imwrite(dirs["moving_3"] / f"{stem}.png", frame.moving_right.astype(np.uint8) * 255)
             if on_frame is not None:
