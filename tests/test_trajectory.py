@@ -138,7 +138,8 @@ def test_tum_malformed(tmp_path: Path) -> None:
 def test_unknown_formats_and_keys(tmp_path: Path) -> None:
     odd = tmp_path / "odd.txt"
     odd.write_text("1 2 3\n")
-    with pytest.raises(ValueError, match=r"12 \(KITTI\) or 8 \(TUM\)"):
+    with pytest.raises(ValueError, match=r"line 1: 3 columns; expected a trajectory of 12 \(KITTI: .*\) or 8 "
+                                         r"\(TUM: .*\) numbers per line, or a \.mat file$"):
         read_trajectory(odd)
     with pytest.raises(ValueError, match="unknown trajectory format 'csv'"):
         read_trajectory(odd, format="csv")
