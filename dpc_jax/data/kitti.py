@@ -15,6 +15,9 @@ Layouts (docs/method.md §6):
   ``image_02/timestamps.txt``; the grey pair ``image_0{0,1}`` with ``P_rect_00``, ``P_rect_01`` and
   ``image_00/timestamps.txt``; ground truth from a pose file or a ``.mat`` file given by the caller.
 
+The calibration is checked against the images (:func:`check_intrinsics`; ``S_rect_XX`` where the raw
+layout gives it): one written for another image size gives a trajectory wrong by metres that looks fine.
+
 Poses are used as the files give them (camera-to-world, docs/method.md §1). The odometry ground truth
 and the ss-DPC-Net ``.mat`` files describe camera 0 (grey left); the colour pair's left camera
 sits 6 cm to its side with the same orientation, which changes inter-frame translations by

@@ -2,8 +2,10 @@
 
 Your data in the KITTI odometry layout (``ROOT/sequences/XX/{image_2,image_3}``, ``calib.txt``,
 ``times.txt``; ``ROOT/poses/XX.txt`` if you have ground truth, used only for reports) and one VO
-estimate per sequence. Commands, from the repository root (edit ``cache_root`` and the sequence
-names below to match):
+estimate per sequence. ``calib.txt`` must describe the stored images: ``vo`` and ``prepare`` refuse one
+written for another image size (principal point outside the middle half of the image, or a focal length
+that gives an implausible field of view). Commands, from the repository root (edit ``cache_root`` and
+the sequence names below to match):
 
     dpc-jax vo --kitti-odometry ROOT --sequence 00 --out priors/00.txt     # or your own VO's poses
     dpc-jax prepare --kitti-odometry ROOT --sequence 00 01 02 --prior 'priors/{seq}.txt' \\
