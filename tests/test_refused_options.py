@@ -8,6 +8,7 @@ import json
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 from test_cli_errors import _in_one_process
 from test_kitti import write_odometry
@@ -59,6 +60,11 @@ def test_options_that_cannot_take_effect_are_refused_before_jax(
     other_size = _config(tmp_path / "other_size.py", cache, image_size=(2 * SIZE[0], 2 * SIZE[1]))
     for name, field in (("method", '"method": "stereo-dpc"'), ("dropout", '"dropout": 1.5')):
         (tmp_path / f"{name}.py").write_text(f'CONFIG = {{{field}, "validation_sequences": ("05",)}}\n')
+    repeated = tmp_path / "repeated" / "00"  # a cache whose frame 3 has frame 2's time
+    shutil.copytree(cache / "00", repeated)
+    times = np.load(repeated / "times.npy")
+    times[3] = times[2]
+    np.save(repeated / "times.npy", times)
     existing = tmp_path / "existing"
     (existing / "checkpoints").mkdir(parents=True)
     shutil.copy(inputs["stereo_run"] / "checkpoints" / "config.json", existing / "checkpoints")
@@ -105,6 +111,9 @@ def test_options_that_cannot_take_effect_are_refused_before_jax(
             inputs["root"] / "prior_00.txt", "--judge-size", "20x32"],
         "--data {c}/00: no forward flow in the cache, which the network of": [*ss_correct, "--data",
                                                                               cache / "00"],
+        "--format tum: the frame times of --data {t}/repeated/00 do not increase at cached frame 3": [
+            "correct", "--checkpoint", inputs["stereo_run"], "--data", repeated, "--out", out / "c.tum",
+            "--format", "tum"],
         # prepare, vo, synth (Why 7, 8, 9)
         "05: {r}/05.txt: 3 prior poses for 6 frames": [*prepare, "--sequence", "00", "05", "--prior",
                                                 inputs["root"] / "{seq}.txt"],

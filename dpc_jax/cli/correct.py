@@ -298,6 +298,12 @@ def _run_problem(args: argparse.Namespace, checked: SequenceCache | None) -> str
             prior_for_cache(checked, args.prior, args.prior_format)
         except (OSError, ValueError) as error:
             return f"--prior {error}"
+    back = np.flatnonzero(np.diff(np.asarray(checked.times)) <= 0)
+    if args.format == "tum" and back.size:  # write_tum refuses them, as read_tum would
+        k = int(back[0]) + 1
+        return (f"--format tum: the frame times of --data {args.data} do not increase at cached frame {k} "
+                f"({checked.times[k]:.15g} s after {checked.times[k - 1]:.15g} s); a TUM file needs "
+                "increasing times: use --format kitti")
     return None
 
 
