@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -219,6 +221,31 @@ def test_folders_a_command_did_not_make_are_refused(
         assert main([str(a) for a in argv]) == 2, needle
         _one_error(capsys.readouterr().err, needle.format(m=mine))
     assert _snapshot(tmp_path) == before
+
+
+def test_the_rule_is_checked_before_jax_is_imported(kitti: Path, tmp_path: Path) -> None:
+    """Refusals that open the sequence (for the name of the folder it would replace) or load a
+    config still come before JAX: checked in a fresh interpreter, as conftest has imported JAX here."""
+    prior = kitti / "poses" / "00.txt"
+    mine = tmp_path / "mine"
+    for folder in ("00", "run"):
+        (mine / folder).mkdir(parents=True)
+        (mine / folder / "important.txt").write_text("keep")
+    commands = [
+        ["prepare", "--kitti-odometry", kitti, "--sequence", "00", "--prior", prior, "--out", mine],
+        ["correct", "--checkpoint", tmp_path / "run", "--kitti-odometry", kitti, "--sequence", "00",
+         "--prior", prior, "--cache", mine, "--out", tmp_path / "c.txt"],
+        ["evaluate", "--gt", prior, "--est", prior, "--json", prior],
+        ["demo", "--out", mine],
+    ]
+    script = ("import sys; from dpc_jax.cli import main\n"
+              f"statuses = [main(argv) for argv in {[[str(a) for a in argv] for argv in commands]!r}]\n"
+              "print(statuses, 'jax' in sys.modules)")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert done.stdout.strip() == "[2, 2, 2, 2] False", done.stdout + done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 4 and all(" holds files but is not " in line or ": is the input " in line
+                                   for line in lines), done.stderr
 
 
 def test_nothing_is_made_beside_a_stream(kitti: Path, capfd: pytest.CaptureFixture[str]) -> None:
