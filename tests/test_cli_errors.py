@@ -709,7 +709,7 @@ def test_prepare_removes_the_temporaries_of_killed_runs_and_reports_rebuild_or_r
     assert main(args) == 0
     captured = capsys.readouterr()
     assert captured.out.strip() == str(out / "00")
-    assert re.search(r"^00 left: 6/6 frames \(", captured.err, re.M)  # progress lines off a terminal
+    assert re.search(r"^00 prepare: 6/6 frames \(", captured.err, re.M)  # progress lines off a terminal
     assert re.search(rf"^00: built {re.escape(str(out / '00'))} in [0-9.]+ s$", captured.err, re.M)
     assert not stale.exists() and not old_stale.exists() and live.is_dir()
     assert main([*args, "--no-progress"]) == 0

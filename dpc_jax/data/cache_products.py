@@ -139,7 +139,8 @@ def write_frame_products(
     recent: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=2)  # grey pairs of frames k-2, k-1
     pending: deque[tuple[str, Future]] = deque()  # flows in the order each kind's file takes them
     try:
-        with ThreadPoolExecutor(max_workers=workers) as pool, progress_bar(n, label, progress) as bar:
+        bar_context = progress_bar(n, f"{label} prepare", progress)
+        with ThreadPoolExecutor(max_workers=workers) as pool, bar_context as bar:
             for left, right, disparity in frames:
                 writers["left"].append(left)
                 writers["right"].append(right)
