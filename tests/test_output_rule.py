@@ -266,3 +266,25 @@ def test_nothing_is_made_beside_a_stream(kitti: Path, capfd: pytest.CaptureFixtu
     gt = kitti / "poses" / "00.txt"
     assert main(["evaluate", "--gt", str(gt), "--est", str(gt), "--json", "/dev/stdout"]) == 0
     assert "m_ate" in json.dumps(json.loads(capfd.readouterr().out))
+
+
+def test_a_run_resumed_from_its_own_config_is_not_an_overlap(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`train --config RUN/checkpoints/config.json --workdir RUN --resume` reads the config the run
+    wrote and does not rewrite it; without --resume the same config inside the workdir is refused."""
+    from dpc_jax import config as config_lib
+    from dpc_jax.training.config import TrainConfig
+
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    own = run / "checkpoints" / "config.json"
+    config = TrainConfig(cache_root=str(tmp_path / "no_cache"), validation_sequences=("01",))
+    config_lib.save_json(own, config)
+    before = own.read_bytes()
+    assert main(["train", "--config", str(own), "--workdir", str(run), "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert "no_cache" in err and "inside" not in err and "contains" not in err, err
+    assert main(["train", "--config", str(own), "--workdir", str(run)]) == 2
+    assert "--workdir" in capsys.readouterr().err
+    assert own.read_bytes() == before

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -62,8 +63,14 @@ def run(args: argparse.Namespace) -> int:
 
     # The run writes checkpoints, metrics.csv and tensorboard/ into the workdir: it must be new,
     # empty or a training run.
+    # Resuming a run from its own config.json (the form --help gives) reads the file the run wrote
+    # and does not change it: that input inside the workdir is not an overlap.
+    own = args.workdir / "checkpoints" / "config.json"
+    resumed_own = (args.resume and own.is_file() and args.config.is_file()
+                   and os.path.samefile(args.config, own))
+    config_input = [] if resumed_own else [("--config", args.config)]
     problem = (output_problem(args.workdir, "--workdir", folder=True)
-               or overlap_problem([("--config", args.config)], [("--workdir", args.workdir)])
+               or overlap_problem(config_input, [("--workdir", args.workdir)])
                or foreign_folder_problem(args.workdir, f"--workdir {args.workdir}",
                                          marker="checkpoints/config.json", made_by="a training run"))
     if problem is not None:
