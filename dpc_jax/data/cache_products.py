@@ -118,7 +118,7 @@ def write_frame_products(
 
     ``frames`` yields ``(left, right, disparity or None)`` of each of the ``n`` frames in order.
     The flows of the pairs ending at frame ``k`` are computed on ``workers`` threads while later
-    frames are decoded; at most ``2·workers`` of them wait to be written.
+    frames are decoded; at most ``2·workers`` frames' flows wait to be written.
     """
     h, w = size
     for kind in flow_kinds:
@@ -137,6 +137,9 @@ def write_frame_products(
         return encode_flow(np.stack([farneback_flow(a[c], b[c]) for c in (0, 1)]), flow_step)
 
     recent: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=2)  # grey pairs of frames k-2, k-1
+    # Each frame brings one flow of each kind: waiting at 2·workers frames' worth keeps every flow
+    # thread busy while the next frames are decoded.
+    ahead = 2 * workers * max(1, len(flow_kinds))
     pending: deque[tuple[str, Future]] = deque()  # flows in the order each kind's file takes them
     try:
         bar_context = progress_bar(n, f"{label} prepare", progress)
@@ -155,7 +158,7 @@ def write_frame_products(
                         pending.append((kind, pool.submit(pair_flow, a, b)))
                 if current is not None:
                     recent.append(current)
-                while len(pending) > 2 * workers:
+                while len(pending) > ahead:
                     kind, future = pending.popleft()
                     writers[kind].append(future.result())
                 bar.update(1)
