@@ -1,10 +1,10 @@
 """JAX's persistent compilation cache for the ``dpc-jax`` command: a second run compiles nothing.
 
 JAX compiles every jitted function afresh in each new process; for a short command that is most
-of its time (``dpc-jax evaluate`` on the 4541 poses of KITTI 00: 4.7 s as a whole process, 1.5 s
-when nothing is compiled, on 2 busy cores). With the persistent cache XLA's executables are kept
-on disk, keyed by the program, its shapes, the JAX version and the device, and a later process
-with the same key loads them instead of compiling (``benchmarks/bench_cli.py`` measures both).
+of its time (docs/performance.md: ``dpc-jax evaluate`` with a cold and a warm cache). With the
+persistent cache XLA's executables are kept on disk, keyed by the program, its shapes, the JAX
+version and the device, and a later process with the same key loads them instead of compiling
+(``benchmarks/bench_cli.py`` measures both).
 
 :func:`use_compilation_cache` points JAX at :func:`cache_folder` through JAX's own environment
 variables (``JAX_COMPILATION_CACHE_DIR``, ``JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS``), which

@@ -5,21 +5,18 @@ and glibc serves the large ones with new ``mmap`` regions. A training step of ss
 8, 240×376, therefore touches about 470 MB of fresh memory in 4 KiB pages: some 120 000 page
 faults per step, and a 4 KiB TLB for the large strided transposes of the backward pass. With
 ``GLIBC_TUNABLES=glibc.malloc.hugetlb=1`` (glibc ≥ 2.35) malloc marks its memory for transparent
-huge pages (``madvise``), the faults drop to a few hundred, and the step takes about a fifth less
-time (``benchmarks/bench_models.py`` prints the state and the figures).
+huge pages (``madvise``), the faults drop to a few hundred, and the step takes less time
+(``benchmarks/bench_models.py`` prints the state and the figures; docs/performance.md keeps them).
 
 glibc reads its tunables once, when the process starts, so ``reexec_with_huge_pages`` restarts the
 interpreter with the tunable added. The experiments and the benchmarks call it first thing;
 ``dpc-jax`` only for the subcommands where it pays (their ``HUGE_PAGES``), because the restart is a
-second interpreter start, about 0.075 s. Measured whole processes, huge pages on against off (no
-restart in either; 2-core CPU at load 4.5-5.9, medians of 3 or 8 alternating pairs, compilation
-cache filled): ``correct`` (40 frames, 240×376) 0.74×, ``synth`` (20 frames) 0.84×, ``vo`` (40
-frames) 0.94×, ``evaluate`` (4541 poses) 1.01×, ``prepare`` (40 frames with flow) 1.00×; ``train``
-and ``demo`` spend their time in training steps (0.8×, ``benchmarks/bench_models.py``). So
-``evaluate`` and ``prepare`` run without the restart, the others with it. ``DPC_JAX_HUGE_PAGES=0``
-turns it off everywhere. It does nothing where
-it cannot help: not Linux, not glibc, glibc older than 2.35, transparent huge pages disabled
-system-wide, or the tunable already set. Library users who want the speed-up in their own
+second interpreter start. Measured as whole processes (docs/performance.md), huge pages speed up
+``correct``, ``synth`` and ``vo``, and ``train`` and ``demo``, whose time goes into training steps;
+``evaluate`` and ``prepare`` gain nothing, so they run without the restart, the others with it.
+``DPC_JAX_HUGE_PAGES=0`` turns it off everywhere. It does nothing where it cannot help: not Linux,
+not glibc, glibc older than 2.35, transparent huge pages disabled system-wide, or the tunable
+already set. Library users who want the speed-up in their own
 programs export the variable themselves.
 """
 

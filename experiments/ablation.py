@@ -6,8 +6,8 @@ published choices (``dpc_jax.training.config.REFERENCE``, epoch by the gradient 
 applied) to ours. Per row: the test sequence's segment errors of the prior and of the final
 trajectory, Δ of the correction on the test sequence (mean over its pairs, the network's depth),
 what the acceptance test decided, and the minutes the row took (training and correction; the data
-are made once, by the first row). The table goes to ``WORKDIR/ablation.md`` (and ``.csv``); the
-README ("Ablation and acceptance depth") shows it.
+are made once, by the first row). The table goes to ``WORKDIR/ablation.md`` (and ``.csv``);
+docs/results/ablation.md shows it.
 
     python experiments/ablation.py --workdir runs/ablation                 # every row, seed 0
     python experiments/ablation.py --workdir runs/ablation --seed 1 --rows 0 5

@@ -1,6 +1,6 @@
 """Bias recovery: can self-supervised training remove a systematic yaw bias from the VO prior?
 
-Issue 8's scientific check. Synthetic stereo sequences (``dpc_jax.synth``) are rendered in the
+The scientific check of self-supervision. Synthetic stereo sequences (``dpc_jax.synth``) are rendered in the
 KITTI odometry layout; each sequence's prior is its true trajectory with every relative pose
 perturbed as ``T_vo = [[Exp(φ_bias + φ_noise), ρ_noise], [0, 1]] · T_gt_{t+1,t}``, where
 ``φ_bias`` is a yaw (rotation about the camera's y axis) of ``--bias-deg`` per frame and the

@@ -1,4 +1,4 @@
-"""What a trajectory's error is made of: per-step bias against noise, per axis (issue 32).
+"""What a trajectory's error is made of: per-step bias against noise, per axis.
 
 The correction each step of an estimate needs is ``ξ_k = Log(G_{k+1,k} · inv(E_{k+1,k}))``
 (:func:`dpc_jax.eval.metrics.step_corrections`, ``[ρ (m), φ (rad)]``, ``X_{k+1,k} = inv(X_{k+1}) X_k``).

@@ -1,4 +1,4 @@
-"""A supervised linear pose correction: the baseline a learned correction should beat (issue 32).
+"""A supervised linear pose correction: the baseline a learned correction should beat.
 
 **Supervised**: it is fit to ground truth. For each step of a training sequence the correction the
 prior needs is ``ξ_gt = Log(G_{k+1,k} · inv(T_vo_{k+1,k}))`` (:func:`dpc_jax.eval.metrics.step_corrections`,

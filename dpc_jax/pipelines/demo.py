@@ -8,8 +8,8 @@
    principal point 0.8 px off the written calibration (2.6 px at KITTI's 1242 px width, about twice
    the residual of KITTI's colour pair; ``disparity_offset=-0.36`` is KITTI's own level, at which
    the prior's rotation drift, ≈ 0.2 mrad per frame, is as small as the photometric loss's own
-   rotation bias at 64×96 and the rotation gains vary in sign from seed to seed — README, "The
-   demo"). Every sequence has its own seed (a different town and route).
+   rotation bias at 64×96 and the rotation gains vary in sign from seed to seed —
+   docs/results/demo.md). Every sequence has its own seed (a different town and route).
 2. **Prior**: our classical stereo VO (``dpc_jax.vo``) with its online disparity-offset estimate
    *off*, as libviso2, which ignores such a residual: its trajectory then carries a scale error
    and a slow rotation drift, systematic errors that a correction can learn (the report tabulates

@@ -9,7 +9,7 @@ The defaults of the correction head are the *improved* ones (``IMPROVED``); ``RE
 the published choices (ss-DPC-Net's released code: PyTorch initialisation of the pose layer, no
 warm-up, the prior fed unscaled, dropout 0.5 on the whole pose head). Each improvement is a
 separate field, so a config can take any subset (``experiments/ablation.py`` adds them one by
-one; its table in the README, "Ablation and acceptance depth", is the measurement behind them):
+one; its table in docs/results/ablation.md is the measurement behind them):
 
 * ``pose_init="zero"``: the output FC layer starts at zero, so an untrained network's corrected
   trajectory *is* the prior (with the reference initialisation it outputs an almost constant
@@ -32,7 +32,7 @@ one; its table in the README, "Ablation and acceptance depth", is the measuremen
   and a sideways step move distant image content alike: free to correct both, the networks traded
   one for the other along that valley of the photometric loss (a spurious sideways correction of
   5–8 mm per frame against the wrong yaw); a VO's systematic translation error lies along its
-  direction of travel (the README's error tables), so the other two are off.
+  direction of travel (a scale error: docs/results/demo.md), so the other two are off.
 * ``pose_features="prior"``: the correction is a learned function of the VO step alone (the image
   branches still give the depth and masks the loss needs). What a correction can learn is the
   VO's systematic error, a function of its motion; from 64×96 images the per-pair correction is

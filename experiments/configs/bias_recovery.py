@@ -1,4 +1,4 @@
-"""Bias recovery (issue 8, scientific check): Stereo DPC, small preset, synthetic sequences.
+"""Bias recovery (the scientific check of self-supervision): Stereo DPC, small preset, synthetic sequences.
 
 The data are made by ``experiments/bias_recovery.py`` under ``runs/bias_recovery/cache``:
 sequences s00–s03 for training, s04 for validation (epoch selection), s05 held out for the test.

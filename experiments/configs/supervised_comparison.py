@@ -1,5 +1,5 @@
 """Prior → supervised linear baseline → supervised network → self-supervised network, on what we can run
-(``experiments/supervised_comparison.py``, issue 32).
+(``experiments/supervised_comparison.py``).
 
 Command (the whole comparison: the demo at seeds 0–4 twice, the two real drives twice):
 

@@ -1,4 +1,4 @@
-"""The synthetic demo with Stereo DPC trained by DPC-Net's supervised loss (issue 32).
+"""The synthetic demo with Stereo DPC trained by DPC-Net's supervised loss.
 
 Command:
 
