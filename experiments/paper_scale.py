@@ -137,9 +137,10 @@ class Settings:
 class Stages:
     """Runs and records stages under ``workdir/stages``; a stage recorded with the same key is reused."""
 
-    def __init__(self, workdir: Path) -> None:
+    def __init__(self, workdir: Path, stamp: dict[str, str]) -> None:
         self.folder = workdir / "stages"
         self.logs = workdir / "logs"
+        self.stamp = stamp  # machine, commit and date of the code that runs the stages now
         self.folder.mkdir(parents=True, exist_ok=True)
         self.logs.mkdir(parents=True, exist_ok=True)
 
@@ -153,7 +154,7 @@ class Stages:
     def record(self, name: str, key: dict, measured: Measured, **facts: object) -> dict:
         from dpc_jax._io import atomic_write
 
-        record = {"key": key, **dataclasses.asdict(measured), **facts}
+        record = {"key": key, **dataclasses.asdict(measured), **facts, **self.stamp}
         atomic_write(self.folder / f"{name}.json", json.dumps(record, indent=2))
         return record
 
@@ -359,6 +360,9 @@ HEADER = [
     "disk (MB)",
     "disk per frame (MB)",
     "30 epochs × 46k pairs",
+    "machine",
+    "commit",
+    "date",
 ]
 
 
@@ -392,6 +396,7 @@ def _rows(run: str, records: dict[str, dict], cores: int, paper: tuple[int, int]
                 "" if disk is None else f"{disk / MB:.0f}",
                 "" if disk is None else f"{disk / MB / record['count']:.3f}",
                 extrapolated,
+                *(record.get(field, "not recorded") for field in ("machine", "commit", "date")),
             ]
         )
     return rows
@@ -415,7 +420,7 @@ def _commit() -> str:
     return found.stdout.strip() or "unknown"
 
 
-def write_docs(rows: list[list[str]], run: str, machine: str, commit: str) -> None:
+def write_docs(rows: list[list[str]], run: str) -> None:
     """Replace the rows of ``run`` in docs/performance.md's Scale table (between its markers)."""
     from dpc_jax._io import atomic_write
     from dpc_jax.report.tables import row as md_row
@@ -427,15 +432,12 @@ def write_docs(rows: list[list[str]], run: str, machine: str, commit: str) -> No
         raise RuntimeError(f"{DOCS}: no {begin} … {end} block for the Scale table")
     head, rest = text.split(begin, 1)
     block, tail = rest.split(end, 1)
-    header = [*HEADER, "machine", "commit", "date"]
     kept = [
         line
         for line in block.strip().splitlines()[2:]
         if line.startswith("| ") and not line.startswith(md_row([run]).removesuffix(" |") + " |")
     ]
-    date = datetime.date.today().isoformat()
-    new = [md_row([*cells, machine, commit, date]) for cells in rows]
-    body = table(header, []).rstrip("\n") + "\n" + "\n".join([*kept, *new])
+    body = table(HEADER, []).rstrip("\n") + "\n" + "\n".join([*kept, *(md_row(cells) for cells in rows)])
     atomic_write(DOCS, f"{head}{begin}\n{body}\n{end}{tail}")
 
 
@@ -511,7 +513,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         planted_bias=None if args.planted_bias is None else tuple(args.planted_bias),
         planted_noise=tuple(args.planted_noise),
     )
-    stages = Stages(workdir)
+    # Each stage records the code and machine that ran it: a rerun may reuse stages of another commit.
+    stages = Stages(
+        workdir, {"machine": _machine(), "commit": _commit(), "date": datetime.date.today().isoformat()}
+    )
     records: dict[str, dict] = {}
     try:
         records["render"] = render(stages, workdir, settings)
@@ -532,11 +537,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     total = sum(settings.frames.values())
     run = f"{args.profile.upper()}, {total} frames, {size[0]}×{size[1]}"
     rows = _rows(run, records, os.cpu_count() or 1, (config["PAPER_PAIRS"], config["PAPER_EPOCHS"]))
-    machine, commit = _machine(), _commit()
     lines = [
         f"# The papers' scale: {run}",
         "",
-        f"Machine: {machine}; commit {commit}; {datetime.date.today().isoformat()}; "
+        "Each row names the machine and commit that measured it (a rerun reuses finished stages); "
         f"`python experiments/paper_scale.py --workdir {workdir}"
         + ("" if args.frames is None else f" --frames {args.frames}")
         + ("" if args.size is None else f" --size {args.size}")
@@ -549,7 +553,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     atomic_write(workdir / "scale.md", "\n".join(lines))
     atomic_write(workdir / "scale.csv", csv_text(HEADER, rows))
     if args.docs:
-        write_docs(rows, run, machine, commit)
+        write_docs(rows, run)
     print("\n".join(lines))
     return 0
 
