@@ -253,7 +253,8 @@ def test_bad_input_errors_name_what_was_expected(setup: dict, tmp_path: Path, ca
     prepare_sequence(open_odometry(setup["kitti"], "05"), setup["priors"] / "stereo_05.mat", other,
                      size=(24, 40), progress=False, workers=1)
     err = _error(capsys, [*base, "--data", str(other / "05")])
-    assert "24x40" in err and f"expects {SIZE[0]}x{SIZE[1]}" in err and f"--size {SIZE[0]}x{SIZE[1]}" in err
+    size = f"{SIZE[0]}x{SIZE[1]}"
+    assert "24x40" in err and f"trained at {size}" in err and f"--size {size}" in err
 
     err = _error(capsys, [*base, "--kitti-odometry", str(setup["kitti"]), "--sequence", "05"])
     assert "--prior FILE is required" in err
