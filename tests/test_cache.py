@@ -321,3 +321,17 @@ def test_prepare_rebuilds_a_damaged_cache_instead_of_reusing_it(tmp_path: Path, 
     cache = load_cache(path)
     np.testing.assert_array_equal(cache.left, good)
     np.testing.assert_allclose(cache.prior, seq.poses)
+
+
+def test_a_prior_of_the_frame_range_alone_is_that_range(tmp_path: Path) -> None:
+    """`vo --frames 1:4` writes the range's 3 poses: `prepare --frames 1:4` takes them as the range's
+    prior, as it takes the same frames cut from a prior of the whole sequence."""
+    written = write_odometry(tmp_path / "kitti", n=6)
+    seq = open_odometry(tmp_path / "kitti", "00")
+    whole = written["poses"]
+    from_whole = prepare_sequence(seq, whole, tmp_path / "a", frames=(1, 4), size=(10, 16), progress=False)
+    from_range = prepare_sequence(seq, whole[1:4], tmp_path / "b", frames=(1, 4), size=(10, 16),
+                                  progress=False)
+    np.testing.assert_array_equal(load_cache(from_range).prior, load_cache(from_whole).prior)
+    with pytest.raises(ValueError, match=r"2 prior poses for 6 frames; .* or one per frame of the range 1:4"):
+        prepare_sequence(seq, whole[1:3], tmp_path / "c", frames=(1, 4), size=(10, 16), progress=False)

@@ -117,8 +117,8 @@ def test_options_that_cannot_take_effect_are_refused_before_jax(
         # prepare, vo, synth (Why 7, 8, 9)
         "05: {r}/05.txt: 3 prior poses for 6 frames": [*prepare, "--sequence", "00", "05", "--prior",
                                                 inputs["root"] / "{seq}.txt"],
-        "of the whole sequence, also with frames 0:3": [*prepare, "--sequence", "00", "--frames", "0:3",
-                                                         "--prior", inputs["short"]],
+        "3 prior poses for 6 frames; expected one pose per frame, or one per frame of the range 0:4": [
+            *prepare, "--sequence", "00", "--frames", "0:4", "--prior", inputs["short"]],
         "--disparity-offset 1e+06: the images of 00 are 64 px wide": [
             *prepare, "--sequence", "00", "--prior", inputs["root"] / "prior_00.txt",
             "--disparity-offset", "1e6"],

@@ -62,8 +62,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--start", choices=("identity", "gt"), default="identity",
                         help="first pose of the written trajectory")
     parser.add_argument("--frames", type=frame_range, metavar="START:STOP",
-                        help="use only these frames (the trajectory then holds their poses only; a prior "
-                        "for `prepare`/`correct` holds one pose per frame of the whole sequence)")
+                        help="use only these frames (the trajectory then holds their poses only, which "
+                        "`prepare --frames` with the same range takes as that range's prior)")
     parser.add_argument("--disparity-offset", type=float, default=0.0, metavar="PX",
                         help="disparity offset (px added to measured disparities); the starting value "
                              "of the online estimate unless --fixed-offset")

@@ -290,11 +290,11 @@ def _load_inputs(
     gt_all = sequence.poses
     if gt_source is not None:
         gt_all = _load_ground_truth(gt_source, n_all)
-    prior_all = load_prior(prior, n_all, prior_format)
-
     start, stop = frames if frames is not None else (0, n_all)
+    prior_all = load_prior(prior, n_all, prior_format, frames=(start, stop))
     sequence = sequence.select(start, stop)
-    prior_poses = prior_all[start:stop]
+    # The whole sequence's prior, or that of the range alone (load_prior accepts both).
+    prior_poses = prior_all[start:stop] if prior_all.shape[0] == n_all else prior_all
     gt = None if gt_all is None else gt_all[start:stop]
     if mono_rescale:
         if gt is None:

@@ -31,7 +31,9 @@ def load_prior(
     the ss-DPC-Net ``.mat`` layout (its ``poses_est``). ``format`` (``kitti``|``tum``|``mat``)
     overrides the guess from the extension. Raises ``ValueError`` naming the source when the
     count differs from ``n_frames`` or a pose is not rigid. ``frames``: the ``(start, stop)`` range
-    that will be cut from the sequence, named in the error when the prior holds only that range.
+    that will be cut from the sequence; a prior of exactly that many poses (what ``dpc-jax vo
+    --frames START:STOP`` writes) is taken as the range's own and returned as it is, shorter than
+    ``n_frames``.
     """
     if isinstance(source, np.ndarray):
         label = "prior array"
@@ -42,14 +44,12 @@ def load_prior(
         if format is not None and format not in poses_io.FORMATS:
             raise ValueError(f"{path}: unknown prior format {format!r}; expected one of {poses_io.FORMATS}")
         poses = poses_io.read_trajectory(path, format)
+    if frames is not None and poses.shape[0] == frames[1] - frames[0]:
+        return poses
     if poses.shape[0] != n_frames:
-        hint = ""
-        if frames is not None and poses.shape[0] == frames[1] - frames[0]:
-            hint = (f" of the whole sequence, also with frames {frames[0]}:{frames[1]} (the range is cut "
-                    "after the prior is read: give the trajectory of every frame, such as `dpc-jax vo` "
-                    "writes without --frames)")
+        also = "" if frames is None else f", or one per frame of the range {frames[0]}:{frames[1]}"
         raise ValueError(
-            f"{label}: {poses.shape[0]} prior poses for {n_frames} frames; expected one pose per frame{hint}"
+            f"{label}: {poses.shape[0]} prior poses for {n_frames} frames; expected one pose per frame{also}"
         )
     return poses
 
