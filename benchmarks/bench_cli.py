@@ -5,7 +5,8 @@
 Three commands, each run as a new process and timed by the wall clock from start to exit:
 
 * ``dpc-jax evaluate --mat FILE --json -`` with an empty compilation cache (``cold``: the first run);
-* the same with the cache the cold run filled (``warm``: every later run; ``dpc_jax.compilation_cache``);
+* the same with the cache the cold run filled (``warm``: every later run;
+  ``dpc_jax.runtime.compilation_cache``);
 * the same metrics by the float64 loops of ``tests/reference_metrics.py`` (``float64 loop``), this
   script run with ``--reference-loop FILE``: it reads the file, re-anchors the estimate as
   ``evaluate`` does and prints the same JSON summary, without JAX.

@@ -20,7 +20,7 @@ from machine import this_cpu
 from dpc_jax.geometry.lie import se3_exp, se3_log
 from dpc_jax.geometry.ssim import ssim_loss
 from dpc_jax.geometry.warp import inverse_warp
-from dpc_jax.hugepages import reexec_with_huge_pages
+from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
 
 def timeit(fn: Callable[[], object], repeats: int) -> tuple[float, float]:

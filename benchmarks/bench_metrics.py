@@ -28,7 +28,7 @@ from machine import this_cpu  # noqa: E402
 
 from dpc_jax.data.poses_io import read_mat  # noqa: E402
 from dpc_jax.eval import metrics  # noqa: E402
-from dpc_jax.hugepages import reexec_with_huge_pages  # noqa: E402
+from dpc_jax.runtime.hugepages import reexec_with_huge_pages  # noqa: E402
 
 DEFAULT_MAT = ROOT.parent / "shared" / "data" / "kitti-libviso2" / "stereo_00.mat"
 

@@ -7,7 +7,7 @@ Usage::
         [--repeats 10] [--breakdown] [--profile DIR]
 
 * ``inference``: jitted eval-mode forward of a batch by the model prepared once
-  (``dpc_jax.engine.backend.prepare_inference``), as ``dpc_jax.inference.predict_sequence`` runs one.
+  (``dpc_jax.engine.backend.prepare_for_backend``), as ``dpc_jax.engine.predict.predict_sequence`` runs one.
 * ``train step``: the library's own jitted, state-donating step (``dpc_jax.training.steps``, the
   ``REFERENCE`` settings, as ``bench_train.py`` runs it): train-mode forward, the loss with its
   warps, backward, the optimizer update, new parameters and BatchNorm statistics.
@@ -16,7 +16,7 @@ Usage::
 * ``--profile DIR`` writes a ``jax.profiler`` trace of a few training steps (TensorBoard /
   Perfetto). Eigen convolutions run asynchronously: their trace events cover only the launch.
 
-The script restarts itself with glibc's huge-page malloc (``dpc_jax.hugepages``), as the
+The script restarts itself with glibc's huge-page malloc (``dpc_jax.runtime.hugepages``), as the
 ``dpc-jax`` command does; ``DPC_JAX_HUGE_PAGES=0`` measures without it.
 
 Every function is compiled and called once more before timing; the table reports the median, mean
@@ -41,12 +41,12 @@ from bench_train import train_step_runner
 from flax import nnx
 from machine import this_cpu
 
-from dpc_jax.engine.backend import compiler_options, prepare_inference
-from dpc_jax.hugepages import reexec_with_huge_pages
+from dpc_jax.engine.backend import compiler_options, prepare_for_backend
 from dpc_jax.nn.batch import Batch
-from dpc_jax.nn.config import PRESETS, SSDPCLossConfig, StereoDPCLossConfig
 from dpc_jax.nn.losses import ss_dpc_loss, stereo_dpc_loss
+from dpc_jax.nn.model_config import PRESETS, SSDPCLossConfig, StereoDPCLossConfig
 from dpc_jax.nn.models import create_model
+from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
 
 def timeit(fn: Callable[..., object], args: tuple, repeats: int) -> tuple[float, float, float, float]:
@@ -102,7 +102,7 @@ def build(method: str, preset: str, hw: tuple[int, int]) -> dict[str, Callable]:
 
     # As dpc_jax.engine.predict runs a sequence: the model prepared once, its state passed as its
     # flat list of arrays, then batches.
-    inference_graphdef, prepared_state = prepare_inference(graphdef, nnx.merge_state(params, stats))
+    inference_graphdef, prepared_state = prepare_for_backend(graphdef, nnx.merge_state(params, stats))
     prepared, treedef = jax.tree.flatten(prepared_state)
 
     @functools.partial(jax.jit, compiler_options=compiler_options(method, training=False))

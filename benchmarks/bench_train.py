@@ -23,13 +23,13 @@ import numpy as np
 from machine import this_cpu
 
 from dpc_jax.engine import parallel
-from dpc_jax.hugepages import reexec_with_huge_pages
 from dpc_jax.nn.batch import Batch
-from dpc_jax.nn.config import PRESETS
+from dpc_jax.nn.model_config import PRESETS
 from dpc_jax.nn.models import create_model
-from dpc_jax.training.config import REFERENCE, TrainConfig
+from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 from dpc_jax.training.optim import create_train_state, make_optimizer
 from dpc_jax.training.steps import make_train_step
+from dpc_jax.training.train_config import REFERENCE, TrainConfig
 
 
 def random_batch(batch: int, size: tuple[int, int], flow: bool, seed: int = 0) -> Batch:

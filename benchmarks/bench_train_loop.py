@@ -15,8 +15,8 @@ threads, the first batch), and beside it the rate the loop itself reports (``sam
 ``metrics.csv``: from its first step's end to its last). Validation and checkpoints are not part of
 the epoch measured.
 
-Correction: frames/s of ``dpc_jax.correct.correct_cache`` over a whole sequence (reading the cache,
-the prediction, Δ — for Stereo DPC with the StereoSGBM depth prepared with the cache, as ``dpc-jax
+Correction: frames/s of ``dpc_jax.correction.corrector.correct_cache`` over a whole sequence (reading the
+cache, the prediction, Δ — for Stereo DPC with the StereoSGBM depth prepared with the cache, as ``dpc-jax
 prepare`` writes it — the acceptance test, the trajectories and their evaluation) against frames/s
 of the isolated inference step over the sequence's batches, all on the device before the clock
 starts, alternating likewise. And batches/s of the input pipeline alone (the training loader with
@@ -51,7 +51,7 @@ import jax
 from bench_data import write_random_cache
 from machine import this_cpu
 
-from dpc_jax.hugepages import reexec_with_huge_pages
+from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
 METHODS = ("stereo_dpc", "ss_dpc")
 
@@ -80,15 +80,15 @@ def bench_method(
     import numpy as np
     from flax import nnx
 
-    from dpc_jax.correct import correct_cache, default_acceptance_depth
+    from dpc_jax.correction.corrector import correct_cache, default_acceptance_depth
+    from dpc_jax.correction.inference import TrainedRun
     from dpc_jax.data.pipeline import iterate_sequence
     from dpc_jax.data.sequence_cache import load_cache
-    from dpc_jax.engine.backend import prepare_inference
+    from dpc_jax.engine.backend import prepare_for_backend
     from dpc_jax.engine.predict import predict_step, stereo_depth_of
-    from dpc_jax.inference import TrainedRun
     from dpc_jax.training import loop, parallel
-    from dpc_jax.training.config import TrainConfig
     from dpc_jax.training.steps import make_train_step
+    from dpc_jax.training.train_config import TrainConfig
 
     config = TrainConfig(
         method=method, preset=args.preset, image_size=args.size, batch_size=args.batch,
@@ -188,7 +188,7 @@ def bench_method(
     cache = load_cache(root / corrected)
     pairs = len(cache) - 1
     size = min(args.batch, pairs)
-    prepared_graphdef, prepared_state = prepare_inference(run_graphdef, run_state)
+    prepared_graphdef, prepared_state = prepare_for_backend(run_graphdef, run_state)
     prepared_leaves, treedef = jax.tree.flatten(prepared_state)
     predict = predict_step(None, prepared_graphdef, treedef, config.loss_config())
     # The same inputs the correction's step gets: the cache's stereo depth where its test uses it,

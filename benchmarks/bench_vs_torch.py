@@ -378,7 +378,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":
     if "--ours" in sys.argv:
-        from dpc_jax.hugepages import reexec_with_huge_pages
+        from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
         reexec_with_huge_pages()
     raise SystemExit(main())

@@ -38,12 +38,12 @@ from typing import Any
 
 from machine import this_cpu
 
-from dpc_jax._io import atomic_write
+from dpc_jax.report.pages import commit, read_block, replace_block
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs" / "performance.md"
 README = ROOT / "README.md"
-BEGIN, END = "<!-- performance:begin -->", "<!-- performance:end -->"
+BLOCK = "performance"  # docs/performance.md and the README: <!-- performance:begin --> … :end -->
 QUICK = ", quick"  # after the date of a row measured with --quick
 
 
@@ -305,15 +305,6 @@ def measure(names: Sequence[str], quick: bool) -> list[Row]:
     return rows
 
 
-def git_commit() -> str:
-    """``git rev-parse --short HEAD``, with ``-dirty`` when tracked files differ from it."""
-    sha = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
-                         check=True).stdout.strip()
-    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT,
-                           capture_output=True, text=True, check=True).stdout.strip()
-    return f"{sha}-dirty" if dirty else sha
-
-
 # ------------------------------------------------------------------------------------------ tables
 
 FULL_HEADER = ("what", "shape", "figure", "command", "machine", "commit", "date")
@@ -379,20 +370,6 @@ def benchmark_of(row: Row) -> str:
     return found[1] if found else ""
 
 
-def between_markers(text: str, path: Path) -> tuple[str, str, str]:
-    """``text`` split into what precedes the begin marker (included), the block, and the rest."""
-    start, end = text.find(BEGIN), text.find(END)
-    if start < 0 or end < start:
-        raise SystemExit(f"performance_table: {path} lacks the markers {BEGIN} … {END}")
-    head = start + len(BEGIN)
-    return text[:head], text[head:end], text[end:]
-
-
-def replace_block(path: Path, block: str) -> None:
-    before, _, after = between_markers(path.read_text(encoding="utf-8"), path)
-    atomic_write(path, f"{before}\n{block}\n{after}")
-
-
 def merge(previous: Sequence[Row], measured: Sequence[Row]) -> list[Row]:
     """The new rows, with the previous rows of benchmarks not run this time, in benchmark order."""
     fresh = {benchmark_of(r) for r in measured}
@@ -411,8 +388,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--docs", type=Path, default=DOCS, help="the full table's file (%(default)s)")
     parser.add_argument("--readme", type=Path, default=README, help="the short table's file (%(default)s)")
     args = parser.parse_args(argv)
-    for path in (args.docs, args.readme):  # before minutes of benchmarks, not after
-        between_markers(path.read_text(encoding="utf-8"), path)
+    try:  # before minutes of benchmarks, not after
+        previous = read_block(args.docs, BLOCK)
+        read_block(args.readme, BLOCK)
+    except ValueError as error:
+        raise SystemExit(f"performance_table: {error}") from None
 
     names = args.only or list(BENCHMARKS)
     try:
@@ -420,12 +400,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OutputError as error:
         print(f"performance_table: {error}", file=sys.stderr)
         return 1
-    provenance = {"commit": git_commit(), "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d")}
+    provenance = {"commit": commit(ROOT), "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d")}
     measured = [dataclasses.replace(row, **provenance) for row in measured]
-    _, previous, _ = between_markers(args.docs.read_text(encoding="utf-8"), args.docs)
     rows = merge(parse_full_table(previous), measured)
-    replace_block(args.docs, f"{heading(rows)}\n\n{full_table(rows)}")
-    replace_block(args.readme, f"{heading(rows)}\n\n{short_table(rows)}")
+    replace_block(args.docs, BLOCK, f"{heading(rows)}\n\n{full_table(rows)}")
+    replace_block(args.readme, BLOCK, f"{heading(rows)}\n\n{short_table(rows)}")
     print(full_table(rows))
     return 0
 

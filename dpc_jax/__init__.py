@@ -6,7 +6,7 @@ start without importing JAX, Flax or OpenCV; ``from dpc_jax import se3_exp`` imp
 
 from __future__ import annotations
 
-from dpc_jax._lazy import lazy_getattr
+from dpc_jax.runtime.lazy import lazy_getattr
 
 __version__ = "0.1.0"
 
@@ -18,8 +18,8 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "dpc_jax.geometry.camera": ("scale_intrinsics", "pixel_grid", "backproject", "project"),
     "dpc_jax.geometry.warp": ("bilinear_sample", "inverse_warp", "stereo_warp", "disparity_consistency"),
     "dpc_jax.geometry.ssim": ("ssim_loss",),
-    "dpc_jax.geometry.correction": ("apply_correction", "corrected_trajectory"),
-    "dpc_jax.nn.config": (
+    "dpc_jax.geometry.pose_correction": ("apply_correction", "corrected_trajectory"),
+    "dpc_jax.nn.model_config": (
         "ModelConfig", "PRESETS", "SSDPCLossConfig", "StereoDPCLossConfig", "SupervisedLossConfig",
     ),
     "dpc_jax.nn.losses": (
@@ -52,16 +52,16 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "dpc_jax.nn.models": (
         "MonoDPC", "StereoDPC", "create_model", "count_parameters", "prepare_inference",
     ),
-    "dpc_jax.training.config": ("TrainConfig", "REFERENCE"),
+    "dpc_jax.training.train_config": ("TrainConfig", "REFERENCE"),
     "dpc_jax.training.optim": ("make_optimizer", "create_train_state", "learning_rate_schedule"),
     "dpc_jax.training.steps": ("make_train_step", "NonFiniteLossError"),
     "dpc_jax.training.checkpoints": ("Checkpoints",),
-    "dpc_jax.training.parallel": ("make_mesh", "shard_batch", "replicate"),
-    "dpc_jax.hugepages": ("reexec_with_huge_pages", "huge_pages_requested"),
+    "dpc_jax.engine.parallel": ("make_mesh", "shard_batch", "replicate"),
+    "dpc_jax.runtime.hugepages": ("reexec_with_huge_pages", "huge_pages_requested"),
     "dpc_jax.config": ("ConfigError", "load_file"),
-    "dpc_jax.inference": ("load_run", "predict_sequence", "predict_corrections", "TrainedRun"),
-    "dpc_jax.acceptance": ("acceptance_test", "Acceptance"),
-    "dpc_jax.correct": ("correct_cache", "write_trajectory"),
+    "dpc_jax.correction.inference": ("load_run", "predict_sequence", "predict_corrections", "TrainedRun"),
+    "dpc_jax.correction.acceptance": ("acceptance_test", "Acceptance"),
+    "dpc_jax.correction.corrector": ("correct_cache", "write_trajectory"),
     "dpc_jax.pipelines.demo": ("DemoConfig", "run_demo"),
 }
 __all__ = ["__version__", *(name for names in _EXPORTS.values() for name in names)]

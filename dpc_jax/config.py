@@ -1,7 +1,7 @@
 """Configuration as data: dataclasses built from dicts and config files, with strict checking.
 
-A run is described by one frozen dataclass (``dpc_jax.training.config.TrainConfig``). It comes from a
-Python file ``experiments/configs/NAME.py`` that defines ``CONFIG`` — either the dataclass itself
+A run is described by one frozen dataclass (``dpc_jax.training.train_config.TrainConfig``). It comes from a
+Python file ``experiments/protocols/configs/NAME.py`` that defines ``CONFIG`` — either the dataclass itself
 or a plain ``dict`` of its fields — and is stored beside the checkpoints as JSON, so that a
 resumed run can prove it continues the same experiment.
 
@@ -131,8 +131,9 @@ def diff(a: Any, b: Any) -> list[str]:
     ]
 
 
-def load_file(path: str | os.PathLike, cls: type[T]) -> T:
-    """Load ``CONFIG`` from the Python file ``path``: an instance of ``cls`` or a dict of its fields.
+def load_file(path: str | os.PathLike, cls: type[T], name: str = "CONFIG") -> T:
+    """Load ``CONFIG`` (or the variable ``name``) from the Python file ``path``: an instance of ``cls``
+    or a dict of its fields.
 
     A ``.json`` file (as written by ``save_json``) is accepted too. A file that is not valid Python,
     or whose code raises (a misspelt name, a failed import, a dataclass's own check), is a
@@ -160,14 +161,14 @@ def load_file(path: str | os.PathLike, cls: type[T]) -> T:
         message = str(error).splitlines()[0] if str(error) else ""
         raise ConfigError(f"{where}: running it raised {type(error).__name__}"
                           + (f": {message}" if message else "")) from None
-    if "CONFIG" not in namespace:
-        raise ConfigError(f"{path}: defines no CONFIG (expected CONFIG = {cls.__name__}(...) or a dict)")
-    config = namespace["CONFIG"]
+    if name not in namespace:
+        raise ConfigError(f"{path}: defines no {name} (expected {name} = {cls.__name__}(...) or a dict)")
+    config = namespace[name]
     if isinstance(config, cls):
         return config
     if isinstance(config, Mapping):
-        return from_dict(cls, config, where=str(path))
-    raise ConfigError(f"{path}: CONFIG must be a {cls.__name__} or a dict, got {type(config).__name__}")
+        return from_dict(cls, config, where=f"{path}: {name}" if name != "CONFIG" else str(path))
+    raise ConfigError(f"{path}: {name} must be a {cls.__name__} or a dict, got {type(config).__name__}")
 
 
 def save_json(path: str | os.PathLike, data: Any) -> None:

@@ -19,7 +19,7 @@ from pathlib import Path
 import jax
 import pytest
 
-from dpc_jax.compilation_cache import OPT_OUT
+from dpc_jax.runtime.compilation_cache import OPT_OUT
 
 # The `dpc-jax` processes the tests start would keep their compiled programs in the user's cache
 # folder: the tests leave it alone (those of the cache itself choose a temporary folder).

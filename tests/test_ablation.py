@@ -1,4 +1,4 @@
-"""experiments/ablation.py: the rows start at the published choices and end at the demo's defaults."""
+"""experiments/studies/ablation.py: the rows start at the published choices and end at the demo's defaults."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ from pathlib import Path
 
 from dpc_jax import config as config_lib
 from dpc_jax.pipelines.demo_config import TRAINING, DemoConfig
-from dpc_jax.training.config import REFERENCE, TrainConfig
+from dpc_jax.training.train_config import REFERENCE, TrainConfig
 
-ABLATION = Path(__file__).resolve().parents[1] / "experiments" / "ablation.py"
+ABLATION = Path(__file__).resolve().parents[1] / "experiments" / "studies" / "ablation.py"
 
 
 def _ablation():

@@ -8,13 +8,13 @@ import math
 import numpy as np
 import pytest
 
-from dpc_jax.acceptance import acceptance_test, component_test, forced
+from dpc_jax.correction.acceptance import acceptance_test, component_test, forced
 from dpc_jax.data.priors import log_poses
 from dpc_jax.geometry.lie import se3_exp
 from dpc_jax.geometry.poses import relative_poses
 from dpc_jax.nn.batch import Batch
-from dpc_jax.nn.config import SSDPCLossConfig, StereoDPCLossConfig
 from dpc_jax.nn.losses import correction_deltas, temporal_pair_errors
+from dpc_jax.nn.model_config import SSDPCLossConfig, StereoDPCLossConfig
 from dpc_jax.nn.outputs import BranchOutputs, DPCOutputs
 from dpc_jax.synth import SynthConfig, render_sequence
 
@@ -201,7 +201,8 @@ def test_on_real_frames_a_planted_correction_is_accepted_when_it_helps_and_refus
 
 
 def test_component_masks_and_names() -> None:
-    from dpc_jax.acceptance import component_mask, rotation_axes_words, rotation_component
+    from dpc_jax.correction.acceptance import component_mask, rotation_component
+    from dpc_jax.report.correction import rotation_axes_words
 
     assert rotation_component("xz") == "rotation_xz" and rotation_component("xyz") == "rotation"
     np.testing.assert_array_equal(component_mask("rotation_xz"), [0, 0, 0, 1, 0, 1])
@@ -216,7 +217,7 @@ def test_component_masks_and_names() -> None:
 
 def _refined(single: dict[str, np.ndarray], subset: np.ndarray | None = None):
     """``refine_rotation`` of a passed rotation with these single-axis Δ; records the subsets asked for."""
-    from dpc_jax.acceptance import refine_rotation
+    from dpc_jax.correction.acceptance import refine_rotation
 
     good = -np.linspace(1, 12, 12) * 1e-4
     asked: list[str] = []
@@ -258,7 +259,7 @@ def test_on_real_frames_a_spurious_axis_is_dropped_and_the_helpful_one_kept(real
     """19 real pairs, SGBM depth: a prior with a planted 2 mrad yaw error per pair, and a proposal that
     undoes it but adds a spurious 2 mrad pitch. The per-axis Δ of ``correction_deltas`` equals Δ of
     the axis alone, the rotation about y alone is kept, the pitch dropped."""
-    from dpc_jax.acceptance import refine_rotation
+    from dpc_jax.correction.acceptance import refine_rotation
 
     batch, outputs, valid, steps = real_pairs
     n = len(steps)

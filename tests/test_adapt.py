@@ -9,18 +9,18 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from dpc_jax.adapt import AdaptConfig, adapt, save_adapted
+from dpc_jax.correction.adapt import AdaptConfig, adapt, save_adapted
+from dpc_jax.correction.inference import TrainedRun, load_run, run_prediction
 from dpc_jax.data.cache import prepare_sequence
 from dpc_jax.data.holdout import adaptable_pairs, held_out_pairs
 from dpc_jax.data.kitti import open_odometry
 from dpc_jax.data.sequence_cache import load_cache
 from dpc_jax.geometry.lie import se3_exp
 from dpc_jax.geometry.poses import compose, relative_poses
-from dpc_jax.inference import TrainedRun, load_run, run_prediction
 from dpc_jax.nn.models import create_model
 from dpc_jax.synth import SynthConfig
 from dpc_jax.synth.writer import write_sequence
-from dpc_jax.training.config import TrainConfig
+from dpc_jax.training.train_config import TrainConfig
 
 SIZE = (32, 80)
 YAW_BIAS = 4e-3  # rad per frame: the prior turns this much less than the truth

@@ -81,7 +81,7 @@ def test_evaluate_refuses_arguments_that_cannot_take_effect() -> None:
 
 
 def test_corrected_trajectory_refuses_nan_corrections_and_bad_priors() -> None:
-    from dpc_jax.geometry.correction import corrected_trajectory
+    from dpc_jax.geometry.pose_correction import corrected_trajectory
 
     prior = fixture_poses(N, seed=3, step=1.0)
     xi = np.zeros((N - 1, 6))

@@ -29,13 +29,13 @@ from test_kitti import fixture_poses, write_odometry
 
 from dpc_jax import _io
 from dpc_jax._io import OutputSet, atomic_write, remove_stale
-from dpc_jax._progress import LineProgress
 from dpc_jax.cli import build_parser, main
 from dpc_jax.cli._common import Formatter, progress_mode, restore_problem
 from dpc_jax.data.cache import prepare_sequence
 from dpc_jax.data.kitti import open_odometry
 from dpc_jax.data.poses_io import read_trajectory, write_kitti_poses, write_tum
 from dpc_jax.data.sequence_cache import CacheError, load_cache
+from dpc_jax.runtime.progress import LineProgress
 
 ROOT = Path(__file__).resolve().parents[1]
 N_POSES = 30
@@ -545,7 +545,7 @@ def test_train_on_a_truncated_cache_is_one_line(
 def test_train_checks_the_caches_it_reads_and_only_those(data: dict[str, Path], tmp_path: Path) -> None:
     from dpc_jax.cli.train import _cache_problem
     from dpc_jax.config import load_file
-    from dpc_jax.training.config import TrainConfig
+    from dpc_jax.training.train_config import TrainConfig
 
     root = tmp_path / "cache"
     for name in ("00", "05", "07", "09"):
@@ -862,8 +862,8 @@ def test_help_states_defaults_of_zero() -> None:
 
 def test_train_help_cites_configs_that_exist() -> None:
     text = _subparsers()["train"].format_help()
-    cited = set(re.findall(r"experiments/configs/[a-z0-9_]+\.py", text))  # not the NAME.py placeholder
-    assert "experiments/configs/own_data.py" in cited
+    cited = set(re.findall(r"experiments/\w+/configs/[a-z0-9_]+\.py", text))  # not the NAME.py placeholder
+    assert "experiments/protocols/configs/own_data.py" in cited
     assert all((ROOT / path).is_file() for path in cited), cited
 
 
@@ -871,10 +871,11 @@ def test_own_data_config_is_a_train_config_and_states_its_command() -> None:
     from dpc_jax import TrainConfig
     from dpc_jax.config import load_file
 
-    path = ROOT / "experiments" / "configs" / "own_data.py"
+    path = ROOT / "experiments" / "protocols" / "configs" / "own_data.py"
     config = load_file(path, TrainConfig)
     doc = path.read_text().split('"""')[1]
-    assert "dpc-jax prepare" in doc and "dpc-jax train --config experiments/configs/own_data.py" in doc
+    assert "dpc-jax prepare" in doc
+    assert "dpc-jax train --config experiments/protocols/configs/own_data.py" in doc
     assert config.cache_root and config.validation_sequences
 
 

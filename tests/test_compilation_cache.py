@@ -1,4 +1,4 @@
-"""dpc_jax.compilation_cache: where the command line keeps compiled programs, the opt-out, and a
+"""dpc_jax.runtime.compilation_cache: where the command line keeps compiled programs, the opt-out, and a
 second ``dpc-jax evaluate`` that compiles nothing and prints the same numbers."""
 
 from __future__ import annotations
@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 from test_kitti import fixture_poses
 
-from dpc_jax import compilation_cache
-from dpc_jax.compilation_cache import OPT_OUT, cache_folder, use_compilation_cache
 from dpc_jax.data.poses_io import read_trajectory, write_kitti_poses
 from dpc_jax.eval.evaluation import evaluate
+from dpc_jax.runtime import compilation_cache
+from dpc_jax.runtime.compilation_cache import OPT_OUT, cache_folder, use_compilation_cache
 
 
 def test_cache_folder_follows_the_variable_then_xdg_then_home(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -10,7 +10,7 @@ import pytest
 
 from dpc_jax import config as config_lib
 from dpc_jax.config import ConfigError
-from dpc_jax.training.config import TrainConfig
+from dpc_jax.training.train_config import TrainConfig
 
 
 @dataclass(frozen=True)
@@ -81,7 +81,7 @@ def test_train_config_round_trip(tmp_path: Path) -> None:
     assert config.model_config().fc_activation == "relu"
     assert config.model_config().dropout == config.dropout
     (tmp_path / "run.py").write_text(
-        "from dpc_jax.training.config import TrainConfig\n"
+        "from dpc_jax.training.train_config import TrainConfig\n"
         "CONFIG = TrainConfig(preset='small', validation_sequences=('09',),\n"
         "                     model={'fc_activation': 'relu'})\n"
     )

@@ -1,4 +1,5 @@
-"""``dpc_jax.correct`` and ``dpc-jax correct`` on a tiny stored run, against a float64 numpy reference."""
+"""``dpc_jax.correction.corrector`` and ``dpc-jax correct`` on a tiny stored run, against a float64 numpy
+reference."""
 
 from __future__ import annotations
 
@@ -38,8 +39,8 @@ def setup(tmp_path_factory: pytest.TempPathFactory) -> dict:
     from dpc_jax.data.kitti import open_odometry
     from dpc_jax.nn.models import create_model
     from dpc_jax.training.checkpoints import Checkpoints
-    from dpc_jax.training.config import REFERENCE, TrainConfig
     from dpc_jax.training.optim import create_train_state, make_optimizer
+    from dpc_jax.training.train_config import REFERENCE, TrainConfig
 
     tmp = tmp_path_factory.mktemp("correct")
     kitti = dpc_protocol.write_fake_odometry(tmp / "kitti", ["00", "05"], frames=FRAMES,
@@ -66,13 +67,13 @@ def setup(tmp_path_factory: pytest.TempPathFactory) -> dict:
 
 @pytest.fixture(scope="module")
 def run(setup: dict):
-    from dpc_jax.inference import load_run
+    from dpc_jax.correction.inference import load_run
 
     return load_run(setup["run"], "gradient")
 
 
 def test_selection_restores_the_chosen_epoch(setup: dict, run) -> None:
-    from dpc_jax.inference import load_run
+    from dpc_jax.correction.inference import load_run
 
     assert (run.epoch, run.selection, run.improves_on_prior) == (1, "gradient", True)
     assert load_run(setup["run"], "loop").epoch == 2
@@ -116,7 +117,7 @@ def _compose(xi: np.ndarray, prior: np.ndarray, first: np.ndarray, rotation_only
 
 @pytest.mark.parametrize("rotation_only", [False, True])
 def test_corrected_trajectory_equals_float64_reference(setup: dict, run, rotation_only: bool) -> None:
-    from dpc_jax.correct import correct_cache
+    from dpc_jax.correction.corrector import correct_cache
     from dpc_jax.data.sequence_cache import load_cache
 
     cache = load_cache(setup["cache"] / "05")
@@ -135,7 +136,7 @@ def test_corrected_trajectory_equals_float64_reference(setup: dict, run, rotatio
 
 def test_rotation_only_keeps_the_prior_translation_steps(setup: dict, run) -> None:
     """T* = Exp([0, φ]) T_vo = [R_c R_vo, R_c t_vo]: each step keeps its length and t* = R* R_voᵀ t_vo."""
-    from dpc_jax.correct import correct_cache
+    from dpc_jax.correction.corrector import correct_cache
 
     rot = correct_cache(run, setup["cache"] / "05", rotation_only=True, force=True)
     full = correct_cache(run, setup["cache"] / "05", rotation_only=False, force=True)
@@ -154,7 +155,7 @@ def test_rotation_only_keeps_the_prior_translation_steps(setup: dict, run) -> No
 def test_composes_from_the_first_prior_pose_without_ground_truth(setup: dict, run) -> None:
     import dataclasses
 
-    from dpc_jax.correct import correct_cache
+    from dpc_jax.correction.corrector import correct_cache
     from dpc_jax.data.sequence_cache import load_cache
 
     cache = load_cache(setup["cache"] / "05")
@@ -170,9 +171,9 @@ def test_composes_from_the_first_prior_pose_without_ground_truth(setup: dict, ru
 
 def test_cli_writes_trajectory_that_reads_back_and_a_report(setup: dict, tmp_path: Path, capsys) -> None:
     from dpc_jax.cli import main
-    from dpc_jax.correct import correct_cache
+    from dpc_jax.correction.corrector import correct_cache
+    from dpc_jax.correction.inference import load_run
     from dpc_jax.data.poses_io import read_trajectory, read_tum
-    from dpc_jax.inference import load_run
 
     expected = correct_cache(load_run(setup["run"], "gradient"), setup["cache"] / "05", force=True).corrected
     out = tmp_path / "corrected.txt"
@@ -216,8 +217,8 @@ def test_cli_prepares_raw_input_and_writes_kept_frames(setup: dict, tmp_path: Pa
     np.testing.assert_allclose(poses[0], cache.gt[0], atol=1e-12)
 
     # A full-length prior is accepted for a cache with fewer frames: the cached frames are taken.
-    from dpc_jax.correct import prior_for_cache
     from dpc_jax.data.poses_io import read_mat
+    from dpc_jax.data.priors import prior_for_cache
 
     _, full = read_mat(setup["priors"] / "stereo_05.mat")
     np.testing.assert_allclose(prior_for_cache(cache, full), full[cache.indices], atol=1e-12)
@@ -270,10 +271,10 @@ def test_an_untrained_network_leaves_the_prior_unchanged(setup: dict) -> None:
     from flax import nnx
 
     from dpc_jax.data.sequence_cache import load_cache
-    from dpc_jax.geometry.correction import corrected_trajectory
-    from dpc_jax.inference import predict_sequence
+    from dpc_jax.engine.predict import predict_sequence
+    from dpc_jax.geometry.pose_correction import corrected_trajectory
     from dpc_jax.nn.models import create_model, set_prior_statistics
-    from dpc_jax.training.config import TrainConfig
+    from dpc_jax.training.train_config import TrainConfig
 
     config = TrainConfig(method="stereo_dpc", **dpc_protocol.SMOKE, validation_sequences=("05",))
     cache = load_cache(setup["cache"] / "05")
@@ -295,10 +296,10 @@ def test_cli_keeps_the_prior_when_no_epoch_beats_it_and_applies_with_force(
     import json
 
     from dpc_jax.cli import main
-    from dpc_jax.correct import correct_cache
+    from dpc_jax.correction.corrector import correct_cache
+    from dpc_jax.correction.inference import load_run
     from dpc_jax.data.poses_io import read_trajectory
     from dpc_jax.data.sequence_cache import load_cache
-    from dpc_jax.inference import load_run
 
     cache = load_cache(setup["cache"] / "05")
     base = ["correct", "--checkpoint", str(setup["flat"]), "--data", str(setup["cache"] / "05"),
@@ -323,7 +324,7 @@ def test_cli_keeps_the_prior_when_no_epoch_beats_it_and_applies_with_force(
 
 def test_the_decision_follows_the_test_on_the_sequence(setup: dict, run) -> None:
     """Whatever the test decides, the final trajectory is the prior, the rotations or the full proposal."""
-    from dpc_jax.correct import correct_cache
+    from dpc_jax.correction.corrector import correct_cache
     from dpc_jax.data.sequence_cache import load_cache
 
     cache = load_cache(setup["cache"] / "05")
@@ -343,10 +344,10 @@ def test_the_decision_follows_the_test_on_the_sequence(setup: dict, run) -> None
 
 def test_cli_adapt_writes_the_adapted_network_that_made_the_trajectory(setup: dict, tmp_path: Path) -> None:
     from dpc_jax.cli import main
-    from dpc_jax.correct import correct_cache
+    from dpc_jax.correction.corrector import correct_cache
+    from dpc_jax.correction.inference import load_run
     from dpc_jax.data.holdout import held_out_pairs
     from dpc_jax.data.poses_io import read_trajectory
-    from dpc_jax.inference import load_run
 
     out = tmp_path / "c.txt"
     assert main(["correct", "--checkpoint", str(setup["run"]), "--data", str(setup["cache"] / "05"),
@@ -363,8 +364,8 @@ def test_cli_adapt_writes_the_adapted_network_that_made_the_trajectory(setup: di
 def _candidate(delta: np.ndarray, tested: np.ndarray | None, label: float):
     """A Correction whose acceptance test ran on ``delta[tested]`` (full and rotation alike); its
     trajectories are filled with ``label`` so the chosen one can be told apart."""
-    from dpc_jax.acceptance import acceptance_test
-    from dpc_jax.correct import Correction
+    from dpc_jax.correction.acceptance import acceptance_test
+    from dpc_jax.correction.corrector import Correction
 
     deltas = {"full": delta, "rotation": delta}
     chosen = slice(None) if tested is None else tested
@@ -380,7 +381,7 @@ def test_choose_takes_the_adapted_correction_only_when_it_beats_the_trained_one(
     """Reference: scipy's one-sided Wilcoxon on the paired differences of Δ on the kept-out pairs."""
     from scipy import stats
 
-    from dpc_jax.correct import choose
+    from dpc_jax.correction.corrector import choose
 
     rng = np.random.default_rng(0)
     n, held = 120, np.arange(2, 120, 3)
@@ -401,7 +402,7 @@ def test_choose_takes_the_adapted_correction_only_when_it_beats_the_trained_one(
 
 
 def test_choose_falls_back_in_order_adapted_trained_prior() -> None:
-    from dpc_jax.correct import choose
+    from dpc_jax.correction.corrector import choose
 
     rng = np.random.default_rng(1)
     n, held = 60, np.arange(2, 60, 5)
@@ -452,7 +453,7 @@ def test_cli_corrects_a_grey_raw_drive(setup: dict, tmp_path: Path) -> None:
 def test_a_stereo_run_measures_delta_with_stereo_sgbm_unless_asked_otherwise(setup: dict, run) -> None:
     """The default acceptance depth of a stereo run is the independent StereoSGBM one, whatever the run's
     ``acceptance_depth`` (here the config's default, ``network``); ``network`` stays reachable."""
-    from dpc_jax.correct import correct_cache, default_acceptance_depth
+    from dpc_jax.correction.corrector import correct_cache, default_acceptance_depth
     from dpc_jax.data.sequence_cache import load_cache
 
     assert run.config.acceptance_depth == "network" and default_acceptance_depth(run) == "sgbm"
@@ -472,10 +473,10 @@ def test_a_stereo_run_measures_delta_with_stereo_sgbm_unless_asked_otherwise(set
 def test_a_judge_measures_the_same_delta_without_the_network(setup: dict, run) -> None:
     """On the cache the network ran on, the judge's Δ (StereoSGBM depth, no network) is the Δ of the
     prediction with that depth: the temporal error needs only images, depth, prior and ξ."""
-    from dpc_jax.acceptance import component_mask
+    from dpc_jax.correction.acceptance import component_mask
+    from dpc_jax.correction.inference import run_prediction
+    from dpc_jax.correction.judge import correction_effects
     from dpc_jax.data.sequence_cache import load_cache
-    from dpc_jax.inference import run_prediction
-    from dpc_jax.judge import correction_effects
 
     cache = load_cache(setup["cache"] / "05")
     prediction = run_prediction(run, cache, acceptance_depth="sgbm")
@@ -505,10 +506,11 @@ def test_a_judge_measures_the_same_delta_without_the_network(setup: dict, run) -
 def test_a_scaled_correction_is_applied_at_its_scale_and_only_if_it_passes(setup: dict, run) -> None:
     import dataclasses
 
-    from dpc_jax.acceptance import Acceptance, acceptance_test, scale_correction
-    from dpc_jax.correct import compose_correction
+    from dpc_jax.correction.acceptance import Acceptance, acceptance_test
+    from dpc_jax.correction.corrector import compose_correction
+    from dpc_jax.correction.judge import scale_correction
     from dpc_jax.data.sequence_cache import load_cache
-    from dpc_jax.geometry.correction import corrected_trajectory
+    from dpc_jax.geometry.pose_correction import corrected_trajectory
 
     good = -np.linspace(1, 12, 12) * 1e-4
     accepted = dataclasses.replace(acceptance_test({"rotation": good}, components=("rotation",)),
@@ -554,8 +556,8 @@ def test_cli_judge_measures_the_test_on_another_cache_of_the_same_frames(setup: 
 def test_a_judged_correction_must_pass_at_both_sizes() -> None:
     import dataclasses
 
-    from dpc_jax.acceptance import acceptance_test
-    from dpc_jax.correct import judged_correction
+    from dpc_jax.correction.acceptance import acceptance_test
+    from dpc_jax.correction.judge import judged_correction
 
     good, bad = -np.linspace(1, 12, 12) * 1e-4, np.linspace(1, 12, 12) * 1e-5
     accepted = dataclasses.replace(acceptance_test({"rotation": good}, components=("rotation",)),

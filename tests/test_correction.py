@@ -7,7 +7,7 @@ import pytest
 from scipy.linalg import expm
 from scipy.spatial.transform import Rotation
 
-from dpc_jax.geometry.correction import apply_correction
+from dpc_jax.geometry.pose_correction import apply_correction
 
 
 def twist_exp(xi: np.ndarray) -> np.ndarray:

@@ -119,7 +119,7 @@ def test_config_checks() -> None:
 
 
 def test_experiment_config_is_the_default() -> None:
-    path = ROOT / "experiments" / "configs" / "synthetic_demo.py"
+    path = ROOT / "experiments" / "studies" / "configs" / "synthetic_demo.py"
     assert config_lib.load_file(path, DemoConfig) == DemoConfig()
 
 

@@ -12,9 +12,9 @@ from scipy.spatial.transform import Rotation
 
 from dpc_jax.cli import main
 from dpc_jax.data.poses_io import write_kitti_poses
-from dpc_jax.eval.diagnosis import diagnose, format_diagnosis
+from dpc_jax.eval.diagnosis import diagnose
 from dpc_jax.eval.evaluation import evaluate
-from dpc_jax.report.evaluation import write_report
+from dpc_jax.report.evaluation import format_diagnosis, write_report
 
 M = 1500  # steps
 BIAS = np.array([4e-3, -2e-3, 1e-3, -1e-4, 3e-4, 2.5e-4])  # [ρ m, φ rad] per step

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import importlib.util
 import json
 from pathlib import Path
@@ -13,13 +14,14 @@ import pytest
 from dpc_jax.pipelines import protocol as dpc_protocol
 
 ROOT = Path(__file__).resolve().parents[1]
-EXPERIMENTS = ROOT / "experiments"
+PROTOCOLS = ROOT / "experiments" / "protocols"
+STUDIES = ROOT / "experiments" / "studies"
 
 FRAMES = 10
 
 
-def _entry(name: str):
-    spec = importlib.util.spec_from_file_location(f"experiment_{name}", EXPERIMENTS / f"{name}.py")
+def _entry(name: str, folder: Path = PROTOCOLS):
+    spec = importlib.util.spec_from_file_location(f"experiment_{name}", folder / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -42,28 +44,54 @@ def _split(workdir: Path, fold: str) -> dict:
     return json.loads((workdir / "runs" / fold / "checkpoints" / "split.json").read_text())
 
 
-@pytest.mark.parametrize("name", ["kitti_stereo_dpc", "kitti_ss_dpc", "kitti_raw_excerpt"])
+@pytest.mark.parametrize("name", ["kitti_stereo_dpc", "kitti_ss_dpc", "kitti_raw_excerpt",
+                                  "kitti_raw_drives"])
 def test_configs_are_train_configs_and_state_their_command(name: str) -> None:
-    config, protocol = dpc_protocol.load_protocol(EXPERIMENTS / "configs" / f"{name}.py")
-    doc = (EXPERIMENTS / "configs" / f"{name}.py").read_text().split('"""')[1]
-    assert f"python experiments/{name}.py" in doc and "Produces" in doc
-    assert protocol["select"] in ("delta", "gradient", "loop", "last")
+    config, protocol = dpc_protocol.load_protocol(PROTOCOLS / "configs" / f"{name}.py")
+    doc = (PROTOCOLS / "configs" / f"{name}.py").read_text().split('"""')[1]
+    assert f"python experiments/protocols/{name}.py" in doc and "Produces" in doc
+    assert protocol.select in ("delta", "gradient", "loop", "last")
     if name == "kitti_stereo_dpc":
         assert config.image_size == (240, 376) and config.epochs == 30 and config.learning_rate == 6e-3
         assert config.lr_halving_epochs == 5 and config.loss["alpha"] == (1.0, 1.0, 1.0, 0.08)
         assert not config.rotation_only and config.method == "stereo_dpc"
     if name in ("kitti_stereo_dpc", "kitti_ss_dpc"):  # the papers' correction head, every field of it
-        from dpc_jax.training.config import REFERENCE
+        from dpc_jax.training.train_config import REFERENCE
 
         assert {k: getattr(config, k) for k in REFERENCE} == REFERENCE
     if name == "kitti_ss_dpc":
         assert config.rotation_only and config.method == "ss_dpc"
         assert config.loss == {"exp_weight": 0.23, "rot_weight": 4.0, "rot_threshold": 0.005}
-        folds = protocol["folds"]
-        assert (folds["stereo_val05"]["validation"], folds["stereo_val05"]["test"]) == ("05", ("00", "02"))
-        assert (folds["stereo_val00"]["validation"], folds["stereo_val00"]["test"]) == ("00", ("05",))
-        assert folds["mono"]["test"] == ("09", "10") and folds["mono"]["prior"] == "mono"
-        assert folds["mono"]["overrides"]["rotation_only"] is False
+        folds = protocol.folds
+        assert (folds["stereo_val05"].validation, folds["stereo_val05"].test) == ("05", ("00", "02"))
+        assert (folds["stereo_val00"].validation, folds["stereo_val00"].test) == ("00", ("05",))
+        assert folds["mono"].test == ("09", "10") and folds["mono"].prior == "mono"
+        assert folds["mono"].overrides["rotation_only"] is False
+    if name == "kitti_raw_drives":  # derived from the excerpt's config: its training and shared settings
+        excerpt, shared = dpc_protocol.load_protocol(PROTOCOLS / "configs" / "kitti_raw_excerpt.py")
+        assert config == dataclasses.replace(excerpt, cache_root="runs/kitti_raw_drives/cache",
+                                             test_sequences=("test",))
+        assert (protocol.select, protocol.adapt_steps, protocol.rotation_only) == (
+            shared.select, shared.adapt_steps, shared.rotation_only)
+        assert protocol.drives["0005"].validation_frames == (68, 91)
+
+
+def test_a_protocol_is_checked_like_a_config(tmp_path: Path) -> None:
+    from dpc_jax.config import ConfigError
+
+    path = tmp_path / "p.py"
+    base = PROTOCOLS / "configs" / "kitti_stereo_dpc.py"
+    config = f"import runpy\nCONFIG = runpy.run_path({str(base)!r})['CONFIG']\n"
+    path.write_text(config + "PROTOCOL = {'selct': 'delta'}\n")
+    with pytest.raises(ConfigError, match="PROTOCOL: unknown key 'selct'; did you mean 'select'"):
+        dpc_protocol.load_protocol(path)
+    path.write_text(config + "PROTOCOL = {'folds': {'a': {'prior': 'stereo', 'validation': '05', "
+                    "'tests': []}}}\n")
+    with pytest.raises(ConfigError, match=r"folds\.a: unknown key 'tests'; did you mean 'test'"):
+        dpc_protocol.load_protocol(path)
+    path.write_text(config + "PROTOCOL = {'adapt_steps': 'many'}\n")
+    with pytest.raises(ConfigError, match="adapt_steps: expected an integer"):
+        dpc_protocol.load_protocol(path)
 
 
 def test_overrides_and_fold_config() -> None:
@@ -71,7 +99,7 @@ def test_overrides_and_fold_config() -> None:
         "epochs": 2, "image_size": [64, 96], "preset": "small"}
     with pytest.raises(ValueError, match="KEY=VALUE"):
         dpc_protocol.parse_overrides(["epochs"])
-    base, _ = dpc_protocol.load_protocol(EXPERIMENTS / "configs" / "kitti_stereo_dpc.py")
+    base, _ = dpc_protocol.load_protocol(PROTOCOLS / "configs" / "kitti_stereo_dpc.py")
     fold = dpc_protocol.Fold("f", ("02",), "05", ("00",))
     config = dpc_protocol.fold_config(base, fold, Path("/c"), {"epochs": 2})
     assert (config.train_sequences, config.validation_sequences, config.test_sequences) == (
@@ -161,7 +189,7 @@ def test_excerpt_ground_truth_step_geometry_round_trip() -> None:
     """Travel length, elevation and lateral angle of known camera motions (closed form), and back."""
     from scipy.spatial.transform import Rotation
 
-    check = _entry("excerpt_ground_truth")
+    check = _entry("excerpt_ground_truth", STUDIES)
     rng = np.random.default_rng(0)
     n = 6
     length = rng.uniform(0.5, 2.0, n)

@@ -1,4 +1,4 @@
-"""dpc_jax.hugepages: the re-executed process has the tunable; the opt-out and no-op cases."""
+"""dpc_jax.runtime.hugepages: the re-executed process has the tunable; the opt-out and no-op cases."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ import sys
 
 import pytest
 
-from dpc_jax import hugepages
+from dpc_jax.runtime import hugepages
 
 SCRIPT = (
-    "import os, sys; from dpc_jax.hugepages import reexec_with_huge_pages; "
+    "import os, sys; from dpc_jax.runtime.hugepages import reexec_with_huge_pages; "
     "print('start', flush=True); reexec_with_huge_pages(); "
     "print(os.environ.get('GLIBC_TUNABLES'), sys.argv[1:])"
 )

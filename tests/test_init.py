@@ -41,7 +41,7 @@ def test_training_configs_are_checked_without_jax() -> None:
     code = (
         "import sys\n"
         "from dpc_jax.config import ConfigError\n"
-        "from dpc_jax.training.config import TrainConfig\n"
+        "from dpc_jax.training.train_config import TrainConfig\n"
         "for fields in ({'preset': 'tiny'}, {'model': {'encoder_kernels': [2]}}, {'loss': {'beta': 1}}):\n"
         "    try:\n"
         "        TrainConfig(cache_root='c', validation_sequences=('v',), **fields)\n"

@@ -100,7 +100,7 @@ def test_script_reports_a_missing_folder_in_one_line(tmp_path, capsys: pytest.Ca
     import importlib.util
     from pathlib import Path
 
-    path = Path(__file__).resolve().parents[1] / "experiments" / "linear_baseline.py"
+    path = Path(__file__).resolve().parents[1] / "experiments" / "studies" / "linear_baseline.py"
     spec = importlib.util.spec_from_file_location("linear_baseline_script", path)
     assert spec is not None and spec.loader is not None
     script = importlib.util.module_from_spec(spec)

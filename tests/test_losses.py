@@ -11,8 +11,8 @@ from test_warp import pose as make_pose
 
 from dpc_jax.geometry.lie import se3_log
 from dpc_jax.nn.batch import Batch
-from dpc_jax.nn.config import SSDPCLossConfig, StereoDPCLossConfig
 from dpc_jax.nn.losses import gradient_loss, ss_dpc_loss, stereo_dpc_loss
+from dpc_jax.nn.model_config import SSDPCLossConfig, StereoDPCLossConfig
 from dpc_jax.nn.outputs import BranchOutputs, DPCOutputs
 
 # --- scenes -------------------------------------------------------------------------------------

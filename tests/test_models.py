@@ -13,8 +13,8 @@ from flax import nnx
 
 from dpc_jax.nn.batch import Batch
 from dpc_jax.nn.branch import Branch, UpConv
-from dpc_jax.nn.config import PRESETS, ModelConfig, StereoDPCLossConfig
 from dpc_jax.nn.losses import stereo_dpc_loss
+from dpc_jax.nn.model_config import PRESETS, ModelConfig, StereoDPCLossConfig
 from dpc_jax.nn.models import create_model, prepare_inference
 
 TINY = (24, 40)
@@ -316,7 +316,7 @@ def test_the_backend_chooses_the_planar_path(monkeypatch: pytest.MonkeyPatch) ->
     graphdef, state = nnx.split(create_model("ss_dpc", SMALL, 0))
 
     def planar() -> bool:
-        return bool(nnx.merge(*backend.prepare_inference(graphdef, state)).branch.planar_inference)
+        return bool(nnx.merge(*backend.prepare_for_backend(graphdef, state)).branch.planar_inference)
 
     monkeypatch.delenv(backend.PLANAR_VARIABLE, raising=False)
     assert planar() == (jax.default_backend() == "cpu")

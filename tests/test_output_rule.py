@@ -274,7 +274,7 @@ def test_a_run_resumed_from_its_own_config_is_not_an_overlap(
     """`train --config RUN/checkpoints/config.json --workdir RUN --resume` reads the config the run
     wrote and does not rewrite it; without --resume the same config inside the workdir is refused."""
     from dpc_jax import config as config_lib
-    from dpc_jax.training.config import TrainConfig
+    from dpc_jax.training.train_config import TrainConfig
 
     run = tmp_path / "run"
     (run / "checkpoints").mkdir(parents=True)

@@ -33,7 +33,7 @@ SCRIPT = textwrap.dedent(
     from dpc_jax.nn.models import create_model
     from dpc_jax.training.optim import create_train_state, make_optimizer
     from dpc_jax.training.steps import make_train_step
-    from dpc_jax.training.config import TrainConfig
+    from dpc_jax.training.train_config import TrainConfig
 
     assert len(jax.devices()) == 4, jax.devices()
     TINY = dict(encoder_planes=(8, 16, 32), encoder_kernels=(3, 3, 3), decoder_planes=(32, 16, 8),
@@ -133,9 +133,9 @@ def test_two_processes_train_like_one_process_with_two_devices(tmp_path: Path) -
     from test_train import SIZE, TINY, make_caches
 
     from dpc_jax import config as config_lib
-    from dpc_jax.inference import load_run
+    from dpc_jax.correction.inference import load_run
     from dpc_jax.nn.models import create_model
-    from dpc_jax.training.config import TrainConfig
+    from dpc_jax.training.train_config import TrainConfig
 
     cache = make_caches(tmp_path / "data", ["00", "01"], n_frames=10)
     fields = dict(method="stereo_dpc", preset="small", model=TINY, image_size=SIZE, batch_size=4, epochs=1,

@@ -11,12 +11,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from dpc_jax.acceptance import Acceptance, ComponentTest
+import pytest
+
+from dpc_jax.correction.acceptance import Acceptance, ComponentTest
 from dpc_jax.pipelines.protocol import Result
 from dpc_jax.report.correction import acceptance_markdown, choice_markdown, write_correction_report
 from dpc_jax.report.demo import decision_label
+from dpc_jax.report.pages import read_block, replace_block
 from dpc_jax.report.protocol import results_csv, results_markdown
-from dpc_jax.report.tables import csv_text, table
+from dpc_jax.report.tables import EMPTY, change_pct, csv_text, number, records_csv, table
 
 METRICS = {"seg_trans_pct": 2.5, "seg_rot_deg_per_100m": None, "m_ate_trans_m": 12345.678,
            "m_ate_rot_deg": math.nan, "ate_m": 0.125}
@@ -25,6 +28,26 @@ METRICS = {"seg_trans_pct": 2.5, "seg_rot_deg_per_100m": None, "m_ate_trans_m": 
 def test_table_and_csv_text() -> None:
     assert table(["a", "b"], [["1", ""], ["x", "y"]]) == "| a | b |\n|---|---|\n| 1 |  |\n| x | y |\n"
     assert csv_text(["a", "b"], [[1, None], ["x,y", 2.5]]) == 'a,b\n1,\n"x,y",2.5\n'
+    assert records_csv([{"a": 1, "b": None}, {"a": 2, "c": "z"}]) == "a,b,c\n1,,\n2,,z\n"
+
+
+def test_cells_and_the_change_against_the_prior() -> None:
+    cells = [number(v) for v in (None, math.nan, math.inf, 2, 0.123456)]
+    assert cells == [EMPTY, EMPTY, EMPTY, "2", "0.1235"]
+    assert number(-1.25, "+.1f") == "-1.2"
+    assert change_pct(2.0, 1.0) == -50.0 and change_pct(4.0, 5.0) == 25.0
+    undefined = ((0.0, 1.0), (None, 1.0), (1.0, None), (math.nan, 1.0))
+    assert all(math.isnan(change_pct(p, v)) for p, v in undefined)
+
+
+def test_a_page_block_is_replaced_and_nothing_else(tmp_path: Path) -> None:
+    page = tmp_path / "page.md"
+    page.write_text("# title\n<!-- results:begin -->\nold\n<!-- results:end -->\nkept\n")
+    replace_block(page, "results", "| a |\n|---|\n")
+    assert page.read_text() == "# title\n<!-- results:begin -->\n| a |\n|---|\n<!-- results:end -->\nkept\n"
+    assert read_block(page, "results") == "\n| a |\n|---|\n"
+    with pytest.raises(ValueError, match="no <!-- other:begin -->"):
+        replace_block(page, "other", "x")
 
 
 def test_results_table_and_csv() -> None:
@@ -85,7 +108,7 @@ def test_acceptance_and_choice_markdown() -> None:
 
 @dataclass(frozen=True)
 class _Correction:
-    """The fields of dpc_jax.correct.Correction that the report reads, without ground truth."""
+    """The fields of dpc_jax.correction.corrector.Correction that the report reads, without ground truth."""
 
     acceptance: Acceptance
     adaptation: dict[str, Any] | None = None

@@ -50,7 +50,7 @@ def _supervised_batch(xi_vo: np.ndarray, xi_gt: np.ndarray | None, weight: np.nd
 
 @pytest.mark.parametrize("rotation_only", [False, True])
 def test_supervised_loss_matches_a_float64_reference(rotation_only: bool) -> None:
-    from dpc_jax.nn.config import SupervisedLossConfig
+    from dpc_jax.nn.model_config import SupervisedLossConfig
     from dpc_jax.nn.supervised_loss import supervised_dpc_loss
 
     xi_vo, xi_gt, xi_corr, weight = _supervised_case(0)
@@ -89,7 +89,7 @@ def test_supervised_loss_matches_a_float64_reference(rotation_only: bool) -> Non
 
 
 def test_supervised_loss_is_minimal_at_the_ground_truth_correction() -> None:
-    from dpc_jax.nn.config import SupervisedLossConfig
+    from dpc_jax.nn.model_config import SupervisedLossConfig
     from dpc_jax.nn.supervised_loss import supervised_dpc_loss, target_corrections
 
     xi_vo, xi_gt, _, weight = _supervised_case(2)
@@ -116,8 +116,8 @@ def test_supervised_loss_is_minimal_at_the_ground_truth_correction() -> None:
 
 
 def test_supervised_loss_needs_ground_truth_and_dpc_loss_dispatches() -> None:
-    from dpc_jax.nn.config import SupervisedLossConfig
     from dpc_jax.nn.losses import dpc_loss
+    from dpc_jax.nn.model_config import SupervisedLossConfig
     from dpc_jax.nn.supervised_loss import target_precision
 
     xi_vo, xi_gt, xi_corr, weight = _supervised_case(3)
@@ -145,7 +145,7 @@ def test_only_supervised_training_reads_ground_truth(tmp_path, monkeypatch: pyte
 
     from dpc_jax.config import ConfigError
     from dpc_jax.data.sequence_cache import load_cache
-    from dpc_jax.nn.config import SupervisedLossConfig
+    from dpc_jax.nn.model_config import SupervisedLossConfig
     from dpc_jax.training import steps as steps_lib
     from dpc_jax.training.loop import train
     from dpc_jax.training.train_data import open_data
@@ -193,7 +193,7 @@ def test_only_supervised_training_reads_ground_truth(tmp_path, monkeypatch: pyte
 
 
 def test_training_precision_is_the_inverse_covariance_of_the_targets() -> None:
-    from dpc_jax.nn.config import StereoDPCLossConfig, SupervisedLossConfig
+    from dpc_jax.nn.model_config import StereoDPCLossConfig, SupervisedLossConfig
     from dpc_jax.nn.supervised_loss import with_target_precision
 
     xi_vo, xi_gt, _, _ = _supervised_case(6, b=300)

@@ -32,10 +32,10 @@ from dpc_jax.nn.outputs import DPCOutputs
 from dpc_jax.training import loop as train_lib
 from dpc_jax.training import steps as steps_lib
 from dpc_jax.training.checkpoints import Checkpoints
-from dpc_jax.training.config import TrainConfig
 from dpc_jax.training.loop import train
 from dpc_jax.training.optim import create_train_state, learning_rate_schedule, make_optimizer
 from dpc_jax.training.steps import NonFiniteLossError, make_train_step
+from dpc_jax.training.train_config import TrainConfig
 from dpc_jax.training.train_data import open_data
 
 

@@ -14,7 +14,7 @@ from conftest import DATA
 from dpc_jax.data.kitti import StereoSequence, open_raw
 from dpc_jax.vo import StereoVO, VOConfig, VOStatus, run_vo, run_vo_frames
 from dpc_jax.vo.features import detect_bucketed
-from dpc_jax.vo.motion import apply_offset, estimate_motion, project, refine_pose
+from dpc_jax.vo.motion import apply_offset, camera_pixels, estimate_motion, refine_pose
 from dpc_jax.vo.odometry import per_frame_table
 from dpc_jax.vo.stereo import triangulate
 
@@ -105,8 +105,8 @@ def _relative_errors(estimate: np.ndarray, truth: np.ndarray) -> tuple[np.ndarra
 def test_triangulate_inverts_projection() -> None:
     rng = np.random.default_rng(1)
     points = rng.uniform([-5, -2, 3], [5, 2, 60], size=(50, 3))
-    left, _ = project(np.eye(4), points, K)
-    right, _ = project(np.eye(4), points, K, BASELINE)
+    left, _ = camera_pixels(np.eye(4), points, K)
+    right, _ = camera_pixels(np.eye(4), points, K, BASELINE)
     np.testing.assert_allclose(left[:, 1], right[:, 1], atol=1e-9)
     np.testing.assert_allclose(triangulate(left, left[:, 0] - right[:, 0], K, BASELINE), points, rtol=1e-9)
 
@@ -128,11 +128,11 @@ def _correspondences(
     exact left/right pixels in frame k+1 (right ones shifted like every measured right pixel)."""
     rng = np.random.default_rng(seed)
     truth = rng.uniform([-8, -3, 4], [8, 2, 50], size=(n, 3))
-    left_k, _ = project(np.eye(4), truth, K)
-    right_k, _ = project(np.eye(4), truth, K, BASELINE)
+    left_k, _ = camera_pixels(np.eye(4), truth, K)
+    right_k, _ = camera_pixels(np.eye(4), truth, K, BASELINE)
     points = triangulate(left_k, left_k[:, 0] - right_k[:, 0] - offset, K, BASELINE)
-    left, _ = project(T, truth, K)
-    right, _ = project(T, truth, K, BASELINE)
+    left, _ = camera_pixels(T, truth, K)
+    right, _ = camera_pixels(T, truth, K, BASELINE)
     right[:, 0] += offset
     return points, left, right, np.ones(n, bool)
 
@@ -411,24 +411,24 @@ def test_vo_prior_file_is_reused_until_its_inputs_change(
 
     from dpc_jax.data.kitti import open_odometry
     from dpc_jax.data.poses_io import read_kitti_poses
-    from dpc_jax.vo.prior import vo_prior
+    from dpc_jax.vo.prior import write_vo_prior
 
     poses, frames = scene
     _odometry_layout(tmp_path / "kitti", frames[:4], poses[:4])
     sequence = open_odometry(tmp_path / "kitti", "00")
     out = tmp_path / "priors" / "00.txt"
-    first = vo_prior(sequence, out, first_pose=poses[0])
+    first = write_vo_prior(sequence, out, first_pose=poses[0])
     expected = run_vo_frames(frames[:4], K, BASELINE, VOConfig(), first_pose=poses[0])
     np.testing.assert_allclose(read_kitti_poses(out), expected.poses, atol=1e-12)
     assert first["pairs"] == 3 and first["path"] == str(out)
     assert json.loads(out.with_suffix(".json").read_text())["summary"]["fallbacks"] == first["fallbacks"]
     stamp = out.stat().st_mtime_ns
-    assert vo_prior(sequence, out, first_pose=poses[0]) == first and out.stat().st_mtime_ns == stamp
+    assert write_vo_prior(sequence, out, first_pose=poses[0]) == first and out.stat().st_mtime_ns == stamp
     # Another VO configuration, or other images, run the VO again.
-    vo_prior(sequence, out, VOConfig(estimate_offset=False), first_pose=poses[0])
+    write_vo_prior(sequence, out, VOConfig(estimate_offset=False), first_pose=poses[0])
     assert out.stat().st_mtime_ns != stamp
     stamp = out.stat().st_mtime_ns
     image = sequence.left_paths[2]
     cv2.imwrite(str(image), cv2.flip(cv2.imread(str(image)), 1))
-    vo_prior(sequence, out, VOConfig(estimate_offset=False), first_pose=poses[0])
+    write_vo_prior(sequence, out, VOConfig(estimate_offset=False), first_pose=poses[0])
     assert out.stat().st_mtime_ns != stamp

@@ -27,9 +27,9 @@ output-path checks, and the removal of temporary folders that killed runs left b
   the ones whose process is gone (``kill -9``, a power cut), never those of a live run.
 
 This module holds :class:`InputWarning` and the output checks (:func:`writable`,
-:func:`output_problem`, the overlap rule); the writers live in :mod:`dpc_jax._atomic_write` (output
-targets, the atomic writer, streams, :func:`install_folder`), :mod:`dpc_jax._output_set` (output
-sets) and :mod:`dpc_jax._temporaries` (temporary names, stale removal), and are imported from here.
+:func:`output_problem`, the overlap rule); the writers live in :mod:`dpc_jax._io._atomic_write` (output
+targets, the atomic writer, streams, :func:`install_folder`), :mod:`dpc_jax._io._output_set` (output
+sets) and :mod:`dpc_jax._io._temporaries` (temporary names, stale removal), and are imported from here.
 """
 
 from __future__ import annotations
@@ -38,9 +38,9 @@ import os
 import tempfile
 from pathlib import Path
 
-from dpc_jax._atomic_write import OutputKind, atomic_write, install_folder, output_target, stream_write
-from dpc_jax._output_set import STAGING_PREFIX, OutputSet, new_folders_removed_on_failure
-from dpc_jax._temporaries import remove_stale, temp_name
+from dpc_jax._io._atomic_write import OutputKind, atomic_write, install_folder, output_target, stream_write
+from dpc_jax._io._output_set import STAGING_PREFIX, OutputSet, new_folders_removed_on_failure
+from dpc_jax._io._temporaries import remove_stale, temp_name
 
 __all__ = [
     "EMPTY_PATH",
@@ -94,12 +94,15 @@ def _nearest_existing(path: Path) -> Path:
     return path
 
 
-def output_problem(path: str | os.PathLike[str], option: str, *, folder: bool = False) -> str | None:
-    """What keeps ``path`` from receiving an output (a file, or a folder when ``folder``), or None.
+def output_problem(path: str | os.PathLike[str] | None, option: str, *, folder: bool = False) -> str | None:
+    """What keeps ``path`` from receiving an output (a file, or a folder when ``folder``), or None
+    (also for ``path`` None: an option not given).
 
     The message starts with ``option`` and the path. Missing parent folders are fine (they are
     created when the output is written); the nearest existing one must be a writable folder.
     """
+    if path is None:
+        return None
     path = Path(path)
     label = f"{option} {path}"
     if folder:

@@ -16,7 +16,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Literal
 
-from dpc_jax._temporaries import temp_name
+from dpc_jax._io._temporaries import temp_name
 
 OutputKind = Literal["file", "stream", "folder", "block device", "socket", "special file"]
 _MAX_LINKS = 40  # as the kernel's ELOOP limit

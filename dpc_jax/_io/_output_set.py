@@ -14,8 +14,8 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from types import TracebackType
 
-from dpc_jax._atomic_write import output_target, stream_write
-from dpc_jax._temporaries import remove_stale, temp_name
+from dpc_jax._io._atomic_write import output_target, stream_write
+from dpc_jax._io._temporaries import remove_stale, temp_name
 
 STAGING_PREFIX = ".dpc-jax-staging-"
 

@@ -8,8 +8,8 @@ imports what uses JAX: a command that fails on its inputs fails in a fraction of
 JAX is imported, with one line on stderr (exit status 2, or 1 where the input's content is at fault).
 
 The executable (``console_main``) turns on JAX's persistent compilation cache
-(:mod:`dpc_jax.compilation_cache`), so a repeated command compiles nothing, and restarts itself with
-huge-page malloc (:mod:`dpc_jax.hugepages`) for the commands whose ``HUGE_PAGES`` says it pays.
+(:mod:`dpc_jax.runtime.compilation_cache`), so a repeated command compiles nothing, and restarts itself with
+huge-page malloc (:mod:`dpc_jax.runtime.hugepages`) for the commands whose ``HUGE_PAGES`` says it pays.
 ``main`` alone, as the tests call it in-process, does neither.
 
 Around every subcommand: Ctrl-C ends it with one line, ``dpc-jax COMMAND: interrupted; nothing
@@ -41,8 +41,8 @@ from typing import Any
 import dpc_jax
 from dpc_jax._io import InputWarning
 from dpc_jax.cli._common import Formatter
-from dpc_jax.compilation_cache import use_compilation_cache
-from dpc_jax.hugepages import reexec_with_huge_pages
+from dpc_jax.runtime.compilation_cache import use_compilation_cache
+from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
 
 def _subcommands() -> list[str]:

@@ -6,7 +6,7 @@ Output paths follow one rule in every command (``dpc_jax._io``): missing parent 
 created when the outputs are written, the nearest existing folder must be writable, no output may
 be, contain or lie inside an input or another output, a folder the command would replace must be one
 it made, and an empty path is refused (:func:`path_option`); this is checked before any work starts
-(:func:`output_problem`, :func:`~dpc_jax._io.overlap_problem`,
+(:func:`~dpc_jax._io.output_problem`, :func:`~dpc_jax._io.overlap_problem`,
 :func:`~dpc_jax._io.foreign_folder_problem`).
 """
 
@@ -23,7 +23,6 @@ from pathlib import Path
 from typing import Literal
 
 from dpc_jax._io import nonempty_path
-from dpc_jax._io import output_problem as _output_problem
 
 # The largest --disparity-offset, as a share of the image width (SynthConfig's bound too).
 MAX_OFFSET_SHARE = 0.05
@@ -131,13 +130,6 @@ def frames_problem(frames: tuple[int, int] | None, n_frames: int, name: str) -> 
     if stop - start < 2:
         return f"{option}: selects {stop - start} frame; at least 2 are needed"
     return None
-
-
-def output_problem(path: Path | str | None, option: str, *, folder: bool = False) -> str | None:
-    """What keeps ``path`` (an option's value; None = not given) from receiving an output, or None."""
-    if path is None:
-        return None
-    return _output_problem(path, option, folder=folder)
 
 
 def input_problem(path: Path | str | None, option: str, *, folder: bool = False) -> str | None:

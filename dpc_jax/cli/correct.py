@@ -12,8 +12,7 @@ import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from dpc_jax._io import foreign_folder_problem, is_stdout, is_stream, overlap_problem
-from dpc_jax.acceptance import rotation_axes_words
+from dpc_jax._io import foreign_folder_problem, is_stdout, is_stream, output_problem, overlap_problem
 from dpc_jax.cli._common import (
     Formatter,
     frame_range,
@@ -21,22 +20,22 @@ from dpc_jax.cli._common import (
     image_size,
     import_jax,
     input_problem,
-    output_problem,
     path_option,
     path_text,
     restore_problem,
 )
 from dpc_jax.data.holdout import MIN_EVERY, adaptable_pairs, held_out_pairs
+from dpc_jax.report.correction import rotation_axes_words
 
 if TYPE_CHECKING:
-    from dpc_jax.adapt import Adaptation
-    from dpc_jax.correct import Correction
+    from dpc_jax.correction.adapt import Adaptation
+    from dpc_jax.correction.corrector import Correction
+    from dpc_jax.correction.inference import TrainedRun
     from dpc_jax.data.kitti import StereoSequence
     from dpc_jax.data.sequence_cache import SequenceCache
-    from dpc_jax.inference import TrainedRun
 
 HELP = "Correct a VO trajectory with a trained network (T* = Exp(xi_corr) T_vo); evaluate it against GT."
-# Restart with huge-page malloc (dpc_jax.hugepages): the network runs about a quarter faster.
+# Restart with huge-page malloc (dpc_jax.runtime.hugepages): the network runs about a quarter faster.
 HUGE_PAGES = True
 # --holdout-every when not given (AdaptConfig's default): the option has no argparse default, so that
 # giving it without --adapt can be refused.
@@ -260,7 +259,7 @@ def _run_problem(args: argparse.Namespace, checked: SequenceCache | None) -> str
     from dpc_jax import config as config_lib
     from dpc_jax.data.priors import prior_for_cache
     from dpc_jax.data.sequence_cache import load_cache
-    from dpc_jax.training.config import TrainConfig
+    from dpc_jax.training.train_config import TrainConfig
 
     stored = args.checkpoint / "checkpoints" / "config.json"
     try:
@@ -336,7 +335,7 @@ def run(args: argparse.Namespace) -> int:
     import_jax()
     # Orbax logs a warning per read-only checkpoint manager; they say nothing useful here.
     logging.getLogger("absl").setLevel(logging.ERROR)
-    from dpc_jax.inference import load_run
+    from dpc_jax.correction.inference import load_run
     from dpc_jax.training.checkpoints import CheckpointError
 
     # The stack holds the temporary cache of raw inputs, removed before the outputs are written.
@@ -404,8 +403,10 @@ def _correct(
     judge: Path | None,
 ) -> tuple[Correction, Adaptation | None, Correction | None]:
     """The correction to write, with ``--adapt`` also the adaptation and the adapted network's correction
-    (the one written only if :func:`~dpc_jax.correct.choose` prefers it to the trained network's)."""
-    from dpc_jax.correct import choose, correct_cache, prior_for_cache
+    (the one written only if :func:`~dpc_jax.correction.corrector.choose` prefers it to the trained
+    network's)."""
+    from dpc_jax.correction.corrector import choose, correct_cache
+    from dpc_jax.data.priors import prior_for_cache
     from dpc_jax.data.sequence_cache import SequenceCache, load_cache
 
     show = sys.stderr.isatty() and not args.no_progress
@@ -416,7 +417,7 @@ def _correct(
         correction = correct_cache(run_, cache, prior, prior_format=args.prior_format, progress=show,
                                    **options)
         return correction, None, None
-    from dpc_jax.adapt import AdaptConfig, adapt_and_correct
+    from dpc_jax.correction.adapt import AdaptConfig, adapt_and_correct
 
     cache = load_cache(cache) if not isinstance(cache, SequenceCache) else cache
     if prior is not None:
@@ -434,7 +435,7 @@ def _write_outputs(
 ) -> list[Path]:
     """Write ``--out`` (and its frame list), ``--report`` and the adapted network; the trajectory files."""
     from dpc_jax._io import OutputSet
-    from dpc_jax.correct import write_trajectory
+    from dpc_jax.correction.corrector import write_trajectory
     from dpc_jax.report.correction import write_correction_report
 
     # The corrected trajectory (with its frame list) and the report are written all or nothing.
@@ -444,7 +445,7 @@ def _write_outputs(
             title = f"DPC correction: {correction.name}"
             write_correction_report(outputs.folder(args.report), correction, title)
         if adaptation is not None and adapted is not None:
-            from dpc_jax.adapt import save_adapted
+            from dpc_jax.correction.adapt import save_adapted
 
             save_adapted(outputs.folder(adapted_path(args.out)), adaptation,
                          {"delta": adapted.acceptance.mean_delta})

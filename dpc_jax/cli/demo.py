@@ -7,18 +7,17 @@ import logging
 import sys
 from pathlib import Path
 
-from dpc_jax._io import foreign_folder_problem, overlap_problem
+from dpc_jax._io import foreign_folder_problem, output_problem, overlap_problem
 from dpc_jax.cli._common import (
     Formatter,
     import_jax,
     input_problem,
-    output_problem,
     path_option,
     restore_problem,
 )
 
 HELP = "Synthetic end-to-end demo: train Stereo DPC on rendered sequences, correct our VO, write a report."
-# Restart with huge-page malloc (dpc_jax.hugepages): the demo's time goes to training.
+# Restart with huge-page malloc (dpc_jax.runtime.hugepages): the demo's time goes to training.
 HUGE_PAGES = True
 
 EPILOG = """examples:
@@ -38,7 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="output folder (data, priors, caches, run, report.md); re-running reuses it")
     parser.add_argument("--config", type=path_option, metavar="FILE",
                         help="a Python file defining CONFIG = DemoConfig(...) or a dict of its fields "
-                        "(default: the built-in demo, experiments/configs/synthetic_demo.py)")
+                        "(default: the built-in demo, experiments/studies/configs/synthetic_demo.py)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 

@@ -12,14 +12,14 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from dpc_jax._io import is_stdout, overlap_problem
-from dpc_jax.cli._common import Formatter, import_jax, input_problem, output_problem, path_option, path_text
+from dpc_jax._io import is_stdout, output_problem, overlap_problem
+from dpc_jax.cli._common import Formatter, import_jax, input_problem, path_option, path_text
 
 if TYPE_CHECKING:
     import numpy as np
 
 HELP = "Evaluate trajectories against ground truth (m-ATE, segment errors, ATE, RPE, loop closures)."
-# No huge-page restart (dpc_jax.hugepages): it would not make the metrics faster, only add a start.
+# No huge-page restart (dpc_jax.runtime.hugepages): it would not make the metrics faster, only add a start.
 HUGE_PAGES = False
 
 EPILOG = """examples:
@@ -177,7 +177,7 @@ def run(args: argparse.Namespace) -> int:
         # reader then accepts.
         sys.stdout.write(format_table(result))
         if result.diagnoses:
-            from dpc_jax.eval.diagnosis import format_diagnosis
+            from dpc_jax.report.evaluation import format_diagnosis
 
             sys.stdout.write("\n" + format_diagnosis(result.diagnoses))
     return 0

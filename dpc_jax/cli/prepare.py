@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from dpc_jax._io import foreign_folder_problem, overlap_problem
+from dpc_jax._io import foreign_folder_problem, output_problem, overlap_problem
 from dpc_jax.cli._common import (
     Formatter,
     finite_problem,
@@ -17,7 +17,6 @@ from dpc_jax.cli._common import (
     import_jax,
     input_problem,
     offset_problem,
-    output_problem,
     path_option,
     path_text,
     progress_mode,
@@ -25,11 +24,11 @@ from dpc_jax.cli._common import (
 )
 
 if TYPE_CHECKING:
-    from dpc_jax._progress import Progress
     from dpc_jax.data.kitti import StereoSequence
+    from dpc_jax.runtime.progress import Progress
 
 HELP = "Decode, resize and cache stereo sequences with their VO prior (and optical flow) for training."
-# No huge-page restart (dpc_jax.hugepages): decoding, resizing and flow gain nothing from it.
+# No huge-page restart (dpc_jax.runtime.hugepages): decoding, resizing and flow gain nothing from it.
 HUGE_PAGES = False
 
 EPILOG = """examples:

@@ -5,19 +5,19 @@ from __future__ import annotations
 import argparse
 import sys
 
+from dpc_jax._io import output_problem
 from dpc_jax.cli._common import (
     Formatter,
     finite_problem,
     image_size,
     import_jax,
-    output_problem,
     path_option,
     progress_mode,
     size_problem,
 )
 
 HELP = "Render synthetic stereo driving sequences (KITTI odometry layout, exact depth and poses)."
-# Restart with huge-page malloc (dpc_jax.hugepages): rendering is about a sixth faster.
+# Restart with huge-page malloc (dpc_jax.runtime.hugepages): rendering is about a sixth faster.
 HUGE_PAGES = True
 
 EPILOG = """examples:

@@ -9,22 +9,23 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from dpc_jax._io import foreign_folder_problem, overlap_problem
-from dpc_jax.cli._common import Formatter, import_jax, output_problem, path_option, restore_problem
+from dpc_jax._io import foreign_folder_problem, output_problem, overlap_problem
+from dpc_jax.cli._common import Formatter, import_jax, path_option, restore_problem
 
 if TYPE_CHECKING:
     from dpc_jax.data.sequence_cache import SequenceCache
-    from dpc_jax.training.config import TrainConfig
+    from dpc_jax.training.train_config import TrainConfig
 
 HELP = "Train ss-DPC-Net or Stereo DPC on prepared sequences (checkpoints, metrics.csv, TensorBoard)."
-# Restart with huge-page malloc (dpc_jax.hugepages): the training step is a fifth faster.
+# Restart with huge-page malloc (dpc_jax.runtime.hugepages): the training step is a fifth faster.
 HUGE_PAGES = True
 
 EPILOG = """examples:
-  dpc-jax train --config experiments/configs/own_data.py --workdir runs/own_data
-  dpc-jax train --config experiments/configs/own_data.py --workdir runs/own_data --resume
-experiments/configs/own_data.py is the minimal config for a cache of your own (from `dpc-jax prepare`).
-The config file defines CONFIG = TrainConfig(...) or a dict of its fields (see dpc_jax.training.config).
+  dpc-jax train --config experiments/protocols/configs/own_data.py --workdir runs/own_data
+  dpc-jax train --config experiments/protocols/configs/own_data.py --workdir runs/own_data --resume
+experiments/protocols/configs/own_data.py is the minimal config for a cache of your own (from
+`dpc-jax prepare`).
+The config file defines CONFIG = TrainConfig(...) or a dict of its fields (see dpc_jax.training.train_config).
 Outputs in WORKDIR: checkpoints/{epochs,best_gradient_loss,best_loop_closures,best_delta}/EPOCH
 (best_delta: the epoch of most negative validation Δ, once one beats no correction; `correct --select delta`,
 its default, reads it), checkpoints/config.json, checkpoints/split.json, metrics.csv, tensorboard/.
@@ -41,7 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         required=True,
         type=path_option,
         metavar="FILE",
-        help="experiments/configs/NAME.py defining CONFIG (or a config.json of a run)",
+        help="experiments/protocols/configs/NAME.py defining CONFIG (or a config.json of a run)",
     )
     parser.add_argument("--workdir", required=True, type=path_option, metavar="DIR", help="run folder")
     parser.add_argument(
@@ -59,7 +60,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from dpc_jax import config as config_lib
     from dpc_jax.config import ConfigError
-    from dpc_jax.training.config import TrainConfig
+    from dpc_jax.training.train_config import TrainConfig
 
     # The run writes checkpoints, metrics.csv and tensorboard/ into the workdir: it must be new,
     # empty or a training run.

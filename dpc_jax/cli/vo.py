@@ -7,6 +7,7 @@ import json
 import sys
 from pathlib import Path
 
+from dpc_jax._io import output_problem
 from dpc_jax.cli._common import (
     Formatter,
     finite_problem,
@@ -15,12 +16,11 @@ from dpc_jax.cli._common import (
     import_jax,
     input_problem,
     offset_problem,
-    output_problem,
     path_option,
 )
 
 HELP = "Classical stereo visual odometry (libviso2-s-like): write the trajectory and a per-frame CSV."
-# Restart with huge-page malloc (dpc_jax.hugepages): the VO is about 6 % faster.
+# Restart with huge-page malloc (dpc_jax.runtime.hugepages): the VO is about 6 % faster.
 HUGE_PAGES = True
 
 EPILOG = """examples:

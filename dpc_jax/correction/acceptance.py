@@ -22,8 +22,8 @@ drive a rotation that helped as a whole carried a yaw that hurt on its own and, 
 100 m, turned the travel (``docs/method.md`` §8). When no single axis passes (the effect is
 spread over them), the whole rotation stays.
 
-Measured on a larger copy of the frames (a judge, ``dpc_jax.judge``), a passed correction is also
-scaled (:func:`scale_correction`): of ×0.25, ×0.5, ×0.75 and ×1 the one with the lowest mean Δ is
+Measured on a larger copy of the frames (a judge, ``dpc_jax.correction.judge``), a passed correction must
+pass there too and is also scaled: of ×0.25, ×0.5, ×0.75 and ×1 the one with the lowest mean Δ is
 applied, provided it passes the test itself.
 """
 
@@ -49,11 +49,6 @@ def rotation_component(axes: str) -> str:
     if not axes or "".join(a for a in AXES if a in axes) != axes:
         raise ValueError(f"axes must be a non-empty ordered part of {AXES!r}, got {axes!r}")
     return "rotation" if axes == AXES else f"rotation_{axes}"
-
-
-def rotation_axes_words(component: str) -> str:
-    """``rotation_xz`` → ``"rotation about x, z"`` (camera axes; for reports)."""
-    return "rotation about " + ", ".join(component.removeprefix("rotation_"))
 
 
 def component_mask(component: str) -> np.ndarray:
@@ -90,7 +85,8 @@ class ComponentTest:
 @dataclass(frozen=True)
 class Acceptance:
     """Outcome of the acceptance test: ``decision`` ∈ ``full | rotation | rotation_<axes> | none``,
-    the ``scale`` of the applied correction (1 unless a judge chose less, ``dpc_jax.correct``) and why."""
+    the ``scale`` of the applied correction (1 unless a judge chose less, ``dpc_jax.correction.judge``)
+    and why."""
 
     alpha: float
     tests: dict[str, ComponentTest] = field(default_factory=dict)
@@ -180,44 +176,6 @@ def forced(acceptance: Acceptance, component: str) -> Acceptance:
                       f"forced ({acceptance.decision} by the test: {acceptance.reason})", forced=True)
 
 
-JUDGE_SCALES = (0.25, 0.5, 0.75, 1.0)
-
-
-def scale_correction(
-    acceptance: Acceptance,
-    delta: dict[str, np.ndarray],
-    scaled: dict[float, np.ndarray],
-    pairs: np.ndarray | None = None,
-) -> tuple[Acceptance, dict[str, np.ndarray]]:
-    """The magnitude of a passed correction that the judge's images support → ``(acceptance, delta)``.
-
-    ``delta[decision]``: Δ of the decided correction as proposed (scale 1); ``scaled``: ``{s: Δ}``
-    of the same correction times each smaller scale of :data:`JUDGE_SCALES`. The scale with the
-    lowest mean Δ on ``pairs`` (default all) is applied when it passes the test itself; its Δ
-    replaces ``delta[decision]`` (what :func:`dpc_jax.correct.choose` compares). A network trained at a coarse
-    input size can get the direction of a rotation right and its size wrong (docs/method.md §8).
-    """
-    chosen = slice(None) if pairs is None else np.asarray(pairs)
-    decision = acceptance.decision
-    means = {1.0: float(delta[decision][chosen].mean())}
-    means.update({s: float(d[chosen].mean()) for s, d in scaled.items()})
-    best = min(means, key=lambda s: means[s])
-    listed = ", ".join(f"×{s:g} {means[s]:.3g}" for s in sorted(means))
-    if best == 1.0:
-        reason = f"{acceptance.reason}; mean Δ by scale: {listed}"
-        return dataclasses.replace(acceptance, reason=reason), delta
-    name = f"{decision} ×{best:g}"
-    test = component_test(name, scaled[best][chosen], acceptance.alpha)
-    tests = {**acceptance.tests, name: test}
-    if not test.passed:
-        reason = f"{acceptance.reason}; ×{best:g} did not pass (p = {test.p_value:.3g})"
-        return dataclasses.replace(acceptance, tests=tests, reason=reason), delta
-    return dataclasses.replace(
-        acceptance, tests=tests, scale=best,
-        reason=f"{acceptance.reason}; applied ×{best:g}, the scale with the lowest mean Δ ({listed})",
-    ), {**delta, decision: scaled[best]}
-
-
 def refine_rotation(
     acceptance: Acceptance,
     delta: dict[str, np.ndarray],
@@ -225,12 +183,12 @@ def refine_rotation(
     pairs: np.ndarray | None = None,
 ) -> tuple[Acceptance, dict[str, np.ndarray]]:
     """A passed ``rotation`` decision narrowed to the axes whose rotation alone passes the test
-    (``dpc_jax.acceptance``) → ``(acceptance, delta)``.
+    (``dpc_jax.correction.acceptance``) → ``(acceptance, delta)``.
 
     ``delta``: Δ ``[N-1]`` per component, with the single axes; ``subset_delta(axes)``: Δ of the
     rotation about ``axes`` (two of them: it needs another pass of the network); ``pairs``: the
     pairs the test uses (default all). The narrowed rotation must pass the test itself; its Δ is
-    added to ``delta`` (what :func:`dpc_jax.correct.choose` compares). With no axis or every axis
+    added to ``delta`` (what :func:`dpc_jax.correction.corrector.choose` compares). With no axis or every axis
     passing alone, the rotation is kept whole; the per-axis tests are recorded either way.
     """
     chosen = slice(None) if pairs is None else np.asarray(pairs)

@@ -6,7 +6,7 @@ one prepared sequence — its ground truth is dropped before anything reads the 
 run's loss, a fresh Adam at a constant rate, and BatchNorm statistics updated. Every
 ``holdout_every``-th consecutive pair ``(k, k+1)`` is kept out of adaptation, with every pair of
 any kind that reaches frame ``k`` or ``k+1`` (the neighbours share an image with it, a frame-skip
-pair contains its motion), so the acceptance test (``dpc_jax.acceptance``) judges the adapted
+pair contains its motion), so the acceptance test (``dpc_jax.correction.acceptance``) judges the adapted
 network on frames it has never seen.
 
 :func:`save_adapted` writes the adapted network as a run folder (``checkpoints/config.json``,
@@ -17,9 +17,7 @@ log ``adapt.csv`` and record ``adapt.json``.
 from __future__ import annotations
 
 import contextlib
-import csv
 import dataclasses
-import io
 import itertools
 import json
 import math
@@ -36,17 +34,18 @@ import numpy as np
 from flax import nnx
 
 from dpc_jax._io import atomic_write
-from dpc_jax._progress import Progress
+from dpc_jax.correction.inference import TrainedRun
 from dpc_jax.data.holdout import MIN_EVERY, held_out_pairs
 from dpc_jax.data.pipeline import TrainLoader
 from dpc_jax.data.sequence_cache import SequenceCache
 from dpc_jax.engine.driver import drive, step_key
-from dpc_jax.inference import TrainedRun
+from dpc_jax.report.tables import records_csv
+from dpc_jax.runtime.progress import Progress
 from dpc_jax.training.optim import create_train_state, make_optimizer
 from dpc_jax.training.steps import make_train_step
 
 if TYPE_CHECKING:
-    from dpc_jax.correct import AdaptationSummary, Correction
+    from dpc_jax.correction.corrector import AdaptationSummary, Correction
 
 
 @dataclass(frozen=True)
@@ -98,7 +97,7 @@ class Adaptation:
     seconds: float = 0.0
 
     def summary(self) -> AdaptationSummary:
-        """What a report says of it (``dpc_jax.correct.Correction.adaptation``)."""
+        """What a report says of it (``dpc_jax.correction.corrector.Correction.adaptation``)."""
         return {"steps": self.config.steps, "seconds": self.seconds, "held_out": int(self.held_out.size),
                 "holdout_every": self.config.holdout_every, "source_epoch": self.source.epoch}
 
@@ -166,23 +165,14 @@ def adapt_and_correct(
     run: TrainedRun, cache: SequenceCache, how: AdaptConfig, *, progress: bool = False, **correct_options: Any
 ) -> tuple[Adaptation, Correction]:
     """Adapt ``run`` to ``cache`` (:func:`adapt`), then correct ``cache`` with the adapted network
-    (``dpc_jax.correct.correct_cache`` with ``correct_options``), its acceptance test on the kept-out
-    pairs only; the correction carries the adaptation's summary."""
-    from dpc_jax.correct import correct_cache
+    (``dpc_jax.correction.corrector.correct_cache`` with ``correct_options``), its acceptance test on
+    the kept-out pairs only; the correction carries the adaptation's summary."""
+    from dpc_jax.correction.corrector import correct_cache
 
     adaptation = adapt(run, cache, how, progress=progress)
     correction = correct_cache(adaptation.run, cache, held_out=adaptation.held_out, progress=progress,
                                **correct_options)
     return adaptation, dataclasses.replace(correction, adaptation=adaptation.summary())
-
-
-def _log_csv(log: list[dict[str, float]]) -> str:
-    buffer = io.StringIO()
-    fields = list(dict.fromkeys(k for row in log for k in row))
-    writer = csv.DictWriter(buffer, fieldnames=fields, lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(log)
-    return buffer.getvalue()
 
 
 def save_adapted(directory: str | os.PathLike, adaptation: Adaptation, metrics: dict[str, Any]) -> Path:
@@ -205,7 +195,7 @@ def save_adapted(directory: str | os.PathLike, adaptation: Adaptation, metrics: 
     with Checkpoints(directory, keep_last=1) as checkpoints:
         checkpoints.save(1, state, {"step": adaptation.config.steps, "metrics": record},
                          Checkpoints.best_records(None))
-    atomic_write(directory / "adapt.csv", _log_csv(adaptation.log))
+    atomic_write(directory / "adapt.csv", records_csv(adaptation.log))
     summary = {
         "source": {"workdir": str(adaptation.source.workdir), "selection": adaptation.source.selection,
                    "epoch": adaptation.source.epoch},

@@ -2,16 +2,16 @@
 
 Pipeline (docs/method.md §1, §7):
 
-1. ``dpc_jax.inference.load_run`` restores a run at the epoch of a selection criterion and
-   ``dpc_jax.inference.run_prediction`` runs it over every consecutive pair ``(k, k+1)`` of a
+1. ``dpc_jax.correction.inference.load_run`` restores a run at the epoch of a selection criterion and
+   ``dpc_jax.correction.inference.run_prediction`` runs it over every consecutive pair ``(k, k+1)`` of a
    prepared sequence: ξ_corr and the paired photometric effect Δ of the correction on the
    sequence's own images (no ground truth).
-2. The acceptance test (``dpc_jax.acceptance``) decides on Δ: apply the full correction, only
+2. The acceptance test (``dpc_jax.correction.acceptance``) decides on Δ: apply the full correction, only
    its rotation, or nothing — then the corrected trajectory *is* the prior (re-composed from its
    relative poses). ``force=True`` applies the network's correction whatever the test says.
 3. ``T*_{k+1,k} = Exp(ξ_corr,k) · T_vo_{k+1,k}`` is composed from the first ground-truth pose when
    the cache has ground truth, else from the first prior pose
-   (``dpc_jax.geometry.correction.corrected_trajectory``, float64); the prior, the network's proposal and
+   (``dpc_jax.geometry.pose_correction.corrected_trajectory``, float64); the prior, the network's proposal and
    the final trajectory are evaluated against the ground truth when it exists.
 
 Frames: a cache holds the frames it was prepared with (``indices``: their numbers in the source
@@ -33,9 +33,8 @@ from typing import TypedDict
 import numpy as np
 
 from dpc_jax._io import atomic_write
-from dpc_jax.acceptance import (
+from dpc_jax.correction.acceptance import (
     DEFAULT_ALPHA,
-    JUDGE_SCALES,
     Acceptance,
     acceptance_test,
     component_mask,
@@ -43,20 +42,18 @@ from dpc_jax.acceptance import (
     forced,
     refine_rotation,
     rotation_component,
-    scale_correction,
 )
+from dpc_jax.correction.inference import TrainedRun, run_prediction
+from dpc_jax.correction.judge import correction_effects, judge_cache, judge_correction
 from dpc_jax.data.poses_io import WRITE_FORMATS, write_kitti_poses, write_tum
 from dpc_jax.data.priors import prior_for_cache
 from dpc_jax.data.sequence_cache import SequenceCache, load_cache
+from dpc_jax.engine.predict import SequencePrediction
 from dpc_jax.eval.evaluation import Evaluation
-from dpc_jax.inference import SequencePrediction, TrainedRun, run_prediction
-from dpc_jax.judge import correction_effects
-
-# The report of a correction; re-exported for cli/correct.py.
 
 
 class AdaptationSummary(TypedDict):
-    """What ``dpc_jax.adapt`` did before a correction (:attr:`Correction.adaptation`)."""
+    """What ``dpc_jax.correction.adapt`` did before a correction (:attr:`Correction.adaptation`)."""
 
     steps: int
     seconds: float
@@ -76,7 +73,7 @@ class Correction:
     ``none``: the prior re-composed); ``evaluation``: ``prior``, ``network`` (the proposal) and
     ``corrected`` against the ground truth, or None without ground truth; ``delta``: Δ of every
     pair ``[N-1]`` per component (``full``, ``rotation``); ``tested``: the pairs the acceptance
-    test used (None: all); ``adaptation``: what ``dpc_jax.adapt`` did first (steps, seconds,
+    test used (None: all); ``adaptation``: what ``dpc_jax.correction.adapt`` did first (steps, seconds,
     held-out pairs), if anything; ``choice``: how :func:`choose` picked it among candidates.
     """
 
@@ -188,9 +185,10 @@ def correct_cache(
     ``network`` or ``sgbm`` (None = :func:`default_acceptance_depth`); ``alpha``: the test's level;
     ``force``: apply the correction whatever the test says; ``held_out``: the pairs ``k`` the test
     uses (default all; after adaptation, the pairs it never saw). ``judge``: the same frames
-    prepared at a larger size (``dpc_jax.judge``, a stereo run): a correction that passes at the
+    prepared at a larger size (``dpc_jax.correction.judge``, a stereo run): a correction that passes at the
     network's size must pass there too, with its StereoSGBM depth, and is applied at the scale of
-    :data:`~dpc_jax.acceptance.JUDGE_SCALES` its images support best (:func:`judged_correction`).
+    :data:`~dpc_jax.correction.judge.JUDGE_SCALES` its images support best
+    (:func:`~dpc_jax.correction.judge.judge_correction`).
     The trajectories start at the first ground-truth pose when the cache has ground truth, else at
     the first prior pose (docs/method.md §1).
     """
@@ -199,7 +197,7 @@ def correct_cache(
         cache = dataclasses.replace(cache, prior=prior_for_cache(cache, prior, prior_format))
     rotation_only = run.config.rotation_only if rotation_only is None else bool(rotation_only)
     depth = acceptance_depth or default_acceptance_depth(run)
-    judged = None if judge is None else _judge_for(run, cache, judge)
+    judged = None if judge is None else judge_cache(run, cache, judge)
     prediction = run_prediction(run, cache, batch_size=batch_size, acceptance_depth=depth, progress=progress)
     acceptance = decide(run, prediction, rotation_only=rotation_only, pairs=held_out, alpha=alpha,
                         force=force)
@@ -209,7 +207,7 @@ def correct_cache(
         def subset_delta(axes: str) -> np.ndarray:
             mask = component_mask(rotation_component(axes))
             if depth == "sgbm" and run.config.method == "stereo_dpc" and not run.config.learn_ssim_weight:
-                # Δ with stereo depth needs no network (dpc_jax.judge): no second pass of it.
+                # Δ with stereo depth needs no network (dpc_jax.correction.judge): no second pass of it.
                 # L(0) is the prediction's, measured with the same depth on the same pairs.
                 return correction_effects(cache, prediction.xi_corr, {axes: mask}, run.config.loss_config(),
                                           batch_size or run.config.batch_size,
@@ -219,63 +217,12 @@ def correct_cache(
             return again.delta["rotation"]
 
         acceptance, delta = refine_rotation(acceptance, delta, subset_delta, held_out)
-    if judged is not None and acceptance.decision != "none" and not acceptance.forced:
-        mask = component_mask("rotation" if rotation_only and acceptance.decision == "full"
-                              else acceptance.decision)
-        scales = {f"{s:g}": s * mask for s in JUDGE_SCALES}
-        measured = correction_effects(judged, prediction.xi_corr, scales, run.config.loss_config(),
-                                      batch_size or run.config.batch_size)
-        by_scale = {s: measured[f"{s:g}"] for s in JUDGE_SCALES}
-        acceptance, delta = judged_correction(acceptance, delta, by_scale, held_out)
+    if judged is not None:
+        acceptance, delta = judge_correction(run, judged, prediction.xi_corr, acceptance, delta,
+                                             rotation_only, held_out, batch_size)
     correction = compose_correction(run, cache, prediction.xi_corr, acceptance, rotation_only)
     return dataclasses.replace(correction, delta=delta,
                                tested=None if held_out is None else np.asarray(held_out, np.int64))
-
-
-def _judge_for(
-    run: TrainedRun, cache: SequenceCache, judge: SequenceCache | str | os.PathLike
-) -> SequenceCache:
-    """The judge cache of ``cache``, checked: the same frames, a stereo run."""
-    judged = judge if isinstance(judge, SequenceCache) else load_cache(judge)
-    if run.config.method != "stereo_dpc":
-        raise ValueError(f"{judged.path}: a judge measures Δ with stereo depth; the run is "
-                         f"{run.config.method}")
-    same_sequence = judged.manifest.get("sequence") == cache.manifest.get("sequence")
-    if not same_sequence or not np.array_equal(np.asarray(judged.indices), np.asarray(cache.indices)):
-        raise ValueError(f"{judged.path}: holds frames other than those of {cache.path}; a judge must be "
-                         "the same frames prepared at another size")
-    # Δ is measured around the prior being corrected, which may replace the caches' own.
-    return dataclasses.replace(judged, prior=cache.prior)
-
-
-def judged_correction(
-    acceptance: Acceptance,
-    delta: dict[str, np.ndarray],
-    by_scale: dict[float, np.ndarray],
-    pairs: np.ndarray | None = None,
-) -> tuple[Acceptance, dict[str, np.ndarray]]:
-    """A correction decided at the network's size, judged on a larger copy of the frames →
-    ``(acceptance, delta)``.
-
-    ``by_scale``: ``{s: Δ}`` at the judge of the decided correction times each of
-    :data:`~dpc_jax.acceptance.JUDGE_SCALES`. It must pass the test there at scale 1 too (else the
-    prior is kept): a test at two sizes, with two depths, both of which must agree. Then
-    :func:`~dpc_jax.acceptance.scale_correction` picks its scale there; ``delta[decision]`` becomes
-    the judge's Δ (what :func:`choose` compares).
-    """
-    chosen = slice(None) if pairs is None else np.asarray(pairs)
-    decision = acceptance.decision
-    name = f"{decision} (judge)"
-    test = component_test(name, by_scale[1.0][chosen], acceptance.alpha)
-    tests = {**acceptance.tests, name: test}
-    if not test.passed:
-        reason = (f"{acceptance.reason}; not at the judge's size (mean Δ {test.mean_delta:.3g}, "
-                  f"p = {test.p_value:.3g}): the prior is kept")
-        return dataclasses.replace(acceptance, tests=tests, decision="none", reason=reason), delta
-    judged = dataclasses.replace(acceptance, tests=tests,
-                                 reason=f"{acceptance.reason}; at the judge's size p = {test.p_value:.3g}")
-    smaller = {s: d for s, d in by_scale.items() if s != 1.0}
-    return scale_correction(judged, {**delta, decision: by_scale[1.0]}, smaller, pairs)
 
 
 def compose_correction(
@@ -283,7 +230,7 @@ def compose_correction(
 ) -> Correction:
     """The trajectories of a decided correction of ``cache`` and their evaluation (module docstring)."""
     from dpc_jax.eval.evaluation import evaluate
-    from dpc_jax.geometry.correction import corrected_trajectory
+    from dpc_jax.geometry.pose_correction import corrected_trajectory
 
     prior = np.asarray(cache.prior, np.float64)
     gt = None if cache.gt is None else np.asarray(cache.gt, np.float64)
@@ -320,7 +267,7 @@ def compose_correction(
 
 def choose(trained: Correction, adapted: Correction | None = None) -> tuple[str, Correction]:
     """The final correction of a sequence corrected by a network as trained and, optionally, by the
-    same network adapted to the sequence (``dpc_jax.adapt``) → ``(name, correction)`` with ``name``
+    same network adapted to the sequence (``dpc_jax.correction.adapt``) → ``(name, correction)`` with ``name``
     ``adapted``, ``trained`` or ``prior`` (then the trajectory is the prior re-composed).
 
     Each candidate has passed or failed its own acceptance test against the prior. The adapted

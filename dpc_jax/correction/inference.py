@@ -2,15 +2,16 @@
 
 The path from a trained run to corrections, used by ``dpc-jax correct``, adaptation, the demo and
 the experiments. Of the training package it imports only the run's config and its checkpoint
-format (``dpc_jax.training.config``, ``dpc_jax.training.checkpoints``): never the loop, the step or
+format (``dpc_jax.training.train_config``, ``dpc_jax.training.checkpoints``): never the loop, the step or
 the optimizer (the import contracts in ``pyproject.toml`` say so).
 
 * :func:`load_run` restores the model of a run written by ``dpc-jax train`` at the epoch chosen by
   a selection criterion (:data:`SELECTIONS`); the optimizer's part of the checkpoint is not read.
-* :func:`predict_sequence` (``dpc_jax.engine.predict``, also what validation during training
-  runs) evaluates a model on every consecutive pair ``(k, k+1)`` of a cached sequence: ξ_corr, the
-  training loss, and the paired photometric effect Δ of the correction.
-* Composing the corrected trajectory is ``dpc_jax.geometry.correction.corrected_trajectory``.
+* :func:`run_prediction` runs a restored run's network through
+  :func:`dpc_jax.engine.predict.predict_sequence` (also what validation during training runs) on
+  every consecutive pair ``(k, k+1)`` of a cached sequence: ξ_corr, the training loss, and the
+  paired photometric effect Δ of the correction.
+* Composing the corrected trajectory is ``dpc_jax.geometry.pose_correction.corrected_trajectory``.
 """
 
 from __future__ import annotations
@@ -23,13 +24,10 @@ import jax
 import numpy as np
 from flax import nnx
 
-from dpc_jax._progress import Progress
 from dpc_jax.data.sequence_cache import SequenceCache, load_cache
-from dpc_jax.engine.predict import SequencePrediction as SequencePrediction
-from dpc_jax.engine.predict import predict_sequence as predict_sequence
-from dpc_jax.engine.predict import predict_step as predict_step
-from dpc_jax.engine.predict import stereo_depth_of as stereo_depth_of
-from dpc_jax.training.config import SELECTIONS, TrainConfig
+from dpc_jax.engine.predict import SequencePrediction, predict_sequence, stereo_depth_of
+from dpc_jax.runtime.progress import Progress
+from dpc_jax.training.train_config import SELECTIONS, TrainConfig
 
 
 @dataclass(frozen=True)
@@ -118,10 +116,10 @@ def run_prediction(
     rotation_axes: np.ndarray | None = None,
     progress: Progress = False,
 ) -> SequencePrediction:
-    """:func:`predict_sequence` with a restored run's model, loss and settings.
+    """:func:`dpc_jax.engine.predict.predict_sequence` with a restored run's model, loss and settings.
 
     ``acceptance_depth``: ``network`` or ``sgbm`` (default: the run's ``acceptance_depth``);
-    ``rotation_axes``: see :func:`predict_sequence`.
+    ``rotation_axes``: see :func:`dpc_jax.engine.predict.predict_sequence`.
     """
     if cache.image_size != run.image_size:
         (h, w), (rh, rw) = cache.image_size, run.image_size

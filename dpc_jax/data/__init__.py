@@ -15,7 +15,7 @@ JAX and OpenCV through the others.
 
 from __future__ import annotations
 
-from dpc_jax._lazy import lazy_getattr
+from dpc_jax.runtime.lazy import lazy_getattr
 
 _EXPORTS: dict[str, tuple[str, ...]] = {
     "dpc_jax.data.cache": ("prepare_sequence",),

@@ -70,7 +70,6 @@ import jax
 import numpy as np
 
 from dpc_jax._io import atomic_write, install_folder, remove_stale, temp_name
-from dpc_jax._progress import Progress
 from dpc_jax.data.cache_products import FARNEBACK, ordered_map, write_frame_products
 from dpc_jax.data.kitti import StereoSequence, load_image, read_ground_truth
 from dpc_jax.data.poses_io import validate_poses
@@ -87,6 +86,7 @@ from dpc_jax.data.sequence_cache import (
 from dpc_jax.data.stereo_depth import sgbm_disparity, sgbm_fits
 from dpc_jax.geometry.camera import scale_intrinsics
 from dpc_jax.geometry.poses import remove_static_frames
+from dpc_jax.runtime.progress import Progress
 
 log = logging.getLogger(__name__)
 
@@ -199,7 +199,7 @@ def prepare_sequence(
       pairs are rectified with the residual removed and their disparity is ``fu·B/Z``.
     * ``name``: folder name, default ``sequence.name``; ``force`` rebuilds even when up to date.
     * ``progress``: tqdm bars (default: when stderr is a terminal), or ``"lines"`` for plain
-      progress lines (see :mod:`dpc_jax._progress`); ``workers``: decoding and flow threads
+      progress lines (see :mod:`dpc_jax.runtime.progress`); ``workers``: decoding and flow threads
       (default: CPU count).
 
     Bad input (unreadable or differently sized images, prior or ground truth of the wrong length

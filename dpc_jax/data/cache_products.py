@@ -20,8 +20,8 @@ from typing import TypedDict
 import cv2
 import numpy as np
 
-from dpc_jax._progress import Progress, progress_bar
 from dpc_jax.data.sequence_cache import DISPARITY_FILE, FLOW_FILES, PAIR_KINDS, encode_flow
+from dpc_jax.runtime.progress import Progress, progress_bar
 
 log = logging.getLogger(__name__)
 

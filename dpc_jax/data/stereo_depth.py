@@ -1,6 +1,6 @@
 """Depth from a rectified stereo pair with OpenCV's semi-global matching, independent of any network.
 
-The acceptance test (``dpc_jax.acceptance``) can measure a correction's photometric effect with
+The acceptance test (``dpc_jax.correction.acceptance``) can measure a correction's photometric effect with
 this depth instead of the network's own, so that the test does not lean on a depth that was
 trained together with the pose it judges. Metric through the baseline: ``1/Z = d / (fu · B)``
 (docs/method.md §1). Numpy/OpenCV only.

@@ -13,7 +13,7 @@ of the process (``jax.default_backend()``), so model and step code import no bac
   Stereo DPC's training step keeps XLA's default: there the two were equal at the demo's size and
   the default slightly faster at 240×376, and the demo's trained networks stay bit for bit what
   they are. Other backends: no options.
-* :func:`prepare_inference`: the model prepared for a sequence of inference batches, with the
+* :func:`prepare_for_backend`: the model prepared for a sequence of inference batches, with the
   full-resolution layers on channel planes (``dpc_jax.nn.conv.conv3x3_planar``, vectorised along
   image rows for a CPU's vector units) on the CPU backend only; elsewhere the plain convolutions
   run (a GPU's convolution library does better with them). ``DPC_JAX_PLANAR=0``/``1`` overrides
@@ -52,6 +52,6 @@ def planar_inference() -> bool:
     return jax.default_backend() == "cpu"
 
 
-def prepare_inference(graphdef: nnx.GraphDef, state: nnx.State) -> tuple[nnx.GraphDef, nnx.State]:
+def prepare_for_backend(graphdef: nnx.GraphDef, state: nnx.State) -> tuple[nnx.GraphDef, nnx.State]:
     """``dpc_jax.nn.models.prepare_inference`` with the path of :func:`planar_inference`."""
     return models.prepare_inference(graphdef, state, planar=planar_inference())

@@ -1,6 +1,6 @@
 """The one step driver: feeds batches to a jitted step and keeps the device busy.
 
-Training (``dpc_jax.training.loop``), adaptation (``dpc_jax.adapt``) and inference
+Training (``dpc_jax.training.loop``), adaptation (``dpc_jax.correction.adapt``) and inference
 (``dpc_jax.engine.predict``) each hand :func:`drive` their step, its carried state and an iterable
 of inputs (batches, typically already on the device: ``dpc_jax.data.pipeline`` transfers them in
 its worker threads). Per input the driver
@@ -11,7 +11,7 @@ its worker threads). Per input the driver
    previous: the device always has the steps just dispatched to run while the host waits, and a
    host that takes longer over one step than the device does not leave it idle), checks the named
    output for finiteness, and hands the host values to ``consume``;
-3. advances the progress report (``dpc_jax._progress``: a bar on a terminal, plain lines in a log).
+3. advances the progress report (``dpc_jax.runtime.progress``: a bar on a terminal, plain lines in a log).
 
 The order of the steps, their inputs and the carried state are exactly those of a plain loop; the
 driver adds no computation, and ``consume`` sees the steps in order. A non-finite loss is noticed
@@ -30,7 +30,7 @@ from typing import Any, TypeVar
 
 import jax
 
-from dpc_jax._progress import Progress, progress_bar
+from dpc_jax.runtime.progress import Progress, progress_bar
 
 Carry = TypeVar("Carry")
 Item = TypeVar("Item")

@@ -5,7 +5,7 @@
 so one compilation serves the sequence: ξ_corr, the training loss, and the paired photometric
 effect Δ of the correction (``dpc_jax.nn.losses.correction_deltas``), with the network's depth or
 an independent stereo depth (``dpc_jax.data.stereo_depth``). Validation during training and the
-correction of a restored run (``dpc_jax.inference``) both call it; the step driver
+correction of a restored run (``dpc_jax.correction.inference``) both call it; the step driver
 (``dpc_jax.engine.driver``) runs it.
 """
 
@@ -21,13 +21,13 @@ import numpy as np
 from flax import nnx
 from jax.sharding import Mesh
 
-from dpc_jax._progress import Progress
 from dpc_jax.data.pipeline import iterate_sequence
 from dpc_jax.data.sequence_cache import SequenceCache, StereoDepth, load_cache
 from dpc_jax.engine import backend, parallel
 from dpc_jax.engine.driver import drive
 from dpc_jax.nn.batch import Batch
 from dpc_jax.nn.losses import correction_deltas, dpc_loss, with_stereo_depth
+from dpc_jax.runtime.progress import Progress
 
 DELTAS = ("full", "rotation", "rotation_x", "rotation_y", "rotation_z")
 
@@ -97,7 +97,7 @@ def predict_sequence(
     progress: Progress = False,
 ) -> SequencePrediction:
     """Run the model ``(graphdef, state)`` in evaluation mode over every pair of ``cache``
-    (prepared once for the backend: ``dpc_jax.engine.backend.prepare_inference``).
+    (prepared once for the backend: ``dpc_jax.engine.backend.prepare_for_backend``).
 
     ``loss_config``: the run's loss config (``TrainConfig.loss_config()``). ``stereo_depth``:
     ``(inverse depth, valid)`` ``[N, camera, H, W]`` of every frame (``dpc_jax.data.stereo_depth``)
@@ -109,7 +109,7 @@ def predict_sequence(
     batch k+1 is dispatched before the results of batch k are fetched.
     """
     cache = cache if isinstance(cache, SequenceCache) else load_cache(cache)
-    graphdef, state = backend.prepare_inference(graphdef, state)
+    graphdef, state = backend.prepare_for_backend(graphdef, state)
     pairs = len(cache) - 1
     size = max(1, min(batch_size, pairs)) if mesh is None else batch_size
     leaves, treedef = jax.tree.flatten(state)

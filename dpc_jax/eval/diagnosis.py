@@ -27,7 +27,7 @@ Over the M steps of a sequence:
 
 Units in the result: translation in mm, rotation in mrad (per step), drift in m and °, shifts in px.
 :func:`diagnose` is the one implementation; ``dpc-jax evaluate --diagnose``, :func:`dpc_jax.evaluate`
-and the demo's report use it.
+and the demo's report use it (its Markdown: :func:`dpc_jax.report.evaluation.format_diagnosis`).
 """
 
 from __future__ import annotations
@@ -177,48 +177,3 @@ def diagnose(gt: np.ndarray, est: np.ndarray, focal_px: float | None = None) -> 
         mean_rot_px=px,
         mean_rot_px_norm=px_norm,
     )
-
-
-# ----------------------------------------------------------------------------- text
-
-
-def _pct(value: float) -> str:
-    return "n/a" if math.isnan(value) else f"{100.0 * value:.0f} %"
-
-
-def format_diagnosis(diagnoses: dict[str, Diagnosis]) -> str:
-    """Markdown: per estimate, mean ± spread per axis, then the drift shares and the pixel shift."""
-    units = ("mm", "mm", "mm", "mrad", "mrad", "mrad")
-    lines = [
-        "Per-step error (mean ± spread; ± standard error of the mean in brackets):",
-        "",
-        "| estimate | steps | " + " | ".join(f"{a} ({u})" for a, u in zip(AXES, units, strict=True)) + " |",
-        "|---|---|" + "---|" * len(AXES),
-    ]
-    for label, d in diagnoses.items():
-        cells = [
-            f"{m:+.3f} ± {s:.3f} ({e:.3f})"
-            for m, s, e in zip(d.mean, d.spread, d.standard_error, strict=True)
-        ]
-        lines.append(f"| {label} | {d.steps} | " + " | ".join(cells) + " |")
-    lines += [
-        "",
-        "End-point drift of the estimate, of the bias-only trajectory (every ground-truth step with the "
-        "mean error), and the share of the drift along the bias's own:",
-        "",
-        "| estimate | position (m) | bias only (m) | share explained | heading (°) | bias only (°) "
-        "| share explained | mean rotation per step (px) |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for label, d in diagnoses.items():
-        if d.mean_rot_px is None or d.mean_rot_px_norm is None:
-            px = "n/a (give --focal)"
-        else:
-            px = (f"{d.mean_rot_px_norm:.3f} at the centre (φx {d.mean_rot_px[0]:+.3f}, φy "
-                  f"{d.mean_rot_px[1]:+.3f}); φz {d.mean_rot_px[2]:+.3f} at f from it (f = {d.focal_px:g})")
-        lines.append(
-            f"| {label} | {d.drift_trans_m:.3g} | {d.bias_drift_trans_m:.3g} | "
-            f"{_pct(d.drift_trans_explained)} | {d.drift_rot_deg:.3g} | {d.bias_drift_rot_deg:.3g} | "
-            f"{_pct(d.drift_rot_explained)} | {px} |"
-        )
-    return "\n".join(lines) + "\n"

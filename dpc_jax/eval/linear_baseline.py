@@ -12,7 +12,7 @@ setting for stereo priors). With ``constant_only`` only the constant column is f
 correction per step, a per-axis bias): the gains on the prior's step extrapolate poorly to a log
 driven at other speeds than the training one, a bias does not depend on them. It is applied
 exactly as the network's correction, ``T* = Exp(ξ_corr) · T_vo``
-(:func:`dpc_jax.geometry.correction.corrected_trajectory`), so its numbers compare with a network's.
+(:func:`dpc_jax.geometry.pose_correction.corrected_trajectory`), so its numbers compare with a network's.
 
 The math (:func:`design_matrix`, :func:`fit_weights`, :func:`predict`) is pure ``jnp``; run it with
 ``jax_enable_x64`` for float64. :func:`fit_linear_correction` and :func:`apply_linear_correction`
@@ -148,7 +148,7 @@ def apply_linear_correction(model: LinearCorrection, prior: np.ndarray) -> np.nd
     import jax
 
     from dpc_jax.data.priors import relative_xi
-    from dpc_jax.geometry.correction import corrected_trajectory
+    from dpc_jax.geometry.pose_correction import corrected_trajectory
 
     prior = np.asarray(prior, np.float64)
     with jax.enable_x64(True):

@@ -30,8 +30,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from dpc_jax.nn.config import ModelConfig
 from dpc_jax.nn.conv import conv3x3_few_outputs, conv3x3_planar, conv_s2, phase_kernel, upconv3x3_s2_phases
+from dpc_jax.nn.model_config import ModelConfig
 
 INV_DEPTH_OFFSET = 0.001
 

@@ -16,7 +16,7 @@ weighted by ``batch.weight``. Explainability masks multiply the per-pixel error 
 the denominator (the mask regulariser keeps them from collapsing to zero).
 
 Relative poses: ``T_vo = Exp(ξ_vo)`` is ``T_{t+1,t}``, mapping frame-t points into frame t+1,
-and ``T* = Exp(ξ_corr) · T_vo`` (:func:`~dpc_jax.geometry.correction.apply_correction`). Reconstructing
+and ``T* = Exp(ξ_corr) · T_vo`` (:func:`~dpc_jax.geometry.pose_correction.apply_correction`). Reconstructing
 frame t+1 from frame t therefore needs ``T_{t,t+1} = inv(T*)``, computed exactly.
 """
 
@@ -28,11 +28,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from dpc_jax.geometry.correction import apply_correction
 from dpc_jax.geometry.lie import se3_exp, se3_inverse
+from dpc_jax.geometry.pose_correction import apply_correction
 from dpc_jax.geometry.warp import inverse_warp, stereo_warp
 from dpc_jax.nn.batch import Batch
-from dpc_jax.nn.config import SSDPCLossConfig, StereoDPCLossConfig, SupervisedLossConfig
 from dpc_jax.nn.loss_terms import (
     disparity_consistency_loss,
     explainability_loss,
@@ -43,6 +42,7 @@ from dpc_jax.nn.loss_terms import (
     rotation_weights,
     to_unit_images,
 )
+from dpc_jax.nn.model_config import SSDPCLossConfig, StereoDPCLossConfig, SupervisedLossConfig
 from dpc_jax.nn.outputs import BranchOutputs, DPCOutputs
 from dpc_jax.nn.supervised_loss import supervised_dpc_loss
 

@@ -3,7 +3,7 @@
 :class:`ModelConfig` and its :data:`PRESETS` describe both networks (:mod:`dpc_jax.nn.models`);
 :class:`SSDPCLossConfig` and :class:`StereoDPCLossConfig` their losses (:mod:`dpc_jax.nn.losses`);
 :class:`SupervisedLossConfig` DPC-Net's supervised loss, which either network can be trained with.
-They import no JAX, so a training config (:mod:`dpc_jax.training.config`) is checked, and a mistake
+They import no JAX, so a training config (:mod:`dpc_jax.training.train_config`) is checked, and a mistake
 in it reported, before the command line starts JAX. They are hashable: the losses take them as
 static arguments under ``jax.jit``.
 """

@@ -49,8 +49,8 @@ from flax import nnx
 
 from dpc_jax.nn.batch import Batch
 from dpc_jax.nn.branch import Branch, PhaseKernel, UpConv
-from dpc_jax.nn.config import Method, ModelConfig, uses_flow
 from dpc_jax.nn.conv import phase_kernel
+from dpc_jax.nn.model_config import Method, ModelConfig, uses_flow
 from dpc_jax.nn.outputs import BranchOutputs, DPCOutputs
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)

@@ -18,7 +18,7 @@ from jax.typing import ArrayLike
 
 from dpc_jax.geometry.lie import se3_exp, se3_inverse, se3_log, so3_exp, so3_log
 from dpc_jax.nn.batch import Batch
-from dpc_jax.nn.config import SSDPCLossConfig, StereoDPCLossConfig, SupervisedLossConfig
+from dpc_jax.nn.model_config import SSDPCLossConfig, StereoDPCLossConfig, SupervisedLossConfig
 from dpc_jax.nn.outputs import DPCOutputs
 
 

@@ -18,15 +18,17 @@
 3. **Calibrate and prepare**: the same VO with the estimate *on* measures the residual from the
    images (no ground truth); ``prepare`` rectifies the network's images by it, so the network sees
    a calibrated rig and its stereo depth is metric.
-4. **Train** Stereo DPC (``dpc_jax.training.loop``, the improved settings of ``dpc_jax.training.config``) on
-   the training sequences; the validation sequence selects the epoch by Δ (the correction's paired
-   photometric effect, no ground truth). The test sequence is never read by training.
+4. **Train** Stereo DPC (``dpc_jax.training.loop``, the improved settings of
+   ``dpc_jax.training.train_config``) on the training sequences; the validation sequence selects
+   the epoch by Δ (the correction's paired photometric effect, no ground truth). The test sequence
+   is never read by training.
 5. **Correct the test sequence twice**: with the network as trained (acceptance test on all its
    pairs), and after adapting the network to the test sequence's own images for ``adapt_steps``
-   steps (``dpc_jax.adapt``; every ``holdout_every``-th pair kept out, the acceptance test on those).
+   steps (``dpc_jax.correction.adapt``; every ``holdout_every``-th pair kept out, the acceptance test
+   on those).
    The final trajectory (``corrected.txt``, ``summary.json``'s ``test.corrected``) is chosen by
-   ``dpc_jax.correct.choose``: the adapted correction if its test passes *and* it beats the trained
-   one on the kept-out pairs, else the trained one if its test passes, else the prior.
+   ``dpc_jax.correction.corrector.choose``: the adapted correction if its test passes *and* it beats
+   the trained one on the kept-out pairs, else the trained one if its test passes, else the prior.
 6. **Report** ``OUT/report.md``: the prior's error composition, the test table (prior, trained,
    adapted, final), plots, the training and adaptation records. The ground truth is read only here.
 
@@ -38,7 +40,6 @@ finished training run (resumed when interrupted; a run with a different config i
 from __future__ import annotations
 
 import json
-import math
 import os
 import time
 from collections.abc import Callable
@@ -51,14 +52,15 @@ import numpy as np
 from dpc_jax import config as config_lib
 from dpc_jax.pipelines.demo_config import DemoConfig
 from dpc_jax.report.demo import decision_label, write_demo_report
+from dpc_jax.report.tables import change_pct
 
 if TYPE_CHECKING:
-    from dpc_jax.adapt import Adaptation
-    from dpc_jax.correct import Correction
+    from dpc_jax.correction.adapt import Adaptation
+    from dpc_jax.correction.corrector import Correction
     from dpc_jax.data.kitti import StereoSequence
     from dpc_jax.data.sequence_cache import SequenceCache
     from dpc_jax.eval.evaluation import Evaluation
-    from dpc_jax.training.config import TrainConfig
+    from dpc_jax.training.train_config import TrainConfig
 
 # The run and the caches inside OUT (the report lists them as `run/` and `cache/`).
 _RUN_DIR, _CACHE_DIR = "run", "cache"
@@ -101,21 +103,14 @@ def prior_error(gt: np.ndarray, prior: np.ndarray, focal_px: float | None = None
     return record
 
 
-def _change(prior: float | None, corrected: float | None) -> float:
-    """Relative change in % (negative: lower than the prior); NaN without a value."""
-    if prior is None or corrected is None or prior == 0:
-        return math.nan
-    return 100.0 * (corrected - prior) / prior
-
-
 def _vo_prior(config: DemoConfig, name: str, sequence: StereoSequence, first_pose: np.ndarray, vo_dir: Path,
               progress: bool) -> tuple[dict[str, Any], float]:
     """Sequence ``name``'s VO prior (refused if it is not VO) and the disparity offset our VO measures."""
     from dpc_jax.vo import VOConfig
-    from dpc_jax.vo.prior import vo_prior
+    from dpc_jax.vo.prior import write_vo_prior
 
     libviso2_like = VOConfig(estimate_offset=config.vo_estimate_offset)
-    prior = vo_prior(sequence, vo_dir / f"{name}.txt", libviso2_like, first_pose=first_pose,
+    prior = write_vo_prior(sequence, vo_dir / f"{name}.txt", libviso2_like, first_pose=first_pose,
                      progress=progress)
     if prior["fallbacks"] > config.max_fallback_share * prior["pairs"]:
         raise DemoError(
@@ -123,7 +118,7 @@ def _vo_prior(config: DemoConfig, name: str, sequence: StereoSequence, first_pos
             f"pairs (more than {config.max_fallback_share:.0%}); a correction trained on such a prior "
             "shows nothing. Render larger images (render_size) or with less noise"
         )
-    calibration = vo_prior(sequence, vo_dir / f"{name}.calibration.txt", VOConfig(estimate_offset=True),
+    calibration = write_vo_prior(sequence, vo_dir / f"{name}.calibration.txt", VOConfig(estimate_offset=True),
                            first_pose=first_pose, progress=progress)
     return prior, calibration["disparity_offset_median_px"]
 
@@ -192,10 +187,10 @@ def _correct_test(config: DemoConfig, out: Path, seconds: dict[str, float], prog
                   say: ProgressFn) -> _TestCorrections:
     """Correct the test sequence with the network as trained and, unless ``adapt_steps`` is 0, adapted to
     it; choose the final correction and write it to ``corrected.txt``."""
-    from dpc_jax.adapt import AdaptConfig, adapt_and_correct, save_adapted
-    from dpc_jax.correct import choose, correct_cache, write_trajectory
+    from dpc_jax.correction.adapt import AdaptConfig, adapt_and_correct, save_adapted
+    from dpc_jax.correction.corrector import choose, correct_cache, write_trajectory
+    from dpc_jax.correction.inference import load_run
     from dpc_jax.data.sequence_cache import load_cache
-    from dpc_jax.inference import load_run
 
     t = time.perf_counter()
     run = load_run(out / _RUN_DIR, config.select)
@@ -231,7 +226,7 @@ def _evaluate_test(config: DemoConfig, tested: _TestCorrections,
     estimates = {"prior": tested.result.prior, **proposals, "corrected": tested.result.corrected}
     evaluation = evaluate(gt, estimates)
     test_metrics = {label: dict(evaluation.estimates[label]) for label in estimates}
-    change = {k: _change(test_metrics["prior"][k], test_metrics["corrected"][k])
+    change = {k: change_pct(test_metrics["prior"][k], test_metrics["corrected"][k])
               for k in ("seg_trans_pct", "seg_rot_deg_per_100m")}
     return evaluation, {
         "test": test_metrics,

@@ -8,7 +8,7 @@ from typing import Any
 
 from dpc_jax import config as config_lib
 from dpc_jax.data.holdout import MIN_EVERY
-from dpc_jax.training.config import SELECTIONS
+from dpc_jax.training.train_config import SELECTIONS
 from dpc_jax.vo.odometry import FALLBACK_WARNING_SHARE
 
 # Training defaults of the demo (``TrainConfig`` fields); ``DemoConfig.training`` overrides them.
@@ -51,7 +51,7 @@ class DemoConfig:
           truth), ``gradient``, ``loop`` or ``last``.
         * ``acceptance``: apply a correction only where the acceptance test passes (False: apply
           every correction, as the papers do).
-        * ``adapt_steps`` (0: no adaptation), ``holdout_every``: see ``dpc_jax.adapt``.
+        * ``adapt_steps`` (0: no adaptation), ``holdout_every``: see ``dpc_jax.correction.adapt``.
         * ``max_fallback_share``: the demo refuses a prior whose VO fell back to constant velocity on
           more of the pairs than this (default ``dpc_jax.vo.odometry.FALLBACK_WARNING_SHARE``).
     """
@@ -121,7 +121,7 @@ class DemoConfig:
 
     def train_config(self, cache_root: str | os.PathLike) -> Any:
         """The ``TrainConfig`` of the demo's run on the caches under ``cache_root``."""
-        from dpc_jax.training.config import TrainConfig
+        from dpc_jax.training.train_config import TrainConfig
 
         roles = self.sequences
         values = {

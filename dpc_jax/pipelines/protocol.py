@@ -3,7 +3,7 @@ table: :mod:`dpc_jax.report.protocol`).
 
 An experiment is a list of *folds*. A fold trains one network (``dpc_jax.training.loop.train``) on its
 training sequences, selects the epoch on its validation sequence without ground truth, corrects
-the prior of each of its test sequences (``dpc_jax.correct``) and evaluates prior and corrected
+the prior of each of its test sequences (``dpc_jax.correction.corrector``) and evaluates prior and corrected
 trajectories against the ground truth. Everything lives under one work folder::
 
     WORKDIR/cache/NAME/             prepared sequences (dpc-jax prepare), reused when up to date
@@ -26,7 +26,6 @@ from __future__ import annotations
 import io
 import json
 import logging
-import runpy
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,7 +36,7 @@ import numpy as np
 from dpc_jax._io import atomic_write
 
 if TYPE_CHECKING:
-    from dpc_jax.correct import Correction
+    from dpc_jax.correction.corrector import Correction
 
 # Odometry sequence ↔ raw drive (docs/method.md §6): raw drives that *are* an odometry sequence must not be
 # used for training when that sequence is tested.
@@ -78,14 +77,82 @@ class Result:
     decisions: dict[str, str] = field(default_factory=dict)  # network label → acceptance decision
 
 
-def load_protocol(path: str | Path) -> tuple[Any, dict[str, Any]]:
-    """``(CONFIG, PROTOCOL)`` of an experiment config file (``CONFIG`` is a TrainConfig or its dict)."""
-    from dpc_jax import config as config_lib
-    from dpc_jax.training.config import TrainConfig
+@dataclass(frozen=True)
+class DriveSpec:
+    """One KITTI raw drive of a cross-drive protocol: its libviso2 ``.mat`` (relative to the raw root)
+    and the frames ``[start, end)`` its networks train and validate on."""
 
-    namespace = runpy.run_path(str(path))
-    config = config_lib.load_file(path, TrainConfig)
-    return config, dict(namespace.get("PROTOCOL", {}))
+    libviso2: str
+    train_frames: tuple[int, int]
+    validation_frames: tuple[int, int]
+
+
+@dataclass(frozen=True)
+class FoldSpec:
+    """One named fold of a KITTI odometry protocol: the prior kind (``stereo`` or ``mono``), its
+    validation and test sequences (it trains on the others) and TrainConfig overrides."""
+
+    prior: str
+    validation: str
+    test: tuple[str, ...]
+    overrides: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class ExperimentProtocol:
+    """``PROTOCOL`` of an experiment config file: what the entry point does around the training
+    (``CONFIG``). Built like ``CONFIG`` (``dpc_jax.config.from_dict``): unknown keys are refused with
+    the closest known one, values are type-checked. Each entry point reads the fields of its kind;
+    the others keep their defaults.
+
+    Every kind: ``select`` (epoch selection, ``dpc_jax.training.train_config.SELECTIONS``), ``acceptance``
+    (False: apply every correction, the papers' way), ``rotation_only`` (None: the network's own),
+    ``adapt_steps`` / ``holdout_every`` (``dpc_jax.correction.adapt``), ``rectify_offset`` (rectify the
+    network's images by the disparity offset our VO measures), ``judge_size`` (measure every acceptance
+    test on frames prepared at this size; None: the network's). KITTI odometry: ``sequences``, ``validation``
+    (validation sequence per test sequence, ``default`` for the others) or ``folds``. KITTI raw:
+    ``date`` and one ``drive`` (its ``libviso2`` file, ``train_frames``, ``validation_frames``) or
+    ``drives`` with the (test prior, training prior) pairs of ``tests``."""
+
+    select: str = "gradient"
+    acceptance: bool = True
+    rotation_only: bool | None = None
+    adapt_steps: int = 0
+    holdout_every: int = 5
+    rectify_offset: bool = False
+    judge_size: tuple[int, int] | None = None
+    sequences: tuple[str, ...] = ()
+    validation: dict[str, str] = field(default_factory=dict)
+    folds: dict[str, FoldSpec] = field(default_factory=dict)
+    date: str = ""
+    drive: str = ""
+    libviso2: str = ""
+    train_frames: tuple[int, int] | None = None
+    validation_frames: tuple[int, int] | None = None
+    drives: dict[str, DriveSpec] = field(default_factory=dict)
+    tests: tuple[tuple[str, str], ...] = ()
+
+    def __post_init__(self) -> None:
+        from dpc_jax import config as config_lib
+        from dpc_jax.training.train_config import SELECTIONS
+
+        if self.select not in SELECTIONS:
+            raise config_lib.ConfigError(f"select: {self.select!r} is not one of {', '.join(SELECTIONS)}")
+        # Nested specs come as dicts from a config file: checked the same way, naming where they sit.
+        for name, cls in (("folds", FoldSpec), ("drives", DriveSpec)):
+            specs = {key: spec if isinstance(spec, cls) else config_lib.from_dict(cls, spec, f"{name}.{key}")
+                     for key, spec in getattr(self, name).items()}
+            object.__setattr__(self, name, specs)
+
+
+def load_protocol(path: str | Path) -> tuple[Any, ExperimentProtocol]:
+    """``(CONFIG, PROTOCOL)`` of an experiment config file: a TrainConfig and an
+    :class:`ExperimentProtocol` (each given as the dataclass or a dict of its fields)."""
+    from dpc_jax import config as config_lib
+    from dpc_jax.training.train_config import TrainConfig
+
+    return (config_lib.load_file(path, TrainConfig),
+            config_lib.load_file(path, ExperimentProtocol, name="PROTOCOL"))
 
 
 def parse_overrides(pairs: Sequence[str]) -> dict[str, Any]:
@@ -105,7 +172,7 @@ def parse_overrides(pairs: Sequence[str]) -> dict[str, Any]:
 def fold_config(base: Any, fold: Fold, cache_root: Path, overrides: dict[str, Any]) -> Any:
     """The fold's TrainConfig: ``base`` with its split, the cache root and the overrides."""
     from dpc_jax import config as config_lib
-    from dpc_jax.training.config import TrainConfig
+    from dpc_jax.training.train_config import TrainConfig
 
     data = config_lib.to_dict(base)
     unknown = [k for k in overrides if k not in data]
@@ -138,7 +205,7 @@ def find_prior(directory: Path, name: str, kind: str = "stereo") -> Path:
 def vo_prior(sequence: Any, out: Path, progress: bool) -> dict[str, Any]:
     """Our classical stereo VO over ``sequence``, started at its first GT pose, as KITTI text ``out``
     (recomputed when its inputs change; ``dpc_jax.vo.prior``); the run's summary with ``path``."""
-    from dpc_jax.vo.prior import vo_prior as run
+    from dpc_jax.vo.prior import write_vo_prior as run
 
     return run(sequence, out, first_pose=None if sequence.poses is None else sequence.poses[0],
                progress=progress)
@@ -191,15 +258,15 @@ def correct_and_evaluate(
 ) -> Result:
     """Correct the prior of ``cache`` with the run's selected epoch (only where the acceptance test
     allows it, unless ``acceptance`` is False) and, with ``adapt_steps``, also with the network
-    adapted to ``cache``'s own pairs (``dpc_jax.adapt``, the ground truth unread); the final
-    trajectory is chosen by ``dpc_jax.correct.choose`` (the adapted correction only if it passes
+    adapted to ``cache``'s own pairs (``dpc_jax.correction.adapt``, the ground truth unread); the final
+    trajectory is chosen by ``dpc_jax.correction.corrector.choose`` (the adapted correction only if it passes
     its test and beats the trained one, else the trained one if it passes, else the prior).
     ``judge``: the same frames prepared at a larger size, where every acceptance test is measured
-    (``dpc_jax.correct.correct_cache``). Writes the final trajectory, the reports and (adapting)
+    (``dpc_jax.correction.corrector.correct_cache``). Writes the final trajectory, the reports and (adapting)
     the adapted network."""
-    from dpc_jax.correct import choose, correct_cache, write_trajectory
+    from dpc_jax.correction.corrector import choose, correct_cache, write_trajectory
+    from dpc_jax.correction.inference import load_run
     from dpc_jax.data.sequence_cache import load_cache
-    from dpc_jax.inference import load_run
     from dpc_jax.report.correction import write_correction_report
 
     run = load_run(run_dir, select)
@@ -209,7 +276,7 @@ def correct_and_evaluate(
     corrections = {"trained": correct_cache(run, loaded, rotation_only=rotation_only, force=not acceptance,
                                             judge=judged, progress=progress)}
     if adapt_steps:
-        from dpc_jax.adapt import AdaptConfig, adapt_and_correct, save_adapted
+        from dpc_jax.correction.adapt import AdaptConfig, adapt_and_correct, save_adapted
 
         how = AdaptConfig(adapt_steps, holdout_every=holdout_every)
         adaptation, corrections["adapted"] = adapt_and_correct(
@@ -287,7 +354,7 @@ def write_fake_odometry(
 
 def add_common_arguments(parser: Any, config: Path) -> None:
     """Options every entry point has: work folder, config, epoch selection, overrides, smoke, progress."""
-    from dpc_jax.training.config import SELECTIONS
+    from dpc_jax.training.train_config import SELECTIONS
 
     parser.add_argument("--workdir", required=True, type=Path, metavar="DIR", help="everything goes here")
     parser.add_argument("--config", type=Path, default=config, metavar="FILE", help="experiment config")
@@ -298,6 +365,8 @@ def add_common_arguments(parser: Any, config: Path) -> None:
     parser.add_argument("--smoke", action="store_true",
                         help=f"wiring check: {', '.join(f'{k}={v}' for k, v in SMOKE.items())}")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    parser.add_argument("--results-page", type=Path, metavar="FILE",
+                        help="also write the table into the results block of FILE (a docs/results/ page)")
 
 
 def overrides_from(args: Any) -> dict[str, Any]:
@@ -316,6 +385,14 @@ def prior_source(priors: str, directory_kind: str, sequence: Any, workdir: Path,
     return find_prior(Path(priors), sequence.name, directory_kind)
 
 
-def print_results(path: Path) -> None:
-    print(path.read_text())
+def print_results(path: Path, page: Path | None, script: Path) -> None:
+    """Print the results table ``path``; with ``page``, also write it into that page's results block
+    (``dpc_jax.report.pages.write_results``, ``script`` named as its writer)."""
+    from dpc_jax.report.pages import write_results
+
+    text = path.read_text()
+    print(text)
     print(f"results: {path}")
+    if page is not None:
+        write_results(page, text, script)
+        print(f"results page: {page}")

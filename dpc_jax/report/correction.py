@@ -1,5 +1,6 @@
-"""The report of a corrected sequence (:class:`dpc_jax.correct.Correction`): the acceptance test, how the
-final correction was chosen, what the adaptation did, and the evaluation when there is ground truth."""
+"""The report of a corrected sequence (:class:`dpc_jax.correction.corrector.Correction`): the
+acceptance test, how the final correction was chosen, what the adaptation did, and the evaluation
+when there is ground truth."""
 
 from __future__ import annotations
 
@@ -10,7 +11,6 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from dpc_jax._io import atomic_write
-from dpc_jax.acceptance import Acceptance, ComponentTest, rotation_axes_words
 from dpc_jax.eval.evaluation import Evaluation
 from dpc_jax.report.evaluation import write_report
 from dpc_jax.report.tables import row, rule
@@ -18,12 +18,66 @@ from dpc_jax.report.tables import row, rule
 _TEST_COLUMNS = ("pairs", "mean Δ", "median Δ", "pairs improved", "Wilcoxon W", "p (one-sided)", "passed")
 
 
+class TestResult(Protocol):
+    """What the report reads of one component's test
+    (:class:`dpc_jax.correction.acceptance.ComponentTest`)."""
+
+    @property
+    def component(self) -> str: ...
+
+    @property
+    def pairs(self) -> int: ...
+
+    @property
+    def mean_delta(self) -> float: ...
+
+    @property
+    def median_delta(self) -> float: ...
+
+    @property
+    def improved_share(self) -> float: ...
+
+    @property
+    def statistic(self) -> float: ...
+
+    @property
+    def p_value(self) -> float: ...
+
+    @property
+    def passed(self) -> bool: ...
+
+
+class AcceptanceResult(Protocol):
+    """What the reports read of an acceptance test (:class:`dpc_jax.correction.acceptance.Acceptance`;
+    protocols, so that the correction can import the reports and not the reverse)."""
+
+    @property
+    def alpha(self) -> float: ...
+
+    @property
+    def tests(self) -> Mapping[str, TestResult]: ...
+
+    @property
+    def decision(self) -> str: ...
+
+    @property
+    def reason(self) -> str: ...
+
+    @property
+    def forced(self) -> bool: ...
+
+
+def rotation_axes_words(component: str) -> str:
+    """``rotation_xz`` → ``"rotation about x, z"`` (camera axes)."""
+    return "rotation about " + ", ".join(component.removeprefix("rotation_"))
+
+
 class CorrectionResult(Protocol):
-    """What the report reads of a :class:`dpc_jax.correct.Correction` (a protocol, so that the
+    """What the report reads of a :class:`dpc_jax.correction.corrector.Correction` (a protocol, so that the
     correction can import this module and not the reverse)."""
 
     @property
-    def acceptance(self) -> Acceptance: ...
+    def acceptance(self) -> AcceptanceResult: ...
 
     @property
     def evaluation(self) -> Evaluation | None: ...
@@ -37,13 +91,19 @@ class CorrectionResult(Protocol):
     def summary(self) -> dict[str, object]: ...
 
 
-def _test_row(t: ComponentTest) -> str:
-    return row([t.component, str(t.pairs), f"{t.mean_delta:.3e}", f"{t.median_delta:.3e}",
-                f"{100 * t.improved_share:.1f} %", f"{t.statistic:.4g}", f"{t.p_value:.3g}",
-                "yes" if t.passed else "no"])
+def _test_row(t: TestResult) -> str:
+    return _row(t.component, t.pairs, t.mean_delta, t.median_delta, t.improved_share, t.statistic, t.p_value,
+                t.passed)
 
 
-def acceptance_markdown(acceptance: Acceptance) -> str:
+def _row(component: str, pairs: int, mean_delta: float, median_delta: float, improved_share: float,
+         statistic: float, p_value: float, passed: bool) -> str:
+    return row([component, str(pairs), f"{mean_delta:.3e}", f"{median_delta:.3e}",
+                f"{100 * improved_share:.1f} %", f"{statistic:.4g}", f"{p_value:.3g}",
+                "yes" if passed else "no"])
+
+
+def acceptance_markdown(acceptance: AcceptanceResult) -> str:
     """The acceptance test as Markdown: one row per component tested, then the decision."""
     lines = [row(["component", *_TEST_COLUMNS]), rule(1 + len(_TEST_COLUMNS)),
              *(_test_row(t) for t in acceptance.tests.values())]
@@ -62,18 +122,17 @@ def acceptance_markdown(acceptance: Acceptance) -> str:
 
 
 def choice_markdown(choice: Mapping[str, object]) -> str:
-    """How :func:`dpc_jax.correct.choose` decided, as Markdown (a table row for the comparison, if one
-    was made)."""
+    """How :func:`dpc_jax.correction.corrector.choose` decided, as Markdown (a table row for the
+    comparison, if one was made)."""
     lines = ["## Final choice (no ground truth used)", "", f"**{choice['final']}**: {choice['reason']}.", ""]
     comparison = choice.get("comparison")
     if isinstance(comparison, dict):
-        t = ComponentTest(**comparison)
-        lines += [row(["comparison", *_TEST_COLUMNS]), rule(1 + len(_TEST_COLUMNS)), _test_row(t), ""]
+        lines += [row(["comparison", *_TEST_COLUMNS]), rule(1 + len(_TEST_COLUMNS)), _row(**comparison), ""]
     return "\n".join(lines)
 
 
 def adaptation_markdown(adaptation: Mapping[str, Any]) -> str:
-    """What the adaptation did (``dpc_jax.correct.AdaptationSummary``), as a Markdown section."""
+    """What the adaptation did (``dpc_jax.correction.corrector.AdaptationSummary``), as a Markdown section."""
     a = adaptation
     return (f"## Adaptation (no ground truth used)\n\n{a['steps']} steps on this sequence's own "
             f"pairs in {a['seconds'] / 60:.1f} min; {a['held_out']} pairs kept out for the acceptance "

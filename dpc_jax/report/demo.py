@@ -10,15 +10,14 @@ and the training's settings are read through :class:`DemoSettings` and :class:`T
 from __future__ import annotations
 
 import csv
-import math
 from pathlib import Path
 from typing import Any, Protocol
 
 from dpc_jax._io import atomic_write
-from dpc_jax.acceptance import Acceptance, rotation_axes_words
 from dpc_jax.eval.evaluation import Evaluation
+from dpc_jax.report.correction import AcceptanceResult, rotation_axes_words
 from dpc_jax.report.evaluation import segment_section, write_figures, write_tables
-from dpc_jax.report.tables import row, rule, table
+from dpc_jax.report.tables import EMPTY, number, row, rule, table
 
 
 class DemoSettings(Protocol):
@@ -56,7 +55,7 @@ class DemoSettings(Protocol):
 
 
 class TrainingSettings(Protocol):
-    """What the report reads of the demo run's ``dpc_jax.training.config.TrainConfig``."""
+    """What the report reads of the demo run's ``dpc_jax.training.train_config.TrainConfig``."""
 
     @property
     def preset(self) -> str: ...
@@ -75,10 +74,10 @@ class TrainingSettings(Protocol):
 
 
 def _fmt(value: float | None, digits: int = 3) -> str:
-    return "n/a" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
+    return number(value, f".{digits}f")
 
 
-def decision_label(acceptance: Acceptance) -> str:
+def decision_label(acceptance: AcceptanceResult) -> str:
     """What the acceptance test let through, in the words of the test table and the progress lines."""
     if acceptance.forced:
         return "not tested (applied)"
@@ -111,10 +110,10 @@ def _composition_table(records: dict[str, dict[str, Any]]) -> str:
         error = r["error"]
         cells = [f"{m:+.2f} ± {s:.2f}" for m, s in zip(error["mean"], error["std"], strict=True)]
         shares = " / ".join(
-            "n/a" if error.get(k) is None else f"{100 * error[k]:.0f} %"
+            EMPTY if error.get(k) is None else f"{100 * error[k]:.0f} %"
             for k in ("drift_trans_explained", "drift_rot_explained")
         )
-        px = "n/a" if error.get("mean_rot_px_norm") is None else f"{error['mean_rot_px_norm']:.3f}"
+        px = EMPTY if error.get("mean_rot_px_norm") is None else f"{error['mean_rot_px_norm']:.3f}"
         lines.append(row([name, f"{r['fallbacks']}/{r['pairs']}", f"{r['offset']:+.3f}", *cells, shares, px]))
     return "\n".join(lines) + "\n"
 

@@ -7,15 +7,16 @@ evaluated trajectories.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
 
 from dpc_jax._io import atomic_write
 from dpc_jax.data.poses_io import write_kitti_poses, write_tum
-from dpc_jax.eval.diagnosis import format_diagnosis
+from dpc_jax.eval.diagnosis import AXES, Diagnosis
 from dpc_jax.eval.evaluation import GT_LABEL, SUMMARY_KEYS, Evaluation
-from dpc_jax.report.tables import csv_text, table
+from dpc_jax.report.tables import EMPTY, csv_text, table
 
 # Column titles of the Markdown table, in the order of SUMMARY_KEYS.
 _TITLES = (
@@ -28,10 +29,43 @@ TRAJECTORY_PNG, SEGMENT_ERRORS_PNG, C_ATE_PNG = "trajectory.png", "segment_error
 
 def _fmt(value: float | int | None) -> str:
     if value is None:
-        return "n/a"
+        return EMPTY
     if isinstance(value, int):
         return str(value)
     return f"{value:.4g}" if abs(value) < 1e4 else f"{value:.0f}"
+
+
+def _share(value: float) -> str:
+    return EMPTY if math.isnan(value) else f"{100.0 * value:.0f} %"
+
+
+def format_diagnosis(diagnoses: dict[str, Diagnosis]) -> str:
+    """Markdown of :func:`dpc_jax.eval.diagnosis.diagnose`: per estimate, mean ± spread per axis, then
+    the drift shares and the pixel shift."""
+    units = ("mm", "mm", "mm", "mrad", "mrad", "mrad")
+    steps = table(
+        ["estimate", "steps", *(f"{a} ({u})" for a, u in zip(AXES, units, strict=True))],
+        ([label, str(d.steps), *(f"{m:+.3f} ± {s:.3f} ({e:.3f})"
+                                 for m, s, e in zip(d.mean, d.spread, d.standard_error, strict=True))]
+         for label, d in diagnoses.items()),
+    )
+    drift = []
+    for label, d in diagnoses.items():
+        if d.mean_rot_px is None or d.mean_rot_px_norm is None:
+            px = f"{EMPTY} (give --focal)"
+        else:
+            px = (f"{d.mean_rot_px_norm:.3f} at the centre (φx {d.mean_rot_px[0]:+.3f}, φy "
+                  f"{d.mean_rot_px[1]:+.3f}); φz {d.mean_rot_px[2]:+.3f} at f from it (f = {d.focal_px:g})")
+        drift.append([label, f"{d.drift_trans_m:.3g}", f"{d.bias_drift_trans_m:.3g}",
+                      _share(d.drift_trans_explained), f"{d.drift_rot_deg:.3g}",
+                      f"{d.bias_drift_rot_deg:.3g}", _share(d.drift_rot_explained), px])
+    return "\n".join([
+        "Per-step error (mean ± spread; ± standard error of the mean in brackets):", "", steps.rstrip("\n"),
+        "", "End-point drift of the estimate, of the bias-only trajectory (every ground-truth step with the "
+        "mean error), and the share of the drift along the bias's own:", "",
+        table(["estimate", "position (m)", "bias only (m)", "share explained", "heading (°)", "bias only (°)",
+               "share explained", "mean rotation per step (px)"], drift),
+    ])
 
 
 def format_table(result: Evaluation) -> str:
@@ -44,7 +78,7 @@ def format_segment_table(result: Evaluation) -> str:
     """Markdown table of the per-length segment errors (translation % / rotation °/100 m)."""
     lengths = next(iter(result.metrics.values())).seg_lengths_m
     rows = (
-        [label, *("n/a" if np.isnan(t) else f"{t:.3g} / {r:.3g}"
+        [label, *(EMPTY if np.isnan(t) else f"{t:.3g} / {r:.3g}"
                   for t, r in zip(m.seg_per_length_trans_pct, m.seg_per_length_rot_deg_per_100m,
                                   strict=True))]
         for label, m in result.metrics.items()

@@ -3,13 +3,12 @@ sequence, as ``results.md`` and ``results.csv``."""
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
 from dpc_jax._io import atomic_write
-from dpc_jax.report.tables import csv_text, row, rule
+from dpc_jax.report.tables import EMPTY, csv_text, number, row, rule
 
 COLUMNS = (
     ("seg_trans_pct", "seg. t (%)"), ("seg_rot_deg_per_100m", "seg. r (°/100 m)"),
@@ -54,10 +53,6 @@ class SequenceResult(Protocol):
     def decisions(self) -> Mapping[str, str]: ...
 
 
-def _cell(value: Any) -> str:
-    return "n/a" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.4g}"
-
-
 def results_markdown(results: Sequence[SequenceResult], title: str, notes: Sequence[str] = ()) -> str:
     """The results table: one row per test sequence and prior, prior → corrected for each metric."""
     header = ["fold", "sequence", "prior", "epoch", "applied", "frames", *(t for _, t in COLUMNS)]
@@ -65,13 +60,13 @@ def results_markdown(results: Sequence[SequenceResult], title: str, notes: Seque
     lines = [x for x in preamble if x is not None]
     lines += [row(header), rule(len(header))]
     for r in results:
-        cells = [f"{_cell(r.metrics['prior'][k])} → {_cell(r.metrics['corrected'][k])}" for k, _ in COLUMNS]
+        cells = [f"{number(r.metrics['prior'][k])} → {number(r.metrics['corrected'][k])}" for k, _ in COLUMNS]
         lines.append(row([r.fold, r.sequence, r.prior_label, f"{r.epoch} ({r.selection})", r.applied,
                           str(r.frames), *cells]))
     lines += ["", "Each cell: prior → corrected. Segment errors are the mean of the per-length means over "
-              "100–800 m (n/a when the sequence is shorter than 100 m). applied: which network's correction "
-              "the final trajectory holds and what its acceptance test let through (full, rotation), or "
-              "prior (no test passed)."]
+              f"100–800 m ({EMPTY} when the sequence is shorter than 100 m). applied: which network's "
+              "correction the final trajectory holds and what its acceptance test let through (full, "
+              "rotation), or prior (no test passed)."]
     staged = [r for r in results if r.stages]
     if staged:
         lines += ["", "Per network (each row: that network's correction applied, whatever its test said):",
@@ -82,7 +77,7 @@ def results_markdown(results: Sequence[SequenceResult], title: str, notes: Seque
             rows += [(f"network {label}", r.decisions[label], m) for label, m in r.stages.items()]
             rows.append((f"final ({r.applied})", "", r.metrics["corrected"]))
             for label, decision, m in rows:
-                cells = [_cell(m[k]) for k, _ in COLUMNS]
+                cells = [number(m[k]) for k, _ in COLUMNS]
                 lines.append(row([r.sequence, r.prior_label, label, decision, *cells]))
     return "\n".join(lines) + "\n"
 

@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 
 from dpc_jax._io import atomic_write, install_folder, new_folders_removed_on_failure, remove_stale, temp_name
-from dpc_jax._progress import Progress, progress_bar
+from dpc_jax.runtime.progress import Progress, progress_bar
 from dpc_jax.synth.sequence import SynthConfig, iter_frames, kitti_intrinsics, sequence_poses
 
 
@@ -136,7 +136,7 @@ def write_sequences(out: Path | str, config: SynthConfig, sequences: int = 4, ov
     """Write ``sequences`` sequences ``00, 01, ...`` (seeds ``config.seed + i``) under ``out``.
 
     ``progress``: a tqdm bar over all frames (default: only when stderr is a terminal), or
-    ``"lines"`` for plain progress lines (see :mod:`dpc_jax._progress`).
+    ``"lines"`` for plain progress lines (see :mod:`dpc_jax.runtime.progress`).
     """
     out = Path(out)
     names = _sequence_names(sequences)

@@ -9,7 +9,7 @@ Layout under ``WORKDIR/checkpoints``::
     best_loop_closures/E/  the epoch with the most loop closures of the corrected validation
                            trajectory (ss-DPC-Net §IV-b); ties go to the lower gradient loss
     best_delta/E/          the epoch with the most negative mean Δ on the validation sequence
-                           (the correction's paired photometric effect, ``dpc_jax.acceptance``);
+                           (the correction's paired photometric effect, ``dpc_jax.correction.acceptance``);
                            absent while no epoch has a negative Δ — none beats "no correction"
 
 Each checkpoint holds two items: ``state`` (the pytree of model parameters, BatchNorm statistics,

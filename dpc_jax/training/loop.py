@@ -42,15 +42,15 @@ from flax import nnx
 from jax.sharding import Mesh
 
 from dpc_jax import config as config_lib
-from dpc_jax._progress import Progress
 from dpc_jax.config import ConfigError
 from dpc_jax.engine import parallel
 from dpc_jax.engine.driver import drive, step_key
+from dpc_jax.runtime.progress import Progress
 from dpc_jax.training.checkpoints import Checkpoints
-from dpc_jax.training.config import TrainConfig
 from dpc_jax.training.metrics_log import MetricsLog
 from dpc_jax.training.optim import create_train_state, learning_rate_schedule, make_optimizer
 from dpc_jax.training.steps import NonFiniteLossError, TrainStep, make_train_step
+from dpc_jax.training.train_config import TrainConfig
 from dpc_jax.training.train_data import TrainData, open_data
 from dpc_jax.training.validation import validate
 from dpc_jax.training.workdir import check_split, check_workdir

@@ -2,7 +2,7 @@
 
 The model and its optimizer (``dpc_jax.training.optim``) are split once,
 ``graphdef, state = nnx.split((model, optimizer))``; the loop (``dpc_jax.training.loop``) and the
-test-time adaptation (``dpc_jax.adapt``) both drive the step returned by :func:`make_train_step`.
+test-time adaptation (``dpc_jax.correction.adapt``) both drive the step returned by :func:`make_train_step`.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """``TrainConfig``: one training run as data, and the published settings (``REFERENCE``).
 
-Importing this module does not import JAX or the training loop: inference (``dpc_jax.inference``)
+Importing this module does not import JAX or the training loop: inference (``dpc_jax.correction.inference``)
 reads a run's stored config with it.
 
 Defaults and the reference
@@ -8,7 +8,7 @@ Defaults and the reference
 The defaults of the correction head are the *improved* ones (``IMPROVED``); ``REFERENCE`` holds
 the published choices (ss-DPC-Net's released code: PyTorch initialisation of the pose layer, no
 warm-up, the prior fed unscaled, dropout 0.5 on the whole pose head). Each improvement is a
-separate field, so a config can take any subset (``experiments/ablation.py`` adds them one by
+separate field, so a config can take any subset (``experiments/studies/ablation.py`` adds them one by
 one; its table in docs/results/ablation.md is the measurement behind them):
 
 * ``pose_init="zero"``: the output FC layer starts at zero, so an untrained network's corrected
@@ -47,7 +47,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from dpc_jax.config import ConfigError, unknown_key_error
-from dpc_jax.nn.config import (
+from dpc_jax.nn.model_config import (
     PRESETS,
     ModelConfig,
     SSDPCLossConfig,
@@ -88,7 +88,7 @@ class TrainConfig:
 
     Model
         * ``method``: ``"ss_dpc"`` (ss-DPC-Net, mono + flow) or ``"stereo_dpc"`` (Zhang et al.).
-        * ``preset``: a key of ``dpc_jax.nn.config.PRESETS`` (``"reference"``, ``"small"``).
+        * ``preset``: a key of ``dpc_jax.nn.model_config.PRESETS`` (``"reference"``, ``"small"``).
         * ``model``: overrides of ``ModelConfig`` fields on top of the preset.
         * ``image_size``: ``(H, W)`` of the cached images and the network input; None = the
           preset's.
@@ -140,7 +140,7 @@ class TrainConfig:
         * ``keep_checkpoints``: how many every-epoch checkpoints to keep (best ones are extra).
         * ``log_every``: steps between TensorBoard training scalars.
         * ``distributed``: call ``jax.distributed.initialize`` (several hosts; see
-          ``dpc_jax.training.parallel``).
+          ``dpc_jax.engine.parallel``).
     """
 
     method: str = "stereo_dpc"

@@ -12,7 +12,7 @@ import numpy as np
 from dpc_jax.config import ConfigError
 from dpc_jax.data.sequence_cache import StereoDepth
 from dpc_jax.engine.predict import stereo_depth_of
-from dpc_jax.training.config import TrainConfig
+from dpc_jax.training.train_config import TrainConfig
 
 
 @dataclass(frozen=True)

@@ -11,8 +11,8 @@ from jax.sharding import Mesh
 from dpc_jax.engine.predict import predict_sequence
 from dpc_jax.eval import metrics as metrics_lib
 from dpc_jax.eval.evaluation import segment_summary
-from dpc_jax.geometry.correction import corrected_trajectory
-from dpc_jax.training.config import TrainConfig
+from dpc_jax.geometry.pose_correction import corrected_trajectory
+from dpc_jax.training.train_config import TrainConfig
 from dpc_jax.training.train_data import TrainData
 
 
@@ -26,7 +26,7 @@ def validate(
     * ``val_loop_closures``: loop closures of the corrected validation trajectories, summed
       (selection b);
     * ``val_delta``, ``val_delta_rotation``: mean Δ of the full / rotation-only correction
-      (selection ``delta``; ``dpc_jax.acceptance``);
+      (selection ``delta``; ``dpc_jax.correction.acceptance``);
     * ``val_{prior,corrected}_{t,r}_err``: segment errors against ground truth, averaged over the
       sequences that have it (reporting only; NaN without ground truth).
     """

@@ -10,7 +10,7 @@ from typing import Any
 
 from dpc_jax import config as config_lib
 from dpc_jax.config import ConfigError
-from dpc_jax.training.config import TrainConfig
+from dpc_jax.training.train_config import TrainConfig
 
 
 def check_workdir(config: TrainConfig, workdir: str | os.PathLike, resume: bool) -> bool:

@@ -47,7 +47,7 @@ class MotionEstimate:
     offset_information: float = 0.0
 
 
-def project(
+def camera_pixels(
     T: np.ndarray, points: np.ndarray, K: np.ndarray, offset_x: float = 0.0
 ) -> tuple[np.ndarray, np.ndarray]:
     """Pixels of ``T·X`` in a camera shifted by ``offset_x`` metres along x (the right camera: ``B``).
@@ -75,8 +75,8 @@ def reprojection_errors(
 
     ``inf`` for points that land behind either camera.
     """
-    uv_l, front_l = project(T, points, K)
-    uv_r, front_r = project(T, points, K, baseline)
+    uv_l, front_l = camera_pixels(T, points, K)
+    uv_r, front_r = camera_pixels(T, points, K, baseline)
     err_l = np.linalg.norm(uv_l - left, axis=1)
     err_r = np.where(right_valid, np.linalg.norm(uv_r - right, axis=1), 0.0)
     err = np.maximum(err_l, err_r)

@@ -32,7 +32,7 @@ from tqdm import tqdm
 
 from dpc_jax.data.kitti import StereoSequence, load_image
 from dpc_jax.vo.features import detect_bucketed, track
-from dpc_jax.vo.motion import estimate_motion, project
+from dpc_jax.vo.motion import camera_pixels, estimate_motion
 from dpc_jax.vo.stereo import match_stereo, triangulate
 
 STAGES = ("track", "detect", "stereo", "motion")
@@ -188,7 +188,7 @@ class StereoVO:
         xyz = np.zeros((0, 3))
         disparity_guess = np.zeros(0)
         if self._previous is not None:
-            predicted, in_front = project(self._velocity, self._xyz, self.K)
+            predicted, in_front = camera_pixels(self._velocity, self._xyz, self.K)
             guess = np.where(in_front[:, None], predicted, self._points).astype(np.float32)
             tracked, ok = track(
                 self._previous, left, self._points, guess,

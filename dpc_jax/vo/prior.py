@@ -1,6 +1,6 @@
 """Our VO over a sequence as a prior file: run once, then reused while its inputs are unchanged.
 
-:func:`vo_prior` writes the trajectory (KITTI pose text) and beside it a record ``NAME.json``:
+:func:`write_vo_prior` writes the trajectory (KITTI pose text) and beside it a record ``NAME.json``:
 ``inputs`` (a hash of the sequence's files, the VO configuration and the first pose, as
 ``dpc_jax.data.cache.input_hash`` identifies a cache's inputs) and the run's
 ``dpc_jax.vo.odometry.summary``. A later call with the same inputs reads the record instead of
@@ -27,7 +27,7 @@ from dpc_jax.vo.odometry import VOConfig, run_vo, summary
 VO_VERSION = 1
 
 
-def vo_prior(
+def write_vo_prior(
     sequence: StereoSequence,
     path: str | os.PathLike,
     config: VOConfig | None = None,

@@ -1,6 +1,6 @@
 """The whole pipeline on the real KITTI raw excerpt (smoke test); see configs/kitti_raw_excerpt.py.
 
-    python experiments/kitti_raw_excerpt.py --workdir runs/kitti_raw_excerpt
+    python experiments/protocols/kitti_raw_excerpt.py --workdir runs/kitti_raw_excerpt
 """
 
 from __future__ import annotations
@@ -10,14 +10,15 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from dpc_jax.hugepages import reexec_with_huge_pages
 from dpc_jax.pipelines import protocol as P
+from dpc_jax.report.pages import check_results_page
 from dpc_jax.report.protocol import write_results
+from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
 HERE = Path(__file__).resolve().parent
 
 CONFIG = HERE / "configs" / "kitti_raw_excerpt.py"
-DEFAULT_ROOT = HERE.parents[1] / "shared" / "data" / "kitti-raw"
+DEFAULT_ROOT = HERE.parents[2] / "shared" / "data" / "kitti-raw"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -37,8 +38,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     progress = not args.no_progress and sys.stderr.isatty()
     try:
         base, protocol = P.load_protocol(args.config)
-        libviso2 = args.kitti_raw / protocol["libviso2"]
-        sequence = open_raw(args.kitti_raw, protocol["date"], protocol["drive"], poses=libviso2)
+        check_results_page(args.results_page)
+        if protocol.train_frames is None or protocol.validation_frames is None:
+            raise ValueError(f"{args.config}: PROTOCOL names no train_frames or validation_frames")
+        (t0, t1), (v0, v1) = protocol.train_frames, protocol.validation_frames
+        libviso2 = args.kitti_raw / protocol.libviso2
+        sequence = open_raw(args.kitti_raw, protocol.date, protocol.drive, poses=libviso2)
         fold = P.Fold("excerpt", tuple(base.train_sequences), base.validation_sequences[0],
                       tuple(base.test_sequences))
         cache_root = args.workdir / "cache"
@@ -47,10 +52,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         vo = Path(record["path"])
         # The colour pair's calibration residual, as our VO's online estimate measures it (no ground
         # truth): the network's images are rectified by it (see configs/kitti_raw_excerpt.py).
-        offset = record["disparity_offset_median_px"] if protocol.get("rectify_offset", False) else 0.0
+        offset = record["disparity_offset_median_px"] if protocol.rectify_offset else 0.0
         jobs = {
-            fold.train[0]: (vo, tuple(protocol["train_frames"])),
-            fold.validation: (vo, tuple(protocol["validation_frames"])),
+            fold.train[0]: (vo, protocol.train_frames),
+            fold.validation: (vo, protocol.validation_frames),
             "vo": (vo, None),
             "libviso2": (libviso2, None),
         }
@@ -59,29 +64,28 @@ def main(argv: Sequence[str] | None = None) -> int:
                       progress=progress)
         run_dir = args.workdir / "runs" / fold.name
         P.train_fold(config, run_dir, progress)
-        select = args.select or protocol["select"]
+        select = args.select or protocol.select
         results = [
             P.correct_and_evaluate(fold.name, run_dir, cache_root / name, args.workdir, select=select,
-                                   prior_label=name, acceptance=protocol.get("acceptance", True),
-                                   rotation_only=protocol.get("rotation_only"),
-                                   adapt_steps=protocol.get("adapt_steps", 0),
-                                   holdout_every=protocol.get("holdout_every", 5), progress=progress)
+                                   prior_label=name, acceptance=protocol.acceptance,
+                                   rotation_only=protocol.rotation_only, adapt_steps=protocol.adapt_steps,
+                                   holdout_every=protocol.holdout_every, progress=progress)
             for name in ("vo", "libviso2")
         ]
     except (OSError, ValueError, KeyError) as error:
         print(f"kitti_raw_excerpt: error: {error}", file=sys.stderr)
         return 2
-    (t0, t1), (v0, v1) = protocol["train_frames"], protocol["validation_frames"]
     notes = [f"Real KITTI raw {sequence.name} ({len(sequence)} frames); Stereo DPC trained on frames "
              f"{t0}–{t1 - 1} with our VO prior, validated on {v0}–{v1 - 1}; network images rectified by the "
              f"disparity offset our VO measured ({offset:+.3f} px); the whole drive corrected by the network "
-             f"as trained and by the network adapted to each prior ({protocol.get('adapt_steps', 0)} steps); "
+             f"as trained and by the network adapted to each prior ({protocol.adapt_steps} steps); "
              f"epoch selection: {select}; "
-             f"{'rotation only' if protocol.get('rotation_only') else 'full correction'} applied. "
+             f"{'rotation only' if protocol.rotation_only else 'full correction'} applied. "
              f"Not a reproduction: the trained network has seen frames "
              f"{t0}–{t1 - 1}, and 108 frames give only a handful of 100 m segments."
              + (" SMOKE RUN (1 epoch of 2 steps)." if args.smoke else "")]
-    P.print_results(write_results(args.workdir, results, "Pipeline on the real KITTI raw excerpt", notes))
+    table = write_results(args.workdir, results, "Pipeline on the real KITTI raw excerpt", notes)
+    P.print_results(table, args.results_page, Path(__file__))
     return 0
 
 

@@ -1,6 +1,7 @@
-"""ss-DPC-Net on KITTI odometry, libviso2 priors (Wagstaff et al.); see experiments/configs/kitti_ss_dpc.py.
+"""ss-DPC-Net on KITTI odometry, libviso2 priors (Wagstaff et al.); see configs/kitti_ss_dpc.py.
 
-    python experiments/kitti_ss_dpc.py --kitti-odometry ROOT --priors DIR --fold NAME|all --workdir DIR
+    python experiments/protocols/kitti_ss_dpc.py --kitti-odometry ROOT --priors DIR --fold NAME|all \
+        --workdir DIR
 """
 
 from __future__ import annotations
@@ -11,9 +12,10 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from dpc_jax.data.splits import training_names
-from dpc_jax.hugepages import reexec_with_huge_pages
 from dpc_jax.pipelines import protocol as P
+from dpc_jax.report.pages import check_results_page
 from dpc_jax.report.protocol import write_results
+from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
 HERE = Path(__file__).resolve().parent
 
@@ -45,23 +47,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     progress = not args.no_progress and sys.stderr.isatty()
     try:
         base, protocol = P.load_protocol(args.config)
+        check_results_page(args.results_page)
         overrides = P.overrides_from(args)
-        sequences = tuple(args.sequences or protocol["sequences"])
-        specs = protocol["folds"]
+        sequences = tuple(args.sequences or protocol.sequences)
+        specs = protocol.folds
         if args.fold != "all" and args.fold not in specs:
             raise ValueError(f"--fold {args.fold!r}: expected one of {', '.join(specs)} or all")
         names = list(specs) if args.fold == "all" else [args.fold]
         folds, configs = [], {}
         for name in names:
             spec = specs[name]
-            held_out = (spec["validation"], *spec["test"])
+            held_out = (spec.validation, *spec.test)
             missing = [s for s in held_out if s not in sequences]
             if missing:
                 raise ValueError(f"fold {name} needs sequence(s) {missing}, not among {list(sequences)}")
-            fold = P.Fold(name, training_names(sequences, held_out), spec["validation"], tuple(spec["test"]))
-            folds.append((fold, spec["prior"]))
-            cache_root = args.workdir / "cache" / spec["prior"]
-            configs[name] = P.fold_config(base, fold, cache_root, {**spec["overrides"], **overrides})
+            fold = P.Fold(name, training_names(sequences, held_out), spec.validation, spec.test)
+            folds.append((fold, spec.prior))
+            cache_root = args.workdir / "cache" / spec.prior
+            configs[name] = P.fold_config(base, fold, cache_root, {**spec.overrides, **overrides})
         prepared: set[tuple[str, str]] = set()
         for fold, kind in folds:
             config = configs[fold.name]
@@ -73,7 +76,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 P.prepare(sequence, prior, Path(config.cache_root), config, mono_rescale=kind == "mono",
                           progress=progress)
                 prepared.add((kind, name))
-        select = args.select or protocol["select"]
+        select = args.select or protocol.select
         results = []
         for fold, kind in folds:
             run_dir = args.workdir / "runs" / fold.name
@@ -82,7 +85,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 results.append(P.correct_and_evaluate(
                     fold.name, run_dir, Path(configs[fold.name].cache_root) / test, args.workdir,
                     select=select, prior_label=f"libviso2-{kind[0]}" if args.priors != "vo" else "vo",
-                    acceptance=protocol.get("acceptance", True), progress=progress,
+                    acceptance=protocol.acceptance, progress=progress,
                 ))
     except (OSError, ValueError, KeyError) as error:
         print(f"kitti_ss_dpc: error: {error}", file=sys.stderr)
@@ -91,7 +94,8 @@ def main(argv: Sequence[str] | None = None) -> int:
              f"(mono rescaled to the ground-truth step length); stereo: rotation-only correction; "
              f"epoch selection: {select}."
              + (" SMOKE RUN (1 epoch of 2 steps): the numbers mean nothing." if args.smoke else "")]
-    P.print_results(write_results(args.workdir, results, "ss-DPC-Net on KITTI odometry", notes))
+    table = write_results(args.workdir, results, "ss-DPC-Net on KITTI odometry", notes)
+    P.print_results(table, args.results_page, Path(__file__))
     return 0
 
 

@@ -1,6 +1,7 @@
-"""Stereo DPC on KITTI odometry, leave-one-out (Zhang et al.); see experiments/configs/kitti_stereo_dpc.py.
+"""Stereo DPC on KITTI odometry, leave-one-out (Zhang et al.); see configs/kitti_stereo_dpc.py.
 
-    python experiments/kitti_stereo_dpc.py --kitti-odometry ROOT --priors DIR|vo --test XX|all --workdir DIR
+    python experiments/protocols/kitti_stereo_dpc.py --kitti-odometry ROOT --priors DIR|vo --test XX|all \
+        --workdir DIR
 """
 
 from __future__ import annotations
@@ -11,9 +12,10 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from dpc_jax.data.splits import training_names
-from dpc_jax.hugepages import reexec_with_huge_pages
 from dpc_jax.pipelines import protocol as P
+from dpc_jax.report.pages import check_results_page
 from dpc_jax.report.protocol import write_results
+from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
 HERE = Path(__file__).resolve().parent
 
@@ -45,8 +47,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     progress = not args.no_progress and sys.stderr.isatty()
     try:
         base, protocol = P.load_protocol(args.config)
+        check_results_page(args.results_page)
         overrides = P.overrides_from(args)
-        sequences = tuple(args.sequences or protocol["sequences"])
+        sequences = tuple(args.sequences or protocol.sequences)
         tests = sequences if args.test == "all" else (args.test,)
         unknown = [t for t in tests if t not in sequences]
         if unknown:
@@ -61,7 +64,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             opened[drive] = open_raw(args.kitti_raw, date, number)
         folds = []
         for test in tests:
-            validation = protocol["validation"].get(test, protocol["validation"]["default"])
+            validation = protocol.validation.get(test, protocol.validation["default"])
             if validation not in sequences or validation == test:
                 validation = next(s for s in sequences if s != test)
             train = training_names(tuple(opened), (test, validation))
@@ -72,7 +75,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         for sequence in opened.values():
             P.prepare(sequence, P.prior_source(args.priors, "stereo", sequence, args.workdir, progress),
                       cache_root, first, progress=progress)
-        select = args.select or protocol["select"]
+        select = args.select or protocol.select
         results = []
         for fold in folds:
             run_dir = args.workdir / "runs" / fold.name
@@ -81,7 +84,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 results.append(P.correct_and_evaluate(
                     fold.name, run_dir, cache_root / test, args.workdir, select=select,
                     prior_label=Path(args.priors).name if args.priors != "vo" else "vo",
-                    acceptance=protocol.get("acceptance", True), progress=progress,
+                    acceptance=protocol.acceptance, progress=progress,
                 ))
     except (OSError, ValueError, KeyError) as error:
         print(f"kitti_stereo_dpc: error: {error}", file=sys.stderr)
@@ -89,7 +92,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     notes = [f"Stereo DPC (Zhang et al.), leave-one-out; validation per fold as in {args.config.name}; "
              f"priors: {args.priors}; epoch selection: {select}."
              + (" SMOKE RUN (1 epoch of 2 steps): the numbers mean nothing." if args.smoke else "")]
-    P.print_results(write_results(args.workdir, results, "Stereo DPC on KITTI odometry", notes))
+    table = write_results(args.workdir, results, "Stereo DPC on KITTI odometry", notes)
+    P.print_results(table, args.results_page, Path(__file__))
     return 0
 
 

@@ -2,22 +2,20 @@
 
 Every row is the demo (``dpc_jax.pipelines.demo``, default data: same rendered sequences, priors and caches,
 shared through symbolic links) with the training and correction settings of that row, from the
-published choices (``dpc_jax.training.config.REFERENCE``, epoch by the gradient loss, every correction
+published choices (``dpc_jax.training.train_config.REFERENCE``, epoch by the gradient loss, every correction
 applied) to ours. Per row: the test sequence's segment errors of the prior and of the final
 trajectory, Δ of the correction on the test sequence (mean over its pairs, the network's depth),
 what the acceptance test decided, and the minutes the row took (training and correction; the data
 are made once, by the first row). The table goes to ``WORKDIR/ablation.md`` (and ``.csv``);
 docs/results/ablation.md shows it.
 
-    python experiments/ablation.py --workdir runs/ablation                 # every row, seed 0
-    python experiments/ablation.py --workdir runs/ablation --seed 1 --rows 0 5
+    python experiments/studies/ablation.py --workdir runs/ablation                 # every row, seed 0
+    python experiments/studies/ablation.py --workdir runs/ablation --seed 1 --rows 0 5
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
-import io
 import logging
 import sys
 import time
@@ -25,7 +23,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from dpc_jax.hugepages import reexec_with_huge_pages
+from dpc_jax.report.pages import check_results_page, write_results
+from dpc_jax.report.tables import number, records_csv, table
+from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
 # The published choices, then each remedy on top of the previous row (TrainConfig / DemoConfig fields).
 PUBLISHED = {
@@ -60,12 +60,11 @@ def row_configs(base: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
     return out
 
 
-def _cell(value: float | None) -> str:
-    return "n/a" if value is None else f"{value:.2f}"
+def ablation_markdown(rows: list[dict[str, Any]], seed: int) -> str:
+    def pair(t: float | None, r: float | None) -> str:
+        return f"{number(t, '.2f')} / {number(r, '.2f')}"
 
-
-def table(rows: list[dict[str, Any]], seed: int) -> str:
-    lines = [
+    return "\n".join([
         f"# Ablation of the correction remedies (demo sequences, seed {seed})",
         "",
         "Each row adds one remedy to the row above. Segment errors of the test sequence, translation % / "
@@ -73,16 +72,12 @@ def table(rows: list[dict[str, Any]], seed: int) -> str:
         "test sequence (negative: it explains the images better); acceptance: what the test decided (rows "
         "without it apply every correction); minutes: training and correction of the row.",
         "",
-        "| row | prior | final | change t | change r | Δ on the test sequence | acceptance | minutes |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for r in rows:
-        lines.append(
-            f"| {r['row']} | {_cell(r['prior_t'])} / {_cell(r['prior_r'])} | {_cell(r['final_t'])} / "
-            f"{_cell(r['final_r'])} | {r['change_t']:+.1f} % | {r['change_r']:+.1f} % | {r['delta']:.2e} | "
-            f"{r['acceptance']} | {r['minutes']:.1f} |"
-        )
-    return "\n".join(lines) + "\n"
+        table(["row", "prior", "final", "change t", "change r", "Δ on the test sequence", "acceptance",
+               "minutes"],
+              ([r["row"], pair(r["prior_t"], r["prior_r"]), pair(r["final_t"], r["final_r"]),
+                f"{r['change_t']:+.1f} %", f"{r['change_r']:+.1f} %", f"{r['delta']:.2e}", r["acceptance"],
+                f"{r['minutes']:.1f}"] for r in rows)),
+    ])
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -92,7 +87,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="demo seed (its towns and routes)")
     parser.add_argument("--rows", type=int, nargs="+", metavar="K", help="only these rows (0-based)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    parser.add_argument("--results-page", type=Path, metavar="FILE",
+                        help="also write the table into the results block of FILE (a docs/results/ page)")
     args = parser.parse_args(argv)
+    try:
+        check_results_page(args.results_page)
+    except (OSError, ValueError) as error:
+        print(f"ablation: error: {error}", file=sys.stderr)
+        return 2
 
     from dpc_jax import config as config_lib
     from dpc_jax._io import atomic_write
@@ -141,13 +143,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             "minutes": minutes,
         })
         args.workdir.mkdir(parents=True, exist_ok=True)
-        atomic_write(args.workdir / "ablation.md", table(results, args.seed))
-        buffer = io.StringIO()
-        writer = csv.DictWriter(buffer, fieldnames=list(results[0]), lineterminator="\n")
-        writer.writeheader()
-        writer.writerows(results)
-        atomic_write(args.workdir / "ablation.csv", buffer.getvalue())
-    print(table(results, args.seed), end="")
+        atomic_write(args.workdir / "ablation.md", ablation_markdown(results, args.seed))
+        atomic_write(args.workdir / "ablation.csv", records_csv(results))
+    text = ablation_markdown(results, args.seed)
+    print(text, end="")
+    if args.results_page is not None:
+        write_results(args.results_page, text, Path(__file__))
     return 0
 
 

@@ -1,15 +1,15 @@
 """Which depth should the acceptance test measure Δ with: the network's own, or OpenCV's StereoSGBM?
 
-The test (``dpc_jax.acceptance``) decides without ground truth; this experiment checks its
+The test (``dpc_jax.correction.acceptance``) decides without ground truth; this experiment checks its
 decisions against the ground truth on the demo's test sequences. For every demo output folder given
-(``dpc-jax demo`` or ``experiments/demo_seeds.py`` layout: ``run/``, ``adapted/``, ``cache/test``)
+(``dpc-jax demo`` or ``experiments/studies/demo_seeds.py`` layout: ``run/``, ``adapted/``, ``cache/test``)
 and every network in it — the epochs kept by each selection criterion and the adapted network — the
 test runs twice, with the network's depth and with the SGBM depth, and the full correction is scored
 against the ground truth: *helps* (both test segment errors lower), *hurts* (either one more than
 2 % higher) or neither. A good test accepts what helps and rejects what hurts. Writes
 ``OUT/acceptance_depth.md`` (table per network, and the counts).
 
-    python experiments/acceptance_depth.py runs/demo_seeds/seed_* --out runs/acceptance_depth
+    python experiments/studies/acceptance_depth.py runs/demo_seeds/seed_* --out runs/acceptance_depth
 """
 
 from __future__ import annotations
@@ -21,14 +21,16 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from dpc_jax.hugepages import reexec_with_huge_pages
+from dpc_jax.report.pages import check_results_page, write_results
+from dpc_jax.report.tables import change_pct, table
+from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
 DEPTHS = ("network", "sgbm")
+SEG = ("seg_trans_pct", "seg_rot_deg_per_100m")
 
 
 def _outcome(prior: dict[str, Any], corrected: dict[str, Any]) -> str:
-    keys = ("seg_trans_pct", "seg_rot_deg_per_100m")
-    change = [100 * (corrected[k] - prior[k]) / prior[k] for k in keys]
+    change = [change_pct(prior[k], corrected[k]) for k in SEG]
     if all(c < 0 for c in change):
         return "helps"
     return "hurts" if max(change) > 2 else "neutral"
@@ -38,9 +40,9 @@ def evaluate_folder(folder: Path) -> list[dict[str, Any]]:
     """The test's decisions with both depths for every network of one demo folder, and the truth."""
     import numpy as np
 
-    from dpc_jax.correct import correct_cache
+    from dpc_jax.correction.corrector import correct_cache
+    from dpc_jax.correction.inference import load_run
     from dpc_jax.data.sequence_cache import load_cache
-    from dpc_jax.inference import load_run
 
     cache = load_cache(folder / "cache" / "test")
     networks: dict[str, Any] = {}
@@ -65,16 +67,23 @@ def evaluate_folder(folder: Path) -> list[dict[str, Any]]:
             row["decision"][depth] = applied if applied == "none" else (
                 f"{applied}: {_outcome(estimates['prior'], estimates['corrected'])}")
             row["truth"] = _outcome(estimates["prior"], estimates["network"])
-            row["change"] = tuple(
-                100 * (estimates["network"][k] - estimates["prior"][k]) / estimates["prior"][k]
-                for k in ("seg_trans_pct", "seg_rot_deg_per_100m")
-            )
+            row["change"] = tuple(change_pct(estimates["prior"][k], estimates["network"][k]) for k in SEG)
         rows.append(row)
     return rows
 
 
 def report(rows: list[dict[str, Any]]) -> str:
-    lines = [
+    counts = []
+    for depth in DEPTHS:
+        accepted = [r for r in rows if r["decision"][depth] != "none"]
+        rejected = [r for r in rows if r["decision"][depth] == "none"]
+        counts.append([depth, *(str(n) for n in (
+            sum(r["decision"][depth].endswith("helps") for r in accepted),
+            sum(r["decision"][depth].endswith("hurts") for r in accepted),
+            sum(r["truth"] == "helps" for r in rejected),
+            sum(r["truth"] == "hurts" for r in rejected),
+        ))])
+    return "\n".join([
         "# Acceptance test: network depth against SGBM depth",
         "",
         "Each row: one network on its demo's test sequence. truth: what its full correction does to the "
@@ -83,27 +92,11 @@ def report(rows: list[dict[str, Any]]) -> str:
         "applied correction did. Counts: accepted corrections by what they did, rejected ones by what the "
         "full correction would have done.",
         "",
-        "| demo | network | change t / r | truth | network depth | SGBM depth |",
-        "|---|---|---|---|---|---|",
-    ]
-    for r in rows:
-        decision = r["decision"]
-        lines.append(f"| {r['folder']} | {r['label']} | {r['change'][0]:+.1f} % / {r['change'][1]:+.1f} % | "
-                     f"{r['truth']} | {decision['network']} | {decision['sgbm']} |")
-    lines += ["", "| depth | accepted, helps | accepted, hurts | rejected, helps | rejected, hurts |",
-              "|---|---|---|---|---|"]
-    for depth in DEPTHS:
-        accepted = [r for r in rows if r["decision"][depth] != "none"]
-        rejected = [r for r in rows if r["decision"][depth] == "none"]
-        count = {
-            (True, "helps"): sum(r["decision"][depth].endswith("helps") for r in accepted),
-            (True, "hurts"): sum(r["decision"][depth].endswith("hurts") for r in accepted),
-            (False, "helps"): sum(r["truth"] == "helps" for r in rejected),
-            (False, "hurts"): sum(r["truth"] == "hurts" for r in rejected),
-        }
-        lines.append(f"| {depth} | {count[(True, 'helps')]} | {count[(True, 'hurts')]} | "
-                     f"{count[(False, 'helps')]} | {count[(False, 'hurts')]} |")
-    return "\n".join(lines) + "\n"
+        table(["demo", "network", "change t / r", "truth", "network depth", "SGBM depth"],
+              ([r["folder"], r["label"], f"{r['change'][0]:+.1f} % / {r['change'][1]:+.1f} %", r["truth"],
+                r["decision"]["network"], r["decision"]["sgbm"]] for r in rows)),
+        table(["depth", "accepted, helps", "accepted, hurts", "rejected, helps", "rejected, hurts"], counts),
+    ])
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -111,7 +104,14 @@ def main(argv: Sequence[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("folders", type=Path, nargs="+", metavar="DEMO_OUT")
     parser.add_argument("--out", type=Path, default=Path("runs/acceptance_depth"), metavar="DIR")
+    parser.add_argument("--results-page", type=Path, metavar="FILE",
+                        help="also write the table into the results block of FILE (a docs/results/ page)")
     args = parser.parse_args(argv)
+    try:
+        check_results_page(args.results_page)
+    except (OSError, ValueError) as error:
+        print(f"acceptance_depth: error: {error}", file=sys.stderr)
+        return 2
     from dpc_jax._io import atomic_write
 
     logging.getLogger("absl").setLevel(logging.ERROR)
@@ -120,6 +120,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     text = report(rows)
     atomic_write(args.out / "acceptance_depth.md", text)
     print(text, end="")
+    if args.results_page is not None:
+        write_results(args.results_page, text, Path(__file__))
     return 0
 
 

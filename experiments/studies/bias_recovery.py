@@ -6,12 +6,12 @@ perturbed as ``T_vo = [[Exp(φ_bias + φ_noise), ρ_noise], [0, 1]] · T_gt_{t+1
 ``φ_bias`` is a yaw (rotation about the camera's y axis) of ``--bias-deg`` per frame and the
 noise is Gaussian (``--rot-noise-deg`` per axis, ``--trans-noise`` m per axis). Stereo DPC with
 the ``small`` preset is trained on the training sequences (config
-``experiments/configs/bias_recovery.py``), the epoch is selected by the validation gradient loss
+``experiments/studies/configs/bias_recovery.py``), the epoch is selected by the validation gradient loss
 (no ground truth), and the held-out test sequence is corrected. Pass: the rotational segment
 error of the corrected test trajectory is at least 50 % lower than the prior's.
 
-    python experiments/bias_recovery.py                # render, prepare, train, evaluate
-    python experiments/bias_recovery.py --resume       # continue an interrupted training
+    python experiments/studies/bias_recovery.py                # render, prepare, train, evaluate
+    python experiments/studies/bias_recovery.py --resume       # continue an interrupted training
 
 Writes ``OUT/data`` (rendered layout), ``OUT/cache`` (prepared caches), ``OUT/run`` (the
 training run) and ``OUT/result.json``; prints a table. Exit status 0 when the check passes.
@@ -29,9 +29,10 @@ from scipy.spatial.transform import Rotation
 
 from dpc_jax import config as config_lib
 from dpc_jax.geometry.poses import compose, relative_poses
-from dpc_jax.hugepages import reexec_with_huge_pages
+from dpc_jax.report.tables import change_pct, table
+from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def render(root: Path, name: str, frames: int, seed: int, size: tuple[int, int]) -> np.ndarray:
@@ -84,9 +85,9 @@ def trajectory_length(poses: np.ndarray) -> float:
 def evaluate_test(config: object, workdir: Path, selection: str) -> dict[str, float]:
     """Correct the test sequence with the epoch chosen by ``selection`` (acceptance test on its own
     images); prior vs corrected."""
-    from dpc_jax.correct import correct_cache
+    from dpc_jax.correction.corrector import correct_cache
+    from dpc_jax.correction.inference import load_run
     from dpc_jax.eval import metrics
-    from dpc_jax.inference import load_run
 
     run = load_run(workdir, selection)
     [name] = config.test_sequences
@@ -101,13 +102,13 @@ def evaluate_test(config: object, workdir: Path, selection: str) -> dict[str, fl
     needed = Rotation.from_matrix(truth[:, :3, :3] @ np.swapaxes(vo[:, :3, :3], 1, 2))
     result["mean_yaw_needed_deg"] = float(np.degrees(needed.as_rotvec()[:, 1].mean()))
     result["mean_yaw_correction_deg"] = float(np.degrees(correction.xi_corr[:, 4].mean()))
-    result["r_err_reduction_pct"] = 100.0 * (1.0 - result["corrected_r_err"] / result["prior_r_err"])
+    result["r_err_reduction_pct"] = -change_pct(result["prior_r_err"], result["corrected_r_err"])
     return result
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--config", type=Path, default=ROOT / "experiments/configs/bias_recovery.py")
+    parser.add_argument("--config", type=Path, default=ROOT / "experiments/studies/configs/bias_recovery.py")
     parser.add_argument("--out", type=Path, default=ROOT / "runs/bias_recovery")
     parser.add_argument("--frames", type=int, default=200, help="frames per synthetic sequence")
     parser.add_argument("--bias-deg", type=float, default=0.15, help="yaw bias per frame (°)")
@@ -116,8 +117,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--resume", action="store_true", help="continue the training run in OUT/run")
     args = parser.parse_args(argv)
 
-    from dpc_jax.training.config import TrainConfig
     from dpc_jax.training.loop import train
+    from dpc_jax.training.train_config import TrainConfig
 
     config = config_lib.load_file(args.config, TrainConfig)
     cache_root = (ROOT / config.cache_root).resolve()
@@ -131,14 +132,15 @@ def main(argv: list[str] | None = None) -> int:
     minutes = (time.perf_counter() - began) / 60
     results = [evaluate_test(config, args.out / "run", s) for s in ("delta", "last")]
     print(f"\ntraining: {config.epochs} epochs, {summary['step']} steps, {minutes:.1f} min")
-    print("| selection | epoch | applied | r_err prior (°/100m) | r_err network | r_err corrected | "
-          "reduction | t_err prior (%) | t_err corrected | mean yaw needed (°) | mean yaw correction (°) |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
-    for r in results:
-        print(f"| {r['selection']} | {r['epoch']} | {r['applied']} | {r['prior_r_err']:.3f} | "
-              f"{r['network_r_err']:.3f} | {r['corrected_r_err']:.3f} | {r['r_err_reduction_pct']:.1f} % | "
-              f"{r['prior_t_err']:.2f} | {r['corrected_t_err']:.2f} | {r['mean_yaw_needed_deg']:.4f} | "
-              f"{r['mean_yaw_correction_deg']:.4f} |")
+    header = ["selection", "epoch", "applied", "r_err prior (°/100m)", "r_err network", "r_err corrected",
+              "reduction", "t_err prior (%)", "t_err corrected", "mean yaw needed (°)",
+              "mean yaw correction (°)"]
+    print(table(header, ([
+        r["selection"], str(r["epoch"]), r["applied"], f"{r['prior_r_err']:.3f}",
+        f"{r['network_r_err']:.3f}", f"{r['corrected_r_err']:.3f}", f"{r['r_err_reduction_pct']:.1f} %",
+        f"{r['prior_t_err']:.2f}", f"{r['corrected_t_err']:.2f}", f"{r['mean_yaw_needed_deg']:.4f}",
+        f"{r['mean_yaw_correction_deg']:.4f}",
+    ] for r in results)), end="")
     passed = results[0]["r_err_reduction_pct"] >= 50.0
     record = {"passed": passed, "training_minutes": minutes, "results": results,
               "args": {k: str(v) for k, v in vars(args).items()}, "config": config_lib.to_dict(config)}

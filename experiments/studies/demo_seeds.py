@@ -6,16 +6,13 @@ sequence's segment errors of the prior, of the network as trained and of the net
 the test sequence (each with its acceptance decision), of the final trajectory, its change against
 the prior, and the minutes the demo took. Re-running reuses each seed's finished stages.
 
-    python experiments/demo_seeds.py --seeds 0 1 2 3 4 --workdir runs/demo_seeds
-    python experiments/demo_seeds.py --seeds 0 1 --workdir runs/x --config my_demo.py --set adapt_steps=0
+    python experiments/studies/demo_seeds.py --seeds 0 1 2 3 4 --workdir runs/demo_seeds
+    python experiments/studies/demo_seeds.py --seeds 0 1 --workdir runs/x --config my.py --set adapt_steps=0
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
-import io
-import json
 import logging
 import math
 import sys
@@ -24,7 +21,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from dpc_jax.hugepages import reexec_with_huge_pages
+from dpc_jax.report.pages import check_results_page, write_results
+from dpc_jax.report.tables import EMPTY, records_csv, table
+from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
 ROOT = Path(__file__).resolve().parent
 DEFAULT_CONFIG = ROOT / "configs" / "synthetic_demo.py"
@@ -33,9 +32,9 @@ SEG = ("seg_trans_pct", "seg_rot_deg_per_100m")
 
 def _pair(values: dict[str, Any] | None) -> str:
     if values is None:
-        return "—"
+        return EMPTY
     t, r = (values[k] for k in SEG)
-    return "n/a" if t is None or r is None else f"{t:.2f} / {r:.2f}"
+    return EMPTY if t is None or r is None else f"{t:.2f} / {r:.2f}"
 
 
 def _row(seed: int, summary: dict[str, Any], minutes: float) -> dict[str, Any]:
@@ -45,9 +44,9 @@ def _row(seed: int, summary: dict[str, Any], minutes: float) -> dict[str, Any]:
         "seed": seed,
         "prior": _pair(test["prior"]),
         "trained": _pair(test.get("trained")),
-        "trained_test": summary["decisions"].get("trained", "—"),
+        "trained_test": summary["decisions"].get("trained", EMPTY),
         "adapted": _pair(test.get("adapted")),
-        "adapted_test": summary["decisions"].get("adapted", "—"),
+        "adapted_test": summary["decisions"].get("adapted", EMPTY),
         "final": f"{summary['final']}: {_pair(test['corrected'])}",
         "change_t_pct": change["seg_trans_pct"],
         "change_r_pct": change["seg_rot_deg_per_100m"],
@@ -64,29 +63,18 @@ def seeds_markdown(rows: list[dict[str, Any]], config_name: str) -> str:
         "*adapted*: adapted to the test sequence's own images (no ground truth); each with its acceptance "
         "test; *final*: what `corrected.txt` holds; change: final against the prior.",
         "",
-        "| seed | prior | trained | test | adapted | test | final | change t | change r | minutes |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        *table(["seed", "prior", "trained", "test", "adapted", "test", "final", "change t", "change r",
+                "minutes"],
+               ([str(r["seed"]), r["prior"], r["trained"], r["trained_test"], r["adapted"], r["adapted_test"],
+                 r["final"], f"{r['change_t_pct']:+.1f} %", f"{r['change_r_pct']:+.1f} %",
+                 f"{r['minutes']:.1f}"] for r in rows)).splitlines(),
     ]
-    for r in rows:
-        lines.append(
-            f"| {r['seed']} | {r['prior']} | {r['trained']} | {r['trained_test']} | {r['adapted']} | "
-            f"{r['adapted_test']} | {r['final']} | {r['change_t_pct']:+.1f} % | {r['change_r_pct']:+.1f} % | "
-            f"{r['minutes']:.1f} |"
-        )
     good = [r for r in rows if r["change_t_pct"] <= -20 and r["change_r_pct"] <= -20]
     worse = [r for r in rows
              if max(r["change_t_pct"], r["change_r_pct"]) > 2 or math.isnan(r["change_t_pct"])]
     lines += ["", f"Both segment errors at least 20 % lower: {len(good)} of {len(rows)} seeds; "
               f"worse than the prior by more than 2 % in either: {len(worse)}."]
     return "\n".join(lines) + "\n"
-
-
-def seeds_csv(rows: list[dict[str, Any]]) -> str:
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=list(rows[0]), lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(rows)
-    return buffer.getvalue()
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -99,26 +87,27 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a DemoConfig field (JSON value), e.g. --set adapt_steps=0")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    parser.add_argument("--results-page", type=Path, metavar="FILE",
+                        help="also write the table into the results block of FILE (a docs/results/ page)")
     args = parser.parse_args(argv)
+    try:
+        check_results_page(args.results_page)
+    except (OSError, ValueError) as error:
+        print(f"demo_seeds: error: {error}", file=sys.stderr)
+        return 2
 
     from dpc_jax import config as config_lib
     from dpc_jax._io import atomic_write
     from dpc_jax.pipelines.demo import DemoConfig, DemoError, run_demo
+    from dpc_jax.pipelines.protocol import parse_overrides
 
     logging.getLogger("absl").setLevel(logging.ERROR)
     try:
-        base = config_lib.to_dict(config_lib.load_file(args.config, DemoConfig))
-        for pair in args.set:
-            key, sep, value = pair.partition("=")
-            if not sep:
-                raise config_lib.ConfigError(f"--set {pair!r}: expected KEY=VALUE")
-            try:
-                base[key] = json.loads(value)
-            except json.JSONDecodeError:
-                base[key] = value
+        base = {**config_lib.to_dict(config_lib.load_file(args.config, DemoConfig)),
+                **parse_overrides(args.set)}
         configs = {seed: config_lib.from_dict(DemoConfig, {**base, "seed": seed}, where="--set")
                    for seed in args.seeds}
-    except (OSError, config_lib.ConfigError) as error:
+    except (OSError, ValueError) as error:  # a ConfigError is a ValueError
         print(f"demo_seeds: error: {error}", file=sys.stderr)
         return 2
     progress = not args.no_progress and sys.stderr.isatty()
@@ -135,8 +124,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.workdir.mkdir(parents=True, exist_ok=True)
         text = seeds_markdown(rows, args.config.name + (" " + " ".join(args.set) if args.set else ""))
         atomic_write(args.workdir / "seeds.md", text)
-        atomic_write(args.workdir / "seeds.csv", seeds_csv(rows))
+        atomic_write(args.workdir / "seeds.csv", records_csv(rows))
     print(text, end="")
+    if args.results_page is not None:
+        write_results(args.results_page, text, Path(__file__))
     return 0
 
 

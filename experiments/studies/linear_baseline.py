@@ -9,10 +9,10 @@ fit) and needs no images. The table gives, per held-out sequence, libviso2's err
 (segment errors, pyslam / ss-DPC-Net definition; m-ATE), beside the published rows of the papers
 for the same sequences.
 
-    python experiments/linear_baseline.py                   # libviso2-s (stereo), rotation only
-    python experiments/linear_baseline.py --mono            # also libviso2-m, ss-DPC-Net rescaling
-    python experiments/linear_baseline.py --json out.json   # also the figures as JSON
-    python experiments/linear_baseline.py --demo runs/demo  # a finished `dpc-jax demo` folder instead
+    python experiments/studies/linear_baseline.py                   # libviso2-s (stereo), rotation only
+    python experiments/studies/linear_baseline.py --mono            # also libviso2-m, ss-DPC-Net rescaling
+    python experiments/studies/linear_baseline.py --json out.json   # also the figures as JSON
+    python experiments/studies/linear_baseline.py --demo runs/demo  # a finished `dpc-jax demo` folder instead
 
 With ``--demo OUT`` the baseline is fit on the demo's training sequences (``OUT/data/poses``,
 ``OUT/vo``) and applied to its test sequence, rotation only and full 6-DoF, beside the demo's own
@@ -39,7 +39,10 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+from dpc_jax.report.pages import check_results_page, write_results
+from dpc_jax.report.tables import table
+
+ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT.parent / "shared" / "data" / "kitti-libviso2"
 SEQUENCES = ("00", "02", "05", "06", "07", "08", "09", "10")
 
@@ -69,6 +72,7 @@ PUBLISHED: dict[str, dict[str, tuple[float, float, float, float]]] = {
     },
 }
 KEYS = ("seg_trans_pct", "seg_rot_deg_per_100m", "m_ate_trans_m", "m_ate_rot_deg")
+TITLES = ("seg. t (%)", "seg. r (°/100 m)", "m-ATE (m)", "m-ATE (°)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -82,6 +86,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--translation", action="store_true",
                         help="fit and apply the translation part too (default: rotation only)")
     parser.add_argument("--json", type=Path, metavar="PATH", help="also write the figures as JSON")
+    parser.add_argument("--results-page", type=Path, metavar="FILE",
+                        help="also write the table into the results block of FILE (a docs/results/ page)")
     parser.add_argument("--demo", type=Path, metavar="OUT",
                         help="a finished `dpc-jax demo` folder: fit on its training sequences, test on its "
                         "test sequence")
@@ -118,10 +124,8 @@ def demo_table(out: Path) -> str:
             rows[f"{label}; acceptance test: {decision}"] = {
                 k: summary["test"][key][k] for k in KEYS
             }
-    lines = ["| test sequence | seg. t (%) | seg. r (°/100 m) | m-ATE (m) | m-ATE (°) |",
-             "|---|---|---|---|---|"]
-    lines += [f"| {label} | " + " | ".join(f"{v[k]:.3f}" for k in KEYS) + " |" for label, v in rows.items()]
-    return "\n".join(lines) + "\n"
+    return table(["test sequence", *TITLES],
+                 ([label, *(f"{v[k]:.3f}" for k in KEYS)] for label, v in rows.items()))
 
 
 def load(data: Path, kind: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -147,7 +151,7 @@ def metrics(gt: np.ndarray, est: np.ndarray) -> dict[str, float]:
     return {key: float(v) for key, v in zip(KEYS, values, strict=True)}
 
 
-def leave_one_out(
+def held_out_linear_metrics(
     sequences: dict[str, tuple[np.ndarray, np.ndarray]], rotation_only: bool
 ) -> dict[str, dict[str, dict[str, float]]]:
     """``{sequence: {"prior": metrics, "linear": metrics}}``; each corrected by a fit on the others."""
@@ -162,30 +166,28 @@ def leave_one_out(
     return results
 
 
-def table(kind: str, results: dict[str, dict[str, dict[str, float]]], rotation_only: bool) -> str:
+def results_table(kind: str, results: dict[str, dict[str, dict[str, float]]], rotation_only: bool) -> str:
+    """Per sequence: the prior, its leave-one-out linear correction and the published rows."""
     prior = "libviso2-s" if kind == "stereo" else "libviso2-m (rescaled)"
     fitted = "rotation" if rotation_only else "rotation and translation"
-    lines = [
-        "| sequence | estimator | seg. t (%) | seg. r (°/100 m) | m-ATE (m) | m-ATE (°) |",
-        "|---|---|---|---|---|---|",
-    ]
-    for name, rows in results.items():
-        before, after = rows["prior"], rows["linear"]
-        lines.append(f"| {name} | {prior} (this data) | " + " | ".join(f"{before[k]:.3f}" for k in KEYS)
-                     + " |")
-        lines.append(
-            f"| {name} | + linear, **supervised**, leave-one-out ({fitted}) | "
-            + " | ".join(f"{before[k]:.3f} → **{after[k]:.3f}**" for k in KEYS) + " |"
-        )
-        for label, values in PUBLISHED[kind].items():
-            if label.startswith(name + " "):
-                cells = " | ".join(f"{v:g}" for v in values)
-                lines.append(f"| {name} | {label[3:]} (published) | {cells} |")
-    return "\n".join(lines) + "\n"
+    rows = []
+    for name, figures in results.items():
+        before, after = figures["prior"], figures["linear"]
+        rows.append([name, f"{prior} (this data)", *(f"{before[k]:.3f}" for k in KEYS)])
+        rows.append([name, f"+ linear, **supervised**, leave-one-out ({fitted})",
+                     *(f"{before[k]:.3f} → **{after[k]:.3f}**" for k in KEYS)])
+        rows += [[name, f"{label[3:]} (published)", *(f"{v:g}" for v in values)]
+                 for label, values in PUBLISHED[kind].items() if label.startswith(name + " ")]
+    return table(["sequence", "estimator", *TITLES], rows)
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    try:
+        check_results_page(args.results_page)
+    except (OSError, ValueError) as error:
+        print(f"linear_baseline: error: {error}", file=sys.stderr)
+        return 2
     if args.demo is not None:
         if not (args.demo / "summary.json").is_file():
             print(f"linear_baseline: error: {args.demo / 'summary.json'} not found (give a finished "
@@ -210,26 +212,30 @@ def main(argv: list[str] | None = None) -> int:
     rotation_only = not args.translation
     report: dict[str, object] = {"rotation_only": rotation_only}
     fell = 0
+    sections = []
     for kind in kinds:
         try:
             sequences = load(args.data, kind)
         except (ValueError, OSError) as error:
             print(f"linear_baseline: error: {error}", file=sys.stderr)
             return 2
-        results = leave_one_out(sequences, rotation_only)
+        results = held_out_linear_metrics(sequences, rotation_only)
         report[kind] = results
         down = sum(
             r["linear"]["seg_rot_deg_per_100m"] < r["prior"]["seg_rot_deg_per_100m"] for r in results.values()
         )
         if kind == "stereo":
             fell = down
-        print(f"## libviso2-{kind[0]}: supervised linear correction, leave one sequence out\n")
-        print(table(kind, results, rotation_only))
-        print(f"Rotational segment error fell on {down} of {len(results)} sequences.\n")
+        sections.append(f"## libviso2-{kind[0]}: supervised linear correction, leave one sequence out\n\n"
+                        f"{results_table(kind, results, rotation_only)}\n"
+                        f"Rotational segment error fell on {down} of {len(results)} sequences.\n")
+        print(sections[-1])
     seconds = time.perf_counter() - start
     print(f"({seconds:.0f} s)")
     if args.json is not None:
         args.json.write_text(json.dumps(report, indent=2) + "\n")
+    if args.results_page is not None:
+        write_results(args.results_page, "\n".join(sections), Path(__file__))
     return 0 if fell >= 6 else 1
 
 

@@ -1,8 +1,8 @@
 """The papers' comparison on what we can run: prior → supervised linear baseline → supervised network →
 self-supervised network (configs/supervised_comparison.py).
 
-    python experiments/supervised_comparison.py --workdir runs/supervised_comparison
-    python experiments/supervised_comparison.py --workdir /tmp/comparison_smoke --smoke --seeds 0  # wiring
+    python experiments/studies/supervised_comparison.py --workdir runs/supervised_comparison
+    python experiments/studies/supervised_comparison.py --workdir /tmp/smoke --smoke --seeds 0  # wiring
 
 Test data: the synthetic demo's held-out test sequence per seed (``--seeds``, default 0–4) and the
 two real KITTI raw drives, each corrected by networks trained on the other (prior: our VO;
@@ -32,7 +32,6 @@ import argparse
 import csv
 import functools
 import importlib.util
-import io
 import json
 import logging
 import math
@@ -45,10 +44,13 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from dpc_jax.hugepages import reexec_with_huge_pages
+from dpc_jax.report.pages import check_results_page, write_results
+from dpc_jax.report.tables import EMPTY, change_pct, csv_text, number, table
+from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
 HERE = Path(__file__).resolve().parent
 CONFIG = HERE / "configs" / "supervised_comparison.py"
+PROTOCOLS = HERE.parent / "protocols"
 
 METRICS = ("seg_trans_pct", "seg_rot_deg_per_100m", "m_ate_trans_m", "m_ate_rot_deg", "ate_m",
            "rpe_trans_m", "rpe_rot_deg")
@@ -155,26 +157,14 @@ def drive_rows(drive: str, trained_on: str, supervised: Sequence[Mapping[str, st
             *_network_rows(test, trained_on, "self", own)]
 
 
-def _cell(value: float | None) -> str:
-    return "—" if value is None else f"{value:.4g}"
-
-
-def change_pct(prior: float | None, value: float | None) -> float | None:
-    """Relative change against the prior in % (negative: lower), None without both values."""
-    if prior is None or value is None or prior == 0:
-        return None
-    return 100.0 * (value - prior) / prior
-
-
 def change_summary(rows: Sequence[Row]) -> list[str]:
     """Markdown lines: per row kind, the best and worst change against the prior (%) over the demo
-    seeds in ``rows``, per metric of :data:`CHANGED` (with the seed), ``n/a`` where no seed has it."""
+    seeds in ``rows``, per metric of :data:`CHANGED` (with the seed), empty where no seed has it."""
     priors = {r.test: r.metrics for r in rows if r.kind == "prior" and r.test.startswith("demo ")}
     if not priors:
         return []
     seeds = ", ".join(t.removeprefix("demo seed ") for t in priors)
-    lines = [f"Change against the prior over the demo seeds ({seeds}): best … worst, with the seed.", "",
-             "| row | " + " | ".join(TITLES[: len(CHANGED)]) + " |", "|---" * (1 + len(CHANGED)) + "|"]
+    cells_of = []
     for kind, label in KINDS.items():
         if kind == "prior":
             continue
@@ -184,24 +174,24 @@ def change_summary(rows: Sequence[Row]) -> list[str]:
         cells = []
         for key in CHANGED:
             changes = [(c, r.test.removeprefix("demo seed ")) for r in own
-                       if (c := change_pct(priors[r.test][key], r.metrics[key])) is not None]
+                       if not math.isnan(c := change_pct(priors[r.test][key], r.metrics[key]))]
             if not changes:
-                cells.append("n/a")
+                cells.append(EMPTY)
                 continue
             (best, at_best), (worst, at_worst) = min(changes), max(changes)
             cells.append(f"{best:+.1f} % ({at_best}) … {worst:+.1f} % ({at_worst})")
-        lines.append(f"| {label} | " + " | ".join(cells) + " |")
-    return lines
+        cells_of.append([label, *cells])
+    return [f"Change against the prior over the demo seeds ({seeds}): best … worst, with the seed.", "",
+            *table(["row", *TITLES[: len(CHANGED)]], cells_of).splitlines()]
 
 
 def comparison_markdown(rows: Sequence[Row], notes: Sequence[str]) -> str:
     """The table (one line per :class:`Row`), the notes above it, the change summary below it."""
+    body = table(["test", "trained on", "row", "decision", *TITLES],
+                 ([r.test, r.trained_on, KINDS[r.kind], r.decision, *(number(r.metrics[k]) for k in METRICS)]
+                  for r in rows))
     lines = ["# Prior → linear baseline → supervised network → self-supervised network", "", *notes, "",
-             "| test | trained on | row | decision | " + " | ".join(TITLES) + " |",
-             "|---" * (4 + len(TITLES)) + "|"]
-    for r in rows:
-        lines.append(f"| {r.test} | {r.trained_on} | {KINDS[r.kind]} | {r.decision} | "
-                     + " | ".join(_cell(r.metrics[k]) for k in METRICS) + " |")
+             *body.splitlines()]
     summary = change_summary(rows)
     if summary:
         lines += ["", *summary]
@@ -210,13 +200,8 @@ def comparison_markdown(rows: Sequence[Row], notes: Sequence[str]) -> str:
 
 def comparison_csv(rows: Sequence[Row]) -> str:
     """Long form: one line per :class:`Row` (``row`` = its kind), empty cells for undefined metrics."""
-    buffer = io.StringIO()
-    writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(CSV_COLUMNS)
-    for r in rows:
-        writer.writerow([r.test, r.trained_on, r.kind, r.decision,
-                         *("" if r.metrics[k] is None else r.metrics[k] for k in METRICS)])
-    return buffer.getvalue()
+    return csv_text(CSV_COLUMNS, ([r.test, r.trained_on, r.kind, r.decision, *(r.metrics[k] for k in METRICS)]
+                                  for r in rows))
 
 
 # --------------------------------------------------------------------------- running the tests
@@ -285,10 +270,10 @@ def finished_demo(config: Any, out: Path, say: Callable[[str], None], progress: 
 
 
 def _experiment(name: str) -> ModuleType:
-    """The entry point ``experiments/NAME.py`` as a module (its functions, not a copy of them)."""
-    spec = importlib.util.spec_from_file_location(f"experiment_{name}", HERE / f"{name}.py")
+    """The protocol ``experiments/protocols/NAME.py`` as a module (its functions, not a copy of them)."""
+    spec = importlib.util.spec_from_file_location(f"experiment_{name}", PROTOCOLS / f"{name}.py")
     if spec is None or spec.loader is None:
-        raise OSError(f"cannot load {HERE / name}.py")
+        raise OSError(f"cannot load {PROTOCOLS / name}.py")
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module
     spec.loader.exec_module(module)
@@ -323,7 +308,7 @@ def run_drives(args: argparse.Namespace, namespace: Mapping[str, Any],
     from dpc_jax.pipelines import protocol as P
 
     base, protocol = P.load_protocol(args.config)
-    record = {"config": config_lib.to_dict(base), "protocol": protocol}
+    record = {"config": config_lib.to_dict(base), "protocol": config_lib.to_dict(protocol)}
     common = ["--config", str(args.config), "--kitti-raw", str(args.kitti_raw)]
     common += ["--smoke"] * args.smoke
     supervised = [f"--set={key}={json.dumps(value)}" for key, value in namespace["SUPERVISED"].items()]
@@ -333,11 +318,11 @@ def run_drives(args: argparse.Namespace, namespace: Mapping[str, Any],
     share(own_dir, other_dir, ("priors", "cache"))
     say("drives, supervised networks")
     other = finished_drives(other_dir, common + supervised, record, say, args.no_progress)
-    drives = protocol["drives"]
+    drives = protocol.drives
     rows = []
     for test in drives:
         train = next(d for d in drives if d != test)
-        first, end = drives[train]["train_frames"]
+        first, end = drives[train].train_frames
         baselines = baseline_metrics([own_dir / "cache" / f"{train}_vo_train"],
                                      own_dir / "cache" / f"{test}_vo")
 
@@ -375,6 +360,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--smoke", action="store_true", help="wiring check: tiny demo (the config's "
                         "SMOKE_DEMO) and kitti_raw_drives.py --smoke")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    parser.add_argument("--results-page", type=Path, metavar="FILE",
+                        help="also write the table into the results block of FILE (a docs/results/ page)")
     return parser
 
 
@@ -385,6 +372,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     args = build_parser().parse_args(argv)
     problem = output_problem(args.workdir, "--workdir", folder=True)
+    try:
+        check_results_page(args.results_page)
+    except (OSError, ValueError) as error:
+        problem = str(error)
     if problem is not None:
         print(f"supervised_comparison: error: {problem}", file=sys.stderr)
         return 2
@@ -417,8 +408,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         "Decision: the network's ground-truth-free acceptance test (demo: `dpc-jax demo`'s words; drives: "
         "the axes applied, `kitti_raw_drives.py`'s). Demo: the held-out test sequence, trained on the "
         "training sequences named. Drives: real KITTI raw, prior our VO, trained on the other drive's "
-        "frames named, rotation only applied; segment errors — where the test is shorter than 100 m; RPE "
-        "over one frame."
+        "frames named, rotation only applied; segment errors "
+        f"{EMPTY} where the test is shorter than 100 m; RPE over one frame."
     ]
     if args.smoke:
         notes.append("SMOKE RUN (tiny demo, one epoch of two steps, two adaptation steps): the numbers mean "
@@ -441,7 +432,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (OSError, ValueError, KeyError, RuntimeError) as error:
         print(f"supervised_comparison: error: {error}", file=sys.stderr)
         return 1
-    print((args.workdir / "comparison.md").read_text(), end="")
+    text = (args.workdir / "comparison.md").read_text()
+    print(text, end="")
+    if args.results_page is not None:
+        write_results(args.results_page, text, Path(__file__))
     return 0
 
 

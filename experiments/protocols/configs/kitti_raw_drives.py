@@ -1,4 +1,4 @@
-"""Two real KITTI raw drives, learn on one and correct the other (``experiments/kitti_raw_drives.py``).
+"""Two real KITTI raw drives, learn on one and correct the other (``kitti_raw_drives.py``).
 
 Drives (``../shared/data/kitti-raw``): ``2011_09_26_drive_0001`` (108 frames, about 107 m, the colour
 pair) and ``2011_09_26_drive_0005`` (frames 0–90 of the drive, about 34 m, the grey pair, read as three
@@ -12,22 +12,33 @@ corrects the *other* drive: our VO's prior with the network trained on our VO, l
 the network trained on our VO *and* with the one trained on libviso2-s (the papers' setting: the prior
 they correct is the prior they learn from). Each correction runs with the network as trained and as
 adapted to the test drive (``adapt_steps``; its ground truth never read), behind the acceptance test,
-measured on the test drive prepared at ``judge_size``; ``dpc_jax.correct.choose`` keeps the final.
+measured on the test drive prepared at ``judge_size``; ``dpc_jax.correction.corrector.choose`` keeps the
+final.
 Every network's images are rectified by the disparity offset our VO measured on that drive (no
 ground truth). Only the rotation of the correction is applied (see
 ``rotation_only`` in ``configs/kitti_raw_excerpt.py``).
 
+The training config and the settings the two protocols share are ``configs/kitti_raw_excerpt.py``'s
+(derived from it, not copied), with the drives' cache and test sequence.
+
 Command:
 
-    python experiments/kitti_raw_drives.py --workdir runs/kitti_raw_drives
+    python experiments/protocols/kitti_raw_drives.py --workdir runs/kitti_raw_drives
 
 Produces in WORKDIR: ``results.md`` (the table: per test drive, prior and training prior, the rows
 prior, trained, adapted, final) and ``results.csv`` (long form, one row per test drive, prior, training
 prior and estimate), plus ``priors/``, ``cache/``, ``runs/``, ``reports/``, ``corrected/``, ``adapted/``.
 """
 
+import runpy
+from pathlib import Path
+
+_EXCERPT = runpy.run_path(str(Path(__file__).with_name("kitti_raw_excerpt.py")))
+
 PROTOCOL = {
-    "date": "2011_09_26",
+    # The excerpt's date, epoch selection, rectification, adaptation and rotation-only correction.
+    **{key: _EXCERPT["PROTOCOL"][key]
+       for key in ("date", "select", "rectify_offset", "adapt_steps", "holdout_every", "rotation_only")},
     "drives": {
         "0001": {"libviso2": "libviso2/stereo_2011_09_26_drive_0001.mat",
                  "train_frames": (0, 80), "validation_frames": (80, 108)},
@@ -36,34 +47,11 @@ PROTOCOL = {
     },
     # (test prior, training prior) pairs: every test drive is corrected by networks of the other drive.
     "tests": (("vo", "vo"), ("libviso2", "vo"), ("libviso2", "libviso2")),
-    "select": "delta",
-    "rectify_offset": True,
-    "adapt_steps": 300,
-    "holdout_every": 5,
-    "rotation_only": True,
     # Every acceptance test on a test drive is measured on its frames prepared at this size
-    # (dpc_jax.judge): the papers' input size, where the photometric loss resolves rotations that
+    # (dpc_jax.correction.judge): the papers' input size, where the photometric loss resolves rotations that
     # 64×96 does not, and which picks the scale of an accepted correction (docs/method.md §8).
     # None: at the network's size.
     "judge_size": (240, 376),
 }
 
-CONFIG = {
-    "method": "stereo_dpc",
-    "preset": "small",
-    "image_size": (64, 96),
-    "batch_size": 8,
-    "epochs": 4,
-    "learning_rate": 1e-3,
-    "lr_halving_epochs": 2,
-    "weight_decay": 4e-6,
-    "loss": {"alpha": (1.0, 1.0, 1.0, 0.08), "ssim_weight": 0.85},
-    "rotation_only": False,
-    "frame_skip": True,
-    "cache_root": "runs/kitti_raw_drives/cache",
-    "train_sequences": ("train",),
-    "validation_sequences": ("validation",),
-    "test_sequences": ("test",),
-    # Δ with OpenCV StereoSGBM depth, independent of the network (configs/kitti_raw_excerpt.py).
-    "acceptance_depth": "sgbm",
-}
+CONFIG = {**_EXCERPT["CONFIG"], "cache_root": "runs/kitti_raw_drives/cache", "test_sequences": ("test",)}

@@ -9,9 +9,9 @@ Stereo DPC is trained briefly with our VO prior on frames 0–79 and validated (
 ground truth) on frames 80–107 — the validation frames are never trained on. Then each prior of the
 *whole* drive is corrected twice: with the network as trained (acceptance test on all pairs) and
 with the network adapted to that prior on the drive itself (300 steps, every 5th pair kept out for
-its acceptance test; ``dpc_jax.adapt``), and the final trajectory is chosen by
-``dpc_jax.correct.choose`` (the adapted correction if it passes its test and beats the trained one
-on the kept-out pairs, else the trained one if it passes, else the prior); only the correction's
+its acceptance test; ``dpc_jax.correction.adapt``), and the final trajectory is chosen by
+``dpc_jax.correction.corrector.choose`` (the adapted correction if it passes its test and beats the
+trained one on the kept-out pairs, else the trained one if it passes, else the prior); only the correction's
 rotation is applied (see ``rotation_only`` below), and Δ is measured with an independent StereoSGBM
 depth (see ``acceptance_depth``). The ground truth of the ``.mat`` is read only for the evaluation.
 
@@ -22,7 +22,7 @@ minutes on a 2-core CPU.
 
 Command:
 
-    python experiments/kitti_raw_excerpt.py --workdir runs/kitti_raw_excerpt
+    python experiments/protocols/kitti_raw_excerpt.py --workdir runs/kitti_raw_excerpt
 
 (``--kitti-raw`` defaults to ``../shared/data/kitti-raw`` beside the repository.) Produces in
 WORKDIR: ``results.md`` / ``results.csv`` (per prior: segment errors, m-ATE, ATE of prior → final,
@@ -73,7 +73,7 @@ CONFIG = {
     "test_sequences": ("vo", "libviso2"),
     # Δ (epoch selection and acceptance) with OpenCV StereoSGBM depth instead of the network's own:
     # an acceptance test should not lean on the depth trained together with the pose. On the demo's
-    # five seeds both depths accept all 17 (helpful) networks (experiments/acceptance_depth.py); on
+    # five seeds both depths accept all 17 (helpful) networks (experiments/studies/acceptance_depth.py); on
     # this drive they disagreed once, and SGBM was right: network depth accepted the trained
     # network's rotation for libviso2-s (p 0.0013), which made it worse on every metric; SGBM
     # rejected it (p 0.15). That measurement used this drive's ground truth (docs/method.md §9).

@@ -12,12 +12,12 @@ L2 4e-6, dropout 0.5, λ_exp = 0.23, λ_rot = 4 for samples with prior rotation 
 frame-skip augmentation. Stereo priors: Adam 1e-3 halved every 4 epochs and only the rotation of
 the correction applied; mono priors: 5e-5 halved every 10 epochs, the full correction (docs/method.md §5).
 The epoch is chosen by the validation gradient loss (``--select loop`` for the loop-closure count);
-the correction head has the published settings (``dpc_jax.training.config.REFERENCE``) and every
+the correction head has the published settings (``dpc_jax.training.train_config.REFERENCE``) and every
 correction is applied (no acceptance test).
 
 Command (every fold):
 
-    python experiments/kitti_ss_dpc.py --kitti-odometry /data/kitti/odometry \\
+    python experiments/protocols/kitti_ss_dpc.py --kitti-odometry /data/kitti/odometry \\
         --priors ../shared/data/kitti-libviso2 --fold all --workdir runs/kitti_ss_dpc
 
 Produces in WORKDIR: ``results.md`` / ``results.csv`` (per test sequence: segment errors,
@@ -25,10 +25,12 @@ m-ATE, ATE of the prior → corrected), ``corrected/FOLD/XX.txt``, ``reports/FOL
 ``runs/FOLD/``, ``cache/{stereo,mono}/``. ``--smoke``: 1 epoch of 2 steps on 32×48 images.
 
 This file is also a plain training config for the ``stereo_val05`` fold once its cache exists:
-``dpc-jax train --config experiments/configs/kitti_ss_dpc.py --workdir runs/kitti_ss_dpc/runs/stereo_val05``.
+
+    dpc-jax train --config experiments/protocols/configs/kitti_ss_dpc.py \\
+        --workdir runs/kitti_ss_dpc/runs/stereo_val05
 """
 
-from dpc_jax.training.config import REFERENCE
+from dpc_jax.training.train_config import REFERENCE
 
 PROTOCOL = {
     "sequences": ("00", "02", "05", "06", "07", "08", "09", "10"),
@@ -43,7 +45,7 @@ PROTOCOL = {
         },
     },
     "select": "gradient",
-    # The papers apply every correction; the acceptance test (dpc_jax.acceptance) is ours.
+    # The papers apply every correction; the acceptance test (dpc_jax.correction.acceptance) is ours.
     "acceptance": False,
 }
 

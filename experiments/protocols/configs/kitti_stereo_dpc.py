@@ -8,12 +8,12 @@ sequence one network is trained on the others. Zhang et al. train on all the oth
 report the last epoch; epoch selection without ground truth needs a held-out sequence, so here one
 of the others is the validation sequence (05, or 00 when 05 is tested) and is not trained on —
 a documented deviation. The epoch is chosen by the validation gradient loss (ss-DPC-Net §IV), and
-the correction head has the published settings (``dpc_jax.training.config.REFERENCE``) and is applied
+the correction head has the published settings (``dpc_jax.training.train_config.REFERENCE``) and is applied
 without our acceptance test.
 
 Command (every fold; the libviso2-s priors of the ss-DPC-Net release, or ``--priors vo`` for ours):
 
-    python experiments/kitti_stereo_dpc.py --kitti-odometry /data/kitti/odometry \\
+    python experiments/protocols/kitti_stereo_dpc.py --kitti-odometry /data/kitti/odometry \\
         --priors ../shared/data/kitti-libviso2 --test all --workdir runs/kitti_stereo_dpc
 
 Produces in WORKDIR: ``results.md`` / ``results.csv`` (per test sequence: segment errors t %
@@ -22,17 +22,17 @@ and r °/100 m, m-ATE, ATE of the prior → the corrected trajectory), ``correct
 TensorBoard), ``cache/``. ``--smoke`` trains 1 epoch of 2 steps on 32×48 images (a wiring check).
 
 This file is also a plain training config for one fold (test 00) once the caches exist:
-``dpc-jax train --config experiments/configs/kitti_stereo_dpc.py --workdir runs/stereo_dpc_00``.
+``dpc-jax train --config experiments/protocols/configs/kitti_stereo_dpc.py --workdir runs/stereo_dpc_00``.
 """
 
-from dpc_jax.training.config import REFERENCE
+from dpc_jax.training.train_config import REFERENCE
 
 PROTOCOL = {
     "sequences": ("00", "02", "05", "06", "07", "08", "09", "10"),
     # Validation (epoch selection) sequence per test sequence; "default" for the others.
     "validation": {"default": "05", "05": "00"},
     "select": "gradient",
-    # The papers apply every correction; the acceptance test (dpc_jax.acceptance) is ours.
+    # The papers apply every correction; the acceptance test (dpc_jax.correction.acceptance) is ours.
     "acceptance": False,
 }
 

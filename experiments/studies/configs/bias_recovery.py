@@ -1,11 +1,11 @@
 """Bias recovery (the scientific check of self-supervision): Stereo DPC, small preset, synthetic sequences.
 
-The data are made by ``experiments/bias_recovery.py`` under ``runs/bias_recovery/cache``:
+The data are made by ``experiments/studies/bias_recovery.py`` under ``runs/bias_recovery/cache``:
 sequences s00–s03 for training, s04 for validation (epoch selection), s05 held out for the test.
 Their priors are the true relative poses with a yaw bias of 0.15°/frame plus noise.
 """
 
-from dpc_jax.training.config import TrainConfig
+from dpc_jax.training.train_config import TrainConfig
 
 CONFIG = TrainConfig(
     method="stereo_dpc",
