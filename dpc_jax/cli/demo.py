@@ -15,6 +15,7 @@ from dpc_jax.cli._common import (
     path_option,
     restore_problem,
 )
+from dpc_jax.report.tables import EMPTY
 
 HELP = "Synthetic end-to-end demo: train Stereo DPC on rendered sequences, correct our VO, write a report."
 # Restart with huge-page malloc (dpc_jax.runtime.hugepages): the demo's time goes to training.
@@ -44,7 +45,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _replaced_problem(out: Path, names: list[str]) -> str | None:
     """Why a folder the demo would replace under ``out`` is not one it made, or None: a rendered
     sequence (``data/sequences/NAME``, with ``synth.json``), a cache (``cache/NAME``, with
-    ``manifest.json``) or the training run (``run``); the layout of :mod:`dpc_jax.pipelines.demo`."""
+    ``manifest.json``) or the training run (``run``); the layout of :mod:`dpc_jax.pipelines.synthetic_demo`."""
     from dpc_jax.data.sequence_cache import MANIFEST
 
     label = f"--out {out}"
@@ -67,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     # The config is checked before JAX is imported: a bad one fails at once.
     from dpc_jax.config import ConfigError, load_file
-    from dpc_jax.pipelines.demo import DemoConfig
+    from dpc_jax.pipelines.synthetic_demo import DemoConfig
 
     try:
         config = load_file(args.config, DemoConfig) if args.config is not None else DemoConfig()
@@ -79,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"dpc-jax demo: error: {problem}", file=sys.stderr)
         return 2
     import_jax()
-    from dpc_jax.pipelines.demo import DemoError, run_demo
+    from dpc_jax.pipelines.synthetic_demo import DemoError, run_demo
     from dpc_jax.training.checkpoints import CheckpointError
 
     progress = not args.no_progress and sys.stderr.isatty()
@@ -98,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
     def errors(label: str) -> str:
         values = summary["test"][label]
         t, r = (values[k] for k in ("seg_trans_pct", "seg_rot_deg_per_100m"))
-        return "n/a (shorter than 100 m)" if t is None or r is None else f"{t:.3f} % / {r:.3f} °/100 m"
+        return f"{EMPTY} (shorter than 100 m)" if t is None or r is None else f"{t:.3f} % / {r:.3f} °/100 m"
 
     rows = ", ".join(f"{label} {errors(label)}" for label in summary["test"] if label != "corrected")
     print(f"test sequence segment errors: {rows}; final ({summary['final']}) {errors('corrected')}; "
