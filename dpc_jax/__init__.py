@@ -62,7 +62,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "dpc_jax.correction.inference": ("load_run", "predict_sequence", "predict_corrections", "TrainedRun"),
     "dpc_jax.correction.acceptance": ("acceptance_test", "Acceptance"),
     "dpc_jax.correction.corrector": ("correct_cache", "write_trajectory"),
-    "dpc_jax.pipelines.demo": ("DemoConfig", "run_demo"),
+    "dpc_jax.pipelines.synthetic_demo": ("DemoConfig", "run_demo"),
 }
 __all__ = ["__version__", *(name for names in _EXPORTS.values() for name in names)]
 __getattr__ = lazy_getattr("dpc_jax", _EXPORTS, globals())

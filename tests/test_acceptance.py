@@ -202,7 +202,7 @@ def test_on_real_frames_a_planted_correction_is_accepted_when_it_helps_and_refus
 
 def test_component_masks_and_names() -> None:
     from dpc_jax.correction.acceptance import component_mask, rotation_component
-    from dpc_jax.report.correction import rotation_axes_words
+    from dpc_jax.report.correction_report import rotation_axes_words
 
     assert rotation_component("xz") == "rotation_xz" and rotation_component("xyz") == "rotation"
     np.testing.assert_array_equal(component_mask("rotation_xz"), [0, 0, 0, 1, 0, 1])

@@ -11,7 +11,7 @@ import pytest
 from dpc_jax import config as config_lib
 from dpc_jax.cli import main as cli_main
 from dpc_jax.data.poses_io import read_trajectory
-from dpc_jax.pipelines.demo import DemoConfig, DemoError, run_demo
+from dpc_jax.pipelines.synthetic_demo import DemoConfig, DemoError, run_demo
 
 ROOT = Path(__file__).resolve().parents[1]
 # At 48×80 the VO falls back on most pairs; the tiny demo accepts that (the refusal is tested below).

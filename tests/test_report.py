@@ -15,8 +15,8 @@ import pytest
 
 from dpc_jax.correction.acceptance import Acceptance, ComponentTest
 from dpc_jax.pipelines.protocol import Result
-from dpc_jax.report.correction import acceptance_markdown, choice_markdown, write_correction_report
-from dpc_jax.report.demo import decision_label
+from dpc_jax.report.correction_report import acceptance_markdown, choice_markdown, write_correction_report
+from dpc_jax.report.demo_report import decision_label
 from dpc_jax.report.pages import read_block, replace_block
 from dpc_jax.report.protocol import results_csv, results_markdown
 from dpc_jax.report.tables import EMPTY, change_pct, csv_text, number, records_csv, table

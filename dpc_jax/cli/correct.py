@@ -25,7 +25,7 @@ from dpc_jax.cli._common import (
     restore_problem,
 )
 from dpc_jax.data.holdout import MIN_EVERY, adaptable_pairs, held_out_pairs
-from dpc_jax.report.correction import rotation_axes_words
+from dpc_jax.report.correction_report import rotation_axes_words
 
 if TYPE_CHECKING:
     from dpc_jax.correction.adapt import Adaptation
@@ -436,7 +436,7 @@ def _write_outputs(
     """Write ``--out`` (and its frame list), ``--report`` and the adapted network; the trajectory files."""
     from dpc_jax._io import OutputSet
     from dpc_jax.correction.corrector import write_trajectory
-    from dpc_jax.report.correction import write_correction_report
+    from dpc_jax.report.correction_report import write_correction_report
 
     # The corrected trajectory (with its frame list) and the report are written all or nothing.
     with OutputSet() as outputs:

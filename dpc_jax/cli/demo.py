@@ -45,7 +45,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _replaced_problem(out: Path, names: list[str]) -> str | None:
     """Why a folder the demo would replace under ``out`` is not one it made, or None: a rendered
     sequence (``data/sequences/NAME``, with ``synth.json``), a cache (``cache/NAME``, with
-    ``manifest.json``) or the training run (``run``); the layout of :mod:`dpc_jax.pipelines.synthetic_demo`."""
+    ``manifest.json``) or the training run (``run``); the layout of
+    :mod:`dpc_jax.pipelines.synthetic_demo`."""
     from dpc_jax.data.sequence_cache import MANIFEST
 
     label = f"--out {out}"

@@ -1,4 +1,5 @@
-"""What the synthetic demo (:mod:`dpc_jax.pipelines.demo`) renders, how it trains and how it corrects."""
+"""What the synthetic demo (:mod:`dpc_jax.pipelines.synthetic_demo`) renders, how it trains and how it
+corrects."""
 
 from __future__ import annotations
 

@@ -267,7 +267,7 @@ def correct_and_evaluate(
     from dpc_jax.correction.corrector import choose, correct_cache, write_trajectory
     from dpc_jax.correction.inference import load_run
     from dpc_jax.data.sequence_cache import load_cache
-    from dpc_jax.report.correction import write_correction_report
+    from dpc_jax.report.correction_report import write_correction_report
 
     run = load_run(run_dir, select)
     loaded = load_cache(cache)

@@ -1,6 +1,6 @@
 """Ablation of the correction remedies on the demo's sequences, one row per remedy added cumulatively.
 
-Every row is the demo (``dpc_jax.pipelines.demo``, default data: same rendered sequences, priors and caches,
+Every row is the demo (``dpc_jax.pipelines.synthetic_demo``, default data: same rendered sequences, priors and caches,
 shared through symbolic links) with the training and correction settings of that row, from the
 published choices (``dpc_jax.training.train_config.REFERENCE``, epoch by the gradient loss, every correction
 applied) to ours. Per row: the test sequence's segment errors of the prior and of the final
@@ -98,7 +98,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     from dpc_jax import config as config_lib
     from dpc_jax._io import atomic_write
-    from dpc_jax.pipelines.demo import DemoConfig, DemoError, run_demo
+    from dpc_jax.pipelines.synthetic_demo import DemoConfig, DemoError, run_demo
 
     logging.getLogger("absl").setLevel(logging.ERROR)
     base = {**config_lib.to_dict(DemoConfig()), "seed": args.seed}

@@ -1,6 +1,6 @@
 """The demo over several seeds (other towns and routes): does the correction help on every one?
 
-For each seed the demo (``dpc_jax.pipelines.demo``, default config unless ``--config``) runs into
+For each seed the demo (``dpc_jax.pipelines.synthetic_demo``, default config unless ``--config``) runs into
 ``WORKDIR/seed_K``; the table ``WORKDIR/seeds.md`` (and ``seeds.csv``) has per seed the test
 sequence's segment errors of the prior, of the network as trained and of the network adapted to
 the test sequence (each with its acceptance decision), of the final trajectory, its change against
@@ -98,7 +98,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     from dpc_jax import config as config_lib
     from dpc_jax._io import atomic_write
-    from dpc_jax.pipelines.demo import DemoConfig, DemoError, run_demo
+    from dpc_jax.pipelines.synthetic_demo import DemoConfig, DemoError, run_demo
     from dpc_jax.pipelines.protocol import parse_overrides
 
     logging.getLogger("absl").setLevel(logging.ERROR)

@@ -100,7 +100,7 @@ def demo_table(out: Path) -> str:
     from dpc_jax.eval.linear_baseline import apply_linear_correction, fit_linear_correction
 
     summary = json.loads((out / "summary.json").read_text())
-    # The demo names its training sequences train0, train1, … (dpc_jax.pipelines.demo.DemoConfig).
+    # The demo names its training sequences train0, train1, … (dpc_jax.pipelines.synthetic_demo.DemoConfig).
     train = sorted(p.stem for p in (out / "data" / "poses").glob("train*.txt"))
 
     def pair(name: str) -> tuple[np.ndarray, np.ndarray]:

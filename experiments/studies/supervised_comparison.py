@@ -13,7 +13,7 @@ DPC-Net's supervised loss (**supervised**: its training reads the ground truth) 
 to the test sequence (self-supervised) and final; the same network trained self-supervised, as
 trained, adapted and final. Each network row carries its ground-truth-free acceptance decision.
 
-The demo runs through ``dpc_jax.pipelines.demo`` into ``WORKDIR/seed_K`` (self-supervised; the
+The demo runs through ``dpc_jax.pipelines.synthetic_demo`` into ``WORKDIR/seed_K`` (self-supervised; the
 layout of ``demo_seeds.py``) and ``WORKDIR/supervised/seed_K``; the drives through
 ``kitti_raw_drives.py`` (``dpc_jax.pipelines.protocol``) into ``WORKDIR/drives`` and
 ``WORKDIR/supervised/drives``. A supervised folder links the self-supervised one's data, priors
@@ -247,7 +247,7 @@ def demo_config(path: Path, seed: int, smoke: Mapping[str, Any] | None) -> Any:
     """The ``DemoConfig`` of demo config file ``path`` at ``seed`` (with ``smoke``'s overrides, its
     ``training`` merged into the file's)."""
     from dpc_jax import config as config_lib
-    from dpc_jax.pipelines.demo import DemoConfig
+    from dpc_jax.pipelines.synthetic_demo import DemoConfig
 
     values = config_lib.to_dict(config_lib.load_file(path, DemoConfig))
     if smoke:
@@ -258,7 +258,7 @@ def demo_config(path: Path, seed: int, smoke: Mapping[str, Any] | None) -> Any:
 def finished_demo(config: Any, out: Path, say: Callable[[str], None], progress: bool) -> dict[str, Any]:
     """The demo's summary in ``out``: read when a finished one with this config is there, else run."""
     from dpc_jax import config as config_lib
-    from dpc_jax.pipelines.demo import run_demo
+    from dpc_jax.pipelines.synthetic_demo import run_demo
 
     stored = out / "summary.json"
     if stored.is_file():

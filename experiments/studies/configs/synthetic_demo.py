@@ -1,18 +1,17 @@
 """The synthetic demo: what ``dpc-jax demo`` runs; this file spells out its defaults.
 
-Command (either; the second is the installed console script):
+Command:
 
-    python experiments/synthetic_demo.py --out runs/synthetic_demo
     dpc-jax demo --out runs/synthetic_demo
 
-What it produces in OUT (see ``dpc_jax.pipelines.demo``): ``data/`` (rendered synthetic sequences in the
+What it produces in OUT (see ``dpc_jax.pipelines.synthetic_demo``): ``data/`` (rendered synthetic sequences in the
 KITTI odometry layout: train0, train1 for training, val for epoch selection, test held out),
 ``vo/`` (priors from our classical stereo VO with its offset estimate off, and the calibration
 runs with it on), ``cache/`` (prepared at the network's size, rectified by the measured offset),
 ``run/`` (the Stereo DPC training run), ``adapted/`` (the network adapted to the test sequence),
 ``report.md`` (the prior's error composition; prior, network as trained, network adapted and the
 final trajectory on the test sequence; plots), ``corrected.txt``, ``summary.json``. Over several
-seeds: ``python experiments/demo_seeds.py``.
+seeds: ``python experiments/studies/demo_seeds.py``.
 """
 
 CONFIG = {

@@ -1,8 +1,8 @@
-"""The synthetic demo's report (``dpc_jax.pipelines.demo``): ``OUT/report.md`` with the data and network
-overview, each sequence's prior error composition, the test table, the per-length errors, the
+"""The synthetic demo's report (``dpc_jax.pipelines.synthetic_demo``): ``OUT/report.md`` with the data
+and network overview, each sequence's prior error composition, the test table, the per-length errors, the
 training record and the plots, beside the evaluation's CSV and JSON files.
 
-It is built from the demo's summary (``summary.json``: see ``dpc_jax.pipelines.demo.run_demo``), the
+It is built from the demo's summary (``summary.json``: see ``dpc_jax.pipelines.synthetic_demo.run_demo``), the
 test sequence's :class:`dpc_jax.eval.evaluation.Evaluation` and the run's ``metrics.csv``; the demo's
 and the training's settings are read through :class:`DemoSettings` and :class:`TrainingSettings`.
 """
@@ -15,13 +15,13 @@ from typing import Any, Protocol
 
 from dpc_jax._io import atomic_write
 from dpc_jax.eval.evaluation import Evaluation
-from dpc_jax.report.correction import AcceptanceResult, rotation_axes_words
+from dpc_jax.report.correction_report import AcceptanceResult, rotation_axes_words
 from dpc_jax.report.evaluation import segment_section, write_figures, write_tables
 from dpc_jax.report.tables import EMPTY, number, row, rule, table
 
 
 class DemoSettings(Protocol):
-    """What the report reads of a ``dpc_jax.pipelines.demo.DemoConfig``."""
+    """What the report reads of a ``dpc_jax.pipelines.synthetic_demo.DemoConfig``."""
 
     @property
     def render_size(self) -> tuple[int, int]: ...

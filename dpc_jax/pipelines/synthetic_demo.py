@@ -51,7 +51,7 @@ import numpy as np
 
 from dpc_jax import config as config_lib
 from dpc_jax.pipelines.demo_config import DemoConfig
-from dpc_jax.report.demo import decision_label, write_demo_report
+from dpc_jax.report.demo_report import decision_label, write_demo_report
 from dpc_jax.report.tables import change_pct
 
 if TYPE_CHECKING:
