@@ -41,6 +41,9 @@ from dpc_jax.nn.losses import temporal_pair_errors, with_stereo_depth
 from dpc_jax.nn.model_config import SSDPCLossConfig, StereoDPCLossConfig
 from dpc_jax.nn.outputs import BranchOutputs, DPCOutputs
 
+# The scales of a passed correction the judge compares (:func:`scale_correction`).
+JUDGE_SCALES = (0.25, 0.5, 0.75, 1.0)
+
 
 @functools.partial(jax.jit, static_argnames="config")
 def _effects(batch: Batch, xi: jax.Array, masks: jax.Array, config: StereoDPCLossConfig,
@@ -159,9 +162,6 @@ def judged_correction(
                                  reason=f"{acceptance.reason}; at the judge's size p = {test.p_value:.3g}")
     smaller = {s: d for s, d in by_scale.items() if s != 1.0}
     return scale_correction(judged, {**delta, decision: by_scale[1.0]}, smaller, pairs)
-
-
-JUDGE_SCALES = (0.25, 0.5, 0.75, 1.0)
 
 
 def scale_correction(
