@@ -17,7 +17,7 @@ from dpc_jax.correction.acceptance import Acceptance, ComponentTest
 from dpc_jax.pipelines.protocol import Result
 from dpc_jax.report.correction_report import acceptance_markdown, choice_markdown, write_correction_report
 from dpc_jax.report.demo_report import decision_label
-from dpc_jax.report.pages import read_block, replace_block
+from dpc_jax.report.pages import read_block, replace_block, write_results
 from dpc_jax.report.protocol import results_csv, results_markdown
 from dpc_jax.report.tables import EMPTY, change_pct, csv_text, number, records_csv, table
 
@@ -48,6 +48,10 @@ def test_a_page_block_is_replaced_and_nothing_else(tmp_path: Path) -> None:
     assert read_block(page, "results") == "\n| a |\n|---|\n"
     with pytest.raises(ValueError, match="no <!-- other:begin -->"):
         replace_block(page, "other", "x")
+    write_results(page, "# An experiment\n\nits note\n\n| b |\n|---|\n", Path(__file__))
+    block = read_block(page, "results")
+    assert block.startswith(f"\nWritten by `{Path(__file__).name}` at commit ")
+    assert block.endswith(".\n\nits note\n\n| b |\n|---|\n") and "An experiment" not in block
 
 
 def test_results_table_and_csv() -> None:

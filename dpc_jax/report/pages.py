@@ -62,9 +62,9 @@ def check_results_page(page: Path | None) -> None:
 def write_results(page: Path, markdown: str, script: Path) -> None:
     """Put an experiment's Markdown into the ``results`` block of ``page``, under a line naming the
     script, the commit and the date; its ``# title`` line is dropped (the page has its own)."""
-    lines = markdown.strip("\n").splitlines()
-    if lines and lines[0].startswith("# "):
-        lines = lines[1:]
+    text = markdown.strip("\n")
+    if text.startswith("# "):
+        text = text.partition("\n")[2].strip("\n")
     stamp = (f"Written by `{script.name}` at commit {commit(script.parent)}, "
              f"{datetime.datetime.now(datetime.UTC):%Y-%m-%d}.")
-    replace_block(page, RESULTS, "\n".join([stamp, *lines]))
+    replace_block(page, RESULTS, f"{stamp}\n\n{text}")
