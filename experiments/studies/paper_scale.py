@@ -1,4 +1,4 @@
-"""The papers' scale on a synthetic stand-in: what each stage costs (experiments/configs/paper_scale.py).
+"""The papers' scale on a synthetic stand-in: what each stage costs (configs/paper_scale.py).
 
 Renders sequences with the lengths of KITTI odometry 00–10 (scaled to ``--frames``), runs our VO,
 prepares both methods' caches (ss-DPC-Net's with flow augmentation), trains each method, corrects
@@ -33,12 +33,12 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 # This checkout's dpc_jax, here and in the stages' processes (`python -m dpc_jax` from ROOT), whatever
 # else is installed: the table's commit is the code that ran.
 sys.path.insert(0, str(ROOT))
 DPC_JAX = [sys.executable, "-m", "dpc_jax"]
-CONFIG = ROOT / "experiments" / "configs" / "paper_scale.py"
+CONFIG = ROOT / "experiments" / "studies" / "configs" / "paper_scale.py"
 DOCS = ROOT / "docs" / "performance.md"
 MB = 1e6
 
@@ -51,6 +51,7 @@ class Measured:
     cpu_s: float = 0.0
     peak_rss_mb: float = 0.0  # the kernel's high-water mark, file pages included
     peak_anon_mb: float = 0.0  # sampled peak of RssAnon: the process's own allocations
+    others_cpu_s: float = 0.0  # CPU time the rest of the machine used meanwhile (its load)
 
     def add(self, other: Measured) -> Measured:
         return Measured(
@@ -70,12 +71,22 @@ def _anon_mb(pid: int) -> float | None:
     return None if match is None else int(match.group(1)) / 1000
 
 
+def _busy_cpu_s() -> float:
+    """CPU seconds the whole machine has spent busy since boot (``/proc/stat``), 0 where unknown."""
+    try:
+        fields = Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]
+    except OSError:
+        return 0.0
+    user, nice, system, _idle, _iowait, irq, softirq, steal = (int(v) for v in fields[:8])
+    return (user + nice + system + irq + softirq + steal) / os.sysconf("SC_CLK_TCK")
+
+
 def measure(command: Sequence[str], log: Path, env: dict[str, str] | None = None) -> Measured:
     """Run ``command`` (its output into ``log``) and measure it; ``RuntimeError`` naming the log
     when it fails."""
     peak = [0.0]
     with log.open("w") as out:
-        start = time.perf_counter()
+        start, busy = time.perf_counter(), _busy_cpu_s()
         process = subprocess.Popen(
             list(command), stdout=out, stderr=subprocess.STDOUT, cwd=ROOT, env={**os.environ, **(env or {})}
         )
@@ -98,14 +109,15 @@ def measure(command: Sequence[str], log: Path, env: dict[str, str] | None = None
         finally:
             done.set()
             sampler.join()
-        wall = time.perf_counter() - start
+        wall, busy = time.perf_counter() - start, _busy_cpu_s() - busy
     process.returncode = os.waitstatus_to_exitcode(status)
     if process.returncode != 0:
         tail = log.read_text(errors="replace").strip().splitlines()[-1:] or ["(no output)"]
         raise RuntimeError(
             f"{' '.join(command[:3])} ... failed (exit {process.returncode}; {log}): {tail[0]}"
         )
-    return Measured(wall, usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1000, peak[0])
+    cpu = usage.ru_utime + usage.ru_stime
+    return Measured(wall, cpu, usage.ru_maxrss / 1000, peak[0], max(0.0, busy - cpu))
 
 
 def folder_bytes(path: Path) -> int:
@@ -354,6 +366,7 @@ HEADER = [
     "wall (s)",
     "CPU (s)",
     "cores busy",
+    "others' load",
     "rate",
     "peak RSS (MB)",
     "peak anon (MB)",
@@ -367,6 +380,8 @@ HEADER = [
 
 
 def _rows(run: str, records: dict[str, dict], cores: int, paper: tuple[int, int]) -> list[list[str]]:
+    from dpc_jax.report.tables import EMPTY
+
     rows = []
     for stage, record in records.items():
         kind, _, method = stage.partition("_")
@@ -385,11 +400,14 @@ def _rows(run: str, records: dict[str, dict], cores: int, paper: tuple[int, int]
             [
                 run,
                 kind,
-                method or "—",
+                method or EMPTY,
                 count,
                 f"{record['wall_s']:.1f}",
                 f"{record['cpu_s']:.1f}",
                 f"{record['cpu_s'] / record['wall_s'] / cores:.2f}",
+                "not recorded"
+                if "others_cpu_s" not in record
+                else f"{record['others_cpu_s'] / record['wall_s'] / cores:.2f}",
                 rate_text,
                 f"{record['peak_rss_mb']:.0f}",
                 f"{record['peak_anon_mb']:.0f}",
@@ -413,32 +431,19 @@ def _machine() -> str:
     return this_cpu() + ("" if platform_name in ("cpu", "") else f", {kind}")
 
 
-def _commit() -> str:
-    found = subprocess.run(
-        ["git", "describe", "--always", "--dirty"], capture_output=True, text=True, cwd=ROOT
-    )
-    return found.stdout.strip() or "unknown"
-
-
 def write_docs(rows: list[list[str]], run: str) -> None:
-    """Replace the rows of ``run`` in docs/performance.md's Scale table (between its markers)."""
-    from dpc_jax._io import atomic_write
+    """Replace the rows of ``run`` in docs/performance.md's Scale table (its ``scale`` block)."""
+    from dpc_jax.report.pages import read_block, replace_block
     from dpc_jax.report.tables import row as md_row
     from dpc_jax.report.tables import table
 
-    begin, end = "<!-- scale:begin -->", "<!-- scale:end -->"
-    text = DOCS.read_text()
-    if begin not in text or end not in text:
-        raise RuntimeError(f"{DOCS}: no {begin} … {end} block for the Scale table")
-    head, rest = text.split(begin, 1)
-    block, tail = rest.split(end, 1)
     kept = [
         line
-        for line in block.strip().splitlines()[2:]
+        for line in read_block(DOCS, "scale").strip().splitlines()[2:]
         if line.startswith("| ") and not line.startswith(md_row([run]).removesuffix(" |") + " |")
     ]
     body = table(HEADER, []).rstrip("\n") + "\n" + "\n".join([*kept, *(md_row(cells) for cells in rows)])
-    atomic_write(DOCS, f"{head}{begin}\n{body}\n{end}{tail}")
+    replace_block(DOCS, "scale", body)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -501,6 +506,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         workdir = args.workdir
         if workdir.exists() and any(workdir.iterdir()) and not (workdir / "stages").is_dir():
             raise ValueError(f"--workdir {workdir}: a folder this experiment did not make (no stages/)")
+        if args.docs:  # before hours of stages, not after
+            from dpc_jax.report.pages import read_block
+
+            read_block(DOCS, "scale")
     except (ValueError, KeyError, OSError) as error:
         print(f"paper_scale: error: {error}", file=sys.stderr)
         return 2
@@ -513,9 +522,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         planted_bias=None if args.planted_bias is None else tuple(args.planted_bias),
         planted_noise=tuple(args.planted_noise),
     )
+    from dpc_jax.report.pages import commit
+
     # Each stage records the code and machine that ran it: a rerun may reuse stages of another commit.
     stages = Stages(
-        workdir, {"machine": _machine(), "commit": _commit(), "date": datetime.date.today().isoformat()}
+        workdir, {"machine": _machine(), "commit": commit(ROOT), "date": datetime.date.today().isoformat()}
     )
     records: dict[str, dict] = {}
     try:
@@ -541,7 +552,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"# The papers' scale: {run}",
         "",
         "Each row names the machine and commit that measured it (a rerun reuses finished stages); "
-        f"`python experiments/paper_scale.py --workdir {workdir}"
+        f"`python experiments/studies/paper_scale.py --workdir {workdir}"
         + ("" if args.frames is None else f" --frames {args.frames}")
         + ("" if args.size is None else f" --size {args.size}")
         + f" --profile {args.profile}`.",
