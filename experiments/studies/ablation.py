@@ -1,12 +1,12 @@
 """Ablation of the correction remedies on the demo's sequences, one row per remedy added cumulatively.
 
-Every row is the demo (``dpc_jax.pipelines.synthetic_demo``, default data: same rendered sequences, priors and caches,
-shared through symbolic links) with the training and correction settings of that row, from the
-published choices (``dpc_jax.training.train_config.REFERENCE``, epoch by the gradient loss, every correction
-applied) to ours. Per row: the test sequence's segment errors of the prior and of the final
-trajectory, Δ of the correction on the test sequence (mean over its pairs, the network's depth),
-what the acceptance test decided, and the minutes the row took (training and correction; the data
-are made once, by the first row). The table goes to ``WORKDIR/ablation.md`` (and ``.csv``);
+Every row is the demo (``dpc_jax.pipelines.synthetic_demo``, default data: same rendered sequences,
+priors and caches, shared through symbolic links) with the training and correction settings of that
+row, from the published choices (``dpc_jax.training.train_config.REFERENCE``, epoch by the gradient
+loss, every correction applied) to ours. Per row: the test sequence's segment errors of the prior
+and of the final trajectory, Δ of the correction on the test sequence (mean over its pairs, the
+network's depth), what the acceptance test decided, and the minutes the row took (training and
+correction; the data are made once, by the first row). The table goes to ``WORKDIR/ablation.md`` (and ``.csv``);
 docs/results/ablation.md shows it.
 
     python experiments/studies/ablation.py --workdir runs/ablation                 # every row, seed 0

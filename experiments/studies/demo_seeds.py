@@ -98,8 +98,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     from dpc_jax import config as config_lib
     from dpc_jax._io import atomic_write
-    from dpc_jax.pipelines.synthetic_demo import DemoConfig, DemoError, run_demo
     from dpc_jax.pipelines.protocol import parse_overrides
+    from dpc_jax.pipelines.synthetic_demo import DemoConfig, DemoError, run_demo
 
     logging.getLogger("absl").setLevel(logging.ERROR)
     try:

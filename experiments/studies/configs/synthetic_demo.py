@@ -4,8 +4,8 @@ Command:
 
     dpc-jax demo --out runs/synthetic_demo
 
-What it produces in OUT (see ``dpc_jax.pipelines.synthetic_demo``): ``data/`` (rendered synthetic sequences in the
-KITTI odometry layout: train0, train1 for training, val for epoch selection, test held out),
+What it produces in OUT (see ``dpc_jax.pipelines.synthetic_demo``): ``data/`` (rendered synthetic
+sequences in the KITTI odometry layout: train0, train1 for training, val for epoch selection, test held out),
 ``vo/`` (priors from our classical stereo VO with its offset estimate off, and the calibration
 runs with it on), ``cache/`` (prepared at the network's size, rectified by the measured offset),
 ``run/`` (the Stereo DPC training run), ``adapted/`` (the network adapted to the test sequence),
