@@ -6,8 +6,8 @@ row, from the published choices (``dpc_jax.training.train_config.REFERENCE``, ep
 loss, every correction applied) to ours. Per row: the test sequence's segment errors of the prior
 and of the final trajectory, Δ of the correction on the test sequence (mean over its pairs, the
 network's depth), what the acceptance test decided, and the minutes the row took (training and
-correction; the data are made once, by the first row). The table goes to ``WORKDIR/ablation.md`` (and ``.csv``);
-docs/results/ablation.md shows it.
+correction; the data are made once, by the first row). The table goes to ``WORKDIR/ablation.md``
+(and ``.csv``); docs/results/ablation.md shows it (``--results-page`` rewrites it there).
 
     python experiments/studies/ablation.py --workdir runs/ablation                 # every row, seed 0
     python experiments/studies/ablation.py --workdir runs/ablation --seed 1 --rows 0 5
