@@ -1,7 +1,7 @@
 """How far the real excerpt's ground truth can judge a correction: its steps checked against the images.
 
 The KITTI raw excerpt (2011_09_26_drive_0001) carries poses from the car's GPS/IMU, moved into the
-camera frame by the calibration. ``experiments/kitti_raw_excerpt.py`` judges corrections against
+camera frame by the calibration. ``experiments/protocols/kitti_raw_excerpt.py`` judges corrections against
 them. This experiment asks the images, with no network involved, whether those poses are accurate
 at the scale of the corrections being judged:
 
@@ -26,14 +26,12 @@ Writes ``WORKDIR/ground_truth_check.md`` and ``.csv``; our VO's prior is compute
 from) ``WORKDIR/priors/vo.txt``, as ``kitti_raw_excerpt.py`` does. A few minutes on a 2-core
 CPU.
 
-    python experiments/excerpt_ground_truth.py --workdir runs/kitti_raw_excerpt
+    python experiments/studies/excerpt_ground_truth.py --workdir runs/kitti_raw_excerpt
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
-import io
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -42,7 +40,7 @@ from typing import Any
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
-DEFAULT_ROOT = HERE.parents[1] / "shared" / "data" / "kitti-raw"
+DEFAULT_ROOT = HERE.parents[2] / "shared" / "data" / "kitti-raw"
 DATE, DRIVE = "2011_09_26", "0001"
 LIBVISO2 = "libviso2/stereo_2011_09_26_drive_0001.mat"
 
@@ -135,12 +133,22 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--kitti-raw", type=Path, default=DEFAULT_ROOT, metavar="ROOT",
                         help="raw root holding DATE/ and libviso2/")
     parser.add_argument("--no-progress", action="store_true", help="no progress line on stderr")
+    parser.add_argument("--results-page", type=Path, metavar="FILE",
+                        help="also write the table into the results block of FILE (a docs/results/ page)")
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from dpc_jax._io import atomic_write, output_problem
+    from dpc_jax.report.pages import check_results_page, write_results
+    from dpc_jax.report.tables import records_csv, table
+
+    try:
+        check_results_page(args.results_page)
+    except (OSError, ValueError) as error:
+        print(f"excerpt_ground_truth: error: {error}", file=sys.stderr)
+        return 2
 
     for name in ("ground_truth_check.md", "ground_truth_check.csv"):
         problem = output_problem(args.workdir / name, "--workdir")
@@ -188,15 +196,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     rows: list[dict[str, Any]] = []
     lines = ["# Does the excerpt's ground truth agree with its images?", "",
              f"KITTI raw {sequence.name}, {len(sequence)} frames, {len(sequence) - 1} steps; "
-             "written by `python experiments/excerpt_ground_truth.py` (see its docstring for the method).",
+             "written by `python experiments/studies/excerpt_ground_truth.py` (see its docstring for the "
+             "method).",
              "", "## 1. Each step checked against the images (full resolution, StereoSGBM depth)", "",
              "Mean L1 error (grey, 0–1) of each candidate step, and in brackets the share of pairs on "
              "which it beats our VO's step, for each disparity offset added to SGBM's disparities "
              f"(our VO measures {measured:+.3f} px; the candidates' mean error is lowest, marked *, at "
-             f"{offsets[best]:+.3f} px).", "",
-             "| step | " + " | ".join(f"offset {o:+.2f} px{' *' if k == best else ''}"
-                                      for k, o in enumerate(offsets)) + " |",
-             "|---|" + "---|" * len(offsets)]
+             f"{offsets[best]:+.3f} px).", ""]
+    photometric_rows = []
     for c, name in enumerate(named):
         cells = []
         for k, offset in enumerate(offsets):
@@ -205,41 +212,44 @@ def main(argv: Sequence[str] | None = None) -> int:
             cells.append(f"{errors.mean():.5f}" + ("" if c == 0 else f" ({100 * better:.0f} %)"))
             rows.append({"section": f"photometric/offset {offset:+.3f} px", "item": name,
                          "value": errors.mean(), "extra": better})
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    lines += ["", "## 2. Step lengths", "",
-              "| pair of trajectories | RMS step-length difference (m) |", "|---|---|"]
+        photometric_rows.append([name, *cells])
+    offset_titles = [f"offset {o:+.2f} px{' *' if k == best else ''}" for k, o in enumerate(offsets)]
+    lines += table(["step", *offset_titles], photometric_rows).splitlines()
+    lengths_rows = []
     for a, b in (("ground truth", "our VO"), ("ground truth", "libviso2-s"), ("our VO", "libviso2-s")):
         rms = float(np.sqrt(np.mean((length[a] - length[b]) ** 2)))
-        lines.append(f"| {a} vs {b} | {rms:.4f} |")
+        lengths_rows.append([f"{a} vs {b}", f"{rms:.4f}"])
         rows.append({"section": "step_length_rms_m", "item": f"{a} vs {b}", "value": rms, "extra": ""})
-    lines += ["", f"Mean step length: {length['ground truth'].mean():.3f} m (ground truth).", "",
-              "## 3. Direction of travel (elevation, mrad, upward positive)", "",
-              "| source | mean elevation (mrad) |", "|---|---|"]
+    lines += ["", "## 2. Step lengths", "",
+              *table(["pair of trajectories", "RMS step-length difference (m)"], lengths_rows).splitlines()]
+    elevation_rows = []
     for name in steps:
         value = 1e3 * float(np.mean(elevation[name]))
-        lines.append(f"| {name} | {value:+.2f} |")
+        elevation_rows.append([name, f"{value:+.2f}"])
         rows.append({"section": "elevation_mrad", "item": name, "value": value, "extra": ""})
-    lines += ["", "## 4. A perfect rotation-only correction (ground-truth rotations, the prior's travel)", "",
-              "| prior | trajectory | seg. t (%) | seg. r (°/100 m) | m-ATE (m) | m-ATE (°) |",
-              "|---|---|---|---|---|---|"]
+    lines += ["", f"Mean step length: {length['ground truth'].mean():.3f} m (ground truth).", "",
+              "## 3. Direction of travel (elevation, mrad, upward positive)", "",
+              *table(["source", "mean elevation (mrad)"], elevation_rows).splitlines()]
+    perfect_rows = []
     keys = ("seg_trans_pct", "seg_rot_deg_per_100m", "m_ate_trans_m", "m_ate_rot_deg")
     for name, poses in (("our VO", vo), ("libviso2-s", libviso2)):
         perfect = compose(exchange(steps["ground truth"], steps[name]), gt[0])
         scores = evaluate(gt, {"prior": poses, "perfect": perfect})["estimates"]
         for label, key_ in (("prior", "prior"), ("perfect rotation-only correction", "perfect")):
             m = {key: scores[key_][key] for key in keys}
-            lines.append(f"| {name} | {label} | " + " | ".join(f"{m[key]:.4g}" for key in keys) + " |")
+            perfect_rows.append([name, label, *(f"{m[key]:.4g}" for key in keys)])
             rows += [{"section": f"rotation_only/{label}", "item": f"{name} {key}", "value": value,
                       "extra": ""} for key, value in m.items()]
-    text = "\n".join(lines) + "\n"
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=["section", "item", "value", "extra"], lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(rows)
+    lines += ["", "## 4. A perfect rotation-only correction (ground-truth rotations, the prior's travel)", "",
+              table(["prior", "trajectory", "seg. t (%)", "seg. r (°/100 m)", "m-ATE (m)", "m-ATE (°)"],
+                    perfect_rows)]
+    text = "\n".join(lines)
     args.workdir.mkdir(parents=True, exist_ok=True)
-    atomic_write(args.workdir / "ground_truth_check.csv", buffer.getvalue())
+    atomic_write(args.workdir / "ground_truth_check.csv", records_csv(rows))
     atomic_write(args.workdir / "ground_truth_check.md", text)
     print(text, end="")
+    if args.results_page is not None:
+        write_results(args.results_page, text, Path(__file__))
     return 0
 
 

@@ -10,7 +10,7 @@ the sequence names below to match):
     dpc-jax vo --kitti-odometry ROOT --sequence 00 --out priors/00.txt     # or your own VO's poses
     dpc-jax prepare --kitti-odometry ROOT --sequence 00 01 02 --prior 'priors/{seq}.txt' \\
         --out cache/own_data --size 64x96
-    dpc-jax train --config experiments/configs/own_data.py --workdir runs/own_data
+    dpc-jax train --config experiments/protocols/configs/own_data.py --workdir runs/own_data
     dpc-jax correct --checkpoint runs/own_data --data cache/own_data/02 --out corrected_02.txt \\
         --report report_02
 
@@ -19,7 +19,7 @@ criteria), ``metrics.csv`` and ``tensorboard/``. Every cached sequence except th
 (and any ``test_sequences``) is trained on; the validation sequence chooses the epoch and needs no
 ground truth. The cache's ``--size`` must equal ``image_size``. For the papers' settings (the
 reference network at 240×376, batch 32, 30 epochs; hours on a GPU) start from
-``experiments/configs/kitti_stereo_dpc.py`` instead.
+``experiments/protocols/configs/kitti_stereo_dpc.py`` instead.
 """
 
 CONFIG = {

@@ -9,11 +9,12 @@ wall and CPU time, frames or samples per second, peak resident memory, bytes on 
 
 Command (the CPU rows of docs/performance.md's "Scale" table; ``--frames 1000`` for the smaller run):
 
-    python experiments/paper_scale.py --workdir runs/paper_scale_4000 --frames 4000 --docs
+    python experiments/studies/paper_scale.py --workdir runs/paper_scale_4000 --frames 4000 --docs
 
 and on a GPU machine (the papers' batch, two full epochs of each method):
 
-    python experiments/paper_scale.py --workdir runs/paper_scale_gpu --frames 12000 --profile gpu --docs
+    python experiments/studies/paper_scale.py --workdir runs/paper_scale_gpu --frames 12000 --profile gpu \\
+        --docs
 
 Writes ``WORKDIR/scale.md`` and ``WORKDIR/scale.csv``; ``data/`` (rendered), ``vo/`` (priors),
 ``cache/stereo_dpc``, ``cache/ss_dpc`` (with flow augmentation), ``runs/``, ``corrected/``,
@@ -23,7 +24,7 @@ Writes ``WORKDIR/scale.md`` and ``WORKDIR/scale.csv``; ``data/`` (rendered), ``v
 import runpy
 from pathlib import Path
 
-_CONFIGS = Path(__file__).parent
+_CONFIGS = Path(__file__).resolve().parents[2] / "protocols" / "configs"
 
 # KITTI odometry's sequences and their frame counts.
 KITTI_LENGTHS = {

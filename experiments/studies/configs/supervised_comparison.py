@@ -1,15 +1,15 @@
 """Prior → supervised linear baseline → supervised network → self-supervised network, on what we can run
-(``experiments/supervised_comparison.py``).
+(``experiments/studies/supervised_comparison.py``).
 
 Command (the whole comparison: the demo at seeds 0–4 twice, the two real drives twice):
 
-    python experiments/supervised_comparison.py --workdir runs/supervised_comparison
+    python experiments/studies/supervised_comparison.py --workdir runs/supervised_comparison
 
-    python experiments/supervised_comparison.py --workdir /tmp/comparison_smoke --smoke --seeds 0  # wiring
+    python experiments/studies/supervised_comparison.py --workdir /tmp/smoke --smoke --seeds 0  # wiring
 
 Test data: the synthetic demo's held-out test sequence per seed (``DEMO``), and the two real KITTI
-raw drives of ``configs/kitti_raw_drives.py`` cross-drive (test 0001 trained on 0005, test 0005
-trained on 0001) with our VO as the prior (``PROTOCOL``: that file's protocol with its
+raw drives of ``experiments/protocols/configs/kitti_raw_drives.py`` cross-drive (test 0001 trained
+on 0005, test 0005 trained on 0001) with our VO as the prior (``PROTOCOL``: that file's protocol with its
 ``tests`` narrowed to our VO; ``CONFIG``: its training config). The self-supervised network is
 exactly what ``demo_seeds.py`` and ``kitti_raw_drives.py`` train; the supervised one the same
 with ``SUPERVISED`` on top (DPC-Net's loss, which reads the training sequences' ground truth, and
@@ -33,7 +33,7 @@ import runpy
 from pathlib import Path
 
 _HERE = Path(__file__).resolve().parent
-_DRIVES = runpy.run_path(str(_HERE / "kitti_raw_drives.py"))
+_DRIVES = runpy.run_path(str(_HERE.parents[1] / "protocols" / "configs" / "kitti_raw_drives.py"))
 
 # The demo configs of the two networks (their seed is replaced by each --seeds value).
 DEMO = {"self": str(_HERE / "synthetic_demo.py"), "supervised": str(_HERE / "supervised_demo.py")}

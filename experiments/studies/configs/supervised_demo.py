@@ -2,10 +2,10 @@
 
 Command:
 
-    dpc-jax demo --out runs/supervised_demo --config experiments/configs/supervised_demo.py
-    python experiments/linear_baseline.py --demo runs/supervised_demo   # the linear baseline beside it
+    dpc-jax demo --out runs/supervised_demo --config experiments/studies/configs/supervised_demo.py
+    python experiments/studies/linear_baseline.py --demo runs/supervised_demo   # the linear baseline
 
-Produces what ``dpc-jax demo`` produces (``experiments/configs/synthetic_demo.py``), the same data,
+Produces what ``dpc-jax demo`` produces (``experiments/studies/configs/synthetic_demo.py``), the same data,
 prior and seed, but the training step regresses the correction on the training sequences' ground
 truth (``supervision: supervised``) instead of the photometric loss; validation, epoch selection,
 the acceptance test and the adaptation to the test sequence stay ground-truth free. ``precision``:
