@@ -38,7 +38,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
         "trajectory_metrics",
     ),
     "dpc_jax.eval.evaluation": ("evaluate", "Evaluation"),
-    "dpc_jax.report.evaluation": ("write_report", "export_trajectories"),
+    "dpc_jax.report.evaluation_report": ("write_report", "export_trajectories"),
     "dpc_jax.eval.diagnosis": ("diagnose", "Diagnosis"),
     "dpc_jax.eval.linear_baseline": ("LinearCorrection", "fit_linear_correction", "apply_linear_correction"),
     "dpc_jax.data": (

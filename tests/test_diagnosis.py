@@ -14,7 +14,7 @@ from dpc_jax.cli import main
 from dpc_jax.data.poses_io import write_kitti_poses
 from dpc_jax.eval.diagnosis import diagnose
 from dpc_jax.eval.evaluation import evaluate
-from dpc_jax.report.evaluation import format_diagnosis, write_report
+from dpc_jax.report.evaluation_report import format_diagnosis, write_report
 
 M = 1500  # steps
 BIAS = np.array([4e-3, -2e-3, 1e-3, -1e-4, 3e-4, 2.5e-4])  # [ρ m, φ rad] per step

@@ -18,7 +18,7 @@ from dpc_jax.pipelines.protocol import Result
 from dpc_jax.report.correction_report import acceptance_markdown, choice_markdown, write_correction_report
 from dpc_jax.report.demo_report import decision_label
 from dpc_jax.report.pages import read_block, replace_block, write_results
-from dpc_jax.report.protocol import results_csv, results_markdown
+from dpc_jax.report.protocol_report import results_csv, results_markdown
 from dpc_jax.report.tables import EMPTY, change_pct, csv_text, number, records_csv, table
 
 METRICS = {"seg_trans_pct": 2.5, "seg_rot_deg_per_100m": None, "m_ate_trans_m": 12345.678,
@@ -140,6 +140,6 @@ def test_correction_report_without_ground_truth(tmp_path: Path) -> None:
 
 def test_table_reports_do_not_import_matplotlib() -> None:
     # The command line prints tables without drawing: matplotlib is imported only to write figures.
-    code = "import sys, dpc_jax.report.evaluation; print('matplotlib' in sys.modules)"
+    code = "import sys, dpc_jax.report.evaluation_report; print('matplotlib' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.split() == ["False"]

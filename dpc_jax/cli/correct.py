@@ -461,7 +461,7 @@ def _print_summary(
     written: list[Path],
 ) -> None:
     """Print what was applied and written, the metrics against ground truth and the adaptation's outcome."""
-    from dpc_jax.report.evaluation import format_table
+    from dpc_jax.report.evaluation_report import format_table
 
     criterion = {"delta": "most negative validation Δ", "gradient": "best gradient loss",
                  "loop": "most loop closures", "last": "newest"}[args.select]

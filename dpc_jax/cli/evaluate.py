@@ -154,7 +154,7 @@ def run(args: argparse.Namespace) -> int:
         import_jax()
         from dpc_jax._io import OutputSet, atomic_write
         from dpc_jax.eval.evaluation import evaluate
-        from dpc_jax.report.evaluation import export_trajectories, format_table, write_report
+        from dpc_jax.report.evaluation_report import export_trajectories, format_table, write_report
 
         result = evaluate(gt, estimates, remove_static=args.remove_static, align=args.align,
                           rpe_delta=args.rpe_delta, diagnose=args.diagnose, focal_px=args.focal)
@@ -177,7 +177,7 @@ def run(args: argparse.Namespace) -> int:
         # reader then accepts.
         sys.stdout.write(format_table(result))
         if result.diagnoses:
-            from dpc_jax.report.evaluation import format_diagnosis
+            from dpc_jax.report.evaluation_report import format_diagnosis
 
             sys.stdout.write("\n" + format_diagnosis(result.diagnoses))
     return 0

@@ -27,7 +27,7 @@ Over the M steps of a sequence:
 
 Units in the result: translation in mm, rotation in mrad (per step), drift in m and °, shifts in px.
 :func:`diagnose` is the one implementation; ``dpc-jax evaluate --diagnose``, :func:`dpc_jax.evaluate`
-and the demo's report use it (its Markdown: :func:`dpc_jax.report.evaluation.format_diagnosis`).
+and the demo's report use it (its Markdown: :func:`dpc_jax.report.evaluation_report.format_diagnosis`).
 """
 
 from __future__ import annotations

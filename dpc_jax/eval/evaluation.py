@@ -1,4 +1,4 @@
-"""Evaluate estimated trajectories against ground truth (its report: :mod:`dpc_jax.report.evaluation`).
+"""Evaluate estimated trajectories against ground truth (its report: :mod:`dpc_jax.report.evaluation_report`).
 
 :func:`evaluate` is the one entry point every command that reports metrics uses (``evaluate``,
 ``train``, ``correct``, ``demo``). It prepares the trajectories as the papers do, then computes every

@@ -1,5 +1,5 @@
 """What the experiment entry points share: priors, caches, folds, training, correction (the results
-table: :mod:`dpc_jax.report.protocol`).
+table: :mod:`dpc_jax.report.protocol_report`).
 
 An experiment is a list of *folds*. A fold trains one network (``dpc_jax.training.loop.train``) on its
 training sequences, selects the epoch on its validation sequence without ground truth, corrects

@@ -12,7 +12,7 @@ from typing import Any, Protocol
 
 from dpc_jax._io import atomic_write
 from dpc_jax.eval.evaluation import Evaluation
-from dpc_jax.report.evaluation import write_report
+from dpc_jax.report.evaluation_report import write_report
 from dpc_jax.report.tables import row, rule
 
 _TEST_COLUMNS = ("pairs", "mean Δ", "median Δ", "pairs improved", "Wilcoxon W", "p (one-sided)", "passed")

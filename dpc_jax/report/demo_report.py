@@ -16,7 +16,7 @@ from typing import Any, Protocol
 from dpc_jax._io import atomic_write
 from dpc_jax.eval.evaluation import Evaluation
 from dpc_jax.report.correction_report import AcceptanceResult, rotation_axes_words
-from dpc_jax.report.evaluation import segment_section, write_figures, write_tables
+from dpc_jax.report.evaluation_report import segment_section, write_figures, write_tables
 from dpc_jax.report.tables import EMPTY, number, row, rule, table
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from dpc_jax.pipelines import protocol as P
 from dpc_jax.report.pages import check_results_page
-from dpc_jax.report.protocol import write_results
+from dpc_jax.report.protocol_report import write_fold_results
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
 HERE = Path(__file__).resolve().parent
@@ -84,7 +84,7 @@ def main(argv: Sequence[str] | None = None) -> int:
              f"Not a reproduction: the trained network has seen frames "
              f"{t0}–{t1 - 1}, and 108 frames give only a handful of 100 m segments."
              + (" SMOKE RUN (1 epoch of 2 steps)." if args.smoke else "")]
-    table = write_results(args.workdir, results, "Pipeline on the real KITTI raw excerpt", notes)
+    table = write_fold_results(args.workdir, results, "Pipeline on the real KITTI raw excerpt", notes)
     P.print_results(table, args.results_page, Path(__file__))
     return 0
 

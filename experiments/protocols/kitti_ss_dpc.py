@@ -14,7 +14,7 @@ from pathlib import Path
 from dpc_jax.data.splits import training_names
 from dpc_jax.pipelines import protocol as P
 from dpc_jax.report.pages import check_results_page
-from dpc_jax.report.protocol import write_results
+from dpc_jax.report.protocol_report import write_fold_results
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
 HERE = Path(__file__).resolve().parent
@@ -94,7 +94,7 @@ def main(argv: Sequence[str] | None = None) -> int:
              f"(mono rescaled to the ground-truth step length); stereo: rotation-only correction; "
              f"epoch selection: {select}."
              + (" SMOKE RUN (1 epoch of 2 steps): the numbers mean nothing." if args.smoke else "")]
-    table = write_results(args.workdir, results, "ss-DPC-Net on KITTI odometry", notes)
+    table = write_fold_results(args.workdir, results, "ss-DPC-Net on KITTI odometry", notes)
     P.print_results(table, args.results_page, Path(__file__))
     return 0
 

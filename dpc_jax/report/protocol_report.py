@@ -93,7 +93,7 @@ def results_csv(results: Sequence[SequenceResult]) -> str:
     )
 
 
-def write_results(workdir: Path, results: Sequence[SequenceResult], title: str,
+def write_fold_results(workdir: Path, results: Sequence[SequenceResult], title: str,
                   notes: Sequence[str] = ()) -> Path:
     """``WORKDIR/results.md`` and ``results.csv`` (atomic); returns the Markdown path."""
     workdir.mkdir(parents=True, exist_ok=True)
