@@ -546,7 +546,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from dpc_jax.report.tables import csv_text, table
 
     total = sum(settings.frames.values())
-    run = f"{args.profile.upper()}, {total} frames, {size[0]}×{size[1]}"
+    run = f"{args.profile} profile, {total} frames, {size[0]}×{size[1]}"
     rows = _rows(run, records, os.cpu_count() or 1, (config["PAPER_PAIRS"], config["PAPER_EPOCHS"]))
     lines = [
         f"# The papers' scale: {run}",
