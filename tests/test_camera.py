@@ -135,7 +135,7 @@ def test_inverse_warp_projects_like_the_camera_model() -> None:
 
 
 def test_vo_projection_is_the_camera_model() -> None:
-    from dpc_jax.vo.motion import project as vo_project
+    from dpc_jax.vo.motion import camera_pixels as vo_project
 
     rng = np.random.default_rng(0)
     points = rng.uniform([-5.0, -2.0, 3.0], [5.0, 2.0, 30.0], size=(50, 3))
