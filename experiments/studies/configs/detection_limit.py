@@ -1,0 +1,76 @@
+"""How small an error self-supervision can find (``experiments/studies/detection_limit.py``).
+
+A grid of cells: for each bias scale s, number of training pairs N and input resolution, Stereo DPC is
+trained self-supervised on synthetic sequences whose prior is the ground truth with a planted per-step
+rotation error of libviso2-s's structure (``dpc_jax.synth.planted_prior``): the per-axis mean and spread
+that ``dpc-jax evaluate --diagnose`` measures on the shared libviso2-s sequences (KITTI 00, 02, 05–10),
+their median over the sequences as "×1", both scaled by s. The epoch is chosen by validation Δ and each
+held-out test sequence is corrected behind the acceptance test (StereoSGBM depth, at the cell's
+resolution); the ground truth is read only to measure the cells.
+
+Commands (the minimum grid of issue 42 on a 2-core CPU; the 240×376 cells on a GPU machine, whose
+``cells/`` the first run's table then includes with ``--include``):
+
+    python experiments/studies/detection_limit.py --workdir runs/detection_limit \\
+        --results-page docs/results/detection_limit.md
+    python experiments/studies/detection_limit.py --workdir runs/detection_limit_gpu --profile gpu
+    python experiments/studies/detection_limit.py --quick --workdir /tmp/dl_quick   # wiring, minutes
+
+Writes ``WORKDIR/detection_limit.md`` (the table and the answer), ``detection_limit.csv`` (one row per
+cell and test sequence), ``detection_limit.png`` (the figure), ``reference.json`` (libviso2-s's
+diagnosis per sequence and the ×1 reference), ``data/`` (rendered), ``priors/``, ``cache/``, ``runs/``,
+``cells/`` (one JSON per finished cell, reused on a rerun).
+"""
+
+# The rendered world: the demo's nuisances (moving cars, illumination drift, image noise), no stereo
+# calibration residual (the prior is planted, no VO runs). Sequences: training ``train0``… of
+# ``train_frames`` frames each (a cell with N pairs trains on the first N / (train_frames − 1) of them),
+# one validation sequence (epoch selection by Δ) and the held-out test sequences.
+WORLD = {
+    "moving_objects": 6,
+    "illumination_drift": 0.3,
+    "noise": 1.0,
+    "seed": 1000,
+    "train_frames": 1001,
+    "validation_frames": 301,
+    "test_sequences": 2,
+    "test_frames": 401,
+}
+
+# The demo's training (``dpc_jax.pipelines.demo_config.TRAINING``) with full passes over the cell's
+# pairs: compute grows with N as it does in the papers (30 epochs over ~46,000 pairs).
+TRAINING = {
+    "method": "stereo_dpc",
+    "preset": "small",
+    "batch_size": 8,
+    "epochs": 3,
+    "learning_rate": 2e-3,
+    "lr_halving_epochs": 1,
+    "keep_checkpoints": 1,
+    # An acceptance test should not lean on the depth trained together with the pose (the real-data
+    # protocols' choice, configs/kitti_raw_excerpt.py).
+    "acceptance_depth": "sgbm",
+}
+
+# The grids. ``scales``: multiples of libviso2-s's median bias (and spread); ``pairs``: N; ``sizes``:
+# the network's input; ``render``: the rendered size (the largest of ``sizes``).
+PROFILES = {
+    # Issue 42's minimum grid, on a 2-core CPU.
+    "cpu": {"scales": (1.0, 3.0, 10.0), "pairs": (1000, 4000), "sizes": ((64, 96), (120, 188)),
+            "render": (120, 188)},
+    # The papers' resolution, on a GPU machine.
+    "gpu": {"scales": (1.0, 3.0, 10.0), "pairs": (1000, 4000), "sizes": ((240, 376),),
+            "render": (240, 376)},
+}
+
+# ``--quick``: the wiring in minutes (tiny images and network, short sequences, one scale).
+QUICK = {
+    "profile": {"scales": (10.0,), "pairs": (20,), "sizes": ((32, 80),), "render": (64, 160)},
+    "world": {"train_frames": 21, "validation_frames": 9, "test_sequences": 1, "test_frames": 9},
+    "training": {"epochs": 1, "batch_size": 4,
+                 "model": {"encoder_planes": [8, 16], "encoder_kernels": [3, 3], "decoder_planes": [16, 8],
+                           "mask_source_block": 1, "depth_scales": 1, "fc_planes": [16, 16]}},
+}
+
+# The papers' training set: where the extrapolation is read.
+PAPER_PAIRS = 46_000
