@@ -103,14 +103,16 @@ def libviso2_reference(folder: Path) -> dict[str, Any]:
 
     files = sorted(folder.glob("stereo_*.mat"))
     if not files:
-        raise FileNotFoundError(f"{folder}: no stereo_*.mat (libviso2-s with ground truth); pass --libviso2 DIR")
+        raise FileNotFoundError(f"{folder}: no stereo_*.mat (libviso2-s with ground truth); "
+                                "pass --libviso2 DIR")
     sequences = {}
     for path in files:
         gt = read_trajectory(path, mat_key="poses_gt")
         est = read_trajectory(path, mat_key="poses_est")
         est = gt[0] @ np.linalg.inv(est[0]) @ est  # from the first ground-truth pose, as evaluate does
         d = diagnose(gt, est)
-        sequences[path.stem.removeprefix("stereo_")] = {"mean": list(d.mean[3:]), "spread": list(d.spread[3:])}
+        name = path.stem.removeprefix("stereo_")
+        sequences[name] = {"mean": list(d.mean[3:]), "spread": list(d.spread[3:])}
     means = np.array([s["mean"] for s in sequences.values()])
     spreads = np.array([s["spread"] for s in sequences.values()])
     return {"source": str(folder), "sequences": sequences, "mean": list(np.median(means, 0)),
@@ -208,7 +210,8 @@ def run_cell(study: Study, workdir: Path, cache_root: Path, size: tuple[int, int
             **{f"{k}_axis_mrad": v for k, v in axis.items()}, **{f"{k}_r": v for k, v in seg.items()},
             **{f"found_axis_{k}": _found(axis["prior"], axis[k]) for k in ("network", "final")},
             **{f"found_seg_{k}": _found(seg["prior"], seg[k]) for k in ("network", "final")},
-            "final_r_change_pct": 100.0 * (seg["final"] / seg["prior"] - 1.0) if seg["prior"] > 0 else math.nan,
+            "final_r_change_pct": (100.0 * (seg["final"] / seg["prior"] - 1.0) if seg["prior"] > 0
+                                   else math.nan),
         })
     bias = scale * float(np.linalg.norm(study_reference_mean(workdir)))
     return {"key": key, "size": list(size), "scale": scale, "pairs": pairs, "bias_mrad": bias,
@@ -226,7 +229,8 @@ def cell_mean(cell: dict[str, Any], field: str) -> float:
     return float(np.mean(values)) if values else math.nan
 
 
-def smallest_found(cells: Sequence[dict[str, Any]], field: str = "found_axis_final") -> dict[tuple, float | None]:
+def smallest_found(cells: Sequence[dict[str, Any]],
+                   field: str = "found_axis_final") -> dict[tuple, float | None]:
     """Per (size, pairs): the smallest bias scale removed by at least :data:`FOUND` (None: none)."""
     out: dict[tuple, float | None] = {}
     for cell in cells:
@@ -304,18 +308,18 @@ def markdown(cells: Sequence[dict[str, Any]], reference: dict[str, Any], paper_p
         "# How small an error self-supervision can find" + (" (QUICK RUN: wiring only)" if quick else ""), "",
         f"Reference ×1 (libviso2-s, median over {', '.join(ref['sequences'])} of `evaluate --diagnose`): "
         f"rotation bias per step {_vec(ref['mean'])} mrad (‖·‖ {np.linalg.norm(ref['mean']):.3f}), spread "
-        f"{_vec(ref['spread'])} mrad (camera x, y, z: pitch, yaw, roll). A cell's prior carries s times both. "
-        f"Removed: 1 − after / prior of the mean per-axis rotation error per step (axis) and of the rotational "
-        f"segment error (seg.), mean over the {len(cells[0]['tests']) if cells else 0} held-out test "
-        f"sequences; network = the proposal applied whatever its test said, final = behind the acceptance "
-        f"test. Grid time: {minutes:.0f} min.", "",
+        f"{_vec(ref['spread'])} mrad (camera x, y, z: pitch, yaw, roll). A cell's prior carries s times "
+        f"both. Removed: 1 − after / prior of the mean per-axis rotation error per step (axis) and of the "
+        f"rotational segment error (seg.), mean over the {len(cells[0]['tests']) if cells else 0} held-out "
+        f"test sequences; network = the proposal applied whatever its test said, final = behind the "
+        f"acceptance test. Grid time: {minutes:.0f} min.", "",
         body,
         f"Deliver 3 (the acceptance test never lets through a rotational segment error more than "
         f"{TOLERANCE_PCT:g} % above the prior's): worst final change {worst:+.2f} % — "
         + ("holds." if not worst > TOLERANCE_PCT else "**violated**."), "",
         f"Smallest bias removed by ≥ {100 * FOUND:.0f} % (axis, final) at each (N, resolution):", *lines, "",
-        "The N at which libviso2-s's bias (×1) would be removed by half by the network (fit of log s50 against "
-        "log N over the grid's N, s50 interpolated in log s):", *answer, ""])
+        "The N at which libviso2-s's bias (×1) would be removed by half by the network (fit of log s50 "
+        "against log N over the grid's N, s50 interpolated in log s):", *answer, ""])
 
 
 def _vec(values: Sequence[float]) -> str:
@@ -324,12 +328,14 @@ def _vec(values: Sequence[float]) -> str:
 
 def _extrapolation_text(fit: dict[str, Any] | None, paper_pairs: int) -> str:
     if fit is None or fit["slope"] is None:
-        crossings = ", ".join(f"N {n}: ×{s:.2g}" for n, s in fit["points"]) if fit and fit["points"] else "none"
+        found = fit["points"] if fit else []
+        crossings = ", ".join(f"N {n}: ×{s:.2g}" for n, s in found) or "none"
         return f"too few N with a 50 % crossing inside the grid to fit a trend (crossings: {crossings})"
     points = ", ".join(f"N {n}: ×{s:.2g}" for n, s in fit["points"])
     n1 = fit["pairs_at_x1"]
     if not math.isfinite(n1):
-        return f"s50 does not fall with N ({points}; slope {fit['slope']:+.2f}): more pairs alone do not reach ×1"
+        return (f"s50 does not fall with N ({points}; slope {fit['slope']:+.2f}): more pairs alone do not "
+                "reach ×1")
     verdict = "within" if n1 <= paper_pairs else "beyond"
     return (f"s50 ∝ N^{fit['slope']:+.2f} ({points}); ×1 at N ≈ {n1:,.0f}, {verdict} the papers' "
             f"{paper_pairs:,} pairs")
@@ -382,9 +388,12 @@ def figure(cells: Sequence[dict[str, Any]], reference: dict[str, Any], path: Pat
 # -- the command -----------------------------------------------------------------------------------------
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--workdir", type=Path, required=True, help="where everything is made (reused on a rerun)")
-    parser.add_argument("--profile", choices=("cpu", "gpu"), default="cpu", help="the grid (configs/detection_limit.py)")
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--workdir", type=Path, required=True,
+                        help="where everything is made (reused on a rerun)")
+    parser.add_argument("--profile", choices=("cpu", "gpu"), default="cpu",
+                        help="the grid (configs/detection_limit.py)")
     parser.add_argument("--quick", action="store_true", help="the tiny grid that checks the wiring")
     parser.add_argument("--libviso2", type=Path, default=LIBVISO2, metavar="DIR",
                         help="folder of libviso2-s's stereo_*.mat with ground truth (the reference ×1); not "
@@ -442,11 +451,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                 cell = run_cell(study, workdir, cache_root, size, scale, pairs, stamp)
                 atomic_write(path, json.dumps(cell, indent=1))
                 finals = ", ".join(f"{x['decision']} {x['final_r_change_pct']:+.1f} %" for x in cell["tests"])
-                print(f"[{(time.perf_counter() - began) / 60:.1f} min] {cell['key']}: removed (network, axis) "
-                      f"{cell_mean(cell, 'found_axis_network'):.2f}, final {cell_mean(cell, 'found_axis_final'):.2f}"
-                      f"; {finals}; {(time.perf_counter() - t) / 60:.1f} min", flush=True)
+                print(f"[{(time.perf_counter() - began) / 60:.1f} min] {cell['key']}: removed (axis) network "
+                      f"{cell_mean(cell, 'found_axis_network'):.2f}, final "
+                      f"{cell_mean(cell, 'found_axis_final'):.2f}; {finals}; "
+                      f"{(time.perf_counter() - t) / 60:.1f} min", flush=True)
     minutes = (time.perf_counter() - began) / 60
-    cells = [json.loads(p.read_text()) for d in (workdir, *args.include) for p in sorted((d / "cells").glob("*.json"))]
+    cells = [json.loads(p.read_text())
+             for d in (workdir, *args.include) for p in sorted((d / "cells").glob("*.json"))]
     text = markdown(cells, reference, paper_pairs, minutes, args.quick)
     atomic_write(workdir / "detection_limit.md", text)
     atomic_write(workdir / "detection_limit.csv", csv_text(CSV_COLUMNS, long_rows(cells)))

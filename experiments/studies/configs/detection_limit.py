@@ -43,9 +43,9 @@ TRAINING = {
     "method": "stereo_dpc",
     "preset": "small",
     "batch_size": 8,
-    "epochs": 3,
+    "epochs": 4,
     "learning_rate": 2e-3,
-    "lr_halving_epochs": 1,
+    "lr_halving_epochs": 2,
     "keep_checkpoints": 1,
     # An acceptance test should not lean on the depth trained together with the pose (the real-data
     # protocols' choice, configs/kitti_raw_excerpt.py).
