@@ -1,0 +1,113 @@
+"""experiments/studies/detection_limit.py: the answer's arithmetic on cells of known removal, and the
+``--quick`` grid end to end (render, plant, prepare, train, correct, table, figure)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[1] / "experiments" / "studies" / "detection_limit.py"
+
+
+@pytest.fixture(scope="module")
+def study():
+    spec = importlib.util.spec_from_file_location("detection_limit", SCRIPT)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+def _cell(size, scale, pairs, removed, final_change=0.0):
+    test = {"sequence": "test0", "decision": "rotation", "p_value": 1e-3, "found_axis_network": removed,
+            "found_axis_final": removed, "found_seg_network": removed, "found_seg_final": removed,
+            "final_r_change_pct": final_change}
+    return {"size": list(size), "scale": scale, "pairs": pairs, "bias_mrad": 0.26 * scale, "train_s": 60.0,
+            "tests": [test], "machine": "m", "key": f"{size}_{scale}_{pairs}"}
+
+
+def test_the_half_removal_scale_is_interpolated_in_log_s_and_extrapolated_in_log_n(study) -> None:
+    """Cells whose removal is linear in log s, with s50 = 30 · (N / 1000)^-1/2: the fit finds the slope −1/2
+    and N(s50 = 1) = 1000 · 30² = 900,000, beyond the papers' 46,000."""
+    size = (64, 96)
+    cells = []
+    for pairs in (1000, 4000):
+        s50 = 30.0 * (pairs / 1000) ** -0.5
+        for scale in (1.0, 3.0, 10.0, 100.0):
+            removed = 0.5 + 0.25 * (math.log(scale) - math.log(s50))
+            cells.append(_cell(size, scale, pairs, removed))
+    assert study.half_scale(cells, size, 1000) == pytest.approx(30.0)
+    assert study.half_scale(cells, size, 4000) == pytest.approx(15.0)
+    fit = study.extrapolate(cells, size)
+    assert fit["slope"] == pytest.approx(-0.5)
+    assert fit["pairs_at_x1"] == pytest.approx(900_000, rel=1e-6)
+    assert "beyond the papers' 46,000" in study._extrapolation_text(fit, 46_000)
+    # Found by half at ×100 only (final), then at ×10 with more pairs.
+    assert study.smallest_found(cells) == {(size, 1000): 100.0, (size, 4000): 100.0}
+    assert study.half_scale(cells, (120, 188), 1000) is None
+
+
+def test_no_trend_is_claimed_without_two_crossings(study) -> None:
+    cells = [_cell((64, 96), s, n, 0.1) for s in (1.0, 10.0) for n in (1000, 4000)]
+    fit = study.extrapolate(cells, (64, 96))
+    assert fit["slope"] is None
+    assert "too few N" in study._extrapolation_text(fit, 46_000)
+    assert study.smallest_found(cells) == {((64, 96), 1000): None, ((64, 96), 4000): None}
+
+
+def test_the_table_says_when_a_final_breaks_the_2_percent_bar(study) -> None:
+    reference = {"sequences": {"00": {"mean": [0, 0, 0.24], "spread": [0.5, 0.8, 0.6]}},
+                 "mean": [0.0, 0.0, 0.24], "spread": [0.5, 0.8, 0.6]}
+    fine = study.markdown([_cell((64, 96), 1.0, 1000, 0.1, final_change=1.9)], reference, 46_000, 3.0, False)
+    assert "worst final change +1.90 % — holds." in fine
+    broken = study.markdown([_cell((64, 96), 1.0, 1000, 0.1, final_change=2.5)], reference, 46_000, 3.0, False)
+    assert "**violated**" in broken
+
+
+def test_the_grid_names_its_training_sequences(study) -> None:
+    grid, _ = study.load_study("cpu", quick=False)
+    assert grid.scales == (1.0, 3.0, 10.0) and grid.pairs == (1000, 4000)
+    assert grid.train_names(4000) == ("train0", "train1", "train2", "train3")
+    assert list(grid.sequences()) == ["train0", "train1", "train2", "train3", "val", "test0", "test1"]
+    with pytest.raises(ValueError, match="not a multiple"):
+        grid.train_names(1500)
+
+
+@pytest.mark.slow
+def test_the_quick_grid_runs_end_to_end(study, tmp_path: Path, capsys) -> None:
+    """The wiring: one cell trained on planted priors, its test corrected, the table, CSV and figure
+    written; a rerun reuses the cell; a folder that is not the study's is refused."""
+    workdir = tmp_path / "dl"
+    workdir.mkdir()
+    reference = {"source": "test", "sequences": {"00": {"mean": [0.0, 0.0, 0.25], "spread": [0.5, 0.8, 0.6]}},
+                 "mean": [0.0, 0.0, 0.25], "spread": [0.5, 0.8, 0.6]}
+    (workdir / "reference.json").write_text(json.dumps(reference))
+    assert study.main(["--quick", "--workdir", str(workdir)]) == 0
+    [cell_file] = (workdir / "cells").glob("*.json")
+    cell = json.loads(cell_file.read_text())
+    assert cell["scale"] == 10.0 and cell["pairs"] == 20 and cell["size"] == [32, 80]
+    assert cell["bias_mrad"] == pytest.approx(2.5)
+    [test] = cell["tests"]
+    # The planted prior carries the bias: its mean rotation error is ×10 the reference's, up to the
+    # planted noise's sampling error over 8 steps.
+    assert test["prior_axis_mrad"] == pytest.approx(2.5, abs=3 * 10 * 0.8 / math.sqrt(8))
+    assert test["decision"] in ("none", "full", "rotation") or test["decision"].startswith("rotation_")
+    for name in ("detection_limit.md", "detection_limit.csv", "detection_limit.png"):
+        assert (workdir / name).stat().st_size > 0
+    assert np.loadtxt(workdir / "detection_limit.csv", delimiter=",", skiprows=1, usecols=1).size == 1
+    mtime = cell_file.stat().st_mtime_ns
+    assert study.main(["--quick", "--workdir", str(workdir)]) == 0
+    assert cell_file.stat().st_mtime_ns == mtime
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    capsys.readouterr()
+    assert study.main(["--quick", "--workdir", str(other)]) == 2
+    assert "not a work folder of this study" in capsys.readouterr().err
