@@ -441,7 +441,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     cells_dir = workdir / "cells"
     cells_dir.mkdir(exist_ok=True)
     for size in study.sizes:
-        for scale in study.scales:
+        # The largest bias first: a run cut short keeps the cells most likely to show a removal.
+        for scale in sorted(study.scales, reverse=True):
             cache_root = prepare(study, workdir, reference, scale, size)
             for pairs in study.pairs:
                 path = cells_dir / f"{cell_key(size, scale, pairs)}.json"
