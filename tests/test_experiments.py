@@ -67,12 +67,14 @@ def test_configs_are_train_configs_and_state_their_command(name: str) -> None:
         assert (folds["stereo_val00"].validation, folds["stereo_val00"].test) == ("00", ("05",))
         assert folds["mono"].test == ("09", "10") and folds["mono"].prior == "mono"
         assert folds["mono"].overrides["rotation_only"] is False
+    if name in ("kitti_raw_excerpt", "kitti_raw_drives"):  # every real-data protocol judges at 240×376
+        assert protocol.judge_size == (240, 376)
     if name == "kitti_raw_drives":  # derived from the excerpt's config: its training and shared settings
         excerpt, shared = dpc_protocol.load_protocol(PROTOCOLS / "configs" / "kitti_raw_excerpt.py")
         assert config == dataclasses.replace(excerpt, cache_root="runs/kitti_raw_drives/cache",
                                              test_sequences=("test",))
-        assert (protocol.select, protocol.adapt_steps, protocol.rotation_only) == (
-            shared.select, shared.adapt_steps, shared.rotation_only)
+        assert (protocol.select, protocol.adapt_steps, protocol.rotation_only, protocol.judge_size) == (
+            shared.select, shared.adapt_steps, shared.rotation_only, shared.judge_size)
         assert protocol.drives["0005"].validation_frames == (68, 91)
 
 

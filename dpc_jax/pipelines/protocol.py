@@ -234,6 +234,23 @@ def prepare(
     )
 
 
+def prepare_judge(
+    sequence: Any, prior: Path | np.ndarray, cache_root: Path, config: Any,
+    judge_size: tuple[int, int] | None, *, name: str, frames: tuple[int, int] | None = None,
+    disparity_offset: float = 0.0, progress: bool = False,
+) -> Path | None:
+    """The judge of cache ``name``: the same frames prepared at ``judge_size`` as ``NAME_judge``
+    (:func:`prepare` with the config's image size replaced), where :func:`correct_and_evaluate` measures
+    every acceptance test (its ``judge``); None without a ``judge_size``."""
+    import dataclasses
+
+    if judge_size is None:
+        return None
+    judge_config = dataclasses.replace(config, image_size=tuple(judge_size))
+    return prepare(sequence, prior, cache_root, judge_config, name=f"{name}_judge", frames=frames,
+                   disparity_offset=disparity_offset, progress=progress)
+
+
 # --------------------------------------------------------------------------- train and correct
 
 

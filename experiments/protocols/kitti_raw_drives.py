@@ -11,7 +11,6 @@ segment errors empty where the drive is shorter than 100 m; RPE over one frame).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 import sys
 import time
@@ -124,10 +123,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 for name, frames in jobs.items():
                     P.prepare(sequence, source, cache_root, config0, name=name, frames=frames,
                               disparity_offset=offsets[drive], progress=progress)
-                if judge_size is not None:
-                    judge_config = dataclasses.replace(config0, image_size=judge_size)
-                    P.prepare(sequence, source, cache_root, judge_config, name=f"{drive}_{prior}_judge",
-                              disparity_offset=offsets[drive], progress=progress)
+                P.prepare_judge(sequence, source, cache_root, config0, judge_size, name=f"{drive}_{prior}",
+                                disparity_offset=offsets[drive], progress=progress)
         select = args.select or protocol.select
         unknown = [d for d in args.test_drives or () if d not in drives]
         if unknown:

@@ -62,6 +62,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         for name, (prior, frames) in jobs.items():
             P.prepare(sequence, prior, cache_root, config, name=name, frames=frames, disparity_offset=offset,
                       progress=progress)
+        # Every acceptance test is measured on the test priors' frames prepared at judge_size.
+        judge_size = protocol.judge_size
+        judges = {name: P.prepare_judge(sequence, jobs[name][0], cache_root, config, judge_size, name=name,
+                                        disparity_offset=offset, progress=progress)
+                  for name in fold.test}
         run_dir = args.workdir / "runs" / fold.name
         P.train_fold(config, run_dir, progress)
         select = args.select or protocol.select
@@ -69,17 +74,23 @@ def main(argv: Sequence[str] | None = None) -> int:
             P.correct_and_evaluate(fold.name, run_dir, cache_root / name, args.workdir, select=select,
                                    prior_label=name, acceptance=protocol.acceptance,
                                    rotation_only=protocol.rotation_only, adapt_steps=protocol.adapt_steps,
-                                   holdout_every=protocol.holdout_every, progress=progress)
-            for name in ("vo", "libviso2")
+                                   holdout_every=protocol.holdout_every, judge=judges[name],
+                                   progress=progress)
+            for name in fold.test
         ]
     except (OSError, ValueError, KeyError) as error:
         print(f"kitti_raw_excerpt: error: {error}", file=sys.stderr)
         return 2
+    size = config.resolved_image_size
     notes = [f"Real KITTI raw {sequence.name} ({len(sequence)} frames); Stereo DPC trained on frames "
              f"{t0}–{t1 - 1} with our VO prior, validated on {v0}–{v1 - 1}; network images rectified by the "
              f"disparity offset our VO measured ({offset:+.3f} px); the whole drive corrected by the network "
-             f"as trained and by the network adapted to each prior ({protocol.adapt_steps} steps); "
-             f"epoch selection: {select}; "
+             f"as trained and by the network adapted to each prior ({protocol.adapt_steps} steps), each "
+             f"behind its acceptance test (depth {config.acceptance_depth}) measured at "
+             + (f"{judge_size[0]}×{judge_size[1]} (the drive prepared at that size, not at the network's "
+                f"{size[0]}×{size[1]}); " if judge_size is not None else
+                f"the network's {size[0]}×{size[1]} only (no judge); ")
+             + f"epoch selection: {select}; "
              f"{'rotation only' if protocol.rotation_only else 'full correction'} applied. "
              f"Not a reproduction: the trained network has seen frames "
              f"{t0}–{t1 - 1}, and 108 frames give only a handful of 100 m segments."

@@ -12,8 +12,8 @@ corrects the *other* drive: our VO's prior with the network trained on our VO, l
 the network trained on our VO *and* with the one trained on libviso2-s (the papers' setting: the prior
 they correct is the prior they learn from). Each correction runs with the network as trained and as
 adapted to the test drive (``adapt_steps``; its ground truth never read), behind the acceptance test,
-measured on the test drive prepared at ``judge_size``; ``dpc_jax.correction.corrector.choose`` keeps the
-final.
+measured on the test drive prepared at ``judge_size`` (240×376, the excerpt's);
+``dpc_jax.correction.corrector.choose`` keeps the final.
 Every network's images are rectified by the disparity offset our VO measured on that drive (no
 ground truth). Only the rotation of the correction is applied (see
 ``rotation_only`` in ``configs/kitti_raw_excerpt.py``).
@@ -36,9 +36,12 @@ from pathlib import Path
 _EXCERPT = runpy.run_path(str(Path(__file__).with_name("kitti_raw_excerpt.py")))
 
 PROTOCOL = {
-    # The excerpt's date, epoch selection, rectification, adaptation and rotation-only correction.
+    # The excerpt's date, epoch selection, rectification, adaptation, rotation-only correction and judge
+    # size (every acceptance test on a test drive measured on its frames prepared at ``judge_size``,
+    # 240×376; see configs/kitti_raw_excerpt.py).
     **{key: _EXCERPT["PROTOCOL"][key]
-       for key in ("date", "select", "rectify_offset", "adapt_steps", "holdout_every", "rotation_only")},
+       for key in ("date", "select", "rectify_offset", "adapt_steps", "holdout_every", "rotation_only",
+                   "judge_size")},
     "drives": {
         "0001": {"libviso2": "libviso2/stereo_2011_09_26_drive_0001.mat",
                  "train_frames": (0, 80), "validation_frames": (80, 108)},
@@ -47,11 +50,6 @@ PROTOCOL = {
     },
     # (test prior, training prior) pairs: every test drive is corrected by networks of the other drive.
     "tests": (("vo", "vo"), ("libviso2", "vo"), ("libviso2", "libviso2")),
-    # Every acceptance test on a test drive is measured on its frames prepared at this size
-    # (dpc_jax.correction.judge): the papers' input size, where the photometric loss resolves rotations that
-    # 64×96 does not, and which picks the scale of an accepted correction (docs/method.md §8).
-    # None: at the network's size.
-    "judge_size": (240, 376),
 }
 
 CONFIG = {**_EXCERPT["CONFIG"], "cache_root": "runs/kitti_raw_drives/cache", "test_sequences": ("test",)}
