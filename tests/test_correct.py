@@ -196,8 +196,10 @@ def test_cli_writes_trajectory_that_reads_back_and_a_report(setup: dict, tmp_pat
     np.testing.assert_allclose(stamps, np.arange(FRAMES) * 0.1, atol=1e-9)
 
 
-def test_cli_prepares_raw_input_and_writes_kept_frames(setup: dict, tmp_path: Path) -> None:
-    """Odometry input with static-frame removal: the trajectory has the kept frames, listed beside it."""
+def test_cli_prepares_raw_input_and_writes_kept_frames(setup: dict, tmp_path: Path, capsys) -> None:
+    """Odometry input with static-frame removal: the trajectory has the kept frames, listed beside it.
+    The stereo run is smaller than 240x376, so its acceptance test is judged there by default: the same
+    kept frames are prepared at 240x376 as ``05_judge``."""
     from dpc_jax.cli import main
     from dpc_jax.data.poses_io import read_trajectory
     from dpc_jax.data.sequence_cache import load_cache
@@ -210,6 +212,10 @@ def test_cli_prepares_raw_input_and_writes_kept_frames(setup: dict, tmp_path: Pa
     cache = load_cache(tmp_path / "cache" / "05")
     assert 2 <= len(cache) < FRAMES  # ~1 m steps: the static rule drops frames
     assert cache.image_size == SIZE  # prepared at the run's image size
+    judge = load_cache(tmp_path / "cache" / "05_judge")  # the default judge, the papers' input size
+    assert judge.image_size == (240, 376)
+    np.testing.assert_array_equal(judge.indices, cache.indices)
+    assert "acceptance test: measured at 240x376 (the default judge" in capsys.readouterr().out
     frames = np.loadtxt(tmp_path / "corrected.frames.txt", dtype=int)
     np.testing.assert_array_equal(frames, cache.indices)
     poses = read_trajectory(out, "kitti")
@@ -308,6 +314,8 @@ def test_cli_keeps_the_prior_when_no_epoch_beats_it_and_applies_with_force(
     assert main([*base, "--out", str(kept), "--report", str(tmp_path / "kept")]) == 0
     out = capsys.readouterr().out
     assert "correction NOT applied, the prior is written unchanged" in out and "--force" in out
+    # A cache holds no frames larger than the run's: the summary says where the test was measured.
+    assert f"measured at the cache's {SIZE[0]}x{SIZE[1]} only" in out and "--judge CACHE" in out
     np.testing.assert_allclose(read_trajectory(kept, "kitti"), cache.prior, atol=1e-9)
     summary = json.loads((tmp_path / "kept" / "summary.json").read_text())
     assert summary["applied"] == "none" and "selection delta" in summary["acceptance"]["reason"]
@@ -419,8 +427,9 @@ def test_choose_falls_back_in_order_adapted_trained_prior() -> None:
     assert "prior is kept" in str(final.choice["reason"])
 
 
-def test_cli_corrects_a_grey_raw_drive(setup: dict, tmp_path: Path) -> None:
-    """The grey pair of real drive 0005 through `correct`: prepared as replicated grey at the run's size."""
+def test_cli_corrects_a_grey_raw_drive(setup: dict, tmp_path: Path, capsys) -> None:
+    """The grey pair of real drive 0005 through `correct`: prepared as replicated grey at the run's size.
+    ``--no-judge`` turns the default judge at 240x376 off."""
     from conftest import DATA
 
     from dpc_jax.cli import main
@@ -434,8 +443,11 @@ def test_cli_corrects_a_grey_raw_drive(setup: dict, tmp_path: Path) -> None:
     out = tmp_path / "corrected.txt"
     argv = ["correct", "--checkpoint", str(setup["run"]), "--kitti-raw", str(raw), "--date", "2011_09_26",
             "--drive", "5", "--prior", str(tmp_path / "prior.txt"), "--gt", str(tmp_path / "gt.txt"),
-            "--frames", "0:8", "--cache", str(tmp_path / "cache"), "--out", str(out), "--no-progress"]
+            "--frames", "0:8", "--cache", str(tmp_path / "cache"), "--out", str(out), "--no-progress",
+            "--no-judge"]
     assert main(argv) == 0
+    assert not (tmp_path / "cache" / "2011_09_26_drive_0005_judge").exists()  # --no-judge: none prepared
+    assert "240x376" not in capsys.readouterr().out
     cache = load_cache(tmp_path / "cache" / "2011_09_26_drive_0005")
     assert len(cache) == 8 and cache.image_size == SIZE
     left = np.asarray(cache.left)

@@ -40,6 +40,10 @@ HUGE_PAGES = True
 # --holdout-every when not given (AdaptConfig's default): the option has no argparse default, so that
 # giving it without --adapt can be refused.
 HOLDOUT_EVERY = 5
+# The size a stereo_dpc run smaller than it is judged at by default with raw inputs (the papers' input
+# size): the photometric loss at 64x96 resolves rotations too coarsely to tell a helpful correction from
+# a harmful one (docs/method.md §8; experiments/protocols/configs/kitti_raw_excerpt.py).
+JUDGE_SIZE = (240, 376)
 
 EPILOG = """The sequence (--data, one of):
   a prepared cache   --data cache/05   (from `dpc-jax prepare`; corrects its own prior unless --prior)
@@ -48,6 +52,11 @@ EPILOG = """The sequence (--data, one of):
 Raw inputs are prepared on the fly at the run's image size (with flow when the network reads flow) into
 --cache DIR (kept, reused when up to date) or a temporary folder. Ground truth: poses/XX.txt (odometry),
 else --gt, else the poses_gt of a .mat prior; a cache keeps the ground truth it was prepared with.
+
+Judge: with raw inputs, a stereo_dpc run smaller than 240x376 is judged by default: the frames are also
+prepared at 240x376 (the papers' input size; CACHE/NAME_judge) and the acceptance test is measured there
+(--judge-size HxW: at another size; --no-judge: at the run's size only). A --data cache holds no larger
+frames: its test is measured at its own size unless --judge CACHE gives the same frames at 240x376.
 
 Frames: the trajectory has one pose per cached frame. When the cached frames are not the source frames
 0, 1, 2, ... (static frames removed by --remove-static here or at prepare time, or a frame range not
@@ -109,9 +118,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     judge = parser.add_mutually_exclusive_group()
     judge.add_argument("--judge", type=path_option, metavar="CACHE",
                        help="with --data: the same frames prepared at a larger size; the acceptance test is "
-                       "measured there (StereoSGBM depth, no network) and picks the scale of the correction")
+                       "measured there (StereoSGBM depth, no network) and picks the scale of the correction "
+                       "(default: none, the test is measured at the cache's size)")
     judge.add_argument("--judge-size", type=image_size, metavar="HxW",
-                       help="raw inputs: prepare the frames also at this size (e.g. 240x376) and judge there")
+                       help="raw inputs: prepare the frames also at this size and judge there (default for a "
+                       f"stereo_dpc run smaller than {JUDGE_SIZE[0]}x{JUDGE_SIZE[1]}: "
+                       f"{JUDGE_SIZE[0]}x{JUDGE_SIZE[1]}, the papers' input size)")
+    judge.add_argument("--no-judge", action="store_true",
+                       help="raw inputs: measure the acceptance test at the run's image size only, without "
+                       f"the default judge at {JUDGE_SIZE[0]}x{JUDGE_SIZE[1]}")
     parser.add_argument("--adapt", type=int, default=0, metavar="STEPS",
                         help="also fine-tune the network for STEPS steps on this sequence's own images (no "
                         "ground truth); its correction is applied only if it passes its test and beats the "
@@ -215,8 +230,9 @@ def _open_sequence(args: argparse.Namespace) -> StereoSequence:
 
 def _cache_folders_problem(args: argparse.Namespace) -> str | None:
     """Why a folder that preparing the raw inputs into ``--cache`` would replace (``CACHE/NAME``, and
-    ``CACHE/NAME_judge`` with ``--judge-size``) is not a cache, or None. The sequence is opened for its
-    name (its files listed, no JAX); a sequence that cannot be opened is reported here."""
+    ``CACHE/NAME_judge`` with ``--judge-size``, given or the default) is not a cache, or None. The
+    sequence is opened for its name (its files listed, no JAX); a sequence that cannot be opened is
+    reported here."""
     from dpc_jax.data.sequence_cache import MANIFEST
 
     try:
@@ -230,6 +246,43 @@ def _cache_folders_problem(args: argparse.Namespace) -> str | None:
         if problem is not None:
             return problem
     return None
+
+
+def default_judge_size(
+    args: argparse.Namespace, method: str, size: tuple[int, int]
+) -> tuple[int, int] | None:
+    """The size raw inputs are judged at when ``--judge-size`` is not given: :data:`JUDGE_SIZE` for a
+    ``stereo_dpc`` run of image ``size`` smaller than it (no larger in either dimension), unless
+    ``--no-judge`` or ``--force`` (a forced correction is not judged); None otherwise, and with ``--data``
+    (a cache has no larger frames to judge at)."""
+    if args.data is not None or args.judge_size is not None or args.no_judge or args.force:
+        return None
+    if method != "stereo_dpc" or not _smaller_than_judge(size):
+        return None
+    return JUDGE_SIZE
+
+
+def _smaller_than_judge(size: tuple[int, int]) -> bool:
+    """Whether an image ``size`` is smaller than :data:`JUDGE_SIZE` (and no larger in either dimension)."""
+    return tuple(size) != JUDGE_SIZE and size[0] <= JUDGE_SIZE[0] and size[1] <= JUDGE_SIZE[1]
+
+
+def _take_default_judge(args: argparse.Namespace) -> str | None:
+    """With raw inputs and no judge option, set ``args.judge_size`` to :func:`default_judge_size` of the
+    stored run (read without JAX) and mark it ``args.default_judge``; then, with ``--cache``, why its
+    ``NAME_judge`` folder cannot be replaced, or None."""
+    from dpc_jax import config as config_lib
+    from dpc_jax.training.train_config import TrainConfig
+
+    args.default_judge = False
+    if args.data is not None:
+        return None
+    config = config_lib.load_file(args.checkpoint / "checkpoints" / "config.json", TrainConfig)
+    size = default_judge_size(args, config.method, config.resolved_image_size)
+    if size is None:
+        return None
+    args.judge_size, args.default_judge = size, True
+    return _cache_folders_problem(args) if args.cache is not None else None
 
 
 def _holdout_problem(args: argparse.Namespace, n_frames: int, where: Path | str) -> str | None:
@@ -330,6 +383,8 @@ def run(args: argparse.Namespace) -> int:
     problem = _run_problem(args, checked)
     if problem is None and checked is not None:
         problem = _holdout_problem(args, len(checked), checked.path)
+    if problem is None:
+        problem = _take_default_judge(args)
     if problem is not None:
         return _error(problem)
     import_jax()
@@ -489,5 +544,23 @@ def _print_summary(
         print(f"adapted: {args.adapt} steps in {adaptation.seconds / 60:.1f} min on {correction.name}'s own "
               f"pairs, {adaptation.held_out.size} kept out for the test -> {adapted_path(args.out)}")
         print(f"final: {correction.choice['final']} ({correction.choice['reason']})")
+    _print_judge(args, run_)
     if args.report is not None:
         print(f"report: {args.report / 'report.md'}")
+
+
+def _print_judge(args: argparse.Namespace, run_: TrainedRun) -> None:
+    """One line on where the acceptance test was measured when that is not the obvious: at the default
+    judge's size, or (a stereo run smaller than :data:`JUDGE_SIZE` given a ``--data`` cache and no
+    ``--judge``) at the cache's size only, with how to get a judge."""
+    h, w = run_.image_size
+    if getattr(args, "default_judge", False):
+        jh, jw = args.judge_size
+        print(f"acceptance test: measured at {jh}x{jw} (the default judge of a stereo run on raw inputs; "
+              f"--no-judge: at the run's {h}x{w} only)")
+    elif (args.data is not None and args.judge is None and not args.no_judge and not args.force
+          and run_.config.method == "stereo_dpc" and _smaller_than_judge((h, w))):
+        print(f"note: the acceptance test was measured at the cache's {h}x{w} only (a cache has no "
+              f"full-size images to judge at); to judge at {JUDGE_SIZE[0]}x{JUDGE_SIZE[1]}, prepare the same "
+              f"frames with `dpc-jax prepare ... --size {JUDGE_SIZE[0]}x{JUDGE_SIZE[1]}` and pass that cache "
+              "as --judge CACHE (or correct from the raw inputs, judged there by default)")
