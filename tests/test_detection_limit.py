@@ -43,21 +43,31 @@ def test_the_half_removal_scale_is_interpolated_in_log_s_and_extrapolated_in_log
         for scale in (1.0, 3.0, 10.0, 100.0):
             removed = 0.5 + 0.25 * (math.log(scale) - math.log(s50))
             cells.append(_cell(size, scale, pairs, removed))
-    assert study.half_scale(cells, size, 1000) == pytest.approx(30.0)
-    assert study.half_scale(cells, size, 4000) == pytest.approx(15.0)
+    assert study.half_scale(cells, size, 1000) == (pytest.approx(30.0), "=")
+    assert study.half_scale(cells, size, 4000) == (pytest.approx(15.0), "=")
     fit = study.extrapolate(cells, size)
-    assert fit["slope"] == pytest.approx(-0.5)
+    assert fit["found_at"] is None and fit["slope"] == pytest.approx(-0.5)
     assert fit["pairs_at_x1"] == pytest.approx(900_000, rel=1e-6)
     assert "beyond the papers' 46,000" in study._extrapolation_text(fit, 46_000)
-    # Found by half at ×100 only (final), then at ×10 with more pairs.
     assert study.smallest_found(cells) == {(size, 1000): 100.0, (size, 4000): 100.0}
     assert study.half_scale(cells, (120, 188), 1000) is None
+
+
+def test_a_bias_found_at_x1_needs_no_extrapolation(study) -> None:
+    size = (64, 96)
+    cells = [_cell(size, 1.0, 1000, 0.3), _cell(size, 3.0, 1000, 0.8),
+             _cell(size, 1.0, 4000, 0.6), _cell(size, 3.0, 4000, 0.9)]
+    assert study.half_scale(cells, size, 4000) == (1.0, "≤")
+    fit = study.extrapolate(cells, size)
+    assert fit["found_at"] == 4000 and fit["slope"] is None
+    assert "at ×1 with N = 4,000" in study._extrapolation_text(fit, 46_000)
+    assert study.smallest_found(cells) == {(size, 1000): 3.0, (size, 4000): 1.0}
 
 
 def test_no_trend_is_claimed_without_two_crossings(study) -> None:
     cells = [_cell((64, 96), s, n, 0.1) for s in (1.0, 10.0) for n in (1000, 4000)]
     fit = study.extrapolate(cells, (64, 96))
-    assert fit["slope"] is None
+    assert fit["slope"] is None and fit["found_at"] is None
     assert "too few N" in study._extrapolation_text(fit, 46_000)
     assert study.smallest_found(cells) == {((64, 96), 1000): None, ((64, 96), 4000): None}
 
@@ -67,7 +77,8 @@ def test_the_table_says_when_a_final_breaks_the_2_percent_bar(study) -> None:
                  "mean": [0.0, 0.0, 0.24], "spread": [0.5, 0.8, 0.6]}
     fine = study.markdown([_cell((64, 96), 1.0, 1000, 0.1, final_change=1.9)], reference, 46_000, 3.0, False)
     assert "worst final change +1.90 % — holds." in fine
-    broken = study.markdown([_cell((64, 96), 1.0, 1000, 0.1, final_change=2.5)], reference, 46_000, 3.0, False)
+    broken = study.markdown([_cell((64, 96), 1.0, 1000, 0.1, final_change=2.5)], reference, 46_000, 3.0,
+                            False)
     assert "**violated**" in broken
 
 

@@ -243,33 +243,38 @@ def smallest_found(cells: Sequence[dict[str, Any]],
 
 
 def half_scale(cells: Sequence[dict[str, Any]], size: tuple[int, int], pairs: int,
-               field: str = "found_axis_network") -> float | None:
-    """The bias scale at which the removal crosses :data:`FOUND`, interpolated in log s between the
-    grid's scales (None where no crossing lies inside the grid)."""
+               field: str = "found_axis_final") -> tuple[float, str] | None:
+    """The bias scale s50 at which the removal crosses :data:`FOUND`, interpolated in log s between the
+    grid's scales, as ``(s50, "=")``; ``(smallest scale, "≤")`` when the smallest scale is already
+    removed by that much; None when no scale of the grid is."""
     points = sorted((c["scale"], cell_mean(c, field)) for c in cells
                     if tuple(c["size"]) == size and c["pairs"] == pairs)
+    if points and math.isfinite(points[0][1]) and points[0][1] >= FOUND:
+        return points[0][0], "≤"
     for (s0, f0), (s1, f1) in itertools.pairwise(points):
         if math.isfinite(f0) and math.isfinite(f1) and f0 < FOUND <= f1:
             t = (FOUND - f0) / (f1 - f0)
-            return float(math.exp(math.log(s0) + t * (math.log(s1) - math.log(s0))))
-    if points and math.isfinite(points[0][1]) and points[0][1] >= FOUND:
-        return points[0][0]  # already found at the smallest scale: an upper bound
+            return float(math.exp(math.log(s0) + t * (math.log(s1) - math.log(s0)))), "="
     return None
 
 
-def extrapolate(cells: Sequence[dict[str, Any]], size: tuple[int, int]) -> dict[str, Any] | None:
-    """Fit ``log s50 = a + b · log N`` over the pair counts with a crossing at ``size``; the N where s50 = 1
-    (libviso2-s's bias removed by half). None with fewer than two crossings."""
+def extrapolate(cells: Sequence[dict[str, Any]], size: tuple[int, int]) -> dict[str, Any]:
+    """At ``size``: the smallest N of the grid whose cell at ×1 is removed by :data:`FOUND` or more
+    (``found_at``), else the fit ``log s50 = a + b · log N`` over the N with an interpolated crossing and
+    the N where it reaches s50 = 1 (``pairs_at_x1``; ``inf`` when s50 does not fall with N)."""
     pairs = sorted({c["pairs"] for c in cells if tuple(c["size"]) == size})
-    points = [(n, half_scale(cells, size, n)) for n in pairs]
-    points = [(n, s) for n, s in points if s is not None]
-    if len(points) < 2:
-        return {"points": points, "slope": None, "pairs_at_x1": None}
-    x = np.log([n for n, _ in points])
-    y = np.log([s for _, s in points])
-    slope, intercept = np.polyfit(x, y, 1)
-    pairs_at_x1 = float(math.exp(-intercept / slope)) if slope < 0 else math.inf
-    return {"points": points, "slope": float(slope), "pairs_at_x1": pairs_at_x1}
+    found = [n for n in pairs for c in cells
+             if tuple(c["size"]) == size and c["pairs"] == n and c["scale"] <= 1.0
+             and cell_mean(c, "found_axis_final") >= FOUND]
+    crossings = {n: half_scale(cells, size, n) for n in pairs}
+    points = [(n, h[0]) for n, h in crossings.items() if h is not None and h[1] == "="]
+    fit: dict[str, Any] = {"found_at": min(found) if found else None, "points": points, "slope": None,
+                           "pairs_at_x1": None}
+    if fit["found_at"] is None and len(points) >= 2:
+        slope, intercept = np.polyfit(np.log([n for n, _ in points]), np.log([s for _, s in points]), 1)
+        fit["slope"] = float(slope)
+        fit["pairs_at_x1"] = float(math.exp(-intercept / slope)) if slope < 0 else math.inf
+    return fit
 
 
 def long_rows(cells: Sequence[dict[str, Any]]) -> list[list[object]]:
@@ -318,7 +323,7 @@ def markdown(cells: Sequence[dict[str, Any]], reference: dict[str, Any], paper_p
         f"{TOLERANCE_PCT:g} % above the prior's): worst final change {worst:+.2f} % — "
         + ("holds." if not worst > TOLERANCE_PCT else "**violated**."), "",
         f"Smallest bias removed by ≥ {100 * FOUND:.0f} % (axis, final) at each (N, resolution):", *lines, "",
-        "The N at which libviso2-s's bias (×1) would be removed by half by the network (fit of log s50 "
+        "The N at which libviso2-s's bias (×1) is removed by half (final; else a fit of log s50 "
         "against log N over the grid's N, s50 interpolated in log s):", *answer, ""])
 
 
@@ -326,12 +331,13 @@ def _vec(values: Sequence[float]) -> str:
     return "(" + ", ".join(f"{v:+.3f}" for v in values) + ")"
 
 
-def _extrapolation_text(fit: dict[str, Any] | None, paper_pairs: int) -> str:
-    if fit is None or fit["slope"] is None:
-        found = fit["points"] if fit else []
-        crossings = ", ".join(f"N {n}: ×{s:.2g}" for n, s in found) or "none"
-        return f"too few N with a 50 % crossing inside the grid to fit a trend (crossings: {crossings})"
-    points = ", ".join(f"N {n}: ×{s:.2g}" for n, s in fit["points"])
+def _extrapolation_text(fit: dict[str, Any], paper_pairs: int) -> str:
+    points = ", ".join(f"N {n}: ×{s:.2g}" for n, s in fit["points"]) or "none inside the grid"
+    if fit["found_at"] is not None:
+        return (f"already removed by ≥ {100 * FOUND:.0f} % at ×1 with N = {fit['found_at']:,} (the grid's "
+                f"smallest such N; within the papers' {paper_pairs:,} pairs)")
+    if fit["slope"] is None:
+        return f"too few N with a 50 % crossing inside the grid to fit a trend (crossings: {points})"
     n1 = fit["pairs_at_x1"]
     if not math.isfinite(n1):
         return (f"s50 does not fall with N ({points}; slope {fit['slope']:+.2f}): more pairs alone do not "
