@@ -84,10 +84,11 @@ def test_the_table_says_when_a_final_breaks_the_2_percent_bar(study) -> None:
 
 def test_the_grid_names_its_training_sequences(study) -> None:
     grid, _ = study.load_study("cpu", quick=False)
-    assert grid.scales == (1.0, 3.0, 10.0) and grid.pairs == (1000, 4000)
+    assert grid.scales == (1.0, 3.0, 10.0) and grid.pairs == (100, 1000, 4000)
     assert grid.train_names(4000) == ("train0", "train1", "train2", "train3")
+    assert grid.train_names(100) == ("train0_first100",) and grid.prefixes() == {"train0_first100": 101}
     assert list(grid.sequences()) == ["train0", "train1", "train2", "train3", "val", "test0", "test1"]
-    with pytest.raises(ValueError, match="not a multiple"):
+    with pytest.raises(ValueError, match="neither below nor a multiple"):
         grid.train_names(1500)
 
 
@@ -103,7 +104,7 @@ def test_the_quick_grid_runs_end_to_end(study, tmp_path: Path, capsys) -> None:
     assert study.main(["--quick", "--workdir", str(workdir)]) == 0
     [cell_file] = (workdir / "cells").glob("*.json")
     cell = json.loads(cell_file.read_text())
-    assert cell["scale"] == 10.0 and cell["pairs"] == 20 and cell["size"] == [32, 80]
+    assert cell["scale"] == 10.0 and cell["pairs"] == 10 and cell["size"] == [32, 80]
     assert cell["bias_mrad"] == pytest.approx(2.5)
     [test] = cell["tests"]
     # The planted prior carries the bias: its mean rotation error is ×10 the reference's, up to the

@@ -61,19 +61,29 @@ class Study:
     training: dict[str, Any]
 
     def sequences(self) -> dict[str, tuple[int, int]]:
-        """Name → (frames, seed offset), in rendering order."""
+        """Rendered sequence name → (frames, seed offset), in rendering order."""
         w = self.world
-        count = max(math.ceil(n / (w["train_frames"] - 1)) for n in self.pairs)
+        count = max(1, *(n // (w["train_frames"] - 1) for n in self.pairs))
         names = {f"train{i}": (w["train_frames"], i) for i in range(count)}
         names["val"] = (w["validation_frames"], 100)
         names |= {f"test{i}": (w["test_frames"], 200 + i) for i in range(w["test_sequences"])}
         return names
 
     def train_names(self, pairs: int) -> tuple[str, ...]:
+        """The caches a cell with ``pairs`` training pairs trains on: whole training sequences, or for
+        fewer pairs than one holds the first ``pairs + 1`` frames of ``train0`` (:meth:`prefixes`)."""
         per = self.world["train_frames"] - 1
-        if pairs % per:
-            raise ValueError(f"pairs {pairs} is not a multiple of a training sequence's {per} pairs")
+        if 0 < pairs < per:
+            return (f"train0_first{pairs}",)
+        if pairs <= 0 or pairs % per:
+            raise ValueError(f"pairs {pairs} is neither below nor a multiple of a training sequence's "
+                             f"{per} pairs")
         return tuple(f"train{i}" for i in range(pairs // per))
+
+    def prefixes(self) -> dict[str, int]:
+        """Cache name → frames, for the cells that train on a prefix of ``train0``."""
+        per = self.world["train_frames"] - 1
+        return {f"train0_first{n}": n + 1 for n in self.pairs if n < per}
 
     @property
     def tests(self) -> tuple[str, ...]:
@@ -154,6 +164,10 @@ def prepare(study: Study, workdir: Path, reference: dict[str, Any], scale: float
         # The same noise draw at every scale: cells of one sequence differ only by s.
         prior = planted_prior(sequence.poses, bias, spread, seed=offset)
         prepare_sequence(sequence, prior, root, size=size, progress=False)
+        if name == "train0":
+            for prefix, frames in study.prefixes().items():
+                prepare_sequence(sequence, prior, root, size=size, frames=(0, frames), name=prefix,
+                                 progress=False)
     return root
 
 
@@ -348,7 +362,7 @@ def _extrapolation_text(fit: dict[str, Any], paper_pairs: int) -> str:
 
 
 def figure(cells: Sequence[dict[str, Any]], reference: dict[str, Any], path: Path) -> None:
-    """Left: removal (axis, network) against N, one curve per resolution and scale. Right: removal against
+    """Left: removal (axis, final) against N, one curve per resolution and scale. Right: removal against
     the bias (mrad/step), one curve per resolution and N, with libviso2-s's per-sequence biases marked."""
     import matplotlib
 
@@ -363,11 +377,11 @@ def figure(cells: Sequence[dict[str, Any]], reference: dict[str, Any], path: Pat
             pts = sorted((c["pairs"], cell_mean(c, "found_axis_network"), cell_mean(c, "found_axis_final"))
                          for c in cells if tuple(c["size"]) == size and c["scale"] == scale)
             if pts:
-                line, = left.plot([p[0] for p in pts], [p[1] for p in pts], styles[size],
+                line, = left.plot([p[0] for p in pts], [p[2] for p in pts], styles[size],
                                   label=f"{size[0]}×{size[1]}, ×{scale:g}")
-                left.plot([p[0] for p in pts], [p[2] for p in pts], "x", color=line.get_color())
+                left.plot([p[0] for p in pts], [p[1] for p in pts], "x", color=line.get_color())
         for pairs in sorted({c["pairs"] for c in cells}):
-            pts = sorted((c["bias_mrad"], cell_mean(c, "found_axis_network")) for c in cells
+            pts = sorted((c["bias_mrad"], cell_mean(c, "found_axis_final")) for c in cells
                          if tuple(c["size"]) == size and c["pairs"] == pairs)
             right.plot([p[0] for p in pts], [p[1] for p in pts], styles[size],
                        label=f"{size[0]}×{size[1]}, N {pairs}")
@@ -381,7 +395,7 @@ def figure(cells: Sequence[dict[str, Any]], reference: dict[str, Any], path: Pat
         ax.set_ylabel("bias removed (1 − ‖mean after‖ / ‖mean prior‖)")
         ax.set_xscale("log")
         ax.legend(fontsize=7)
-    left.set_xlabel("training pairs N (line: network; x: final, behind the test)")
+    left.set_xlabel("training pairs N (line: final, behind the test; x: the network's proposal)")
     right.set_xlabel("planted bias ‖mean rotation error‖ (mrad per step); grey: libviso2-s, KITTI seq.")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
