@@ -151,7 +151,7 @@ def render(study: Study, data: Path) -> None:
 
 def prepare(study: Study, workdir: Path, reference: dict[str, Any], scale: float,
             size: tuple[int, int]) -> Path:
-    """The caches of every sequence at ``size`` with the prior of bias scale ``scale``; their root."""
+    """The caches the study's cells read at ``size`` with the prior of bias scale ``scale``; their root."""
     from dpc_jax.data.cache import prepare_sequence
     from dpc_jax.data.kitti import open_odometry
     from dpc_jax.synth.planted_prior import planted_prior
@@ -159,13 +159,16 @@ def prepare(study: Study, workdir: Path, reference: dict[str, Any], scale: float
     root = workdir / "cache" / f"{size[0]}x{size[1]}" / f"s{scale:g}"
     bias = scale * 1e-3 * np.asarray(reference["mean"])
     spread = scale * 1e-3 * np.asarray(reference["spread"])
+    read = {n for pairs in study.pairs for n in study.train_names(pairs)} | {"val", *study.tests}
+    prefixes = study.prefixes()
     for name, (_, offset) in study.sequences().items():
         sequence = open_odometry(workdir / "data", name)
         # The same noise draw at every scale: cells of one sequence differ only by s.
         prior = planted_prior(sequence.poses, bias, spread, seed=offset)
-        prepare_sequence(sequence, prior, root, size=size, progress=False)
+        if name in read:
+            prepare_sequence(sequence, prior, root, size=size, progress=False)
         if name == "train0":
-            for prefix, frames in study.prefixes().items():
+            for prefix, frames in prefixes.items():
                 prepare_sequence(sequence, prior, root, size=size, frames=(0, frames), name=prefix,
                                  progress=False)
     return root
@@ -418,6 +421,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--libviso2", type=Path, default=LIBVISO2, metavar="DIR",
                         help="folder of libviso2-s's stereo_*.mat with ground truth (the reference ×1); not "
                         "read when WORKDIR/reference.json exists")
+    parser.add_argument("--pairs", type=int, nargs="+", metavar="N",
+                        help="run only the cells of these N of the grid (e.g. two work folders side by side, "
+                        "tabulated together with --include)")
     parser.add_argument("--include", type=Path, action="append", default=[], metavar="WORKDIR",
                         help="also tabulate the finished cells of this work folder (repeatable)")
     parser.add_argument("--results-page", type=Path, metavar="FILE",
@@ -441,6 +447,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         check_results_page(args.results_page)
         study, paper_pairs = load_study(args.profile, args.quick)
+        if args.pairs:
+            unknown = sorted(set(args.pairs) - set(study.pairs))
+            if unknown:
+                grid = ", ".join(map(str, study.pairs))
+                raise ValueError(f"--pairs {unknown[0]}: not an N of the grid ({grid})")
+            study = dataclasses.replace(study, pairs=tuple(n for n in study.pairs if n in args.pairs))
         workdir = args.workdir
         made = [workdir / n for n in ("reference.json", "cells", "data")]
         if workdir.exists() and any(workdir.iterdir()) and not any(p.exists() for p in made):
@@ -463,11 +475,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     for size in study.sizes:
         # The largest bias first: a run cut short keeps the cells most likely to show a removal.
         for scale in sorted(study.scales, reverse=True):
+            missing = [n for n in study.pairs
+                       if not (cells_dir / f"{cell_key(size, scale, n)}.json").is_file()]
+            if not missing:
+                continue
             cache_root = prepare(study, workdir, reference, scale, size)
-            for pairs in study.pairs:
+            for pairs in missing:
                 path = cells_dir / f"{cell_key(size, scale, pairs)}.json"
-                if path.is_file():
-                    continue
                 t = time.perf_counter()
                 cell = run_cell(study, workdir, cache_root, size, scale, pairs, stamp)
                 atomic_write(path, json.dumps(cell, indent=1))
