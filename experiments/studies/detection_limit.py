@@ -428,8 +428,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="folder of libviso2-s's stereo_*.mat with ground truth (the reference ×1); not "
                         "read when WORKDIR/reference.json exists")
     parser.add_argument("--pairs", type=int, nargs="+", metavar="N",
-                        help="run only the cells of these N of the grid (e.g. two work folders side by side, "
-                        "tabulated together with --include)")
+                        help="run only the cells of these N of the grid (e.g. in two work folders side by "
+                        "side, tabulated together with --include)")
+    parser.add_argument("--scales", type=float, nargs="+", metavar="S",
+                        help="run only the cells of these bias scales of the grid")
     parser.add_argument("--include", type=Path, action="append", default=[], metavar="WORKDIR",
                         help="also tabulate the finished cells of this work folder (repeatable)")
     parser.add_argument("--results-page", type=Path, metavar="FILE",
@@ -459,6 +461,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                 grid = ", ".join(map(str, study.pairs))
                 raise ValueError(f"--pairs {unknown[0]}: not an N of the grid ({grid})")
             study = dataclasses.replace(study, pairs=tuple(n for n in study.pairs if n in args.pairs))
+        if args.scales:
+            unknown_scales = sorted(set(args.scales) - set(study.scales))
+            if unknown_scales:
+                grid = ", ".join(f"{v:g}" for v in study.scales)
+                raise ValueError(f"--scales {unknown_scales[0]:g}: not a scale of the grid ({grid})")
+            study = dataclasses.replace(study, scales=tuple(v for v in study.scales if v in args.scales))
         workdir = args.workdir
         made = [workdir / n for n in ("reference.json", "cells", "data")]
         if workdir.exists() and any(workdir.iterdir()) and not any(p.exists() for p in made):
