@@ -92,6 +92,18 @@ def test_the_grid_names_its_training_sequences(study) -> None:
         grid.train_names(1500)
 
 
+def test_a_cell_measured_with_another_correction_is_measured_again(study, tmp_path: Path) -> None:
+    """Not retrained: its record keeps the training."""
+    grid, _ = study.load_study("cpu", quick=False)
+    assert grid.rotation_only
+    path = tmp_path / "cell.json"
+    assert study._done(path, grid) is None
+    path.write_text(json.dumps({"rotation_only": True, "train_s": 5.0}))
+    assert study._done(path, grid) is True
+    path.write_text(json.dumps({"train_s": 5.0}))  # recorded before the study corrected rotation only
+    assert study._done(path, grid) == {"train_s": 5.0}
+
+
 @pytest.mark.slow
 def test_the_quick_grid_runs_end_to_end(study, tmp_path: Path, capsys) -> None:
     """The wiring: one cell trained on planted priors, its test corrected, the table, CSV and figure

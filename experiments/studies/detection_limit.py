@@ -59,6 +59,7 @@ class Study:
     render: tuple[int, int]
     world: dict[str, Any]
     training: dict[str, Any]
+    rotation_only: bool = True
 
     def sequences(self) -> dict[str, tuple[int, int]]:
         """Rendered sequence name → (frames, seed offset), in rendering order."""
@@ -97,7 +98,8 @@ def load_study(profile: str, quick: bool) -> tuple[Study, int]:
     world = {**config["WORLD"], **(config["QUICK"]["world"] if quick else {})}
     training = {**config["TRAINING"], **(config["QUICK"]["training"] if quick else {})}
     study = Study(tuple(float(s) for s in grid["scales"]), tuple(int(n) for n in grid["pairs"]),
-                  tuple(tuple(s) for s in grid["sizes"]), tuple(grid["render"]), world, training)
+                  tuple(tuple(s) for s in grid["sizes"]), tuple(grid["render"]), world, training,
+                  bool(config["CORRECTION"]["rotation_only"]))
     for n in study.pairs:
         study.train_names(n)
     return study, int(config["PAPER_PAIRS"])
@@ -191,30 +193,35 @@ def _found(prior: float, after: float) -> float:
     return float("nan") if not (prior > 0 and math.isfinite(after)) else 1.0 - after / prior
 
 
-def run_cell(study: Study, workdir: Path, cache_root: Path, size: tuple[int, int], scale: float, pairs: int,
-             stamp: dict[str, str]) -> dict[str, Any]:
-    """Train the cell's network (no ground truth), correct each test sequence behind the acceptance test
-    and measure the removal against the ground truth."""
+def train_cell(study: Study, workdir: Path, cache_root: Path, size: tuple[int, int], pairs: int,
+               key: str) -> float:
+    """Train the cell's network in ``WORKDIR/runs/KEY`` (no ground truth; resumed when interrupted);
+    the seconds it took."""
     from dpc_jax import config as config_lib
-    from dpc_jax.correction.corrector import correct_cache
-    from dpc_jax.correction.inference import load_run
-    from dpc_jax.eval import metrics
     from dpc_jax.training.loop import train
     from dpc_jax.training.train_config import TrainConfig
 
-    key = cell_key(size, scale, pairs)
     config = config_lib.from_dict(TrainConfig, {
         **study.training, "image_size": size, "cache_root": str(cache_root),
         "train_sequences": study.train_names(pairs), "validation_sequences": ("val",),
         "test_sequences": study.tests}, where=str(CONFIG))
-    run_dir = workdir / "runs" / key
     began = time.perf_counter()
-    train(config, run_dir, resume=True, progress=False)
-    train_s = time.perf_counter() - began
+    train(config, workdir / "runs" / key, resume=True, progress=False)
+    return time.perf_counter() - began
+
+
+def measure_cell(study: Study, run_dir: Path, cache_root: Path) -> tuple[int, list[dict[str, Any]]]:
+    """Correct each test sequence with the run's epoch of most negative validation Δ behind the acceptance
+    test and measure the removal against the ground truth (read here only): the epoch and one record
+    per test sequence."""
+    from dpc_jax.correction.corrector import correct_cache
+    from dpc_jax.correction.inference import load_run
+    from dpc_jax.eval import metrics
+
     run = load_run(run_dir, "delta")
     tests = []
     for name in study.tests:
-        correction = correct_cache(run, cache_root / name)
+        correction = correct_cache(run, cache_root / name, rotation_only=study.rotation_only)
         gt = np.asarray(correction.ground_truth, np.float64)
         estimates = {"prior": correction.prior, "network": correction.proposed, "final": correction.corrected}
         axis = {k: float(np.linalg.norm(rotation_mean_mrad(gt, v))) for k, v in estimates.items()}
@@ -230,9 +237,21 @@ def run_cell(study: Study, workdir: Path, cache_root: Path, size: tuple[int, int
             "final_r_change_pct": (100.0 * (seg["final"] / seg["prior"] - 1.0) if seg["prior"] > 0
                                    else math.nan),
         })
+    return run.epoch, tests
+
+
+def run_cell(study: Study, workdir: Path, cache_root: Path, size: tuple[int, int], scale: float, pairs: int,
+             stamp: dict[str, str], done: dict[str, Any] | None) -> dict[str, Any]:
+    """The cell's record: trained (unless ``done`` holds its record, whose training is kept) and measured
+    with the study's correction."""
+    key = cell_key(size, scale, pairs)
+    train_s = done["train_s"] if done else train_cell(study, workdir, cache_root, size, pairs, key)
+    epoch, tests = measure_cell(study, workdir / "runs" / key, cache_root)
     bias = scale * float(np.linalg.norm(study_reference_mean(workdir)))
+    trained = {k: done[k] for k in ("machine", "commit", "python")} if done else stamp
     return {"key": key, "size": list(size), "scale": scale, "pairs": pairs, "bias_mrad": bias,
-            "train_s": train_s, "epoch": run.epoch, "tests": tests, **stamp}
+            "train_s": train_s, "epoch": epoch, "rotation_only": study.rotation_only, "tests": tests,
+            **trained, "measured_commit": stamp["commit"]}
 
 
 def study_reference_mean(workdir: Path) -> np.ndarray:
@@ -311,10 +330,12 @@ def markdown(cells: Sequence[dict[str, Any]], reference: dict[str, Any], paper_p
     ordered = sorted(cells, key=lambda c: (c["size"], c["pairs"], c["scale"]))
     body = table(
         ["size", "N pairs", "bias ×", "bias (mrad/step)", "removed, network (axis / seg.)",
-         "removed, final (axis / seg.)", "decisions (p)", "final r vs prior", "train (min)", "machine"],
+         "removed, final (axis / seg.)", "applied", "decisions (p)", "final r vs prior", "train (min)",
+         "machine"],
         ([f"{c['size'][0]}×{c['size'][1]}", str(c["pairs"]), f"×{c['scale']:g}", f"{c['bias_mrad']:.3f}",
           f"{pct(cell_mean(c, 'found_axis_network'))} / {pct(cell_mean(c, 'found_seg_network'))}",
           f"{pct(cell_mean(c, 'found_axis_final'))} / {pct(cell_mean(c, 'found_seg_final'))}",
+          "rotation" if c.get("rotation_only", False) else "full",
           ", ".join(f"{t['decision']} ({t['p_value']:.2g})" for t in c["tests"]),
           ", ".join(f"{t['final_r_change_pct']:+.1f} %" for t in c["tests"]),
           f"{c['train_s'] / 60:.1f}", c["machine"]] for c in ordered))
@@ -416,6 +437,23 @@ def figure(cells: Sequence[dict[str, Any]], reference: dict[str, Any], path: Pat
 
 # -- the command -----------------------------------------------------------------------------------------
 
+def _done(path: Path, study: Study) -> dict[str, Any] | bool | None:
+    """A cell's state: True when recorded with the study's correction; its record when trained but
+    measured with another (it is measured again, not retrained); None when not recorded."""
+    if not path.is_file():
+        return None
+    cell = json.loads(path.read_text())
+    return True if cell.get("rotation_only", False) == study.rotation_only else cell
+
+
+def image_size(text: str) -> tuple[int, int]:
+    height, _, width = text.partition("x")
+    try:
+        return int(height), int(width)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected HxW, e.g. 64x96, got {text!r}") from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -430,6 +468,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--pairs", type=int, nargs="+", metavar="N",
                         help="run only the cells of these N of the grid (e.g. in two work folders side by "
                         "side, tabulated together with --include)")
+    parser.add_argument("--sizes", type=image_size, nargs="+", metavar="HxW",
+                        help="run only the cells of these input sizes of the grid")
     parser.add_argument("--scales", type=float, nargs="+", metavar="S",
                         help="run only the cells of these bias scales of the grid")
     parser.add_argument("--include", type=Path, action="append", default=[], metavar="WORKDIR",
@@ -461,6 +501,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                 grid = ", ".join(map(str, study.pairs))
                 raise ValueError(f"--pairs {unknown[0]}: not an N of the grid ({grid})")
             study = dataclasses.replace(study, pairs=tuple(n for n in study.pairs if n in args.pairs))
+        if args.sizes:
+            unknown_sizes = sorted(set(args.sizes) - set(study.sizes))
+            if unknown_sizes:
+                grid = ", ".join(f"{h}x{w}" for h, w in study.sizes)
+                h, w = unknown_sizes[0]
+                raise ValueError(f"--sizes {h}x{w}: not a size of the grid ({grid})")
+            study = dataclasses.replace(study, sizes=tuple(v for v in study.sizes if v in args.sizes))
         if args.scales:
             unknown_scales = sorted(set(args.scales) - set(study.scales))
             if unknown_scales:
@@ -489,15 +536,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     for size in study.sizes:
         # The largest bias first: a run cut short keeps the cells most likely to show a removal.
         for scale in sorted(study.scales, reverse=True):
-            missing = [n for n in study.pairs
-                       if not (cells_dir / f"{cell_key(size, scale, n)}.json").is_file()]
-            if not missing:
+            todo = {n: _done(cells_dir / f"{cell_key(size, scale, n)}.json", study) for n in study.pairs}
+            todo = {n: done for n, done in todo.items() if done is not True}
+            if not todo:
                 continue
             cache_root = prepare(study, workdir, reference, scale, size)
-            for pairs in missing:
+            for pairs, done in todo.items():
                 path = cells_dir / f"{cell_key(size, scale, pairs)}.json"
                 t = time.perf_counter()
-                cell = run_cell(study, workdir, cache_root, size, scale, pairs, stamp)
+                cell = run_cell(study, workdir, cache_root, size, scale, pairs, stamp, done)
                 atomic_write(path, json.dumps(cell, indent=1))
                 finals = ", ".join(f"{x['decision']} {x['final_r_change_pct']:+.1f} %" for x in cell["tests"])
                 print(f"[{(time.perf_counter() - began) / 60:.1f} min] {cell['key']}: removed (axis) network "
