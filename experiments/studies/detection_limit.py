@@ -413,6 +413,8 @@ def figure(cells: Sequence[dict[str, Any]], reference: dict[str, Any], path: Pat
         for pairs in sorted({c["pairs"] for c in cells}):
             pts = sorted((c["bias_mrad"], cell_mean(c, "found_axis_final")) for c in cells
                          if tuple(c["size"]) == size and c["pairs"] == pairs)
+            if not pts:
+                continue
             right.plot([p[0] for p in pts], [p[1] for p in pts], styles[size],
                        label=f"{size[0]}×{size[1]}, N {pairs}")
     for name, seq in reference["sequences"].items():
@@ -426,7 +428,7 @@ def figure(cells: Sequence[dict[str, Any]], reference: dict[str, Any], path: Pat
         ax.set_xscale("log")
         ax.legend(fontsize=7)
     left.set_xlabel("training pairs N (line: final, behind the test; x: the network's proposal)")
-    right.set_xlabel("planted bias ‖mean rotation error‖ (mrad per step); grey: libviso2-s, KITTI seq.")
+    right.set_xlabel("planted bias (mrad per step); grey: libviso2-s on KITTI 00–10")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp.png")
