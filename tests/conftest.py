@@ -12,9 +12,12 @@ there, and such a test fails instead; ``.ci/run`` also fails on any skip with th
 
 from __future__ import annotations
 
+import importlib.util
 import os
+import sys
 from collections.abc import Generator
 from pathlib import Path
+from types import ModuleType
 
 import jax
 import pytest
@@ -77,3 +80,14 @@ def pytest_runtest_call(item: pytest.Item) -> Generator[None, object, object]:
 def pytest_sessionstart(session: pytest.Session) -> None:
     if _IN_CI and not _data_present():
         raise pytest.UsageError(f"CI is set, but {MISSING_DATA.split(': ', 1)[0]}; CI must run every test")
+
+
+def load_script(path: Path) -> ModuleType:
+    """An experiment script as a module (registered in ``sys.modules``: its dataclasses look their module
+    up there)."""
+    spec = importlib.util.spec_from_file_location(path.stem, path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module

@@ -8,7 +8,8 @@ their median over the sequences as "×1", both scaled by s. The epoch is chosen 
 held-out test sequence is corrected behind the acceptance test (StereoSGBM depth, at the cell's
 resolution); the ground truth is read only to measure the cells.
 
-Commands (the minimum grid of issue 42 on a 2-core CPU; the 240×376 cells on a GPU machine, whose
+Commands (the minimum grid: ×1, ×3, ×10 of libviso2-s's bias, N = 1,000 and 4,000, 64×96 and 120×188, on a
+2-core CPU; the 240×376 cells on a GPU machine, whose
 ``cells/`` the first run's table then includes with ``--include``):
 
     python experiments/studies/detection_limit.py --workdir runs/detection_limit \\
@@ -62,7 +63,7 @@ CORRECTION = {"rotation_only": True}
 # The grids. ``scales``: multiples of libviso2-s's median bias (and spread); ``pairs``: N; ``sizes``:
 # the network's input; ``render``: the rendered size (the largest of ``sizes``).
 PROFILES = {
-    # Issue 42's minimum grid, on a 2-core CPU.
+    # Every bias scale at two N and the two resolutions a 2-core CPU trains in hours.
     # N = 100 as well: about the pairs of the real drives (kitti_raw_drives.py), where libviso2-s's
     # networks are refused.
     "cpu": {"scales": (1.0, 3.0, 10.0), "pairs": (100, 1000, 4000), "sizes": ((64, 96), (120, 188)),
