@@ -60,8 +60,9 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "dpc_jax.runtime.hugepages": ("reexec_with_huge_pages", "huge_pages_requested"),
     "dpc_jax.config": ("ConfigError", "load_file"),
     "dpc_jax.correction.inference": ("load_run", "predict_sequence", "predict_corrections", "TrainedRun"),
-    "dpc_jax.correction.acceptance": ("acceptance_test", "Acceptance"),
-    "dpc_jax.correction.corrector": ("correct_cache", "write_trajectory"),
+    "dpc_jax.correction.acceptance": ("Acceptance", "paired_test"),
+    "dpc_jax.correction.decision": ("decide",),
+    "dpc_jax.correction.corrector": ("correct_cache", "correct_sequence", "write_trajectory"),
     "dpc_jax.pipelines.synthetic_demo": ("DemoConfig", "run_demo"),
 }
 __all__ = ["__version__", *(name for names in _EXPORTS.values() for name in names)]

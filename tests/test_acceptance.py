@@ -1,19 +1,21 @@
-"""The acceptance test: statistics against closed forms, decisions, Δ on rendered pairs with true depth."""
+"""The acceptance test: statistics against closed forms, Δ and decisions on rendered pairs with true depth
+and on real pairs with StereoSGBM depth."""
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
+import jax
 import numpy as np
 import pytest
 
-from dpc_jax.correction.acceptance import acceptance_test, component_test, forced
+from dpc_jax.correction.acceptance import paired_test
+from dpc_jax.correction.decision import decide
 from dpc_jax.data.priors import log_poses
 from dpc_jax.geometry.lie import se3_exp
 from dpc_jax.geometry.poses import relative_poses
 from dpc_jax.nn.batch import Batch
-from dpc_jax.nn.losses import correction_deltas, temporal_pair_errors
+from dpc_jax.nn.losses import candidate_deltas, correction_deltas, temporal_pair_errors
 from dpc_jax.nn.model_config import SSDPCLossConfig, StereoDPCLossConfig
 from dpc_jax.nn.outputs import BranchOutputs, DPCOutputs
 from dpc_jax.synth import SynthConfig, render_sequence
@@ -21,37 +23,42 @@ from dpc_jax.synth import SynthConfig, render_sequence
 
 def test_wilcoxon_exact_p_values_in_closed_form() -> None:
     # All n differences negative: W+ = 0, exact one-sided p = 1 / 2^n.
-    t = component_test("full", -np.arange(1.0, 9.0))
+    t = paired_test("full", -np.arange(1.0, 9.0))
     assert t.p_value == pytest.approx(2.0**-8) and t.statistic == 0 and t.passed
     assert t.improved_share == 1.0 and t.mean_delta == -4.5 and t.median_delta == -4.5
     # One positive difference with the smallest rank: W+ = 1, p = P(W+ <= 1) = 2 / 2^n.
-    t = component_test("full", np.array([0.5, -1, -2, -3, -4, -5, -6, -7]))
+    t = paired_test("full", np.array([0.5, -1, -2, -3, -4, -5, -6, -7]))
     assert t.p_value == pytest.approx(2 * 2.0**-8) and t.passed
     # Seven pairs cannot reach the 1 % level (1/128 < 0.01 < 2/128 with one positive).
-    assert not component_test("full", np.array([0.5, -1, -2, -3, -4, -5, -6])).passed
-
-
-def test_decision_order_and_rejections() -> None:
-    bad, good = np.linspace(1, 8, 8) * 1e-4, -np.linspace(1, 8, 8) * 1e-4
-    assert acceptance_test({"full": good, "rotation": bad}).decision == "full"
-    only_rotation = acceptance_test({"full": bad, "rotation": good})
-    assert only_rotation.decision == "rotation" and "rotation" in only_rotation.reason
-    rejected = acceptance_test({"full": bad, "rotation": np.zeros(8)})
-    assert rejected.decision == "none" and rejected.tests["rotation"].p_value == 1.0
-    assert math.isnan(rejected.tests["rotation"].statistic)
-    assert acceptance_test({"rotation": good}, components=("rotation",)).decision == "rotation"
-    # Significant but with a positive mean (a few large losses): not accepted.
+    assert not paired_test("full", np.array([0.5, -1, -2, -3, -4, -5, -6])).passed
+    # Every difference zero: nothing to rank.
+    zero = paired_test("rotation", np.zeros(8))
+    assert zero.p_value == 1.0 and math.isnan(zero.statistic) and not zero.passed
+    # Significant but with a positive mean (a few large losses): not passed.
     skewed = np.array([-1e-5] * 15 + [1e-3])
-    assert component_test("full", skewed).p_value < 0.01 and not component_test("full", skewed).passed
-    kept = forced(rejected, "full")
-    assert kept.decision == "full" and kept.forced and kept.tests == rejected.tests
+    assert paired_test("full", skewed).p_value < 0.01 and not paired_test("full", skewed).passed
     with pytest.raises(ValueError, match="finite"):
-        component_test("full", np.array([np.nan, -1.0]))
+        paired_test("full", np.array([np.nan, -1.0]))
     with pytest.raises(ValueError, match="alpha"):
-        acceptance_test({"full": good}, alpha=1.5)
+        paired_test("full", -np.arange(1.0, 9.0), alpha=1.5)
+
+
+_candidate_deltas = jax.jit(candidate_deltas, static_argnames="config")
+
+
+def batch_measure(outputs: DPCOutputs, batch: Batch, config, valid):
+    """The measurement of named corrections ``[n, 6]`` on one batch of pairs with the outputs' depth (one
+    candidate at a time, so that one compilation serves every call)."""
+
+    def measure(candidates):
+        return {name: np.asarray(_candidate_deltas(outputs, batch, config, xi[None], valid)["delta"][0])
+                for name, xi in candidates.items()}
+
+    return measure
 
 
 YAW = 2e-3
+BIAS_MRAD = 0.5  # the planted per-step bias of the mean test on real frames
 
 
 @pytest.fixture(scope="module")
@@ -88,15 +95,17 @@ def test_true_depth_rejects_a_spurious_yaw_and_accepts_the_true_correction(rende
     deltas = {k: np.asarray(v) for k, v in
               correction_deltas(outputs._replace(xi_corr=_yaw(n)), batch, config, valid).items()}
     assert np.all(deltas["full"] > 0)
-    assert acceptance_test(deltas).decision == "none"
+    assert decide(_yaw(n), batch_measure(outputs, batch, config, valid)).decision == "none"
     # A prior with a known −2 mrad yaw error per step: the true correction (+2 mrad) is accepted, in full.
     biased = np.asarray(se3_exp(-_yaw(n))) @ steps
     batch = batch._replace(xi_vo=np.asarray(log_poses(biased)))
     deltas = {k: np.asarray(v) for k, v in
               correction_deltas(outputs._replace(xi_corr=_yaw(n)), batch, config, valid).items()}
-    result = acceptance_test(deltas)
-    assert np.all(deltas["full"] < 0) and result.decision == "full"
+    result = decide(_yaw(n), batch_measure(outputs, batch, config, valid))
+    assert np.all(deltas["full"] < 0) and result.decision == "full" and not result.remainder
     assert result.tests["full"].p_value == pytest.approx(2.0**-8)
+    # Its Δ is the measurement's, the per-sample Δ of correction_deltas.
+    np.testing.assert_allclose(result.delta, deltas["full"], rtol=1e-4, atol=1e-7)  # float32
     # Δ is a paired difference: L(0) of the biased prior is what "none" reports.
     baseline = temporal_pair_errors(outputs, batch, config, valid)
     np.testing.assert_allclose(deltas["none"], np.asarray(baseline), rtol=1e-12)
@@ -189,102 +198,51 @@ def test_on_real_frames_a_planted_correction_is_accepted_when_it_helps_and_refus
     n = len(steps)
     config = StereoDPCLossConfig()
     xi = _planted_rotations(n, mrad)
-    proposal = outputs._replace(xi_corr=xi)
-    hurts = {k: np.asarray(v) for k, v in correction_deltas(proposal, batch, config, valid).items()}
-    refused = acceptance_test(hurts)
+    refused = decide(xi, batch_measure(outputs, batch, config, valid))
     assert refused.decision == "none", refused.reason
     biased = np.asarray(se3_exp(-xi)) @ steps  # a prior with the planted error; ξ undoes it exactly
     helped_batch = batch._replace(xi_vo=np.asarray(log_poses(biased)))
-    helps = {k: np.asarray(v) for k, v in correction_deltas(proposal, helped_batch, config, valid).items()}
-    accepted = acceptance_test(helps)
+    accepted = decide(xi, batch_measure(outputs, helped_batch, config, valid))
     assert accepted.decision == "full", accepted.reason
 
 
-def test_component_masks_and_names() -> None:
-    from dpc_jax.correction.acceptance import component_mask, rotation_component
-    from dpc_jax.report.correction_report import rotation_axes_words
-
-    assert rotation_component("xz") == "rotation_xz" and rotation_component("xyz") == "rotation"
-    np.testing.assert_array_equal(component_mask("rotation_xz"), [0, 0, 0, 1, 0, 1])
-    np.testing.assert_array_equal(component_mask("rotation"), [0, 0, 0, 1, 1, 1])
-    np.testing.assert_array_equal(component_mask("full"), np.ones(6))
-    np.testing.assert_array_equal(component_mask("none"), np.zeros(6))
-    assert rotation_axes_words("rotation_xz") == "rotation about x, z"
-    for bad in ("zx", "xx", "w", ""):
-        with pytest.raises(ValueError, match="axes"):
-            rotation_component(bad)
-
-
-def _refined(single: dict[str, np.ndarray], subset: np.ndarray | None = None):
-    """``refine_rotation`` of a passed rotation with these single-axis Δ; records the subsets asked for."""
-    from dpc_jax.correction.acceptance import refine_rotation
-
-    good = -np.linspace(1, 12, 12) * 1e-4
-    asked: list[str] = []
-
-    def subset_delta(axes: str) -> np.ndarray:
-        asked.append(axes)
-        assert subset is not None
-        return subset
-
-    accepted = acceptance_test({"rotation": good}, components=("rotation",))
-    assert accepted.decision == "rotation"
-    acceptance, delta = refine_rotation(accepted, {"rotation": good, **single}, subset_delta)
-    return acceptance, delta, asked
-
-
-def test_a_passed_rotation_keeps_only_the_axes_that_pass_alone() -> None:
-    good, bad, flat = -np.linspace(1, 12, 12) * 1e-4, np.linspace(1, 12, 12) * 1e-5, np.zeros(12)
-    # Pitch and roll help alone, yaw hurts: the rotation about x and z, judged on its own Δ.
-    acceptance, delta, asked = _refined({"rotation_x": good, "rotation_y": bad, "rotation_z": good}, 2 * good)
-    assert acceptance.decision == "rotation_xz" and asked == ["xz"] and "y dropped" in acceptance.reason
-    np.testing.assert_array_equal(delta["rotation_xz"], 2 * good)
-    assert set(acceptance.tests) == {"rotation", "rotation_x", "rotation_y", "rotation_z", "rotation_xz"}
-    # One axis: its Δ is already there, no other pass.
-    acceptance, delta, asked = _refined({"rotation_x": flat, "rotation_y": good, "rotation_z": bad})
-    assert acceptance.decision == "rotation_y" and asked == []
-    # Every axis, or none, passing alone: the rotation stays whole.
-    for single in ({"rotation_x": good, "rotation_y": good, "rotation_z": good},
-                   {"rotation_x": flat, "rotation_y": bad, "rotation_z": flat}):
-        acceptance, _, asked = _refined(single)
-        assert acceptance.decision == "rotation" and asked == []
-        assert {"rotation_x", "rotation_y", "rotation_z"} <= set(acceptance.tests)
-    # The axes passing alone must pass together too.
-    acceptance, _, asked = _refined({"rotation_x": good, "rotation_y": bad, "rotation_z": good}, bad)
-    assert acceptance.decision == "rotation" and asked == ["xz"]
-    assert "did not pass together" in acceptance.reason
+def test_on_real_frames_a_wrong_mean_is_removed_and_a_right_one_kept(real_pairs) -> None:
+    """19 real pairs, SGBM depth: a prior whose steps carry a planted error, a per-step part and a bias
+    (the drift). A proposal that undoes the per-step part but reverses the bias passes the per-pair test
+    as a whole (the earlier decision applied it, doubling the drift); its mean fails its own test and
+    only the remainder is applied. The same proposal with the bias right is applied whole."""
+    batch, outputs, valid, steps = real_pairs
+    n = len(steps)
+    config = StereoDPCLossConfig()
+    per_step = _planted_rotations(n, 2.0, seed=4)
+    per_step -= per_step.mean(axis=0)
+    bias = np.array([0, 0, 0, 0, BIAS_MRAD * 1e-3, 0])
+    planted = per_step + bias
+    batch = batch._replace(xi_vo=np.asarray(log_poses(np.asarray(se3_exp(-planted)) @ steps)))
+    measure = batch_measure(outputs, batch, config, valid)
+    wrong = decide(per_step - bias, measure, components=("rotation",))
+    assert wrong.tests["rotation"].passed and not wrong.tests["mean of rotation"].passed
+    assert wrong.decision.startswith("rotation") and wrong.remainder, wrong.reason
+    assert not decide(per_step - bias, measure, components=("rotation",), mean_test=False).remainder
+    right = decide(per_step + bias, measure, components=("rotation",))
+    assert right.tests["mean of rotation"].passed
+    assert right.decision.startswith("rotation") and not right.remainder, right.reason
 
 
 def test_on_real_frames_a_spurious_axis_is_dropped_and_the_helpful_one_kept(real_pairs) -> None:
     """19 real pairs, SGBM depth: a prior with a planted 2 mrad yaw error per pair, and a proposal that
-    undoes it but adds a spurious 2 mrad pitch. The per-axis Δ of ``correction_deltas`` equals Δ of
-    the axis alone, the rotation about y alone is kept, the pitch dropped."""
-    from dpc_jax.correction.acceptance import refine_rotation
-
+    undoes it but adds a spurious 1 mrad pitch (alternating): the rotation as a whole passes, and only
+    the rotation about y is applied."""
     batch, outputs, valid, steps = real_pairs
     n = len(steps)
     config = StereoDPCLossConfig()
     undo = np.zeros((n, 6))
     undo[:, 4] = 2e-3
     spurious = undo.copy()
-    spurious[:, 3] = 2e-3 * np.where(np.arange(n) % 2, 1.0, -1.0)
+    spurious[:, 3] = 1e-3 * np.where(np.arange(n) % 2, 1.0, -1.0)
     biased = np.asarray(se3_exp(-undo)) @ steps
     batch = batch._replace(xi_vo=np.asarray(log_poses(biased)))
-    proposal = outputs._replace(xi_corr=spurious)
-    deltas = {k: np.asarray(v) for k, v in correction_deltas(proposal, batch, config, valid).items()}
-    for i, axis in enumerate("xyz"):
-        alone = np.zeros((n, 6))
-        alone[:, 3 + i] = spurious[:, 3 + i]
-        alone_outputs = outputs._replace(xi_corr=alone)
-        reference = np.asarray(correction_deltas(alone_outputs, batch, config, valid)["full"])
-        np.testing.assert_allclose(deltas[f"rotation_{axis}"], reference, rtol=1e-5, atol=1e-9)
-
-    def subset_delta(axes: str) -> np.ndarray:
-        mask = np.array([float(a in axes) for a in "xyz"])
-        return np.asarray(correction_deltas(proposal, batch, config, valid, mask)["rotation"])
-
-    # Refined as if the whole rotation had passed (the spurious pitch may sink it on its own).
-    whole = acceptance_test({"rotation": deltas["rotation"]}, components=("rotation",))
-    refined, _ = refine_rotation(dataclasses.replace(whole, decision="rotation"), deltas, subset_delta)
-    assert refined.tests["rotation_y"].passed and not refined.tests["rotation_x"].passed
-    assert refined.decision == "rotation_y", refined.reason
+    result = decide(spurious, batch_measure(outputs, batch, config, valid), components=("rotation",),
+                    mean_test=False)
+    assert result.tests["rotation_y"].passed and not result.tests["rotation_x"].passed
+    assert result.decision == "rotation_y", result.reason

@@ -319,7 +319,7 @@ def test_cli_keeps_the_prior_when_no_epoch_beats_it_and_applies_with_force(
     np.testing.assert_allclose(read_trajectory(kept, "kitti"), cache.prior, atol=1e-9)
     summary = json.loads((tmp_path / "kept" / "summary.json").read_text())
     assert summary["applied"] == "none" and "selection delta" in summary["acceptance"]["reason"]
-    assert set(summary["acceptance"]["tests"]) == {"full", "rotation"}
+    assert {"full", "rotation"} <= set(summary["acceptance"]["tests"])
     assert "Applied: nothing" in (tmp_path / "kept" / "report.md").read_text()
 
     forced = tmp_path / "forced.txt"
@@ -331,20 +331,21 @@ def test_cli_keeps_the_prior_when_no_epoch_beats_it_and_applies_with_force(
 
 
 def test_the_decision_follows_the_test_on_the_sequence(setup: dict, run) -> None:
-    """Whatever the test decides, the final trajectory is the prior, the rotations or the full proposal."""
+    """Whatever the tests decide, the final trajectory is the prior with what they let through."""
     from dpc_jax.correction.corrector import correct_cache
+    from dpc_jax.correction.decision import applied_correction
     from dpc_jax.data.sequence_cache import load_cache
 
     cache = load_cache(setup["cache"] / "05")
     for alpha in (1e-9, 0.999):
         result = correct_cache(run, cache, alpha=alpha)
         tests = result.acceptance.tests
-        passing = [c for c in ("full", "rotation") if tests[c].p_value < alpha and tests[c].mean_delta < 0]
-        assert result.applied == (passing[0] if passing else "none")
-        rotation_only = result.applied == "rotation"
-        xi = result.xi_corr if result.applied != "none" else np.zeros_like(result.xi_corr)
-        np.testing.assert_allclose(result.corrected, _compose(xi, cache.prior, cache.gt[0], rotation_only),
-                                   atol=1e-9)
+        if result.applied == "none":
+            assert not any(t.passed for name, t in tests.items() if name in ("full", "rotation"))
+        else:
+            assert tests[result.applied + (" − mean" if result.acceptance.remainder else "")].passed
+        xi = applied_correction(result.xi_corr, result.acceptance)
+        np.testing.assert_allclose(result.corrected, _compose(xi, cache.prior, cache.gt[0], False), atol=1e-9)
         np.testing.assert_allclose(result.proposed, _compose(result.xi_corr, cache.prior, cache.gt[0], False),
                                    atol=1e-9)
     assert correct_cache(run, cache, alpha=1e-9).applied == "none"  # 9 pairs cannot reach p < 1e-9
@@ -370,19 +371,18 @@ def test_cli_adapt_writes_the_adapted_network_that_made_the_trajectory(setup: di
 
 
 def _candidate(delta: np.ndarray, tested: np.ndarray | None, label: float):
-    """A Correction whose acceptance test ran on ``delta[tested]`` (full and rotation alike); its
-    trajectories are filled with ``label`` so the chosen one can be told apart."""
-    from dpc_jax.correction.acceptance import acceptance_test
+    """A Correction whose full correction was decided on ``delta[tested]``; its trajectories are filled
+    with ``label`` so the chosen one can be told apart."""
     from dpc_jax.correction.corrector import Correction
+    from dpc_jax.correction.decision import decide
 
-    deltas = {"full": delta, "rotation": delta}
-    chosen = slice(None) if tested is None else tested
-    acceptance = acceptance_test({c: d[chosen] for c, d in deltas.items()})
+    acceptance = decide(np.ones((delta.size, 6)), lambda candidates: {name: delta for name in candidates},
+                        tested=tested, mean_test=False)
     poses = np.full((delta.size + 1, 4, 4), label)
     return Correction(name="s", frames=np.arange(delta.size + 1), times=np.zeros(delta.size + 1), prior=poses,
                       proposed=poses, corrected=poses, ground_truth=None, xi_corr=np.zeros((delta.size, 6)),
-                      rotation_only=False, acceptance=acceptance, epoch=1, evaluation=None, delta=deltas,
-                      tested=tested)
+                      rotation_only=False, acceptance=acceptance, epoch=1, evaluation=None,
+                      delta={"full": delta}, tested=tested)
 
 
 def test_choose_takes_the_adapted_correction_only_when_it_beats_the_trained_one() -> None:
@@ -482,62 +482,45 @@ def test_a_stereo_run_measures_delta_with_stereo_sgbm_unless_asked_otherwise(set
     np.testing.assert_array_equal(computed.delta["full"], default.delta["full"])
 
 
-def test_a_judge_measures_the_same_delta_without_the_network(setup: dict, run) -> None:
-    """On the cache the network ran on, the judge's Δ (StereoSGBM depth, no network) is the Δ of the
-    prediction with that depth: the temporal error needs only images, depth, prior and ξ."""
-    from dpc_jax.correction.acceptance import component_mask
+def test_the_measurement_without_the_network_is_the_prediction_with_stereo_depth(setup: dict, run) -> None:
+    """On the cache the network ran on, Δ measured with StereoSGBM depth and no network (what a judge
+    does) is the Δ of the prediction with that depth: the temporal error needs only images, depth,
+    prior and ξ. Measured with the network's depth it is the network-depth prediction's."""
     from dpc_jax.correction.inference import run_prediction
-    from dpc_jax.correction.judge import correction_effects
+    from dpc_jax.correction.measure import judge_measurement, measurement
     from dpc_jax.data.sequence_cache import load_cache
+    from dpc_jax.engine.predict import measure_effects
 
     cache = load_cache(setup["cache"] / "05")
-    prediction = run_prediction(run, cache, acceptance_depth="sgbm")
-    names = ("full", "rotation", "rotation_x", "rotation_y", "rotation_z")
-    judged = correction_effects(cache, prediction.xi_corr, {c: component_mask(c) for c in names},
-                                run.config.loss_config(), batch_size=4)
-    for name in names:
-        np.testing.assert_allclose(judged[name], prediction.delta[name], rtol=1e-4, atol=1e-7)  # float32
+    rotation = np.array([0, 0, 0, 1, 1, 1.0])
+    for depth in ("network", "sgbm"):
+        prediction = run_prediction(run, cache, acceptance_depth=depth)
+        candidates = {"full": prediction.xi_corr, "rotation": prediction.xi_corr * rotation}
+        measured = measurement(run, cache, depth=depth, batch_size=4)(candidates)
+        for name in candidates:
+            np.testing.assert_allclose(measured[name], prediction.delta[name], rtol=1e-4, atol=1e-7)
+    # The last prediction is the StereoSGBM one: a judge of the very same frames measures its Δ.
+    judged = judge_measurement(run, cache, cache, batch_size=4)(candidates)
+    np.testing.assert_allclose(judged["rotation"], prediction.delta["rotation"], rtol=1e-4, atol=1e-7)
     # With the prediction's L(0) given, the same Δ without measuring L(0) again.
-    reused = correction_effects(cache, prediction.xi_corr, {"rotation_xz": component_mask("rotation_xz")},
-                                run.config.loss_config(), batch_size=4, none=prediction.photometric)
-    measured = correction_effects(cache, prediction.xi_corr, {"rotation_xz": component_mask("rotation_xz")},
-                                  run.config.loss_config(), batch_size=4)
-    np.testing.assert_allclose(reused["rotation_xz"], measured["rotation_xz"], rtol=1e-4, atol=1e-7)
+    stereo, config = cache.stereo_depth, run.config.loss_config()
+    both = np.stack([prediction.xi_corr, 0.5 * prediction.xi_corr])
+    known = prediction.photometric
+    reused = measure_effects(cache, both, config, batch_size=4, stereo_depth=stereo, none=known)
+    fresh = measure_effects(cache, both, config, batch_size=3, stereo_depth=stereo)
+    np.testing.assert_allclose(reused["delta"], fresh["delta"], rtol=1e-4, atol=1e-7)
+    np.testing.assert_allclose(fresh["none"], known, rtol=1e-4, atol=1e-7)
     with pytest.raises(ValueError, match=r"L\(0\) must be \[9\]"):
-        correction_effects(cache, prediction.xi_corr, {"full": np.ones(6)}, run.config.loss_config(),
-                           none=prediction.photometric[:-1])
-    halved = correction_effects(cache, prediction.xi_corr, {"half": 0.5 * component_mask("full")},
-                                run.config.loss_config())["half"]
-    alone = correction_effects(cache, 0.5 * prediction.xi_corr, {"full": component_mask("full")},
-                               run.config.loss_config())["full"]
-    np.testing.assert_allclose(halved, alone, rtol=1e-6, atol=1e-9)
-    with pytest.raises(ValueError, match=r"xi_corr must be \[9, 6\]"):
-        correction_effects(cache, prediction.xi_corr[:-1], {"full": np.ones(6)}, run.config.loss_config())
+        measure_effects(cache, both, config, batch_size=4, stereo_depth=stereo, none=known[:-1])
+    with pytest.raises(ValueError, match=r"candidates must be \[C, 9, 6\]"):
+        measure_effects(cache, both[:, :-1], config, batch_size=4, stereo_depth=stereo)
 
 
-def test_a_scaled_correction_is_applied_at_its_scale_and_only_if_it_passes(setup: dict, run) -> None:
-    import dataclasses
-
-    from dpc_jax.correction.acceptance import Acceptance, acceptance_test
+def test_a_scaled_part_is_composed_as_decided(setup: dict, run) -> None:
+    from dpc_jax.correction.acceptance import Acceptance
     from dpc_jax.correction.corrector import compose_correction
-    from dpc_jax.correction.judge import scale_correction
     from dpc_jax.data.sequence_cache import load_cache
     from dpc_jax.geometry.pose_correction import corrected_trajectory
-
-    good = -np.linspace(1, 12, 12) * 1e-4
-    accepted = dataclasses.replace(acceptance_test({"rotation": good}, components=("rotation",)),
-                                   decision="rotation_xz")
-    delta = {"rotation_xz": good}
-    # ×0.5 has the lowest mean Δ and passes: applied, its Δ replaces the proposal's.
-    scaled, new = scale_correction(accepted, delta, {0.25: 0.5 * good, 0.5: 2 * good, 0.75: 1.5 * good})
-    assert scaled.scale == 0.5 and scaled.decision == "rotation_xz" and "rotation_xz ×0.5" in scaled.tests
-    np.testing.assert_array_equal(new["rotation_xz"], 2 * good)
-    # The proposal's own scale is best: nothing changes but the reason.
-    same, kept = scale_correction(accepted, delta, {0.25: 0.1 * good, 0.5: 0.2 * good, 0.75: 0.3 * good})
-    assert same.scale == 1.0 and kept["rotation_xz"] is good and "by scale" in same.reason
-    # The best scale must pass on its own (six pairs cannot reach the 1 % level: p ≥ 1/64).
-    failing, _ = scale_correction(accepted, {"rotation_xz": good[:6]}, {0.5: 2 * good[:6]})
-    assert failing.scale == 1.0 and "did not pass" in failing.reason
 
     cache = load_cache(setup["cache"] / "05")
     xi = np.random.default_rng(0).normal(scale=1e-3, size=(len(cache) - 1, 6))
@@ -546,6 +529,11 @@ def test_a_scaled_correction_is_applied_at_its_scale_and_only_if_it_passes(setup
     np.testing.assert_allclose(applied.corrected, expected, atol=1e-12)
     proposed = corrected_trajectory(xi, cache.prior, cache.gt[0])
     np.testing.assert_allclose(applied.proposed, proposed, atol=1e-12)
+    mean = (xi * [1, 1, 1, 1, 1, 1]).mean(axis=0)
+    without = compose_correction(run, cache, xi, Acceptance(0.01, {}, "full", "", remainder=True,
+                                                            mean=tuple(mean)), False)
+    np.testing.assert_allclose(without.corrected, corrected_trajectory(xi - mean, cache.prior, cache.gt[0]),
+                               atol=1e-12)
 
 
 def test_cli_judge_measures_the_test_on_another_cache_of_the_same_frames(setup: dict, tmp_path: Path) -> None:
@@ -565,22 +553,3 @@ def test_cli_judge_measures_the_test_on_another_cache_of_the_same_frames(setup: 
     assert not (tmp_path / "d.txt").exists()
 
 
-def test_a_judged_correction_must_pass_at_both_sizes() -> None:
-    import dataclasses
-
-    from dpc_jax.correction.acceptance import acceptance_test
-    from dpc_jax.correction.judge import judged_correction
-
-    good, bad = -np.linspace(1, 12, 12) * 1e-4, np.linspace(1, 12, 12) * 1e-5
-    accepted = dataclasses.replace(acceptance_test({"rotation": good}, components=("rotation",)),
-                                   decision="rotation_xz")
-    network = {"rotation_xz": good}
-    # Refused at the judge's size: the prior, whatever the network's size said.
-    refused, delta = judged_correction(accepted, network, {0.25: bad, 0.5: bad, 0.75: bad, 1.0: bad})
-    assert refused.decision == "none" and "not at the judge's size" in refused.reason
-    assert delta["rotation_xz"] is good
-    # Passed there: scaled by the judge's images, and the judge's Δ is what choose compares.
-    by_scale = {0.25: good, 0.5: 3 * good, 0.75: 2 * good, 1.0: 1.5 * good}
-    kept, delta = judged_correction(accepted, network, by_scale)
-    assert kept.decision == "rotation_xz" and kept.scale == 0.5 and "rotation_xz (judge)" in kept.tests
-    np.testing.assert_array_equal(delta["rotation_xz"], 3 * good)

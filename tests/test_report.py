@@ -13,7 +13,7 @@ from typing import Any
 
 import pytest
 
-from dpc_jax.correction.acceptance import Acceptance, ComponentTest
+from dpc_jax.correction.acceptance import Acceptance, PairedTest
 from dpc_jax.pipelines.protocol import Result
 from dpc_jax.report.correction_report import acceptance_markdown, choice_markdown, write_correction_report
 from dpc_jax.report.demo_report import decision_label
@@ -86,8 +86,8 @@ def test_results_table_and_csv() -> None:
     assert results_csv([]) == "fold,sequence,prior,epoch,selection,applied,frames\n"
 
 
-def _test(component: str, passed: bool) -> ComponentTest:
-    return ComponentTest(component, 12, -1.5e-3, -2e-4, 0.75, 10.0, 0.0123, passed)
+def _test(component: str, passed: bool) -> PairedTest:
+    return PairedTest(component, 12, -1.5e-3, -2e-4, 0.75, 10.0, 0.0123, passed)
 
 
 def test_acceptance_and_choice_markdown() -> None:
@@ -97,7 +97,12 @@ def test_acceptance_and_choice_markdown() -> None:
                         "| p (one-sided) | passed |")
     assert lines[1] == "|---|---|---|---|---|---|---|---|"
     assert lines[2] == "| full | 12 | -1.500e-03 | -2.000e-04 | 75.0 % | 10 | 0.0123 | yes |"
-    assert "**Applied: the full correction** (full: passed)." in lines
+    assert "**Applied: full 6-DoF** (full: passed)." in lines
+    without = Acceptance(0.05, {}, "rotation_xz", "r", scale=0.5, remainder=True,
+                         mean=(0, 0, 0, 1e-4, 0, -2e-4))
+    assert ("**Applied: rotation about x, z only, without its mean (+0.100, +0.000, -0.200 mrad per step), "
+            "×0.5**") in acceptance_markdown(without)
+    assert decision_label(without).startswith("accepted (rotation about x, z only, without its mean")
     comparison = dataclasses.asdict(_test("adapted − trained", False))
     choice = {"final": "trained", "reason": "because", "comparison": comparison}
     lines = choice_markdown(choice).splitlines()

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import dataclasses
 import logging
 import os
 import sys
@@ -25,7 +24,7 @@ from dpc_jax.cli._common import (
     restore_problem,
 )
 from dpc_jax.data.holdout import MIN_EVERY, adaptable_pairs, held_out_pairs
-from dpc_jax.report.correction_report import rotation_axes_words
+from dpc_jax.report.correction_report import applied_words
 
 if TYPE_CHECKING:
     from dpc_jax.correction.adapt import Adaptation
@@ -111,7 +110,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--force", action="store_true",
                         help="apply the correction even when the acceptance test rejects it")
     parser.add_argument("--alpha", type=float, default=0.01, metavar="P",
-                        help="level of the one-sided acceptance test on Δ")
+                        help="level of the one-sided acceptance tests on Δ")
+    parser.add_argument("--no-mean-test", action="store_true",
+                        help="do not test the correction's mean over the sequence on its own (the earlier "
+                        "decision: a correction that passes as a whole is applied whole)")
     parser.add_argument("--acceptance-depth", choices=("network", "sgbm"),
                         help="depth Δ is measured with: sgbm, StereoSGBM on the cached pair (default for a "
                         "stereo run), or network, the network's own depth")
@@ -460,28 +462,20 @@ def _correct(
     """The correction to write, with ``--adapt`` also the adaptation and the adapted network's correction
     (the one written only if :func:`~dpc_jax.correction.corrector.choose` prefers it to the trained
     network's)."""
-    from dpc_jax.correction.corrector import choose, correct_cache
-    from dpc_jax.data.priors import prior_for_cache
-    from dpc_jax.data.sequence_cache import SequenceCache, load_cache
+    from dpc_jax.correction.corrector import correct_sequence
 
     show = sys.stderr.isatty() and not args.no_progress
     options = {"rotation_only": args.rotation_only, "batch_size": args.batch_size,
                "acceptance_depth": args.acceptance_depth, "alpha": args.alpha, "force": args.force,
-               "judge": judge}
-    if not args.adapt:
-        correction = correct_cache(run_, cache, prior, prior_format=args.prior_format, progress=show,
-                                   **options)
-        return correction, None, None
-    from dpc_jax.correction.adapt import AdaptConfig, adapt_and_correct
+               "mean_test": not args.no_mean_test, "judge": judge}
+    how = None
+    if args.adapt:
+        from dpc_jax.correction.adapt import AdaptConfig
 
-    cache = load_cache(cache) if not isinstance(cache, SequenceCache) else cache
-    if prior is not None:
-        cache = dataclasses.replace(cache, prior=prior_for_cache(cache, prior, args.prior_format))
-    how = AdaptConfig(args.adapt, holdout_every=_holdout_every(args), learning_rate=args.adapt_lr)
-    trained = correct_cache(run_, cache, progress=show, **options)
-    adaptation, adapted = adapt_and_correct(run_, cache, how, progress=show, **options)
-    _, correction = choose(trained, adapted)
-    return correction, adaptation, adapted
+        how = AdaptConfig(args.adapt, holdout_every=_holdout_every(args), learning_rate=args.adapt_lr)
+    done = correct_sequence(run_, cache, prior, adapt=how, prior_format=args.prior_format, progress=show,
+                            **options)
+    return done.result, done.adaptation, done.adapted
 
 
 def _write_outputs(
@@ -524,14 +518,12 @@ def _print_summary(
         # load_run fell back to the newest epoch: the run holds no best-Δ checkpoint.
         criterion = "the newest epoch, as the run holds no best-Δ checkpoint (best_delta/)"
     if correction.applied == "none":
-        print(f"{correction.name}: correction NOT applied, the prior is written unchanged "
-              f"({correction.acceptance.reason}); --force applies it anyway")
-    applied = {"full": "rotation only" if correction.rotation_only else "full 6-DoF",
-               "rotation": "rotation only", "none": "none"}.get(correction.applied)
-    applied = applied or f"{rotation_axes_words(correction.applied)} only"
-    print(f"{correction.name}: {correction.corrected.shape[0]} poses, correction applied: {applied} "
-          f"(network: epoch {run_.epoch} of {args.checkpoint}, {criterion}) -> "
-          f"{', '.join(map(str, written))}")
+        print(f"{correction.name}: correction NOT applied, the prior is written unchanged; --force applies "
+              "it anyway")
+    print(f"{correction.name}: {correction.corrected.shape[0]} poses, correction applied: "
+          f"{applied_words(correction.acceptance, correction.rotation_only)} (network: epoch {run_.epoch} of "
+          f"{args.checkpoint}, {criterion}) -> {', '.join(map(str, written))}")
+    print(f"acceptance tests: {correction.acceptance.reason}")
     if not correction.all_source_frames:
         where = f"frame numbers in {written[-1]}" if len(written) > 1 else "no frame list beside a stream"
         print(f"note: the trajectory holds {correction.frames.size} cached frames, not every source frame "

@@ -2,12 +2,13 @@
 
 * ``inference``: restore a trained run (:class:`~dpc_jax.correction.inference.TrainedRun`) and
   run its network over a prepared sequence (ξ_corr and the paired photometric effect Δ per pair).
-* ``acceptance``: the ground-truth-free acceptance test on Δ (full correction, rotation, the
-  rotation about some axes, or nothing).
-* ``judge``: Δ of a given correction measured on a larger copy of the frames, without the
-  network, and the judged decision and scale that follow from it.
-* ``corrector``: the whole correction of one sequence (``dpc-jax correct``): predict, test,
-  judge, compose the trajectory, choose between the trained and the adapted network, write it.
+* ``measure``: the one measurement, Δ of any correction on the pairs of a prepared sequence, at
+  the network's size or on a larger copy of the frames (a judge), without the network.
+* ``acceptance``: the ground-truth-free test on Δ and the record of what it let through.
+* ``decision``: what to apply, from the measured effects alone: the full correction, its rotation,
+  the rotation about some axes, each whole or without its mean over the sequence, or nothing.
+* ``corrector``: the whole correction of one sequence (``dpc-jax correct``): predict, measure,
+  decide, compose the trajectory, choose between the trained and the adapted network, write it.
 * ``adapt``: self-supervised adaptation of a trained network to the sequence it corrects.
 
 Above training, the engine, eval and the reports; below the pipelines and the command line. Of

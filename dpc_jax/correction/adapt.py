@@ -162,7 +162,8 @@ def adapt(
 
 
 def adapt_and_correct(
-    run: TrainedRun, cache: SequenceCache, how: AdaptConfig, *, progress: bool = False, **correct_options: Any
+    run: TrainedRun, cache: SequenceCache, how: AdaptConfig, *, progress: Progress = False,
+    **correct_options: Any
 ) -> tuple[Adaptation, Correction]:
     """Adapt ``run`` to ``cache`` (:func:`adapt`), then correct ``cache`` with the adapted network
     (``dpc_jax.correction.corrector.correct_cache`` with ``correct_options``), its acceptance test on

@@ -1,18 +1,22 @@
 """Correct a VO trajectory with a trained DPC network, only where the images support it (``dpc-jax correct``).
 
-Pipeline (docs/method.md §1, §7):
+Pipeline (docs/method.md §1, §7, §8):
 
 1. ``dpc_jax.correction.inference.load_run`` restores a run at the epoch of a selection criterion and
    ``dpc_jax.correction.inference.run_prediction`` runs it over every consecutive pair ``(k, k+1)`` of a
-   prepared sequence: ξ_corr and the paired photometric effect Δ of the correction on the
-   sequence's own images (no ground truth).
-2. The acceptance test (``dpc_jax.correction.acceptance``) decides on Δ: apply the full correction, only
-   its rotation, or nothing — then the corrected trajectory *is* the prior (re-composed from its
-   relative poses). ``force=True`` applies the network's correction whatever the test says.
-3. ``T*_{k+1,k} = Exp(ξ_corr,k) · T_vo_{k+1,k}`` is composed from the first ground-truth pose when
-   the cache has ground truth, else from the first prior pose
+   prepared sequence: ξ_corr and L(0), the prior's photometric error on the sequence's own images.
+2. The decision (``dpc_jax.correction.decision``) on the measured effects Δ of the correction's parts
+   (``dpc_jax.correction.measure``, at the network's size and, with a judge, at a larger one): the
+   full correction, its rotation, the rotation about some axes, each whole or without its mean over
+   the sequence, or nothing — then the corrected trajectory *is* the prior (re-composed from its
+   relative poses). ``force=True`` applies the network's correction whatever the tests say.
+3. ``T*_{k+1,k} = Exp(ξ_k) · T_vo_{k+1,k}`` with the applied part ξ_k is composed from the first
+   ground-truth pose when the cache has ground truth, else from the first prior pose
    (``dpc_jax.geometry.pose_correction.corrected_trajectory``, float64); the prior, the network's proposal and
    the final trajectory are evaluated against the ground truth when it exists.
+
+:func:`correct_sequence` is the whole path a command, a protocol and the demo run: the network as
+trained, optionally adapted to the sequence (``dpc_jax.correction.adapt``), and :func:`choose`.
 
 Frames: a cache holds the frames it was prepared with (``indices``: their numbers in the source
 sequence). When static frames were removed or a frame range was selected at prepare time, the
@@ -28,28 +32,23 @@ import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TypedDict
+from typing import TYPE_CHECKING, TypedDict
 
 import numpy as np
 
 from dpc_jax._io import atomic_write
-from dpc_jax.correction.acceptance import (
-    DEFAULT_ALPHA,
-    Acceptance,
-    acceptance_test,
-    component_mask,
-    component_test,
-    forced,
-    refine_rotation,
-    rotation_component,
-)
+from dpc_jax.correction.acceptance import DEFAULT_ALPHA, Acceptance, paired_test
+from dpc_jax.correction.decision import applied_correction, decide, refused
 from dpc_jax.correction.inference import TrainedRun, run_prediction
-from dpc_jax.correction.judge import correction_effects, judge_cache, judge_correction
+from dpc_jax.correction.measure import judge_measurement, measurement
 from dpc_jax.data.poses_io import WRITE_FORMATS, write_kitti_poses, write_tum
 from dpc_jax.data.priors import prior_for_cache
 from dpc_jax.data.sequence_cache import SequenceCache, load_cache
-from dpc_jax.engine.predict import SequencePrediction
 from dpc_jax.eval.evaluation import Evaluation
+from dpc_jax.runtime.progress import Progress
+
+if TYPE_CHECKING:
+    from dpc_jax.correction.adapt import Adaptation, AdaptConfig
 
 
 class AdaptationSummary(TypedDict):
@@ -68,13 +67,13 @@ class Correction:
 
     ``frames``: the cached frames' numbers in the source sequence; ``times`` their times (s);
     ``xi_corr [N-1, 6]``: the network's corrections; ``proposed``: the trajectory with them
-    applied (only their rotation for a rotation-only run); ``corrected``: the final trajectory,
-    per ``acceptance.decision`` (``full``: the proposal, ``rotation``: only the rotations,
-    ``none``: the prior re-composed); ``evaluation``: ``prior``, ``network`` (the proposal) and
-    ``corrected`` against the ground truth, or None without ground truth; ``delta``: Δ of every
-    pair ``[N-1]`` per component (``full``, ``rotation``); ``tested``: the pairs the acceptance
-    test used (None: all); ``adaptation``: what ``dpc_jax.correction.adapt`` did first (steps, seconds,
-    held-out pairs), if anything; ``choice``: how :func:`choose` picked it among candidates.
+    applied (only their rotation for a rotation-only run); ``corrected``: the final trajectory, with
+    what ``acceptance`` applied (the prior re-composed when nothing); ``evaluation``: ``prior``,
+    ``network`` (the proposal) and ``corrected`` against the ground truth, or None without ground
+    truth; ``delta``: Δ ``[N-1]`` of the proposal (``full``) and of its rotation (``rotation``) on
+    every pair; ``tested``: the pairs the acceptance test used (None: all); ``adaptation``: what
+    ``dpc_jax.correction.adapt`` did first (steps, seconds, held-out pairs), if anything;
+    ``choice``: how :func:`choose` picked it among candidates.
     """
 
     name: str
@@ -96,7 +95,8 @@ class Correction:
 
     @property
     def applied(self) -> str:
-        """What went into :attr:`corrected`: ``full``, ``rotation`` or ``none``."""
+        """The component in :attr:`corrected`: ``full``, ``rotation``, ``rotation_<axes>`` or ``none``
+        (whole or without its mean, at a scale: ``acceptance.part``)."""
         return self.acceptance.decision
 
     @property
@@ -105,11 +105,12 @@ class Correction:
         return bool(np.array_equal(self.frames, np.arange(self.frames.size)))
 
     def summary(self) -> dict[str, object]:
-        """JSON-ready: the decision with Δ's statistics, and the evaluation summary if any."""
+        """JSON-ready: the decision with every test's statistics, and the evaluation summary if any."""
         out: dict[str, object] = {
             "sequence": self.name,
             "epoch": self.epoch,
             "applied": self.applied,
+            "part": self.acceptance.part,
             "rotation_only": self.rotation_only,
             "acceptance": self.acceptance.to_dict(),
         }
@@ -120,34 +121,6 @@ class Correction:
         if self.evaluation is not None:
             out["evaluation"] = json.loads(self.evaluation.to_json())
         return out
-
-
-def decide(
-    run: TrainedRun,
-    prediction: SequencePrediction,
-    *,
-    rotation_only: bool,
-    pairs: np.ndarray | None = None,
-    alpha: float = DEFAULT_ALPHA,
-    force: bool = False,
-) -> Acceptance:
-    """The acceptance decision for ``prediction`` (Δ over ``pairs``, default all).
-
-    A rotation-only correction is tested only as such. A run whose selection ``delta`` found no
-    epoch better than "no correction" is never applied unless ``force``.
-    """
-    components = ("rotation",) if rotation_only else ("full", "rotation")
-    chosen = slice(None) if pairs is None else np.asarray(pairs)
-    result = acceptance_test({c: prediction.delta[c][chosen] for c in components}, alpha, components)
-    if force:
-        return forced(result, components[0])
-    if not run.improves_on_prior:
-        return dataclasses.replace(
-            result, decision="none",
-            reason=f"the run holds no epoch that lowered the validation Δ (selection delta, "
-                   f"best_delta/); {result.reason}",
-        )
-    return result
 
 
 def default_acceptance_depth(run: TrainedRun) -> str:
@@ -174,54 +147,42 @@ def correct_cache(
     acceptance_depth: str | None = None,
     alpha: float = DEFAULT_ALPHA,
     force: bool = False,
+    mean_test: bool = True,
     held_out: np.ndarray | None = None,
     judge: SequenceCache | str | os.PathLike | None = None,
-    progress: bool = False,
+    progress: Progress = False,
 ) -> Correction:
     """Correct the prior of a cached sequence with ``run`` where the acceptance test allows it.
 
     ``prior``: None = the cache's own prior, else a replacement (see :func:`prior_for_cache`);
     ``rotation_only``: None = the run's ``config.rotation_only``; ``acceptance_depth``:
-    ``network`` or ``sgbm`` (None = :func:`default_acceptance_depth`); ``alpha``: the test's level;
-    ``force``: apply the correction whatever the test says; ``held_out``: the pairs ``k`` the test
-    uses (default all; after adaptation, the pairs it never saw). ``judge``: the same frames
-    prepared at a larger size (``dpc_jax.correction.judge``, a stereo run): a correction that passes at the
-    network's size must pass there too, with its StereoSGBM depth, and is applied at the scale of
-    :data:`~dpc_jax.correction.judge.JUDGE_SCALES` its images support best
-    (:func:`~dpc_jax.correction.judge.judge_correction`).
-    The trajectories start at the first ground-truth pose when the cache has ground truth, else at
-    the first prior pose (docs/method.md §1).
+    ``network`` or ``sgbm`` (None = :func:`default_acceptance_depth`); ``alpha``: the tests' level;
+    ``force``: apply the correction whatever the tests say; ``mean_test``: test the correction's
+    mean over the sequence on its own (``dpc_jax.correction.decision``; False: the earlier
+    decision); ``held_out``: the pairs ``k`` the tests use (default all; after adaptation, the pairs
+    it never saw). ``judge``: the same frames prepared at a larger size (a stereo run): what passes
+    at the network's size must pass there too, with its StereoSGBM depth, and is applied at the
+    scale its images support best. A run whose selection ``delta`` found no epoch better than "no
+    correction" is never applied unless ``force``. The trajectories start at the first ground-truth
+    pose when the cache has ground truth, else at the first prior pose (docs/method.md §1).
     """
     cache = cache if isinstance(cache, SequenceCache) else load_cache(cache)
     if prior is not None:
         cache = dataclasses.replace(cache, prior=prior_for_cache(cache, prior, prior_format))
     rotation_only = run.config.rotation_only if rotation_only is None else bool(rotation_only)
     depth = acceptance_depth or default_acceptance_depth(run)
-    judged = None if judge is None else judge_cache(run, cache, judge)
+    judged = None if judge is None else judge_measurement(run, cache, judge, batch_size, progress)
     prediction = run_prediction(run, cache, batch_size=batch_size, acceptance_depth=depth, progress=progress)
-    acceptance = decide(run, prediction, rotation_only=rotation_only, pairs=held_out, alpha=alpha,
+    measure = measurement(run, cache, depth=depth, batch_size=batch_size, none=prediction.photometric,
+                          progress=progress)
+    acceptance = decide(prediction.xi_corr, measure, components=("rotation",) if rotation_only else
+                        ("full", "rotation"), alpha=alpha, tested=held_out, judge=judged, mean_test=mean_test,
                         force=force)
-    delta = dict(prediction.delta)
-    if acceptance.decision == "rotation" and not acceptance.forced:
-
-        def subset_delta(axes: str) -> np.ndarray:
-            mask = component_mask(rotation_component(axes))
-            if depth == "sgbm" and run.config.method == "stereo_dpc" and not run.config.learn_ssim_weight:
-                # Δ with stereo depth needs no network (dpc_jax.correction.judge): no second pass of it.
-                # L(0) is the prediction's, measured with the same depth on the same pairs.
-                return correction_effects(cache, prediction.xi_corr, {axes: mask}, run.config.loss_config(),
-                                          batch_size or run.config.batch_size,
-                                          none=prediction.photometric)[axes]
-            again = run_prediction(run, cache, batch_size=batch_size, acceptance_depth=depth,
-                                   rotation_axes=mask[3:], progress=progress)
-            return again.delta["rotation"]
-
-        acceptance, delta = refine_rotation(acceptance, delta, subset_delta, held_out)
-    if judged is not None:
-        acceptance, delta = judge_correction(run, judged, prediction.xi_corr, acceptance, delta,
-                                             rotation_only, held_out, batch_size)
+    if not (force or run.improves_on_prior):
+        acceptance = refused(acceptance, "the run holds no epoch that lowered the validation Δ (selection "
+                                         "delta, best_delta/)")
     correction = compose_correction(run, cache, prediction.xi_corr, acceptance, rotation_only)
-    return dataclasses.replace(correction, delta=delta,
+    return dataclasses.replace(correction, delta=dict(prediction.delta),
                                tested=None if held_out is None else np.asarray(held_out, np.int64))
 
 
@@ -236,16 +197,7 @@ def compose_correction(
     gt = None if cache.gt is None else np.asarray(cache.gt, np.float64)
     first = gt[0] if gt is not None else prior[0]
     proposed = corrected_trajectory(xi_corr, prior, first, rotation_only)
-    decision, scale = acceptance.decision, acceptance.scale
-    if decision == "none":
-        applied = corrected_trajectory(np.zeros_like(xi_corr), prior, first)
-    elif decision == "full" and scale == 1.0:
-        applied = proposed
-    elif decision == "rotation" and scale == 1.0:
-        applied = corrected_trajectory(xi_corr, prior, first, True)
-    else:  # the rotation about some axes, or a scaled correction
-        mask = component_mask("rotation" if decision == "full" and rotation_only else decision)
-        applied = corrected_trajectory(scale * xi_corr * mask, prior, first)
+    applied = corrected_trajectory(applied_correction(xi_corr, acceptance), prior, first)
     evaluation = None
     if gt is not None:
         evaluation = evaluate(gt, {"prior": prior, "network": proposed, "corrected": applied})
@@ -273,14 +225,14 @@ def choose(trained: Correction, adapted: Correction | None = None) -> tuple[str,
     Each candidate has passed or failed its own acceptance test against the prior. The adapted
     network is the more flexible model, fitted to the very images it is judged on (its test pairs
     are kept out of adaptation, but their neighbours were fitted), so it must also beat the trained
-    network's applied correction on the kept-out pairs: the paired differences of the two effects,
-    ``Δ_adapted,i − Δ_trained,i``, significantly below 0 (the same one-sided Wilcoxon test at the
-    adapted test's level). Failing that, the trained network's accepted correction is kept — a
-    nested comparison, prior ⊂ trained ⊂ adapted, each step taken only on significant evidence.
-    With one depth for both (``acceptance_depth="sgbm"``) the difference is exactly
-    ``L(ξ_adapted) − L(ξ_trained)``; with each network's own depth it compares the two effects.
-    Forced corrections (``force``) are not compared: the adapted one is applied. The returned
-    correction's ``choice`` records the comparison.
+    network's applied correction on the kept-out pairs: the paired differences of the two applied
+    corrections' effects, ``Δ_adapted,i − Δ_trained,i``, significantly below 0 (the same one-sided
+    Wilcoxon test at the adapted test's level). Failing that, the trained network's accepted
+    correction is kept — a nested comparison, prior ⊂ trained ⊂ adapted, each step taken only on
+    significant evidence. With one depth for both (``acceptance_depth="sgbm"``) the difference is
+    exactly ``L(ξ_adapted) − L(ξ_trained)``; with each network's own depth it compares the two
+    effects. Forced corrections (``force``) are not compared: the adapted one is applied. The
+    returned correction's ``choice`` records the comparison.
     """
     if adapted is None or adapted.applied == "none":
         name = "trained" if trained.applied != "none" else "prior"
@@ -293,8 +245,9 @@ def choose(trained: Correction, adapted: Correction | None = None) -> tuple[str,
                   else "the adapted correction passed its test, the trained one did not")
         return "adapted", dataclasses.replace(adapted, choice={"final": "adapted", "reason": reason})
     pairs = slice(None) if adapted.tested is None else adapted.tested
-    difference = adapted.delta[adapted.applied][pairs] - trained.delta[trained.applied][pairs]
-    test = component_test("adapted − trained", difference, adapted.acceptance.alpha)
+    assert adapted.acceptance.delta is not None and trained.acceptance.delta is not None  # both applied
+    difference = adapted.acceptance.delta[pairs] - trained.acceptance.delta[pairs]
+    test = paired_test("adapted − trained", difference, adapted.acceptance.alpha)
     name = "adapted" if test.passed else "trained"
     verdict = "beats" if test.passed else "does not significantly beat"
     reason = (f"both passed their tests; the adapted correction {verdict} the trained one on the "
@@ -303,6 +256,53 @@ def choose(trained: Correction, adapted: Correction | None = None) -> tuple[str,
     chosen = adapted if test.passed else trained
     return name, dataclasses.replace(chosen, choice={"final": name, "reason": reason,
                                                      "comparison": dataclasses.asdict(test)})
+
+
+@dataclass(frozen=True)
+class CorrectedSequence:
+    """A sequence corrected by :func:`correct_sequence`: the network as trained (``trained``), adapted
+    (``adapted``, with ``adaptation``; None without adaptation), which :func:`choose` picked
+    (``final``: ``trained``, ``adapted`` or ``prior``) and that correction (``result``, its
+    ``choice`` recorded)."""
+
+    trained: Correction
+    adapted: Correction | None
+    adaptation: Adaptation | None
+    final: str
+    result: Correction
+
+    @property
+    def corrections(self) -> dict[str, Correction]:
+        """``trained`` (and ``adapted``), the chosen one with its choice recorded."""
+        out = {"trained": self.trained, **({"adapted": self.adapted} if self.adapted is not None else {})}
+        out[self.final if self.final != "prior" else "trained"] = self.result
+        return out
+
+
+def correct_sequence(
+    run: TrainedRun,
+    cache: SequenceCache | str | os.PathLike,
+    prior: str | os.PathLike | np.ndarray | None = None,
+    *,
+    adapt: AdaptConfig | None = None,
+    prior_format: str | None = None,
+    progress: Progress = False,
+    **options: object,
+) -> CorrectedSequence:
+    """Correct ``cache`` with ``run`` as trained (:func:`correct_cache` with ``options``) and, with
+    ``adapt``, with the network adapted to the sequence's own pairs (``dpc_jax.correction.adapt``, its
+    tests on the kept-out pairs); :func:`choose` picks the final correction."""
+    cache = cache if isinstance(cache, SequenceCache) else load_cache(cache)
+    if prior is not None:
+        cache = dataclasses.replace(cache, prior=prior_for_cache(cache, prior, prior_format))
+    trained = correct_cache(run, cache, progress=progress, **options)  # type: ignore[arg-type]
+    adaptation = adapted = None
+    if adapt is not None:
+        from dpc_jax.correction.adapt import adapt_and_correct
+
+        adaptation, adapted = adapt_and_correct(run, cache, adapt, progress=progress, **options)
+    final, result = choose(trained, adapted)
+    return CorrectedSequence(trained, adapted, adaptation, final, result)
 
 
 def frames_path(path: str | os.PathLike) -> Path:

@@ -113,13 +113,11 @@ def run_prediction(
     *,
     batch_size: int | None = None,
     acceptance_depth: str | None = None,
-    rotation_axes: np.ndarray | None = None,
     progress: Progress = False,
 ) -> SequencePrediction:
     """:func:`dpc_jax.engine.predict.predict_sequence` with a restored run's model, loss and settings.
 
-    ``acceptance_depth``: ``network`` or ``sgbm`` (default: the run's ``acceptance_depth``);
-    ``rotation_axes``: see :func:`dpc_jax.engine.predict.predict_sequence`.
+    ``acceptance_depth``: ``network`` or ``sgbm`` (default: the run's ``acceptance_depth``).
     """
     if cache.image_size != run.image_size:
         (h, w), (rh, rw) = cache.image_size, run.image_size
@@ -131,7 +129,7 @@ def run_prediction(
         run.graphdef, run.state, cache, run.config.loss_config(),
         batch_size=batch_size or run.config.batch_size, use_flow=run.config.use_flow,
         stereo_depth=stereo_depth_of(cache, acceptance_depth or run.config.acceptance_depth),
-        rotation_axes=rotation_axes, progress=progress,
+        progress=progress,
     )
 
 

@@ -1,12 +1,17 @@
-"""The network over a cached sequence: ξ_corr, the loss and Δ of every consecutive pair.
+"""The network over a cached sequence: ξ_corr, the loss and Δ of every consecutive pair; and Δ of any
+correction there.
 
 :func:`predict_sequence` evaluates a model (any ``graphdef, state``) on every consecutive pair
 ``(k, k+1)`` of a cached sequence in fixed-shape batches (the last one padded, its padding dropped),
 so one compilation serves the sequence: ξ_corr, the training loss, and the paired photometric
 effect Δ of the correction (``dpc_jax.nn.losses.correction_deltas``), with the network's depth or
 an independent stereo depth (``dpc_jax.data.stereo_depth``). Validation during training and the
-correction of a restored run (``dpc_jax.correction.inference``) both call it; the step driver
-(``dpc_jax.engine.driver``) runs it.
+correction of a restored run (``dpc_jax.correction.inference``) both call it.
+
+:func:`measure_effects` gives Δ of given corrections (``dpc_jax.nn.losses.candidate_deltas``) on the
+pairs of a cached sequence, with its stereo depth (no network) or with a model's depth: the one
+measurement under the acceptance test (``dpc_jax.correction.measure``). The step driver
+(``dpc_jax.engine.driver``) runs both.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 from jax.sharding import Mesh
@@ -26,10 +32,11 @@ from dpc_jax.data.sequence_cache import SequenceCache, StereoDepth, load_cache
 from dpc_jax.engine import backend, parallel
 from dpc_jax.engine.driver import drive
 from dpc_jax.nn.batch import Batch
-from dpc_jax.nn.losses import correction_deltas, dpc_loss, with_stereo_depth
+from dpc_jax.nn.losses import candidate_deltas, correction_deltas, dpc_loss, with_stereo_depth
+from dpc_jax.nn.outputs import BranchOutputs, DPCOutputs
 from dpc_jax.runtime.progress import Progress
 
-DELTAS = ("full", "rotation", "rotation_x", "rotation_y", "rotation_z")
+DELTAS = ("full", "rotation")
 
 
 @dataclass(frozen=True)
@@ -55,7 +62,7 @@ class SequencePrediction:
 
 @functools.cache
 def predict_step(mesh: Mesh | None, graphdef: nnx.GraphDef, treedef: Any, config: Any) -> Any:
-    """The jitted ``step(leaves, batch, rotation_axes) -> dict`` (evaluation mode) of the model
+    """The jitted ``step(leaves, batch) -> dict`` (evaluation mode) of the model
     ``graphdef`` with the loss ``config``, its state given as the flat list of arrays ``leaves``
     (``leaves, treedef = jax.tree.flatten(state)``), compiled with the backend's options
     (``dpc_jax.engine.backend``).
@@ -66,7 +73,7 @@ def predict_step(mesh: Mesh | None, graphdef: nnx.GraphDef, treedef: Any, config
     (``dpc_jax.nn.losses.with_stereo_depth``), else with the network's depth.
     """
 
-    def step(leaves: list[jax.Array], batch: Batch, rotation_axes: jax.Array) -> dict[str, jax.Array]:
+    def step(leaves: list[jax.Array], batch: Batch) -> dict[str, jax.Array]:
         model = nnx.merge(graphdef, jax.tree.unflatten(treedef, leaves))
         model.eval()
         outputs = model(batch)
@@ -74,7 +81,7 @@ def predict_step(mesh: Mesh | None, graphdef: nnx.GraphDef, treedef: Any, config
         valid = None
         if batch.stereo_depth is not None:
             outputs, valid = with_stereo_depth(outputs, batch.stereo_depth)
-        deltas = correction_deltas(outputs, batch, config, valid, rotation_axes)
+        deltas = correction_deltas(outputs, batch, config, valid)
         return {"xi_corr": outputs.xi_corr, "loss": loss, **deltas}
 
     kwargs: dict[str, Any] = {"compiler_options": backend.compiler_options(config.method, training=False)}
@@ -93,7 +100,6 @@ def predict_sequence(
     use_flow: bool,
     stereo_depth: StereoDepth | None = None,
     mesh: Mesh | None = None,
-    rotation_axes: np.ndarray | None = None,
     progress: Progress = False,
 ) -> SequencePrediction:
     """Run the model ``(graphdef, state)`` in evaluation mode over every pair of ``cache``
@@ -103,10 +109,9 @@ def predict_sequence(
     ``(inverse depth, valid)`` ``[N, camera, H, W]`` of every frame (``dpc_jax.data.stereo_depth``)
     to measure Δ with instead of the network's depth (Stereo DPC only). Batches hold
     ``min(batch_size, N-1)`` samples; with ``mesh`` each is sharded on its ``data`` axis (the
-    size must then divide over the devices). ``rotation_axes``: ``[3]`` 0/1, the camera axes
-    whose rotation ``delta["rotation"]`` applies (default all; ``correction_deltas``). The
-    batches, with their stereo depth, are assembled and moved to the device by the data threads;
-    batch k+1 is dispatched before the results of batch k are fetched.
+    size must then divide over the devices). The batches, with their stereo depth, are assembled
+    and moved to the device by the data threads; batch k+1 is dispatched before the results of
+    batch k are fetched.
     """
     cache = cache if isinstance(cache, SequenceCache) else load_cache(cache)
     graphdef, state = backend.prepare_for_backend(graphdef, state)
@@ -124,14 +129,12 @@ def predict_sequence(
     def put(batch: Batch) -> tuple[Any, np.ndarray]:
         return place(batch), np.asarray(batch.weight)
 
-    # A host array: jit places it beside the batch, replicated over a mesh.
-    axes = np.ones(3, np.float32) if rotation_axes is None else np.asarray(rotation_axes, np.float32)
     keys = ("xi_corr", "none", *DELTAS)
     results: dict[str, list[np.ndarray]] = {k: [] for k in keys}
     totals = {"loss": 0.0, "samples": 0.0}
 
     def run(carry: None, item: tuple[Any, np.ndarray], index: int) -> tuple[None, Any]:
-        return carry, step(leaves, item[0], axes)
+        return carry, step(leaves, item[0])
 
     def consume(index: int, out: dict[str, np.ndarray], item: tuple[Any, np.ndarray]) -> int:
         real = item[1] > 0
@@ -153,6 +156,100 @@ def predict_sequence(
         delta={k: merged[k] for k in DELTAS},
         loss=totals["loss"] / totals["samples"],
     )
+
+
+@functools.cache
+def effects_step(graphdef: nnx.GraphDef | None, treedef: Any, config: Any) -> Any:
+    """The jitted ``step(leaves, batch, candidates, none) -> {"none", "delta"}``
+    (``dpc_jax.nn.losses.candidate_deltas``): Δ ``[C, B]`` of the corrections ``candidates``
+    ``[C, B, 6]``, with ``batch.stereo_depth`` when the batch has one, else with the depth of the
+    model ``graphdef`` (its state the flat ``leaves``, evaluation mode); with ``graphdef`` None no
+    network runs. ``none``: ``L(0)`` ``[B]`` when known, else None (measured)."""
+
+    def step(leaves: list[jax.Array] | None, batch: Batch, candidates: jax.Array,
+             none: jax.Array | None) -> dict[str, jax.Array]:
+        valid = None
+        if graphdef is None:
+            assert batch.stereo_depth is not None
+            ones = jnp.ones(batch.stereo_depth[0].shape[:1] + batch.stereo_depth[0].shape[2:], jnp.float32)
+            branch = BranchOutputs(ones, ones)
+            outputs, valid = with_stereo_depth(DPCOutputs(candidates[0], branch, branch), batch.stereo_depth)
+        else:
+            assert leaves is not None
+            model = nnx.merge(graphdef, jax.tree.unflatten(treedef, leaves))
+            model.eval()
+            outputs = model(batch)
+            if batch.stereo_depth is not None:
+                outputs, valid = with_stereo_depth(outputs, batch.stereo_depth)
+        return candidate_deltas(outputs, batch, config, candidates, valid, none)
+
+    compiled = backend.compiler_options(config.method, training=False) if graphdef is not None else None
+    return jax.jit(step, compiler_options=compiled) if compiled else jax.jit(step)
+
+
+def measure_effects(
+    cache: SequenceCache,
+    candidates: np.ndarray,
+    loss_config: Any,
+    *,
+    batch_size: int,
+    stereo_depth: StereoDepth | None,
+    model: tuple[nnx.GraphDef, nnx.State] | None = None,
+    use_flow: bool = False,
+    none: np.ndarray | None = None,
+    progress: Progress = False,
+) -> dict[str, np.ndarray]:
+    """Δ of each of ``C`` corrections on every consecutive pair of ``cache`` →
+    ``{"none": L(0) [N-1], "delta": [C, N-1]}`` (float64).
+
+    ``candidates``: ``[C, N-1, 6]`` corrections ``[ρ (m), φ (rad)]`` of the pairs, e.g. parts of a
+    network's proposal; ``loss_config``: the loss whose temporal error ``L`` is measured
+    (``dpc_jax.nn.losses.temporal_pair_errors``). Depth: ``stereo_depth`` ``[N, camera, H, W]``
+    (``dpc_jax.data.stereo_depth``) when given, else the depth of ``model``. ``model``:
+    ``(graphdef, state)``, run in evaluation mode on every batch when given (``use_flow``: it reads
+    flow): for its depth, or, with a stereo depth, for its learned SSIM weight; without a model the
+    loss config's fixed weight is used and no network runs. ``none``: ``L(0)`` ``[N-1]`` when
+    already measured with this depth (a prediction's ``photometric``), which spares its evaluation.
+    """
+    pairs = len(cache) - 1
+    candidates = np.asarray(candidates, np.float32)
+    if candidates.ndim != 3 or candidates.shape[1:] != (pairs, 6):
+        raise ValueError(f"{cache.path}: candidates must be [C, {pairs}, 6] for its {pairs + 1} frames, got "
+                         f"{candidates.shape}")
+    if none is not None and np.shape(none) != (pairs,):
+        raise ValueError(f"{cache.path}: L(0) must be [{pairs}], got {np.shape(none)}")
+    if stereo_depth is None and model is None:
+        raise ValueError("measure_effects needs a stereo depth or a model whose depth it uses")
+    leaves: list[jax.Array] | None = None
+    graphdef = treedef = None
+    if model is not None:
+        graphdef, state = backend.prepare_for_backend(*model)
+        leaves, treedef = jax.tree.flatten(state)
+    step = effects_step(graphdef, treedef, loss_config)
+    size = max(1, min(batch_size, pairs))
+    known = None if none is None else np.asarray(none, np.float32)
+    out: dict[str, list[np.ndarray]] = {"none": [], "delta": []}
+
+    def put(batch: Batch) -> tuple[Batch, np.ndarray]:
+        return jax.device_put(batch), np.asarray(batch.weight)
+
+    def run(carry: None, item: tuple[Batch, np.ndarray], index: int) -> tuple[None, Any]:
+        rows = np.minimum(np.arange(index * size, (index + 1) * size), pairs - 1)
+        base = None if known is None else jnp.asarray(known[rows])
+        return carry, step(leaves, item[0], jnp.asarray(candidates[:, rows]), base)
+
+    def consume(index: int, effects: dict[str, np.ndarray], item: tuple[Batch, np.ndarray]) -> int:
+        real = item[1] > 0
+        out["none"].append(np.asarray(effects["none"], np.float64)[real])
+        out["delta"].append(np.asarray(effects["delta"], np.float64)[:, real])
+        return int(real.sum())
+
+    # Batch k+1 is dispatched before the effects of batch k are fetched.
+    batches = iterate_sequence(cache, size, flow=use_flow and model is not None, put=put,
+                               stereo_depth=stereo_depth)
+    drive(run, None, batches, total=pairs, desc=f"measure {cache.name}", unit="pair", progress=progress,
+          consume=consume)
+    return {"none": np.concatenate(out["none"]), "delta": np.concatenate(out["delta"], axis=1)}
 
 
 def stereo_depth_of(cache: SequenceCache, acceptance_depth: str) -> StereoDepth | None:

@@ -322,26 +322,41 @@ def correction_deltas(
     batch: Batch,
     config: SSDPCLossConfig | StereoDPCLossConfig,
     depth_valid: tuple[Array | None, Array | None] | None = None,
-    rotation_axes: Array | None = None,
 ) -> dict[str, Array]:
-    """Paired effect of the correction per sample: ``Δ = L(ξ_corr) − L(0)`` → ``{name: [B]}``.
+    """Paired effect of the network's correction per sample: ``Δ = L(ξ_corr) − L(0)`` → ``{name: [B]}``.
 
     ``L`` is :func:`temporal_pair_errors` with the *same* depth and validity in every term, so Δ
     isolates the pose: ``full`` applies ξ_corr as the loss config does (only its rotation with
-    ``rotation_only``), ``rotation`` only its rotation part ``[0, φ ⊙ rotation_axes]``
-    (``rotation_axes``: ``[3]`` 0/1 per camera axis x, y, z; default all), ``rotation_x``,
-    ``rotation_y``, ``rotation_z`` the rotation about that axis alone; ``none`` is ``L(0)`` itself
-    (the prior). Δ < 0: the corrected pose explains the images better than the prior.
+    ``rotation_only``), ``rotation`` only its rotation part ``[0, φ]``; ``none`` is ``L(0)`` itself
+    (the prior). Δ < 0: the corrected pose explains the images better than the prior. What the
+    validation of an epoch reads; any other correction is measured by :func:`candidate_deltas`.
     """
     xi = jnp.asarray(outputs.xi_corr)
-    axes = jnp.ones(3, xi.dtype) if rotation_axes is None else jnp.asarray(rotation_axes, xi.dtype)
+    rotation = jnp.concatenate([jnp.zeros_like(xi[:, :3]), xi[:, 3:]], axis=-1)
+    deltas = candidate_deltas(outputs, batch, config, jnp.stack([xi, rotation]), depth_valid)
+    return {"none": deltas["none"], "full": deltas["delta"][0], "rotation": deltas["delta"][1]}
 
-    def rotation_delta(mask: Array) -> Array:
-        rotation_xi = jnp.concatenate([jnp.zeros_like(xi[:, :3]), xi[:, 3:] * mask], axis=-1)
-        return temporal_pair_errors(outputs._replace(xi_corr=rotation_xi), batch, config, depth_valid) - none
 
-    none = temporal_pair_errors(outputs._replace(xi_corr=jnp.zeros_like(xi)), batch, config, depth_valid)
-    full = temporal_pair_errors(outputs, batch, config, depth_valid)
-    unit = jnp.eye(3, dtype=xi.dtype)
-    single = {f"rotation_{name}": rotation_delta(unit[i]) for i, name in enumerate("xyz")}
-    return {"none": none, "full": full - none, "rotation": rotation_delta(axes), **single}
+def candidate_deltas(
+    outputs: DPCOutputs,
+    batch: Batch,
+    config: SSDPCLossConfig | StereoDPCLossConfig,
+    candidates: Array,
+    depth_valid: tuple[Array | None, Array | None] | None = None,
+    none: Array | None = None,
+) -> dict[str, Array]:
+    """Δ of each of ``C`` candidate corrections per sample → ``{"none": L(0) [B], "delta": [C, B]}``.
+
+    ``candidates``: ``[C, B, 6]`` corrections ``[ρ (m), φ (rad)]`` put in place of
+    ``outputs.xi_corr`` one at a time, with the outputs' depth (or the independent one whose
+    validity is ``depth_valid``, :func:`with_stereo_depth`); ``Δ_c = L(ξ_c) − L(0)`` with
+    :func:`temporal_pair_errors`. ``none``: ``L(0)`` ``[B]`` when already measured with this depth,
+    which spares its evaluation.
+    """
+    candidates = jnp.asarray(candidates)
+    if none is None:
+        none = temporal_pair_errors(outputs._replace(xi_corr=jnp.zeros_like(candidates[0])), batch, config,
+                                    depth_valid)
+    deltas = [temporal_pair_errors(outputs._replace(xi_corr=candidates[c]), batch, config, depth_valid) - none
+              for c in range(candidates.shape[0])]
+    return {"none": none, "delta": jnp.stack(deltas)}

@@ -52,6 +52,8 @@ class DemoConfig:
           truth), ``gradient``, ``loop`` or ``last``.
         * ``acceptance``: apply a correction only where the acceptance test passes (False: apply
           every correction, as the papers do).
+        * ``mean_test``: test the correction's mean over the sequence on its own
+          (``dpc_jax.correction.decision``; False: the earlier decision, a whole part or nothing).
         * ``adapt_steps`` (0: no adaptation), ``holdout_every``: see ``dpc_jax.correction.adapt``.
         * ``max_fallback_share``: the demo refuses a prior whose VO fell back to constant velocity on
           more of the pairs than this (default ``dpc_jax.vo.odometry.FALLBACK_WARNING_SHARE``).
@@ -72,6 +74,7 @@ class DemoConfig:
     training: dict[str, Any] = field(default_factory=dict)
     select: str = "delta"
     acceptance: bool = True
+    mean_test: bool = True
     adapt_steps: int = 300
     holdout_every: int = 5
     max_fallback_share: float = FALLBACK_WARNING_SHARE

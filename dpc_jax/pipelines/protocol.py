@@ -106,7 +106,9 @@ class ExperimentProtocol:
     the others keep their defaults.
 
     Every kind: ``select`` (epoch selection, ``dpc_jax.training.train_config.SELECTIONS``), ``acceptance``
-    (False: apply every correction, the papers' way), ``rotation_only`` (None: the network's own),
+    (False: apply every correction, the papers' way), ``mean_test`` (test the correction's mean over
+    the sequence on its own, ``dpc_jax.correction.decision``; False: the earlier decision),
+    ``rotation_only`` (None: the network's own),
     ``adapt_steps`` / ``holdout_every`` (``dpc_jax.correction.adapt``), ``rectify_offset`` (rectify the
     network's images by the disparity offset our VO measures), ``judge_size`` (measure every acceptance
     test on frames prepared at this size; None: the network's). KITTI odometry: ``sequences``, ``validation``
@@ -117,6 +119,7 @@ class ExperimentProtocol:
     select: str = "gradient"
     acceptance: bool = True
     rotation_only: bool | None = None
+    mean_test: bool = True
     adapt_steps: int = 0
     holdout_every: int = 5
     rectify_offset: bool = False
@@ -271,38 +274,37 @@ def _estimates(correction: Correction) -> dict[str, dict[str, Any]]:
 def correct_and_evaluate(
     fold: str, run_dir: Path, cache: Path, out_root: Path, *, select: str = "gradient",
     prior_label: str = "prior", rotation_only: bool | None = None, acceptance: bool = True,
-    adapt_steps: int = 0, holdout_every: int = 5, judge: Path | None = None, progress: bool = False,
+    mean_test: bool = True, adapt_steps: int = 0, holdout_every: int = 5, judge: Path | None = None,
+    progress: bool = False,
 ) -> Result:
     """Correct the prior of ``cache`` with the run's selected epoch (only where the acceptance test
-    allows it, unless ``acceptance`` is False) and, with ``adapt_steps``, also with the network
-    adapted to ``cache``'s own pairs (``dpc_jax.correction.adapt``, the ground truth unread); the final
-    trajectory is chosen by ``dpc_jax.correction.corrector.choose`` (the adapted correction only if it passes
-    its test and beats the trained one, else the trained one if it passes, else the prior).
-    ``judge``: the same frames prepared at a larger size, where every acceptance test is measured
-    (``dpc_jax.correction.corrector.correct_cache``). Writes the final trajectory, the reports and (adapting)
-    the adapted network."""
-    from dpc_jax.correction.corrector import choose, correct_cache, write_trajectory
+    allows it, unless ``acceptance`` is False; ``mean_test``: the correction's mean tested on its own,
+    ``dpc_jax.correction.decision``) and, with ``adapt_steps``, also with the network adapted to
+    ``cache``'s own pairs (``dpc_jax.correction.adapt``, the ground truth unread); the final trajectory
+    is chosen by ``dpc_jax.correction.corrector.choose`` (the adapted correction only if it passes its
+    test and beats the trained one, else the trained one if it passes, else the prior). ``judge``: the
+    same frames prepared at a larger size, where every acceptance test is measured too
+    (``dpc_jax.correction.corrector.correct_sequence``). Writes the final trajectory, the reports and
+    (adapting) the adapted network."""
+    from dpc_jax.correction.corrector import correct_sequence, write_trajectory
     from dpc_jax.correction.inference import load_run
     from dpc_jax.data.sequence_cache import load_cache
     from dpc_jax.report.correction_report import write_correction_report
 
     run = load_run(run_dir, select)
-    loaded = load_cache(cache)
     name = Path(cache).name
-    judged = None if judge is None else load_cache(judge)
-    corrections = {"trained": correct_cache(run, loaded, rotation_only=rotation_only, force=not acceptance,
-                                            judge=judged, progress=progress)}
+    how = None
     if adapt_steps:
-        from dpc_jax.correction.adapt import AdaptConfig, adapt_and_correct, save_adapted
+        from dpc_jax.correction.adapt import AdaptConfig, save_adapted
 
         how = AdaptConfig(adapt_steps, holdout_every=holdout_every)
-        adaptation, corrections["adapted"] = adapt_and_correct(
-            run, loaded, how, rotation_only=rotation_only, force=not acceptance, judge=judged,
-            progress=progress)
-        save_adapted(out_root / "adapted" / fold / name, adaptation,
-                     {"delta": corrections["adapted"].acceptance.mean_delta})
-    final, correction = choose(corrections["trained"], corrections.get("adapted"))
-    corrections[final if final != "prior" else "trained"] = correction  # its report says how it was chosen
+    done = correct_sequence(run, load_cache(cache), adapt=how, rotation_only=rotation_only,
+                            force=not acceptance, mean_test=mean_test,
+                            judge=None if judge is None else load_cache(judge), progress=progress)
+    if done.adaptation is not None and done.adapted is not None:
+        save_adapted(out_root / "adapted" / fold / name, done.adaptation,
+                     {"delta": done.adapted.acceptance.mean_delta})
+    final, correction, corrections = done.final, done.result, done.corrections
     if correction.evaluation is None:
         raise ValueError(f"{cache}: no ground truth; the experiment needs it to evaluate")
     (out_root / "corrected" / fold).mkdir(parents=True, exist_ok=True)
@@ -313,11 +315,13 @@ def correct_and_evaluate(
             f"{fold}: {name} ({prior_label} prior, epoch {run.epoch} by {select}, network {label})",
         )
     stages = {label: _estimates(c)["network"] for label, c in corrections.items()}
-    decisions = {label: "forced" if c.acceptance.forced else c.applied for label, c in corrections.items()}
+    decisions = {label: "forced" if c.acceptance.forced else c.acceptance.part
+                 for label, c in corrections.items()}
     estimates = correction.evaluation.estimates
     return Result(fold, name, prior_label, run.epoch, select, int(correction.corrected.shape[0]),
                   {"prior": estimates["prior"], "corrected": estimates["corrected"]},
-                  f"{final}" + (f" ({correction.applied})" if final != "prior" else ""), stages, decisions)
+                  f"{final}" + (f" ({correction.acceptance.part})" if final != "prior" else ""), stages,
+                  decisions)
 
 
 # --------------------------------------------------------------------------- fake KITTI (smoke tests)

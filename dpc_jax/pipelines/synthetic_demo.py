@@ -187,29 +187,31 @@ def _correct_test(config: DemoConfig, out: Path, seconds: dict[str, float], prog
                   say: ProgressFn) -> _TestCorrections:
     """Correct the test sequence with the network as trained and, unless ``adapt_steps`` is 0, adapted to
     it; choose the final correction and write it to ``corrected.txt``."""
-    from dpc_jax.correction.adapt import AdaptConfig, adapt_and_correct, save_adapted
-    from dpc_jax.correction.corrector import choose, correct_cache, write_trajectory
+    from dpc_jax.correction.adapt import AdaptConfig, save_adapted
+    from dpc_jax.correction.corrector import correct_sequence, write_trajectory
     from dpc_jax.correction.inference import load_run
     from dpc_jax.data.sequence_cache import load_cache
 
     t = time.perf_counter()
     run = load_run(out / _RUN_DIR, config.select)
     test_cache = load_cache(out / _CACHE_DIR / "test")
-    corrections = {"trained": correct_cache(run, test_cache, force=not config.acceptance, progress=progress)}
+    how = AdaptConfig(config.adapt_steps, holdout_every=config.holdout_every) if config.adapt_steps else None
+    done = correct_sequence(run, test_cache, adapt=how, force=not config.acceptance,
+                            mean_test=config.mean_test, progress=progress)
     seconds["correct"] = time.perf_counter() - t
-    say(f"network as trained (epoch {run.epoch}): {decision_label(corrections['trained'].acceptance)} "
-        "on the test sequence")
-    adaptation: Adaptation | None = None
-    if config.adapt_steps:
-        t = time.perf_counter()
-        how = AdaptConfig(config.adapt_steps, holdout_every=config.holdout_every)
-        adaptation, corrections["adapted"] = adapt_and_correct(
-            run, test_cache, how, force=not config.acceptance, progress=progress)
-        save_adapted(out / "adapted", adaptation, {"delta": corrections["adapted"].acceptance.mean_delta})
-        seconds["adapt"] = time.perf_counter() - t
-        say(f"adapted ({config.adapt_steps} steps): {decision_label(corrections['adapted'].acceptance)} "
-            "on held-out pairs")
-    final, result = choose(corrections["trained"], corrections.get("adapted"))
+    if done.adaptation is not None:
+        # The adaptation's own time, out of the correction's.
+        seconds["adapt"] = done.adaptation.seconds
+        seconds["correct"] -= done.adaptation.seconds
+    say(f"network as trained (epoch {run.epoch}): {decision_label(done.trained.acceptance)} on the test "
+        "sequence")
+    if done.adapted is not None and done.adaptation is not None:
+        save_adapted(out / "adapted", done.adaptation, {"delta": done.adapted.acceptance.mean_delta})
+        say(f"adapted ({config.adapt_steps} steps): {decision_label(done.adapted.acceptance)} on held-out "
+            "pairs")
+    final, result = done.final, done.result
+    corrections = {"trained": done.trained, **({"adapted": done.adapted} if done.adapted is not None else {})}
+    adaptation = done.adaptation
     write_trajectory(out / "corrected.txt", result)
     return _TestCorrections(run.epoch, test_cache, corrections, adaptation, final, result)
 

@@ -20,7 +20,7 @@ _TEST_COLUMNS = ("pairs", "mean Δ", "median Δ", "pairs improved", "Wilcoxon W"
 
 class TestResult(Protocol):
     """What the report reads of one component's test
-    (:class:`dpc_jax.correction.acceptance.ComponentTest`)."""
+    (:class:`dpc_jax.correction.acceptance.PairedTest`)."""
 
     @property
     def component(self) -> str: ...
@@ -66,10 +66,39 @@ class AcceptanceResult(Protocol):
     @property
     def forced(self) -> bool: ...
 
+    @property
+    def scale(self) -> float: ...
+
+    @property
+    def remainder(self) -> bool: ...
+
+    @property
+    def mean(self) -> tuple[float, ...] | None: ...
+
 
 def rotation_axes_words(component: str) -> str:
     """``rotation_xz`` → ``"rotation about x, z"`` (camera axes)."""
     return "rotation about " + ", ".join(component.removeprefix("rotation_"))
+
+
+def applied_words(acceptance: AcceptanceResult, rotation_only: bool = False) -> str:
+    """What an acceptance test let through, in words: ``none``, ``full 6-DoF``, ``rotation only``,
+    ``rotation about x, z only``, each with ``without its mean`` (the mean over the sequence removed,
+    in mm and mrad) and the judge's scale."""
+    decision = acceptance.decision
+    if decision == "none":
+        return "none"
+    words = {"full": "rotation only" if rotation_only else "full 6-DoF", "rotation": "rotation only"}.get(
+        decision) or f"{rotation_axes_words(decision)} only"
+    if acceptance.remainder and acceptance.mean is not None:
+        mean = acceptance.mean
+        rotation = ", ".join(f"{1e3 * v:+.3f}" for v in mean[3:])
+        translation = ("" if decision != "full"
+                       else " mm, ".join(f"{1e3 * v:+.2f}" for v in mean[:3]) + " mm; ")
+        words += f", without its mean ({translation}{rotation} mrad per step)"
+    if acceptance.scale != 1.0:
+        words += f", ×{acceptance.scale:g}"
+    return words
 
 
 class CorrectionResult(Protocol):
@@ -107,14 +136,15 @@ def acceptance_markdown(acceptance: AcceptanceResult) -> str:
     """The acceptance test as Markdown: one row per component tested, then the decision."""
     lines = [row(["component", *_TEST_COLUMNS]), rule(1 + len(_TEST_COLUMNS)),
              *(_test_row(t) for t in acceptance.tests.values())]
-    applied = {"full": "the full correction", "rotation": "only the rotation of the correction",
-               "none": "nothing: the corrected trajectory is the prior"}.get(acceptance.decision)
-    applied = applied or f"only the {rotation_axes_words(acceptance.decision)} of the correction"
+    applied = applied_words(acceptance)
+    applied = "nothing: the corrected trajectory is the prior" if applied == "none" else applied
     return "\n".join([
         *lines, "",
         f"Δ = L(ξ_corr) − L(0) per frame pair: the gradient-masked photometric error of the temporal "
         f"reconstructions with the correction minus without it, same depth (negative: the correction "
-        f"explains the images better). Test: one-sided Wilcoxon signed-rank at α = {acceptance.alpha:g}.",
+        f"explains the images better). \"X − mean\": the correction without its mean over the sequence; "
+        f"\"mean of X\": Δ(X) − Δ(X − mean), whether the mean helps. Test: one-sided Wilcoxon signed-rank "
+        f"at α = {acceptance.alpha:g}.",
         "",
         f"**Applied: {applied}** ({acceptance.reason}).",
         "",

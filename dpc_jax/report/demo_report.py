@@ -15,7 +15,7 @@ from typing import Any, Protocol
 
 from dpc_jax._io import atomic_write
 from dpc_jax.eval.evaluation import Evaluation
-from dpc_jax.report.correction_report import AcceptanceResult, rotation_axes_words
+from dpc_jax.report.correction_report import AcceptanceResult, applied_words
 from dpc_jax.report.evaluation_report import segment_section, write_figures, write_tables
 from dpc_jax.report.tables import EMPTY, number, row, rule, table
 
@@ -81,8 +81,7 @@ def decision_label(acceptance: AcceptanceResult) -> str:
     """What the acceptance test let through, in the words of the test table and the progress lines."""
     if acceptance.forced:
         return "not tested (applied)"
-    names = {"full": "accepted (full 6-DoF)", "rotation": "accepted (rotation only)", "none": "rejected"}
-    return names.get(acceptance.decision) or f"accepted ({rotation_axes_words(acceptance.decision)} only)"
+    return "rejected" if acceptance.decision == "none" else f"accepted ({applied_words(acceptance)})"
 
 
 def _epoch_table(metrics_csv: Path, selected: int) -> str:

@@ -142,7 +142,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 P.train_fold(config, run_dir, progress)
                 result = P.correct_and_evaluate(
                     fold.name, run_dir, cache_root / f"{test_drive}_{prior}", args.workdir, select=select,
-                    prior_label=prior, acceptance=protocol.acceptance,
+                    prior_label=prior, acceptance=protocol.acceptance, mean_test=protocol.mean_test,
                     rotation_only=protocol.rotation_only, adapt_steps=adapt_steps,
                     holdout_every=protocol.holdout_every, progress=progress,
                     judge=None if judge_size is None else cache_root / f"{test_drive}_{prior}_judge")

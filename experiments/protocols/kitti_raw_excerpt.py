@@ -73,6 +73,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         results = [
             P.correct_and_evaluate(fold.name, run_dir, cache_root / name, args.workdir, select=select,
                                    prior_label=name, acceptance=protocol.acceptance,
+                                   mean_test=protocol.mean_test,
                                    rotation_only=protocol.rotation_only, adapt_steps=protocol.adapt_steps,
                                    holdout_every=protocol.holdout_every, judge=judges[name],
                                    progress=progress)

@@ -84,7 +84,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 results.append(P.correct_and_evaluate(
                     fold.name, run_dir, cache_root / test, args.workdir, select=select,
                     prior_label=Path(args.priors).name if args.priors != "vo" else "vo",
-                    acceptance=protocol.acceptance, progress=progress,
+                    acceptance=protocol.acceptance, mean_test=protocol.mean_test, progress=progress,
                 ))
     except (OSError, ValueError, KeyError) as error:
         print(f"kitti_stereo_dpc: error: {error}", file=sys.stderr)

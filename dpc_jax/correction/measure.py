@@ -1,0 +1,91 @@
+"""The measurement under the acceptance test: Δ of any correction on the pairs of a cached sequence.
+
+``Δ_k(ξ) = L_k(ξ) − L_k(0)`` on each consecutive pair ``(k, k+1)``
+(``dpc_jax.engine.predict.measure_effects``): what ``dpc_jax.correction.decision`` decides on. A
+:data:`~dpc_jax.correction.decision.Measure` is bound to one cache and one depth:
+
+* :func:`measurement`: at the network's size, with StereoSGBM depth (the default for a stereo run; no
+  network runs unless it learned its SSIM weight) or with the network's own depth (it runs again).
+* :func:`judge_measurement`: on a *judge*, the same frames prepared at a larger size, with its
+  StereoSGBM depth and no network. ξ is a pose, the same at every image size, and the photometric
+  loss resolves rotations better with more pixels (``docs/method.md`` §8).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Mapping
+
+import numpy as np
+
+from dpc_jax.correction.decision import Measure
+from dpc_jax.correction.inference import TrainedRun
+from dpc_jax.data.sequence_cache import SequenceCache, load_cache
+from dpc_jax.engine.predict import measure_effects, stereo_depth_of
+from dpc_jax.runtime.progress import Progress
+
+
+def measurement(
+    run: TrainedRun,
+    cache: SequenceCache,
+    *,
+    depth: str,
+    batch_size: int | None = None,
+    none: np.ndarray | None = None,
+    progress: Progress = False,
+) -> Measure:
+    """Δ of named corrections ``{name: [N-1, 6]}`` on the pairs of ``cache`` → ``{name: [N-1]}``.
+
+    ``depth``: ``sgbm`` (StereoSGBM on the cached pair) or ``network`` (the run's own depth);
+    ``none``: ``L(0)`` ``[N-1]`` already measured with that depth (a prediction's ``photometric``).
+    The loss is the run's, with its learned SSIM weight if it learned one.
+    """
+    stereo = stereo_depth_of(cache, depth)
+    model_needed = stereo is None or run.config.learn_ssim_weight
+    model = (run.graphdef, run.state) if model_needed else None
+    return _bound(cache, run.config.loss_config(), batch_size or run.config.batch_size, stereo, model,
+                  run.use_flow, none, progress)
+
+
+def judge_cache(
+    run: TrainedRun, cache: SequenceCache, judge: SequenceCache | str | os.PathLike
+) -> SequenceCache:
+    """The judge of ``cache`` for ``run`` (a cache or its folder), checked: the same frames, a stereo
+    run; its prior is replaced by ``cache``'s (Δ is measured around the prior being corrected)."""
+    judged = judge if isinstance(judge, SequenceCache) else load_cache(judge)
+    if run.config.method != "stereo_dpc":
+        raise ValueError(f"{judged.path}: a judge measures Δ with stereo depth; the run is "
+                         f"{run.config.method}")
+    same_sequence = judged.manifest.get("sequence") == cache.manifest.get("sequence")
+    if not same_sequence or not np.array_equal(np.asarray(judged.indices), np.asarray(cache.indices)):
+        raise ValueError(f"{judged.path}: holds frames other than those of {cache.path}; a judge must be "
+                         "the same frames prepared at another size")
+    if judged.image_size[0] < cache.image_size[0] or judged.image_size[1] < cache.image_size[1]:
+        (h, w), (ch, cw) = judged.image_size, cache.image_size
+        raise ValueError(f"{judged.path}: a judge must be at least the network's size, got {h}x{w} for a "
+                         f"cache of {ch}x{cw}")
+    return dataclasses.replace(judged, prior=cache.prior)
+
+
+def judge_measurement(
+    run: TrainedRun, cache: SequenceCache, judge: SequenceCache | str | os.PathLike,
+    batch_size: int | None = None, progress: Progress = False,
+) -> Measure:
+    """Δ of named corrections on the pairs of ``judge`` (:func:`judge_cache`), with its StereoSGBM depth
+    and the loss config's fixed SSIM weight (a learned one belongs to the network's size)."""
+    judged = judge_cache(run, cache, judge)
+    return _bound(judged, run.config.loss_config(), batch_size or run.config.batch_size,
+                  stereo_depth_of(judged, "sgbm"), None, False, None, progress)
+
+
+def _bound(cache: SequenceCache, config: object, batch_size: int, stereo: object, model: object,
+           use_flow: bool, none: np.ndarray | None, progress: Progress) -> Measure:
+    def measure(candidates: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        names = list(candidates)
+        effects = measure_effects(cache, np.stack([candidates[n] for n in names]), config,
+                                  batch_size=batch_size, stereo_depth=stereo, model=model,  # type: ignore[arg-type]
+                                  use_flow=use_flow, none=none, progress=progress)
+        return dict(zip(names, effects["delta"], strict=True))
+
+    return measure

@@ -1,0 +1,175 @@
+"""``dpc_jax.correction.decision``: what is applied, from measured effects alone.
+
+The reference is a closed-form photometric model: pair k's loss is a quadratic bowl around the step's
+true correction ξ*_k, ``L_k(ξ) = ‖w ⊙ (ξ − ξ*_k)‖²``, so ``Δ_k(ξ) = L_k(ξ) − L_k(0)`` is known
+exactly for any correction and the decision can be checked against what a correction does to the
+steps (and so to the drift).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from dpc_jax.correction.acceptance import Acceptance, paired_test
+from dpc_jax.correction.decision import (
+    applied_correction,
+    component_mask,
+    decide,
+    part_of,
+    rotation_component,
+)
+
+WEIGHT = np.array([1.0, 1.0, 1.0, 40.0, 40.0, 40.0])  # the images resolve a rotation better than a shift
+
+
+def bowl(truth: np.ndarray, noise: float = 0.0, seed: int = 0):
+    """The measurement of the quadratic model around ``truth`` ``[M, 6]``, with per-pair noise of the
+    loss (the same draw for every correction of a pair, as the images are the same)."""
+    jitter = np.random.default_rng(seed).normal(scale=noise, size=truth.shape[0])
+
+    def loss(xi: np.ndarray) -> np.ndarray:
+        return np.sum((WEIGHT * (xi - truth)) ** 2, axis=1) * (1.0 + jitter)
+
+    asked: list[str] = []
+
+    def measure(candidates):
+        asked.extend(candidates)
+        return {name: loss(xi) - loss(np.zeros_like(xi)) for name, xi in candidates.items()}
+
+    measure.asked = asked  # type: ignore[attr-defined]
+    return measure
+
+
+def rotations(m: int, mrad: float, seed: int) -> np.ndarray:
+    """``[m, 6]``: random rotations of about ``mrad`` per axis, no translation."""
+    xi = np.zeros((m, 6))
+    xi[:, 3:] = np.random.default_rng(seed).normal(scale=mrad * 1e-3, size=(m, 3))
+    return xi
+
+
+BIAS = np.array([0, 0, 0, 0.3e-3, -0.2e-3, 0.4e-3])  # a per-step rotation bias, the drift's cause
+
+
+def test_a_proposal_right_per_step_and_right_in_the_mean_is_applied_whole() -> None:
+    truth = BIAS + rotations(200, 1.0, 0)
+    proposal = truth + rotations(200, 0.1, 1)
+    result = decide(proposal, bowl(truth), components=("rotation",))
+    assert result.decision == "rotation" and not result.remainder and result.scale == 1.0
+    assert result.tests["rotation"].passed and result.tests["mean of rotation"].passed
+    np.testing.assert_allclose(applied_correction(proposal, result), proposal * component_mask("rotation"))
+
+
+def test_a_wrong_mean_is_removed_and_the_per_step_part_kept() -> None:
+    """The one harmful case the per-pair test let through: right about each step's noise, wrong about the
+    mean. The whole passes, its mean fails, the remainder is applied: the drift is the prior's, not
+    worse."""
+    truth = BIAS + rotations(200, 1.0, 0)
+    proposal = (truth - BIAS) - BIAS + rotations(200, 0.1, 1)  # the noise right, the bias reversed
+    measure = bowl(truth)
+    whole = paired_test("rotation", measure({"w": proposal})["w"])
+    assert whole.passed  # what the earlier decision applied
+    result = decide(proposal, measure, components=("rotation",))
+    assert result.decision == "rotation" and result.remainder, result.reason
+    assert not result.tests["mean of rotation"].passed and result.tests["rotation − mean"].passed
+    applied = applied_correction(proposal, result)
+    np.testing.assert_allclose(applied, proposal - proposal.mean(axis=0), atol=1e-15)
+    np.testing.assert_allclose(result.mean, proposal.mean(axis=0), atol=1e-15)
+    # The applied steps leave the drift (the mean error of the corrected steps) at the prior's, where the
+    # whole proposal had doubled it.
+    prior_drift = np.linalg.norm(truth.mean(axis=0))
+    assert np.linalg.norm((truth - applied).mean(axis=0)) == pytest.approx(prior_drift, rel=0.05)
+    assert np.linalg.norm((truth - proposal).mean(axis=0)) > 1.8 * prior_drift
+    # The earlier decision applies it whole.
+    assert not decide(proposal, measure, components=("rotation",), mean_test=False).remainder
+
+
+def test_nothing_passes_nothing_is_applied_and_zero_effects_fail() -> None:
+    truth = rotations(50, 1.0, 0)
+    result = decide(rotations(50, 1.0, 5), bowl(truth))
+    assert result.decision == "none" and result.delta is None and "prior is kept" in result.reason
+    assert np.all(applied_correction(np.ones((50, 6)), result) == 0)
+    flat = decide(np.zeros((50, 6)), bowl(truth))
+    assert flat.decision == "none" and math.isnan(flat.tests["full"].statistic)
+
+
+def test_the_full_correction_comes_before_its_rotation() -> None:
+    truth = rotations(100, 1.0, 0)
+    truth[:, :3] = np.random.default_rng(3).normal(scale=0.02, size=(100, 3))
+    right = truth + rotations(100, 0.05, 1)
+    assert decide(right, bowl(truth)).decision == "full"
+    wrong_shift = right.copy()
+    wrong_shift[:, :3] = -3 * truth[:, :3]
+    result = decide(wrong_shift, bowl(truth))
+    assert result.decision == "rotation" and not result.tests["full"].passed
+
+
+def test_axes_that_fail_alone_are_dropped() -> None:
+    """Pitch and roll right, yaw wrong: the rotation about x and z, with its own mean test."""
+    truth = BIAS + rotations(200, 1.0, 0)
+    proposal = truth.copy()
+    proposal[:, 4] = -truth[:, 4] * 0.5  # a yaw that hurts on every pair
+    measure = bowl(truth)
+    result = decide(proposal, measure, components=("rotation",))
+    assert result.decision == "rotation_xz" and not result.remainder, result.reason
+    assert {"rotation_x", "rotation_y", "rotation_z", "rotation_xz", "mean of rotation_xz"} <= set(
+        result.tests)
+    np.testing.assert_allclose(applied_correction(proposal, result), proposal * [0, 0, 0, 1, 0, 1])
+    assert rotation_component("xz") == "rotation_xz" and rotation_component("xyz") == "rotation"
+    with pytest.raises(ValueError, match="axes"):
+        rotation_component("zx")
+
+
+def test_the_judge_must_agree_and_picks_the_scale() -> None:
+    truth = BIAS + rotations(200, 1.0, 0)
+    proposal = truth / 0.75  # right direction, a third too large
+    network = bowl(proposal)  # the coarse images ask for what the network proposes
+    result = decide(proposal, network, components=("rotation",), judge=bowl(truth))
+    assert result.decision == "rotation" and result.scale == 0.75, result.reason
+    assert "rotation ×0.75 (judge)" in result.tests and "mean of rotation (judge)" in result.tests
+    np.testing.assert_allclose(applied_correction(proposal, result), truth * component_mask("rotation"))
+    # The judge's Δ of what is applied is what choose compares.
+    np.testing.assert_allclose(result.delta, bowl(truth)({"x": truth * component_mask("rotation")})["x"])
+    # A judge that sees harm refuses what the network's size accepted.
+    refused = decide(proposal, network, components=("rotation",), judge=bowl(-truth))
+    assert refused.decision == "none" and not refused.tests["rotation (judge)"].passed
+
+
+def test_tested_pairs_and_forcing() -> None:
+    truth = BIAS + rotations(100, 1.0, 0)
+    proposal = truth.copy()
+    proposal[::2] = -truth[::2]  # right on odd pairs, wrong on even ones
+    measure = bowl(truth)
+    assert decide(proposal, measure, components=("rotation",), tested=np.arange(1, 100, 2)).decision != "none"
+    assert decide(proposal, measure, components=("rotation",), tested=np.arange(0, 100, 2)).decision == "none"
+    forced = decide(proposal, measure, components=("rotation",), tested=np.arange(0, 100, 2), force=True)
+    assert forced.forced and forced.decision == "rotation" and not forced.remainder
+    assert "rotation" in forced.tests and not forced.tests["rotation"].passed
+    with pytest.raises(ValueError, match="components"):
+        decide(proposal, measure, components=("translation",))
+    with pytest.raises(ValueError, match="alpha"):
+        decide(proposal, measure, alpha=0.0)
+
+
+def test_each_candidate_is_measured_once_per_size() -> None:
+    truth = BIAS + rotations(60, 1.0, 0)
+    measure = bowl(truth)
+    decide(truth, measure)
+    assert len(measure.asked) == len(set(measure.asked))  # type: ignore[attr-defined]
+
+
+def test_parts_and_records() -> None:
+    xi = np.arange(24, dtype=np.float64).reshape(4, 6)
+    np.testing.assert_array_equal(part_of(xi, "rotation_xz"), xi * [0, 0, 0, 1, 0, 1])
+    np.testing.assert_allclose(part_of(xi, "full", remainder=True, scale=0.5), 0.5 * (xi - xi.mean(axis=0)))
+    np.testing.assert_allclose(part_of(xi, "rotation", remainder=True, mean=np.ones(6)),
+                               xi * component_mask("rotation") - 1.0)
+    np.testing.assert_array_equal(component_mask("none"), np.zeros(6))
+    record = Acceptance(0.01, {}, "rotation_xz", "why", scale=0.75, remainder=True, mean=(0.0,) * 6)
+    assert record.part == "rotation_xz − mean ×0.75"
+    assert record.to_dict()["part"] == record.part and record.to_dict()["remainder"]
+    assert Acceptance(0.01).part == "none" and math.isnan(Acceptance(0.01).mean_delta)
+    with pytest.raises(ValueError, match="xi must be"):
+        part_of(np.zeros(6), "full")
