@@ -198,8 +198,9 @@ def test_cli_writes_trajectory_that_reads_back_and_a_report(setup: dict, tmp_pat
 
 def test_cli_prepares_raw_input_and_writes_kept_frames(setup: dict, tmp_path: Path, capsys) -> None:
     """Odometry input with static-frame removal: the trajectory has the kept frames, listed beside it.
-    The stereo run is smaller than 240x376, so its acceptance test is judged there by default: the same
-    kept frames are prepared at 240x376 as ``05_judge``."""
+    The stereo run is smaller than 240x376, so its acceptance test is judged at a larger size by default:
+    the same kept frames, prepared as ``05_judge`` at the largest size of 240x376 that the 48x72 source
+    images give without upsampling; a --judge-size larger than the source is refused."""
     from dpc_jax.cli import main
     from dpc_jax.data.poses_io import read_trajectory
     from dpc_jax.data.sequence_cache import load_cache
@@ -212,10 +213,15 @@ def test_cli_prepares_raw_input_and_writes_kept_frames(setup: dict, tmp_path: Pa
     cache = load_cache(tmp_path / "cache" / "05")
     assert 2 <= len(cache) < FRAMES  # ~1 m steps: the static rule drops frames
     assert cache.image_size == SIZE  # prepared at the run's image size
-    judge = load_cache(tmp_path / "cache" / "05_judge")  # the default judge, the papers' input size
-    assert judge.image_size == (240, 376)
+    judge = load_cache(tmp_path / "cache" / "05_judge")  # the default judge, at the source's size
+    assert judge.image_size == (48, 72)
     np.testing.assert_array_equal(judge.indices, cache.indices)
-    assert "acceptance test: measured at 240x376 (the default judge" in capsys.readouterr().out
+    out_text = capsys.readouterr().out
+    assert "acceptance test: measured at 48x72 (the default judge" in out_text
+    assert "the largest the 48x72 source images allow of 240x376" in out_text
+    larger = [*argv[:-5], "--judge-size", "96x144", "--out", str(tmp_path / "larger.txt"), "--no-progress"]
+    assert main(larger) == 2 and not (tmp_path / "larger.txt").exists()
+    assert "--judge-size 96x144: larger than the source images (48x72)" in capsys.readouterr().err
     frames = np.loadtxt(tmp_path / "corrected.frames.txt", dtype=int)
     np.testing.assert_array_equal(frames, cache.indices)
     poses = read_trajectory(out, "kitti")

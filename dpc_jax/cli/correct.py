@@ -251,37 +251,67 @@ def _cache_folders_problem(args: argparse.Namespace) -> str | None:
 
 
 def default_judge_size(
-    args: argparse.Namespace, method: str, size: tuple[int, int]
+    args: argparse.Namespace, method: str, size: tuple[int, int], source: tuple[int, int]
 ) -> tuple[int, int] | None:
     """The size raw inputs are judged at when ``--judge-size`` is not given: :data:`JUDGE_SIZE` for a
-    ``stereo_dpc`` run of image ``size`` smaller than it (no larger in either dimension), unless
-    ``--no-judge`` or ``--force`` (a forced correction is not judged); None otherwise, and with ``--data``
-    (a cache has no larger frames to judge at)."""
+    ``stereo_dpc`` run of image ``size`` smaller than it (no larger in either dimension), but no larger
+    than the ``source`` images (a judge upsampled from smaller images sees nothing they do not), and
+    only when that is still larger than the run's; unless ``--no-judge`` or ``--force`` (a forced
+    correction is not judged); None otherwise, and with ``--data`` (a cache has no larger frames to
+    judge at)."""
     if args.data is not None or args.judge_size is not None or args.no_judge or args.force:
         return None
     if method != "stereo_dpc" or not _smaller_than_judge(size):
         return None
-    return JUDGE_SIZE
+    judge = (min(JUDGE_SIZE[0], source[0]), min(JUDGE_SIZE[1], source[1]))
+    return judge if _smaller_than(size, judge) else None
+
+
+def _smaller_than(size: tuple[int, int], other: tuple[int, int]) -> bool:
+    """Whether ``size`` is smaller than ``other`` (and no larger in either dimension)."""
+    return tuple(size) != tuple(other) and size[0] <= other[0] and size[1] <= other[1]
 
 
 def _smaller_than_judge(size: tuple[int, int]) -> bool:
     """Whether an image ``size`` is smaller than :data:`JUDGE_SIZE` (and no larger in either dimension)."""
-    return tuple(size) != JUDGE_SIZE and size[0] <= JUDGE_SIZE[0] and size[1] <= JUDGE_SIZE[1]
+    return _smaller_than(size, JUDGE_SIZE)
 
 
 def _take_default_judge(args: argparse.Namespace) -> str | None:
-    """With raw inputs and no judge option, set ``args.judge_size`` to :func:`default_judge_size` of the
-    stored run (read without JAX) and mark it ``args.default_judge``; then, with ``--cache``, why its
-    ``NAME_judge`` folder cannot be replaced, or None."""
+    """With raw inputs, check ``--judge-size`` against the run and the source images (a judge is never
+    smaller than the run's images nor larger than the source's); with no judge option, set
+    ``args.judge_size`` to :func:`default_judge_size` of the stored run (read without JAX) and mark it
+    ``args.default_judge``; then, with ``--cache``, why its ``NAME_judge`` folder cannot be replaced,
+    or None."""
     from dpc_jax import config as config_lib
     from dpc_jax.training.train_config import TrainConfig
 
     args.default_judge = False
+    args.judge_limited = None
     if args.data is not None:
         return None
     config = config_lib.load_file(args.checkpoint / "checkpoints" / "config.json", TrainConfig)
-    size = default_judge_size(args, config.method, config.resolved_image_size)
+    try:
+        height, width = _open_sequence(args).image_size
+    except (OSError, ValueError, KeyError) as error:
+        return str(error)
+    source = (int(height), int(width))
+    run_size = (int(config.resolved_image_size[0]), int(config.resolved_image_size[1]))
+    if args.judge_size is not None:
+        jh, jw = args.judge_size
+        if jh > source[0] or jw > source[1]:
+            return (f"--judge-size {jh}x{jw}: larger than the source images ({source[0]}x{source[1]}); a "
+                    "judge upsampled from smaller images sees nothing they do not: give at most "
+                    f"{source[0]}x{source[1]}")
+        if jh < run_size[0] or jw < run_size[1]:
+            return (f"--judge-size {jh}x{jw}: smaller than the run's images ({run_size[0]}x{run_size[1]}); "
+                    "a judge measures Δ on more pixels than the network saw, not fewer")
+        return _cache_folders_problem(args) if args.cache is not None else None
+    size = default_judge_size(args, config.method, run_size, source)
     if size is None:
+        if (config.method == "stereo_dpc" and not (args.no_judge or args.force)
+                and _smaller_than_judge(run_size) and not _smaller_than(run_size, source)):
+            args.judge_limited = source
         return None
     args.judge_size, args.default_judge = size, True
     return _cache_folders_problem(args) if args.cache is not None else None
@@ -548,8 +578,14 @@ def _print_judge(args: argparse.Namespace, run_: TrainedRun) -> None:
     h, w = run_.image_size
     if getattr(args, "default_judge", False):
         jh, jw = args.judge_size
-        print(f"acceptance test: measured at {jh}x{jw} (the default judge of a stereo run on raw inputs; "
-              f"--no-judge: at the run's {h}x{w} only)")
+        smaller = "" if (jh, jw) == JUDGE_SIZE else (f", the largest the {jh}x{jw} source images allow "
+                                                     f"of {JUDGE_SIZE[0]}x{JUDGE_SIZE[1]}")
+        print(f"acceptance test: measured at {jh}x{jw} (the default judge of a stereo run on raw inputs"
+              f"{smaller}; --no-judge: at the run's {h}x{w} only)")
+    elif getattr(args, "judge_limited", None) is not None:
+        sh, sw = args.judge_limited
+        print(f"note: the acceptance test was measured at the run's {h}x{w} only: the source images "
+              f"({sh}x{sw}) are no larger, and a judge is not upsampled")
     elif (args.data is not None and args.judge is None and not args.no_judge and not args.force
           and run_.config.method == "stereo_dpc" and _smaller_than_judge((h, w))):
         print(f"note: the acceptance test was measured at the cache's {h}x{w} only (a cache has no "
