@@ -32,7 +32,7 @@ import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, TypedDict
+from typing import TYPE_CHECKING, Any, TypedDict
 
 import numpy as np
 
@@ -150,6 +150,7 @@ def correct_cache(
     mean_test: bool = True,
     held_out: np.ndarray | None = None,
     judge: SequenceCache | str | os.PathLike | None = None,
+    proposal: np.ndarray | None = None,
     progress: Progress = False,
 ) -> Correction:
     """Correct the prior of a cached sequence with ``run`` where the acceptance test allows it.
@@ -163,8 +164,10 @@ def correct_cache(
     it never saw). ``judge``: the same frames prepared at a larger size (a stereo run): what passes
     at the network's size must pass there too, with its StereoSGBM depth, and is applied at the
     scale its images support best. A run whose selection ``delta`` found no epoch better than "no
-    correction" is never applied unless ``force``. The trajectories start at the first ground-truth
-    pose when the cache has ground truth, else at the first prior pose (docs/method.md §1).
+    correction" is never applied unless ``force``. ``proposal``: ``[N-1, 6]`` the run's corrections of
+    this cache when already predicted (decided again, e.g. with other options; then the network does
+    not run for them, and ``delta`` is empty). The trajectories start at the first ground-truth pose
+    when the cache has ground truth, else at the first prior pose (docs/method.md §1).
     """
     cache = cache if isinstance(cache, SequenceCache) else load_cache(cache)
     if prior is not None:
@@ -172,17 +175,20 @@ def correct_cache(
     rotation_only = run.config.rotation_only if rotation_only is None else bool(rotation_only)
     depth = acceptance_depth or default_acceptance_depth(run)
     judged = None if judge is None else judge_measurement(run, cache, judge, batch_size, progress)
-    prediction = run_prediction(run, cache, batch_size=batch_size, acceptance_depth=depth, progress=progress)
-    measure = measurement(run, cache, depth=depth, batch_size=batch_size, none=prediction.photometric,
-                          progress=progress)
-    acceptance = decide(prediction.xi_corr, measure, components=("rotation",) if rotation_only else
-                        ("full", "rotation"), alpha=alpha, tested=held_out, judge=judged, mean_test=mean_test,
-                        force=force)
+    if proposal is None:
+        prediction = run_prediction(run, cache, batch_size=batch_size, acceptance_depth=depth,
+                                    progress=progress)
+        xi, none, delta = prediction.xi_corr, prediction.photometric, dict(prediction.delta)
+    else:
+        xi, none, delta = np.asarray(proposal, np.float64), None, {}
+    measure = measurement(run, cache, depth=depth, batch_size=batch_size, none=none, progress=progress)
+    acceptance = decide(xi, measure, components=("rotation",) if rotation_only else ("full", "rotation"),
+                        alpha=alpha, tested=held_out, judge=judged, mean_test=mean_test, force=force)
     if not (force or run.improves_on_prior):
         acceptance = refused(acceptance, "the run holds no epoch that lowered the validation Δ (selection "
                                          "delta, best_delta/)")
-    correction = compose_correction(run, cache, prediction.xi_corr, acceptance, rotation_only)
-    return dataclasses.replace(correction, delta=dict(prediction.delta),
+    correction = compose_correction(run, cache, xi, acceptance, rotation_only)
+    return dataclasses.replace(correction, delta=delta,
                                tested=None if held_out is None else np.asarray(held_out, np.int64))
 
 
@@ -287,7 +293,7 @@ def correct_sequence(
     adapt: AdaptConfig | None = None,
     prior_format: str | None = None,
     progress: Progress = False,
-    **options: object,
+    **options: Any,
 ) -> CorrectedSequence:
     """Correct ``cache`` with ``run`` as trained (:func:`correct_cache` with ``options``) and, with
     ``adapt``, with the network adapted to the sequence's own pairs (``dpc_jax.correction.adapt``, its
@@ -295,7 +301,7 @@ def correct_sequence(
     cache = cache if isinstance(cache, SequenceCache) else load_cache(cache)
     if prior is not None:
         cache = dataclasses.replace(cache, prior=prior_for_cache(cache, prior, prior_format))
-    trained = correct_cache(run, cache, progress=progress, **options)  # type: ignore[arg-type]
+    trained = correct_cache(run, cache, progress=progress, **options)
     adaptation = adapted = None
     if adapt is not None:
         from dpc_jax.correction.adapt import adapt_and_correct
@@ -303,6 +309,23 @@ def correct_sequence(
         adaptation, adapted = adapt_and_correct(run, cache, adapt, progress=progress, **options)
     final, result = choose(trained, adapted)
     return CorrectedSequence(trained, adapted, adaptation, final, result)
+
+
+def decided_again(
+    done: CorrectedSequence, run: TrainedRun, cache: SequenceCache, **options: Any
+) -> CorrectedSequence:
+    """The proposals of ``done`` (the network as trained and adapted, on ``cache``, corrected by
+    :func:`correct_sequence`) decided again with other ``options`` of :func:`correct_cache` (e.g.
+    ``mean_test=False``, the earlier decision), and chosen again: nothing is adapted again, and with
+    StereoSGBM depth no network runs."""
+    trained = correct_cache(run, cache, proposal=done.trained.xi_corr, **options)
+    adapted = None
+    if done.adapted is not None and done.adaptation is not None:
+        adapted = correct_cache(done.adaptation.run, cache, proposal=done.adapted.xi_corr,
+                                held_out=done.adaptation.held_out, **options)
+        adapted = dataclasses.replace(adapted, adaptation=done.adaptation.summary())
+    final, result = choose(trained, adapted)
+    return CorrectedSequence(trained, adapted, done.adaptation, final, result)
 
 
 def frames_path(path: str | os.PathLike) -> Path:

@@ -75,6 +75,8 @@ class Result:
     applied: str = "full"  # which network's correction the final trajectory holds (or "prior")
     stages: dict[str, dict[str, Any]] = field(default_factory=dict)  # network label → its proposal's summary
     decisions: dict[str, str] = field(default_factory=dict)  # network label → acceptance decision
+    # The final trajectory with the earlier decision (the mean not tested apart): applied and summary.
+    earlier: dict[str, Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -108,6 +110,8 @@ class ExperimentProtocol:
     Every kind: ``select`` (epoch selection, ``dpc_jax.training.train_config.SELECTIONS``), ``acceptance``
     (False: apply every correction, the papers' way), ``mean_test`` (test the correction's mean over
     the sequence on its own, ``dpc_jax.correction.decision``; False: the earlier decision),
+    ``earlier_decision`` (also decide every correction the earlier way, from the same networks, and
+    report its final trajectory beside the new one),
     ``rotation_only`` (None: the network's own),
     ``adapt_steps`` / ``holdout_every`` (``dpc_jax.correction.adapt``), ``rectify_offset`` (rectify the
     network's images by the disparity offset our VO measures), ``judge_size`` (measure every acceptance
@@ -120,6 +124,7 @@ class ExperimentProtocol:
     acceptance: bool = True
     rotation_only: bool | None = None
     mean_test: bool = True
+    earlier_decision: bool = False
     adapt_steps: int = 0
     holdout_every: int = 5
     rectify_offset: bool = False
@@ -272,39 +277,48 @@ def _estimates(correction: Correction) -> dict[str, dict[str, Any]]:
 
 
 def correct_and_evaluate(
-    fold: str, run_dir: Path, cache: Path, out_root: Path, *, select: str = "gradient",
-    prior_label: str = "prior", rotation_only: bool | None = None, acceptance: bool = True,
-    mean_test: bool = True, adapt_steps: int = 0, holdout_every: int = 5, judge: Path | None = None,
-    progress: bool = False,
+    fold: str, run_dir: Path, cache: Path, out_root: Path, protocol: ExperimentProtocol, *,
+    select: str | None = None, prior_label: str = "prior", adapt_steps: int | None = None,
+    judge: Path | None = None, progress: bool = False,
 ) -> Result:
-    """Correct the prior of ``cache`` with the run's selected epoch (only where the acceptance test
-    allows it, unless ``acceptance`` is False; ``mean_test``: the correction's mean tested on its own,
-    ``dpc_jax.correction.decision``) and, with ``adapt_steps``, also with the network adapted to
-    ``cache``'s own pairs (``dpc_jax.correction.adapt``, the ground truth unread); the final trajectory
-    is chosen by ``dpc_jax.correction.corrector.choose`` (the adapted correction only if it passes its
-    test and beats the trained one, else the trained one if it passes, else the prior). ``judge``: the
-    same frames prepared at a larger size, where every acceptance test is measured too
-    (``dpc_jax.correction.corrector.correct_sequence``). Writes the final trajectory, the reports and
-    (adapting) the adapted network."""
-    from dpc_jax.correction.corrector import correct_sequence, write_trajectory
+    """Correct the prior of ``cache`` with the run's epoch by ``select`` (None: the protocol's) as the
+    ``protocol`` says (its ``acceptance``, ``mean_test``, ``rotation_only``, ``adapt_steps`` unless
+    ``adapt_steps`` is given, ``holdout_every``, ``earlier_decision``): behind the acceptance test and,
+    adapting, also with the network adapted to ``cache``'s own pairs (``dpc_jax.correction.adapt``, the
+    ground truth unread); the final trajectory is chosen by ``dpc_jax.correction.corrector.choose``
+    (the adapted correction only if it passes its test and beats the trained one, else the trained one
+    if it passes, else the prior). ``judge``: the same frames prepared at a larger size, where every
+    acceptance test is measured too (``dpc_jax.correction.corrector.correct_sequence``). Writes the
+    final trajectory, the reports and (adapting) the adapted network."""
+    from dpc_jax.correction.corrector import correct_sequence, decided_again, write_trajectory
     from dpc_jax.correction.inference import load_run
     from dpc_jax.data.sequence_cache import load_cache
     from dpc_jax.report.correction_report import write_correction_report
 
+    select = select or protocol.select
     run = load_run(run_dir, select)
     name = Path(cache).name
+    steps = protocol.adapt_steps if adapt_steps is None else adapt_steps
     how = None
-    if adapt_steps:
+    if steps:
         from dpc_jax.correction.adapt import AdaptConfig, save_adapted
 
-        how = AdaptConfig(adapt_steps, holdout_every=holdout_every)
-    done = correct_sequence(run, load_cache(cache), adapt=how, rotation_only=rotation_only,
-                            force=not acceptance, mean_test=mean_test,
-                            judge=None if judge is None else load_cache(judge), progress=progress)
+        how = AdaptConfig(steps, holdout_every=protocol.holdout_every)
+    loaded, judged = load_cache(cache), None if judge is None else load_cache(judge)
+    options: dict[str, Any] = {"rotation_only": protocol.rotation_only, "force": not protocol.acceptance,
+                               "judge": judged}
+    done = correct_sequence(run, loaded, adapt=how, mean_test=protocol.mean_test, progress=progress,
+                            **options)
     if done.adaptation is not None and done.adapted is not None:
         save_adapted(out_root / "adapted" / fold / name, done.adaptation,
                      {"delta": done.adapted.acceptance.mean_delta})
     final, correction, corrections = done.final, done.result, done.corrections
+    earlier = None
+    if protocol.earlier_decision and protocol.acceptance and protocol.mean_test:
+        again = decided_again(done, run, loaded, mean_test=False, **options)
+        earlier = {"applied": again.final + (f" ({again.result.acceptance.part})" if again.final != "prior"
+                                             else ""),
+                   "metrics": _estimates(again.result)["corrected"]}
     if correction.evaluation is None:
         raise ValueError(f"{cache}: no ground truth; the experiment needs it to evaluate")
     (out_root / "corrected" / fold).mkdir(parents=True, exist_ok=True)
@@ -321,7 +335,7 @@ def correct_and_evaluate(
     return Result(fold, name, prior_label, run.epoch, select, int(correction.corrected.shape[0]),
                   {"prior": estimates["prior"], "corrected": estimates["corrected"]},
                   f"{final}" + (f" ({correction.acceptance.part})" if final != "prior" else ""), stages,
-                  decisions)
+                  decisions, earlier)
 
 
 # --------------------------------------------------------------------------- fake KITTI (smoke tests)

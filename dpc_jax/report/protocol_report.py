@@ -52,6 +52,9 @@ class SequenceResult(Protocol):
     @property
     def decisions(self) -> Mapping[str, str]: ...
 
+    @property
+    def earlier(self) -> Mapping[str, Any] | None: ...
+
 
 def results_markdown(results: Sequence[SequenceResult], title: str, notes: Sequence[str] = ()) -> str:
     """The results table: one row per test sequence and prior, prior → corrected for each metric."""
@@ -69,13 +72,16 @@ def results_markdown(results: Sequence[SequenceResult], title: str, notes: Seque
               "rotation), or prior (no test passed)."]
     staged = [r for r in results if r.stages]
     if staged:
-        lines += ["", "Per network (each row: that network's correction applied, whatever its test said):",
+        lines += ["", "Per network (each row: that network's correction applied, whatever its test said; "
+                  "final, earlier decision: the same networks decided without the test of the mean):",
                   "", row(["sequence", "prior", "estimate", "acceptance test", *(t for _, t in COLUMNS)]),
                   rule(4 + len(COLUMNS))]
         for r in staged:
             rows = [("prior", "", r.metrics["prior"])]
             rows += [(f"network {label}", r.decisions[label], m) for label, m in r.stages.items()]
             rows.append((f"final ({r.applied})", "", r.metrics["corrected"]))
+            if r.earlier is not None:
+                rows.append((f"final, earlier decision ({r.earlier['applied']})", "", r.earlier["metrics"]))
             for label, decision, m in rows:
                 cells = [number(m[k]) for k, _ in COLUMNS]
                 lines.append(row([r.sequence, r.prior_label, label, decision, *cells]))

@@ -54,11 +54,14 @@ def _value(summary: dict[str, Any], key: str) -> float | None:
 
 
 def long_rows(drive: str, prior: str, trained_on: str, result: P.Result) -> list[dict[str, Any]]:
-    """The four rows (prior, trained, adapted, final) of one correction, for ``results.csv``."""
+    """The rows (prior, trained, adapted, final, and the final of the earlier decision when the protocol
+    asks for it) of one correction, for ``results.csv``."""
     rows = [("prior", "", result.metrics["prior"])]
     rows += [(label, result.decisions[label], result.stages[label]) for label in ("trained", "adapted")
              if label in result.stages]
     rows.append(("final", result.applied, result.metrics["corrected"]))
+    if result.earlier is not None:
+        rows.append(("final, earlier decision", result.earlier["applied"], result.earlier["metrics"]))
     return [{"drive": drive, "prior": prior, "trained_on": trained_on, "estimate": estimate,
              "decision": decision, **{k: _value(summary, k) for k in METRICS}}
             for estimate, decision, summary in rows]
@@ -76,7 +79,8 @@ def results_markdown(rows: Sequence[dict[str, Any]], notes: Sequence[str]) -> st
         "# Two real KITTI raw drives, cross-drive", "", *notes, "", body,
         "estimate: prior = the prior itself; trained = the network as trained applied (whatever its test "
         "said), decision = its acceptance test; adapted = the same network adapted to the test drive's "
-        "images (no ground truth) applied; final = what the acceptance tests and the choice keep. Segment "
+        "images (no ground truth) applied; final = what the acceptance tests and the choice keep; final, "
+        "earlier decision = the same networks decided without testing the correction's mean apart. Segment "
         f"errors: {EMPTY} where the drive is shorter than 100 m. RPE over one frame."]) + "\n"
 
 
@@ -141,10 +145,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 run_dir = args.workdir / "runs" / fold.name
                 P.train_fold(config, run_dir, progress)
                 result = P.correct_and_evaluate(
-                    fold.name, run_dir, cache_root / f"{test_drive}_{prior}", args.workdir, select=select,
-                    prior_label=prior, acceptance=protocol.acceptance, mean_test=protocol.mean_test,
-                    rotation_only=protocol.rotation_only, adapt_steps=adapt_steps,
-                    holdout_every=protocol.holdout_every, progress=progress,
+                    fold.name, run_dir, cache_root / f"{test_drive}_{prior}", args.workdir, protocol,
+                    select=select, prior_label=prior, adapt_steps=adapt_steps, progress=progress,
                     judge=None if judge_size is None else cache_root / f"{test_drive}_{prior}_judge")
                 rows += long_rows(test_drive, prior, f"{train_drive} {PRIOR_NAMES[trained_on]}", result)
                 print(f"[{(time.perf_counter() - began) / 60:.1f} min] test {test_drive}, prior {prior}, "

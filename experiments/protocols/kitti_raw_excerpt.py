@@ -71,12 +71,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         P.train_fold(config, run_dir, progress)
         select = args.select or protocol.select
         results = [
-            P.correct_and_evaluate(fold.name, run_dir, cache_root / name, args.workdir, select=select,
-                                   prior_label=name, acceptance=protocol.acceptance,
-                                   mean_test=protocol.mean_test,
-                                   rotation_only=protocol.rotation_only, adapt_steps=protocol.adapt_steps,
-                                   holdout_every=protocol.holdout_every, judge=judges[name],
-                                   progress=progress)
+            P.correct_and_evaluate(fold.name, run_dir, cache_root / name, args.workdir, protocol,
+                                   select=select, prior_label=name, judge=judges[name], progress=progress)
             for name in fold.test
         ]
     except (OSError, ValueError, KeyError) as error:

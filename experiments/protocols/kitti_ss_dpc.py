@@ -83,9 +83,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             P.train_fold(configs[fold.name], run_dir, progress)
             for test in fold.test:
                 results.append(P.correct_and_evaluate(
-                    fold.name, run_dir, Path(configs[fold.name].cache_root) / test, args.workdir,
+                    fold.name, run_dir, Path(configs[fold.name].cache_root) / test, args.workdir, protocol,
                     select=select, prior_label=f"libviso2-{kind[0]}" if args.priors != "vo" else "vo",
-                    acceptance=protocol.acceptance, mean_test=protocol.mean_test, progress=progress,
+                    progress=progress,
                 ))
     except (OSError, ValueError, KeyError) as error:
         print(f"kitti_ss_dpc: error: {error}", file=sys.stderr)

@@ -82,9 +82,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             P.train_fold(configs[fold.name], run_dir, progress)
             for test in fold.test:
                 results.append(P.correct_and_evaluate(
-                    fold.name, run_dir, cache_root / test, args.workdir, select=select,
-                    prior_label=Path(args.priors).name if args.priors != "vo" else "vo",
-                    acceptance=protocol.acceptance, mean_test=protocol.mean_test, progress=progress,
+                    fold.name, run_dir, cache_root / test, args.workdir, protocol, select=select,
+                    prior_label=Path(args.priors).name if args.priors != "vo" else "vo", progress=progress,
                 ))
     except (OSError, ValueError, KeyError) as error:
         print(f"kitti_stereo_dpc: error: {error}", file=sys.stderr)

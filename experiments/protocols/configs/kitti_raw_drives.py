@@ -36,12 +36,12 @@ from pathlib import Path
 _EXCERPT = runpy.run_path(str(Path(__file__).with_name("kitti_raw_excerpt.py")))
 
 PROTOCOL = {
-    # The excerpt's date, epoch selection, rectification, adaptation, rotation-only correction and judge
-    # size (every acceptance test on a test drive measured on its frames prepared at ``judge_size``,
-    # 240×376; see configs/kitti_raw_excerpt.py).
+    # The excerpt's date, epoch selection, rectification, adaptation, rotation-only correction, judge
+    # size and decision (every acceptance test on a test drive measured on its frames prepared at
+    # ``judge_size``, 240×376, and the correction's mean tested apart; see configs/kitti_raw_excerpt.py).
     **{key: _EXCERPT["PROTOCOL"][key]
        for key in ("date", "select", "rectify_offset", "adapt_steps", "holdout_every", "rotation_only",
-                   "judge_size")},
+                   "judge_size", "mean_test", "earlier_decision")},
     "drives": {
         "0001": {"libviso2": "libviso2/stereo_2011_09_26_drive_0001.mat",
                  "train_frames": (0, 80), "validation_frames": (80, 108)},

@@ -56,12 +56,17 @@ PROTOCOL = {
     # the rotation improved (1.28 → 0.24 and 0.97 → 0.70 °/100 m).
     "rotation_only": True,
     # Every acceptance test is measured on the drive's frames prepared at this size
-    # (dpc_jax.correction.judge): the papers' input size, where the photometric loss resolves rotations
+    # (dpc_jax.correction.measure): the papers' input size, where the photometric loss resolves rotations
     # that 64×96 does not, and which picks the scale of an accepted correction (docs/method.md §8).
     # Judged at the network's 64×96 alone, the adapted rotation for our VO was accepted though it raised
     # the segment translation error 0.601 → 0.621 % and the position m-ATE 0.245 → 0.308 m (the images
     # at 64×96 ask for more pitch than the ground truth). None: at the network's size.
     "judge_size": (240, 376),
+    # The correction's mean over the drive tested on its own (dpc_jax.correction.decision), and every
+    # correction also decided the earlier way (the mean not tested apart) from the same networks, its
+    # final trajectory reported beside the new one.
+    "mean_test": True,
+    "earlier_decision": True,
 }
 
 CONFIG = {
