@@ -293,3 +293,24 @@ def run_demo(config: DemoConfig, out: str | os.PathLike, progress: bool = False,
         summary["adaptation"] = tested.adaptation.summary()
     _write_results(out, config, train_config, evaluation, summary, began)
     return summary
+
+
+def decided_again_in(out: str | os.PathLike, config: DemoConfig, **options: Any) -> tuple[str, Correction]:
+    """The test sequence of a finished demo in ``out`` corrected again from its networks (the run as
+    trained and, when it adapted, the adapted network in ``adapted/`` with its kept-out pairs), decided
+    with other ``options`` of ``dpc_jax.correction.corrector.correct_cache`` (e.g. ``mean_test=False``:
+    the earlier decision) and chosen again → ``(final, correction)``; nothing is trained or adapted."""
+    from dpc_jax.correction.corrector import choose, correct_cache
+    from dpc_jax.correction.inference import load_run
+    from dpc_jax.data.sequence_cache import load_cache
+
+    out = Path(out)
+    cache = load_cache(out / _CACHE_DIR / "test")
+    options = {"force": not config.acceptance, **options}
+    trained = correct_cache(load_run(out / _RUN_DIR, config.select), cache, **options)
+    adapted = None
+    if config.adapt_steps:
+        held_out = np.asarray(json.loads((out / "adapted" / "adapt.json").read_text())["held_out_pairs"])
+        adapted = correct_cache(load_run(out / "adapted", "last"), cache, held_out=held_out, **options)
+    return choose(trained, adapted)
+
