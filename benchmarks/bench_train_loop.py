@@ -77,16 +77,16 @@ def median_rate(values: list[float]) -> float:
 def bench_method(
     args: argparse.Namespace, method: str, root: Path, train: str, validation: str, corrected: str
 ) -> dict[str, Any]:
-    import numpy as np
     from flax import nnx
 
     from dpc_jax.correction.corrector import correct_cache, default_acceptance_depth
     from dpc_jax.correction.inference import TrainedRun
     from dpc_jax.data.pipeline import iterate_sequence
     from dpc_jax.data.sequence_cache import load_cache
+    from dpc_jax.engine import parallel
     from dpc_jax.engine.backend import prepare_for_backend
     from dpc_jax.engine.predict import predict_step, stereo_depth_of
-    from dpc_jax.training import loop, parallel
+    from dpc_jax.training import loop
     from dpc_jax.training.steps import make_train_step
     from dpc_jax.training.train_config import TrainConfig
 
@@ -191,19 +191,17 @@ def bench_method(
     prepared_graphdef, prepared_state = prepare_for_backend(run_graphdef, run_state)
     prepared_leaves, treedef = jax.tree.flatten(prepared_state)
     predict = predict_step(None, prepared_graphdef, treedef, config.loss_config())
-    # The same inputs the correction's step gets: the cache's stereo depth where its test uses it,
-    # and every rotation axis for Δ of the whole rotation.
+    # The same inputs the correction's step gets: the cache's stereo depth where its test uses it.
     stereo = stereo_depth_of(cache, default_acceptance_depth(run))
     # The sequence's batches, on the device before the clock starts.
     resident = [jax.device_put(b) for b in iterate_sequence(cache, size, flow=config.use_flow,
                                                             stereo_depth=stereo)]
-    axes = np.ones(3, np.float32)
 
     def predict_isolated() -> float:
         began = time.perf_counter()
         out = None
         for batch in resident:
-            out = predict(prepared_leaves, batch, axes)
+            out = predict(prepared_leaves, batch)
         jax.block_until_ready(out)
         return len(resident) * size / (time.perf_counter() - began)
 
