@@ -33,7 +33,8 @@ class PairedTest:
 
     ``mean_delta``/``median_delta``: of the differences; ``improved_share``: fraction below 0;
     ``statistic``, ``p_value``: Wilcoxon signed-rank (``nan``/1 when every difference is 0);
-    ``passed``: ``p_value < alpha`` and ``mean_delta < 0``.
+    ``passed``: ``p_value < alpha`` and ``mean_delta < 0``; ``std_delta``: the standard deviation of
+    the differences (what the power of the test on more pairs follows from).
     """
 
     component: str
@@ -44,6 +45,7 @@ class PairedTest:
     statistic: float
     p_value: float
     passed: bool
+    std_delta: float = math.nan
 
 
 def paired_test(name: str, delta: np.ndarray, alpha: float = DEFAULT_ALPHA) -> PairedTest:
@@ -70,6 +72,7 @@ def paired_test(name: str, delta: np.ndarray, alpha: float = DEFAULT_ALPHA) -> P
         statistic=statistic,
         p_value=p_value,
         passed=bool(p_value < alpha and mean < 0),
+        std_delta=float(delta.std()),
     )
 
 

@@ -5,6 +5,7 @@ when there is ground truth."""
 from __future__ import annotations
 
 import json
+import math
 import os
 from collections.abc import Mapping
 from pathlib import Path
@@ -126,7 +127,7 @@ def _test_row(t: TestResult) -> str:
 
 
 def _row(component: str, pairs: int, mean_delta: float, median_delta: float, improved_share: float,
-         statistic: float, p_value: float, passed: bool) -> str:
+         statistic: float, p_value: float, passed: bool, std_delta: float = math.nan) -> str:
     return row([component, str(pairs), f"{mean_delta:.3e}", f"{median_delta:.3e}",
                 f"{100 * improved_share:.1f} %", f"{statistic:.4g}", f"{p_value:.3g}",
                 "yes" if passed else "no"])
