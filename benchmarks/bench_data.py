@@ -32,6 +32,7 @@ from dpc_jax.data.sequence_cache import (
     FLOW_FILES,
     MANIFEST,
     PAIR_KINDS,
+    file_record,
     flow_step,
     load_cache,
 )
@@ -74,7 +75,8 @@ def write_random_cache(
     np.save(path / "indices.npy", np.arange(frames))
     np.save(path / "times.npy", np.arange(frames) * 0.1)
     manifest = {"version": CACHE_VERSION, "name": path.name, "n_frames": frames, "image_size": [h, w],
-                "has_gt": True, "flows": list(flow_kinds), "flow_step": flow_step(size), "stereo_depth": True}
+                "has_gt": True, "flows": list(flow_kinds), "flow_step": flow_step(size), "stereo_depth": True,
+                "arrays": {file.name: file_record(file) for file in sorted(path.glob("*.npy"))}}
     (path / MANIFEST).write_text(json.dumps(manifest))
     for file in path.iterdir():  # finish the write-back now, not during the timed epochs
         with file.open("rb") as f:

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -18,7 +20,7 @@ from test_kitti import write_odometry
 from dpc_jax.cli import main
 from dpc_jax.data.cache import prepare_sequence
 from dpc_jax.data.kitti import open_odometry, open_raw
-from dpc_jax.data.sequence_cache import MANIFEST, flow_step, load_cache, training_sequences
+from dpc_jax.data.sequence_cache import MANIFEST, CacheError, flow_step, load_cache, training_sequences
 from dpc_jax.geometry.warp import stereo_warp
 
 RAW = DATA / "kitti-raw"
@@ -286,20 +288,30 @@ def test_training_sequences_default_to_every_cached_one_but_validation_and_test(
 
 
 def test_a_cache_of_another_format_version_is_refused_in_one_line(tmp_path: Path) -> None:
-    """A version-1 cache (float32 depth and flow) is refused by the reader, which every command
-    reads caches with, naming what rebuilds it; `prepare` with the same options does (the
-    version is part of the input hash)."""
+    """A version-2 cache (no digests) is refused by the reader, which every command reads caches
+    with, naming what rebuilds it; `prepare` with the same options does (the version is part of the
+    input hash). A cache of a newer version is refused as such, and `prepare` leaves it alone."""
     write_odometry(tmp_path / "kitti", n=5)
     seq = open_odometry(tmp_path / "kitti", "00")
     path = prepare_sequence(seq, seq.poses, tmp_path / "out", size=(10, 16), progress=False)
     manifest = json.loads((path / MANIFEST).read_text())
-    manifest["version"] = 1
-    (path / MANIFEST).write_text(json.dumps(manifest))
-    refusal = r"cache format version 1, this dpc_jax reads version 2; run the same `dpc-jax prepare` again"
+    older = {**manifest, "version": 2, "input_hash": "0" * 64}
+    del older["arrays"]
+    (path / MANIFEST).write_text(json.dumps(older))
+    refusal = r"cache format version 2, this dpc_jax reads version 3; run the same `dpc-jax prepare` again"
     with pytest.raises(ValueError, match=refusal):
         load_cache(path)
     prepare_sequence(seq, seq.poses, tmp_path / "out", size=(10, 16), progress=False)
-    assert load_cache(path).manifest["version"] == 2
+    assert load_cache(path).manifest["version"] == 3
+
+    (path / MANIFEST).write_text(json.dumps({**manifest, "version": 4}))
+    files = {p.name: p.read_bytes() for p in path.iterdir()}
+    newer = "this cache was written by a newer dpc_jax (cache format version 4; this one reads version 3"
+    with pytest.raises(CacheError, match=re.escape(newer)):
+        load_cache(path)
+    with pytest.raises(CacheError, match=re.escape(newer)):
+        prepare_sequence(seq, seq.poses, tmp_path / "out", size=(10, 16), progress=False, force=True)
+    assert {p.name: p.read_bytes() for p in path.iterdir()} == files
 
 
 @pytest.mark.parametrize("damage", ["truncate", "nan_prior"])
@@ -335,3 +347,114 @@ def test_a_prior_of_the_frame_range_alone_is_that_range(tmp_path: Path) -> None:
     np.testing.assert_array_equal(load_cache(from_range).prior, load_cache(from_whole).prior)
     with pytest.raises(ValueError, match=r"2 prior poses for 6 frames; .* or one per frame of the range 1:4"):
         prepare_sequence(seq, whole[1:3], tmp_path / "c", frames=(1, 4), size=(10, 16), progress=False)
+
+
+def test_array_digest_of_a_file_written_in_pieces_is_that_of_its_bytes() -> None:
+    """The digests a writer records while it streams a file are hashlib's of the whole file and of its
+    sample, however the bytes arrive; the sample is 64 blocks of 4 KiB from the first byte to the last."""
+    import hashlib
+
+    from dpc_jax.data.sequence_cache import SAMPLE_BLOCK, ArrayDigest, sample_ranges
+
+    data = np.random.default_rng(0).integers(0, 256, 3_000_017, dtype=np.uint8).tobytes()
+    ranges = sample_ranges(len(data))
+    assert len(ranges) == 64 and ranges[0][0] == 0 and ranges[-1][1] == len(data)
+    assert all(b - a == SAMPLE_BLOCK for a, b in ranges)
+    assert all(b1 <= a2 for (_, b1), (a2, _) in itertools.pairwise(ranges))
+    digest = ArrayDigest(len(data))
+    cuts = [0, 1, 4095, 4097, 100_000, 1_500_000, 2_999_999, len(data)]
+    for a, b in itertools.pairwise(cuts):
+        digest.update(data[a:b])
+    record = digest.record()
+    assert record["bytes"] == len(data) and record["sha256"] == hashlib.sha256(data).hexdigest()
+    assert record["sample_sha256"] == hashlib.sha256(b"".join(data[a:b] for a, b in ranges)).hexdigest()
+    assert sample_ranges(1000) == [(0, 1000)]  # a small file is its own sample
+
+
+def test_the_manifest_records_the_digest_of_every_array_it_lists(tmp_path: Path) -> None:
+    import hashlib
+
+    write_odometry(tmp_path / "kitti", n=5)
+    seq = open_odometry(tmp_path / "kitti", "00")
+    path = prepare_sequence(seq, seq.poses, tmp_path / "out", size=(20, 32), flow=True, progress=False)
+    arrays = json.loads((path / MANIFEST).read_text())["arrays"]
+    assert set(arrays) == {p.name for p in path.iterdir() if p.suffix == ".npy"}
+    for file, record in arrays.items():
+        content = (path / file).read_bytes()
+        assert record["bytes"] == len(content) and record["sha256"] == hashlib.sha256(content).hexdigest()
+
+
+def _changed(path: Path, file: str, change: str) -> None:
+    """Change one bit, pixel or value of ``file`` in place, keeping its shape, dtype and validity."""
+    array = np.load(path / file, mmap_mode="r+")
+    if change == "bit":  # the sign bit of frame 3's z: a rigid pose still, 8 m → −8 m
+        array[3, 2, 3:4].view(np.uint64)[...] ^= np.uint64(1 << 63)
+    elif change == "pixel":
+        array[2, 5, 7, 1] ^= 1
+    else:
+        array[1, 0, 3] += 0.25
+    array.flush()
+
+
+@pytest.mark.parametrize(("file", "change"),
+                         [("prior.npy", "bit"), ("right.npy", "pixel"), ("gt.npy", "value")])
+def test_a_cache_whose_bytes_changed_is_refused_and_rebuilt(tmp_path: Path, file: str, change: str) -> None:
+    """One bit of the prior, one pixel, one ground-truth value: the readers refuse the cache naming the
+    file, and `prepare` with unchanged inputs rebuilds it (a new manifest) with the bytes it had."""
+    write_odometry(tmp_path / "kitti", n=5)
+    seq = open_odometry(tmp_path / "kitti", "00")
+    path = prepare_sequence(seq, seq.poses, tmp_path / "out", size=(20, 32), progress=False)
+    original = (path / file).read_bytes()
+    _changed(path, file, change)
+    assert (path / file).read_bytes() != original
+    with pytest.raises(CacheError, match=re.escape(f"{path / file}: its bytes differ from those")):
+        load_cache(path)
+    manifest = (path / MANIFEST).stat().st_ino
+    assert prepare_sequence(seq, seq.poses, tmp_path / "out", size=(20, 32), progress=False) == path
+    assert (path / MANIFEST).stat().st_ino != manifest and (path / file).read_bytes() == original
+
+
+def test_opening_samples_large_files_and_verify_reads_every_byte(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Above the whole-file size an open checks 64 blocks; a byte between them is found by --verify
+    (`load_cache(verify=True)`, `prepare_sequence(verify=True)`) only. The sizes are scaled down so
+    that the fixture's 20×32 images are "large"."""
+    import dpc_jax.data.sequence_cache as sequence_cache
+
+    monkeypatch.setattr(sequence_cache, "FULL_CHECK_BYTES", 4096)
+    monkeypatch.setattr(sequence_cache, "SAMPLE_BLOCK", 16)
+    write_odometry(tmp_path / "kitti", n=5)
+    seq = open_odometry(tmp_path / "kitti", "00")
+    path = prepare_sequence(seq, seq.poses, tmp_path / "out", size=(20, 32), progress=False)
+    size = (path / "left.npy").stat().st_size
+    ranges = sequence_cache.sample_ranges(size)
+    outside = next(k for k in range(128, size) if not any(a <= k < b for a, b in ranges))  # past the header
+    inside = ranges[40][0] + 3
+    for offset, found_on_open in ((outside, False), (inside, True)):
+        raw = bytearray((path / "left.npy").read_bytes())
+        raw[offset] ^= 0x10
+        (path / "left.npy").write_bytes(raw)
+        if found_on_open:
+            with pytest.raises(CacheError, match="a sample of its bytes differs"):
+                load_cache(path)
+        else:
+            load_cache(path)
+            assert prepare_sequence(seq, seq.poses, tmp_path / "out", size=(20, 32), progress=False) == path
+            assert (path / "left.npy").read_bytes() == bytes(raw)  # reused, as it was
+        with pytest.raises(CacheError, match=re.escape(f"{path / 'left.npy'}: its bytes differ")):
+            load_cache(path, verify=True)
+        prepare_sequence(seq, seq.poses, tmp_path / "out", size=(20, 32), progress=False, verify=True)
+        load_cache(path, verify=True)
+
+
+def test_a_cache_is_never_upsampled(tmp_path: Path) -> None:
+    write_odometry(tmp_path / "kitti", n=4)
+    seq = open_odometry(tmp_path / "kitti", "00")
+    for size in ((40, 32), (20, 33)):
+        with pytest.raises(ValueError, match=rf"size {size[0]}x{size[1]} is larger than the source images "
+                                             r"\(20x32\); a cache is never upsampled"):
+            prepare_sequence(seq, seq.poses, tmp_path / "out", size=size, progress=False)
+    assert not (tmp_path / "out" / "00").exists()
+    assert load_cache(prepare_sequence(seq, seq.poses, tmp_path / "out", size=(20, 32),
+                                       progress=False)).image_size == (20, 32)

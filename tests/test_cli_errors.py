@@ -221,7 +221,7 @@ def test_vo_writes_trajectory_and_csv_all_or_nothing(
     out = tmp_path / "t.txt"
     out.write_text("previous trajectory\n")
 
-    def broken_table(result: object) -> str:
+    def broken_table(result: object, first_frame: int = 0) -> str:
         raise OSError(28, "No space left on device")
 
     monkeypatch.setattr(dpc_jax.vo.odometry, "per_frame_table", broken_table)

@@ -16,6 +16,7 @@ from test_kitti import write_odometry
 from dpc_jax.data.cache import prepare_sequence
 from dpc_jax.data.kitti import open_odometry
 from dpc_jax.data.poses_io import write_kitti_poses
+from dpc_jax.data.sequence_cache import file_record
 
 SIZE = (10, 16)
 N_FRAMES = 6  # forward pairs 5 + skip pairs 4: 9 training samples of one sequence
@@ -65,6 +66,9 @@ def test_options_that_cannot_take_effect_are_refused_before_jax(
     times = np.load(repeated / "times.npy")
     times[3] = times[2]
     np.save(repeated / "times.npy", times)
+    manifest = json.loads((repeated / "manifest.json").read_text())  # the cache as written with these times
+    manifest["arrays"]["times.npy"] = file_record(repeated / "times.npy")
+    (repeated / "manifest.json").write_text(json.dumps(manifest))
     existing = tmp_path / "existing"
     (existing / "checkpoints").mkdir(parents=True)
     shutil.copy(inputs["stereo_run"] / "checkpoints" / "config.json", existing / "checkpoints")

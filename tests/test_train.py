@@ -410,6 +410,12 @@ def test_sigkill_mid_epoch_then_resume(cache_root: Path, tmp_path: Path) -> None
     before = _read_metrics(workdir)
     assert before[0]["epoch"] == "1"
 
+    # The killed run's lock is reported with its pid, not taken over; once removed, the run resumes.
+    refused = subprocess.run([*command, "--resume"], env=env, capture_output=True, text=True, timeout=900)
+    lock = tmp_path / ".run.lock"
+    assert refused.returncode == 2 and f"locked by process {process.pid}, which is no longer running" in (
+        refused.stderr), refused.stderr
+    lock.unlink()
     result = subprocess.run([*command, "--resume"], env=env, capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, result.stdout + result.stderr
     summary = json.loads(result.stdout[result.stdout.index("{"):])

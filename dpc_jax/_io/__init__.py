@@ -25,11 +25,14 @@ output-path checks, and the removal of temporary folders that killed runs left b
   stream (:func:`is_stream`).
 * Temporary names carry the writing process's id (:func:`temp_name`); :func:`remove_stale` removes
   the ones whose process is gone (``kill -9``, a power cut), never those of a live run.
+* :func:`output_lock`: one writer per output; a lock file beside a cache being built, a training
+  run or a work folder holds the writer's process id, and a stale one is reported, never taken.
 
 This module holds :class:`InputWarning` and the output checks (:func:`writable`,
 :func:`output_problem`, the overlap rule); the writers live in :mod:`dpc_jax._io._atomic_write` (output
 targets, the atomic writer, streams, :func:`install_folder`), :mod:`dpc_jax._io._output_set` (output
-sets) and :mod:`dpc_jax._io._temporaries` (temporary names, stale removal), and are imported from here.
+sets), :mod:`dpc_jax._io._temporaries` (temporary names, stale removal) and :mod:`dpc_jax._io._lock`
+(output locks), and are imported from here.
 """
 
 from __future__ import annotations
@@ -39,6 +42,7 @@ import tempfile
 from pathlib import Path
 
 from dpc_jax._io._atomic_write import OutputKind, atomic_write, install_folder, output_target, stream_write
+from dpc_jax._io._lock import LockError, lock_path, output_lock
 from dpc_jax._io._output_set import STAGING_PREFIX, OutputSet, new_folders_removed_on_failure
 from dpc_jax._io._temporaries import remove_stale, temp_name
 
@@ -46,6 +50,7 @@ __all__ = [
     "EMPTY_PATH",
     "STAGING_PREFIX",
     "InputWarning",
+    "LockError",
     "OutputKind",
     "OutputSet",
     "atomic_write",
@@ -53,8 +58,10 @@ __all__ = [
     "install_folder",
     "is_stdout",
     "is_stream",
+    "lock_path",
     "new_folders_removed_on_failure",
     "nonempty_path",
+    "output_lock",
     "output_problem",
     "output_target",
     "overlap_problem",

@@ -142,6 +142,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--report", type=path_option, metavar="DIR",
                         help="write report.md (the acceptance test; with ground truth also the metrics, "
                         "CSV tables, plots, metrics.json) and summary.json")
+    parser.add_argument("--verify", action="store_true",
+                        help="check every byte of the caches read (--data, --judge; raw inputs: a --cache "
+                        "reused) against the digests of their manifests (default: their sizes and a sample "
+                        "of their bytes)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -370,13 +374,17 @@ def _run_problem(args: argparse.Namespace, checked: SequenceCache | None) -> str
                 f"({config.method}) reads; prepare it with `dpc-jax prepare ... --flow`")
     if args.judge is not None:
         try:
-            judged = load_cache(args.judge)
+            judged = load_cache(args.judge, verify=args.verify)
         except (OSError, ValueError) as error:
             return f"--judge {error}"
         same = judged.manifest.get("sequence") == checked.manifest.get("sequence")
         if not same or not np.array_equal(np.asarray(judged.indices), np.asarray(checked.indices)):
             return (f"--judge {args.judge}: holds frames other than those of --data {args.data}; a judge "
                     "must be the same frames prepared at another size")
+        (jh, jw), (ch, cw) = judged.image_size, checked.image_size
+        if jh < ch or jw < cw:
+            return (f"--judge {args.judge}: images are {jh}x{jw}, smaller than those of --data {args.data} "
+                    f"({ch}x{cw}); a judge measures Δ on more pixels than the network saw, not fewer")
     if args.prior is not None:
         try:
             prior_for_cache(checked, args.prior, args.prior_format)
@@ -409,7 +417,7 @@ def run(args: argparse.Namespace) -> int:
 
     # The cache is checked before JAX starts (the reader imports none) and the network is restored.
     try:
-        checked = load_cache(args.data) if args.data is not None else None
+        checked = load_cache(args.data, verify=args.verify) if args.data is not None else None
     except (OSError, ValueError) as error:
         return _error(str(error))
     problem = _run_problem(args, checked)
@@ -469,7 +477,7 @@ def _sequence(
         stack.enter_context(tempfile.TemporaryDirectory(prefix=f"dpc-correct-{os.getpid()}-"))
     )
     common = {"remove_static": args.remove_static, "mono_rescale": args.mono_rescale, "frames": args.frames,
-              "prior_format": args.prior_format, "ground_truth": args.gt,
+              "prior_format": args.prior_format, "ground_truth": args.gt, "verify": args.verify,
               "progress": False if args.no_progress else None}
     cache = prepare_sequence(sequence, args.prior, cache_root, size=run_.image_size, flow=run_.use_flow,
                              **common)

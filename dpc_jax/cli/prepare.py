@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -38,7 +39,11 @@ EPILOG = """examples:
 The synthetic sequences use the odometry layout (--kitti-odometry). '{seq}' in --prior/--gt is replaced by
 each sequence name. Ground truth: poses/XX.txt (odometry), else --gt, else the poses_gt of a .mat prior.
 Prints each cache folder on stdout and whether it was built or reused (up to date) on stderr.
-Images above 4 megapixels need --allow-large."""
+A cache is reused when its inputs are unchanged and its files still match the sizes and digests of its
+manifest (a sample of each file's bytes; --verify: every byte); else it is rebuilt. A cache written by a
+newer dpc_jax is never replaced. --size may not exceed the source images (nothing is upsampled); above
+4 megapixels it needs --allow-large. While a cache is built, OUT/.NAME.lock holds the process id: a second
+prepare of the same cache is refused (a lock left by a killed run is reported, to be removed by hand)."""
 
 
 
@@ -80,6 +85,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "`dpc-jax vo` reports it): the right images are resampled so the stored pairs are "
                         "rectified without it")
     parser.add_argument("--force", action="store_true", help="rebuild even when the cache is up to date")
+    parser.add_argument("--verify", action="store_true",
+                        help="reuse a cache only when every byte of its files matches the digests of its "
+                        "manifest (default: their sizes and a sample of their bytes)")
     parser.add_argument("--no-progress", action="store_true",
                         help="hide the progress bars (off a terminal: the progress lines)")
 
@@ -143,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
     # Every sequence is opened (its files listed, calibration and times read: OpenCV, no JAX) and
     # its prior and ground-truth files found before the first one is prepared.
     from dpc_jax.data.kitti import open_odometry, open_raw
-    from dpc_jax.data.sequence_cache import MANIFEST
+    from dpc_jax.data.sequence_cache import MANIFEST, newer_cache_problem
 
     sequences = []
     for key in args.sequence or args.drive:
@@ -167,20 +175,33 @@ def run(args: argparse.Namespace) -> int:
         problem = overlap_problem([("--prior", prior), ("--gt", gt)], [("--out", args.out)]) or (
             foreign_folder_problem(args.out / sequence.name, f"--out {args.out}", marker=MANIFEST,
                                    made_by="a cache of `dpc-jax prepare`"))
-        if problem is not None:
-            return _error(problem)
+        newer = newer_cache_problem(args.out / sequence.name)
+        if problem is not None or newer is not None:
+            return _error(problem or f"--out {args.out}: {newer}")
+        (h, w), (height, width) = sequence.image_size, args.size
+        if height > h or width > w:
+            return _error(f"--size {height}x{width}: larger than the source images of {sequence.name} "
+                          f"({h}x{w}); a cache is never upsampled: give at most {h}x{w}")
         problem = _poses_problem(sequence, prior, gt, args)
         if problem is not None:
             return _error(f"{key}: {problem}", status=1)
         sequences.append((key, sequence, prior, gt))
-    import_jax()
-    from dpc_jax._io import new_folders_removed_on_failure
+    from dpc_jax._io import LockError, new_folders_removed_on_failure, output_lock
 
-    progress = progress_mode(args.no_progress)
-    # A failed or interrupted run leaves no --out folder that it made and left empty.
-    with new_folders_removed_on_failure(args.out) as remove_new_folders:
-        status = _prepare_all(args, sequences, progress)
+    # A failed or interrupted run leaves no --out folder that it made and left empty. Every cache it
+    # writes is locked before JAX starts, so a second prepare of one of them stops at once.
+    with new_folders_removed_on_failure(args.out) as remove_new_folders, contextlib.ExitStack() as locks:
+        try:
+            for _, sequence, _, _ in sequences:
+                locks.enter_context(output_lock(args.out / sequence.name, f"--out {args.out}"))
+        except LockError as error:
+            locks.close()
+            remove_new_folders()
+            return _error(str(error))
+        import_jax()
+        status = _prepare_all(args, sequences, progress_mode(args.no_progress))
         if status != 0:
+            locks.close()
             remove_new_folders()
         return status
 
@@ -208,6 +229,7 @@ def _prepare_all(args: argparse.Namespace, sequences: list, progress: Progress) 
                 prior_format=args.prior_format,
                 ground_truth=gt,
                 force=args.force,
+                verify=args.verify,
                 progress=progress,
             )
         except (OSError, ValueError, KeyError) as error:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -30,7 +31,10 @@ Outputs in WORKDIR: checkpoints/{epochs,best_gradient_loss,best_loop_closures,be
 (best_delta: the epoch of most negative validation Δ, once one beats no correction; `correct --select delta`,
 its default, reads it), checkpoints/config.json, checkpoints/split.json, metrics.csv, tensorboard/.
 Several hosts: set distributed=True in the config and pass --coordinator-address/--num-processes/--process-id
-on each host (or nothing on clusters JAX detects); the flags are refused without distributed=True."""
+on each host (or nothing on clusters JAX detects); the flags are refused without distributed=True.
+While the run trains, .NAME.lock beside WORKDIR holds the process id (of process 0 in a distributed run
+given --process-id 0): a second train or --resume of the same run is refused, and a lock left by a killed
+run is reported with its process id, to be removed by hand."""
 
 
 
@@ -50,6 +54,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="continue the run in WORKDIR from its newest epoch (same config required)",
     )
+    parser.add_argument("--verify", action="store_true",
+                        help="check every byte of the caches the run reads against the digests of their "
+                        "manifests before training (default: their sizes and a sample of their bytes)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--workers", type=int, default=2, metavar="N", help="data-loading threads")
     parser.add_argument("--coordinator-address", metavar="HOST:PORT", help="multi-host: process 0's address")
@@ -84,10 +91,28 @@ def run(args: argparse.Namespace) -> int:
         return 2
     problem = (overlap_problem([("--config's cache_root", config.cache_root or None)],
                                [("--workdir", args.workdir)])
-               or _options_problem(args, config) or _cache_problem(config, args.config))
+               or _options_problem(args, config) or _cache_problem(config, args.config, args.verify))
     if problem is not None:
         print(f"dpc-jax train: error: {problem}", file=sys.stderr)
         return 2
+    from dpc_jax._io import LockError, output_lock
+
+    # One writer per run, locked before JAX starts. The processes of a distributed run share the
+    # workdir: the one that says it is process 0 holds the lock (a cluster JAX detects names none).
+    with contextlib.ExitStack() as lock:
+        if not config.distributed or args.process_id == 0:
+            try:
+                lock.enter_context(output_lock(args.workdir, f"--workdir {args.workdir}"))
+            except LockError as error:
+                print(f"dpc-jax train: error: {error}", file=sys.stderr)
+                return 2
+        return _train(args, config)
+
+
+def _train(args: argparse.Namespace, config: TrainConfig) -> int:
+    """Train ``config`` into ``--workdir`` once every check has passed; the exit status."""
+    from dpc_jax.config import ConfigError
+
     import_jax()
     from dpc_jax.data.sequence_cache import CacheError
     from dpc_jax.training.checkpoints import CheckpointError
@@ -164,17 +189,18 @@ def _options_problem(args: argparse.Namespace, config: TrainConfig) -> str | Non
     return None
 
 
-def _cache_problem(config: TrainConfig, config_name: str | Path) -> str | None:
+def _cache_problem(config: TrainConfig, config_name: str | Path, verify: bool = False) -> str | None:
     """The first problem of the caches the run reads (its training and validation sequences, chosen as
     :func:`~dpc_jax.training.train_data.open_data` does; a resumed run reads the same), or None. Checked
-    without JAX, so a missing or damaged cache costs no JAX start-up."""
+    without JAX, so a missing or damaged cache costs no JAX start-up; ``verify``: every byte of their
+    files against their digests (:func:`~dpc_jax.data.sequence_cache.load_cache`)."""
     from dpc_jax.data.sequence_cache import load_cache, training_sequences
 
     try:
         train = training_sequences(
             config.cache_root, config.train_sequences, config.validation_sequences, config.test_sequences
         )
-        caches = {name: load_cache(Path(config.cache_root) / name)
+        caches = {name: load_cache(Path(config.cache_root) / name, verify=verify)
                   for name in [*train, *config.validation_sequences]}
     except (OSError, ValueError) as error:
         return str(error)

@@ -30,12 +30,13 @@ EPILOG = """examples:
 The synthetic sequences use the odometry layout (--kitti-odometry). The trajectory is KITTI pose text
 (camera-to-world of the left camera, one 3x4 row per frame) starting at the identity, or at the ground
 truth's first pose with --start gt. The CSV (default: OUT with suffix .csv) has one row per frame pair:
-frame, inliers, status (ok | constant_velocity), disparity_offset_px, time_s. With ground truth the
-m-ATE and final-position error are printed. OUT with suffix .json summarises the run (frames, fallbacks and
-their share, median inliers, final offset, and a warning when more than 5 % of the pairs fell back to constant
-velocity, which is also printed on stderr). The three files are written together or not at all; beside a
-stream (--out /dev/stdout) no file is made: only the trajectory, and the CSV where --csv names it; with
-either on standard output, the lines this command prints go to stderr."""
+frame (its number in the sequence), inliers, status (ok | constant_velocity), disparity_offset_px, time_s.
+With ground truth the m-ATE and final-position error are printed. OUT with suffix .json summarises the run
+(source_frames: the frames START, STOP it estimated, which `prepare` and `correct` check the prior against;
+frames, fallbacks and their share, median inliers, final offset, and a warning when more than 5 % of the
+pairs fell back to constant velocity, which is also printed on stderr). The three files are written
+together or not at all; beside a stream (--out /dev/stdout) no file is made: only the trajectory, and the
+CSV where --csv names it; with either on standard output, the lines this command prints go to stderr."""
 
 
 
@@ -62,8 +63,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--start", choices=("identity", "gt"), default="identity",
                         help="first pose of the written trajectory")
     parser.add_argument("--frames", type=frame_range, metavar="START:STOP",
-                        help="use only these frames (the trajectory then holds their poses only, which "
-                        "`prepare --frames` with the same range takes as that range's prior)")
+                        help="use only these frames (the trajectory then holds their poses only, and its "
+                        ".json and CSV say which: `prepare`/`correct` take it for frames in this range only)")
     parser.add_argument("--disparity-offset", type=float, default=0.0, metavar="PX",
                         help="disparity offset (px added to measured disparities); the starting value "
                              "of the online estimate unless --fixed-offset")
@@ -134,6 +135,7 @@ def run(args: argparse.Namespace) -> int:
 
     from dpc_jax._io import OutputSet, atomic_write
     from dpc_jax.data.poses_io import write_kitti_poses
+    from dpc_jax.data.priors import FRAMES_KEY
     from dpc_jax.vo import VOConfig, run_vo
     from dpc_jax.vo.odometry import per_frame_table, summary
 
@@ -143,6 +145,8 @@ def run(args: argparse.Namespace) -> int:
                    or offset_problem(args.disparity_offset, sequence.image_size[1], sequence.name))
         if problem is not None:
             raise _UsageError(problem)
+        # The source frames of the run, recorded with it: a prior knows which frames it estimated.
+        first, stop = args.frames if args.frames is not None else (0, len(sequence))
         if args.frames is not None:
             sequence = sequence.select(*args.frames)
         if args.start == "gt" and sequence.poses is None:
@@ -167,10 +171,10 @@ def run(args: argparse.Namespace) -> int:
     with OutputSet() as outputs:
         write_kitti_poses(outputs.file(args.out), result.poses)
         if csv_path is not None:
-            atomic_write(outputs.file(csv_path), per_frame_table(result))
+            atomic_write(outputs.file(csv_path), per_frame_table(result, first_frame=first))
         if json_path is not None:
-            record = json.dumps({"sequence": sequence.name, **counts}, indent=2) + "\n"
-            atomic_write(outputs.file(json_path), record)
+            record = {"sequence": sequence.name, FRAMES_KEY: [first, stop], **counts}
+            atomic_write(outputs.file(json_path), json.dumps(record, indent=2) + "\n")
         outputs.commit()
 
     # With the trajectory (or the CSV) on standard output, the summary goes to stderr, so that what

@@ -21,7 +21,8 @@ file                  array                meaning
 ``flow_skip.npy``     int16 [N-2,2,H,W,2]  flow k → k+2
 ``flow_skip_reverse.npy`` int16 [N-2,2,H,W,2]  flow k+2 → k (stored at index k)
 ``stereo_disparity.npy`` int16 [N,2,H,W]   StereoSGBM disparity, 1/16 px, left (0), right (1)
-``manifest.json``     —                    sources, parameters, input hash, array shapes
+``manifest.json``     —                    sources, parameters, input hash, array shapes,
+                                           each array file's size and SHA-256 digests
 ====================  ===================  ==================================================
 
 Flow is stored in units of ``manifest["flow_step"]`` px (``dpc_jax.data.sequence_cache.flow_step``:
@@ -44,7 +45,15 @@ parameters, the calibration/time/pose/prior files by *content* (small), in-memor
 ground-truth arrays by content, and the image files by *path, size and modification time* —
 hashing gigabytes of PNGs on every run would cost more than the check saves; a replaced image
 changes its mtime. Re-running with the same hash finds the complete cache and reuses it when
-every file still reads as its manifest says (as ``load_cache`` checks it), else rebuilds it.
+every file still reads as its manifest says (as ``load_cache`` checks it: shapes, poses, and each
+file's size and the digest of its sample, or with ``verify`` of all its bytes), else rebuilds it.
+The digests are computed from the bytes as they are written
+(:class:`~dpc_jax.data.sequence_cache.ArrayDigest`), so recording them costs no extra pass. A cache of
+a newer format version is refused, never rebuilt over. Images are never upsampled: a ``size`` larger
+than the source images in either dimension is refused.
+
+One writer per cache: the build holds the lock ``OUT/.NAME.lock`` (:func:`dpc_jax._io.output_lock`),
+so two prepares of one cache cannot both write it; a second one is refused with the first's pid.
 
 Atomicity: everything is written into a hidden temporary folder beside the target
 (``.NAME.tmp-<pid>-<random>``), the manifest last, and the folder is renamed into place; a failure
@@ -69,8 +78,8 @@ import cv2
 import jax
 import numpy as np
 
-from dpc_jax._io import atomic_write, install_folder, remove_stale, temp_name
-from dpc_jax.data.cache_products import FARNEBACK, ordered_map, write_frame_products
+from dpc_jax._io import atomic_write, install_folder, output_lock, remove_stale, temp_name
+from dpc_jax.data.cache_products import FARNEBACK, ordered_map, save_array, write_frame_products
 from dpc_jax.data.kitti import StereoSequence, load_image, read_ground_truth
 from dpc_jax.data.poses_io import validate_poses
 from dpc_jax.data.priors import load_prior, rescale_monocular
@@ -82,6 +91,7 @@ from dpc_jax.data.sequence_cache import (
     CacheError,
     flow_step,
     load_cache,
+    newer_cache_problem,
 )
 from dpc_jax.data.stereo_depth import sgbm_disparity, sgbm_fits
 from dpc_jax.geometry.camera import scale_intrinsics
@@ -173,6 +183,7 @@ def prepare_sequence(
     disparity_offset: float = 0.0,
     half_pixel_intrinsics: bool = True,
     force: bool = False,
+    verify: bool = False,
     progress: Progress = None,
     workers: int | None = None,
 ) -> Path:
@@ -197,14 +208,18 @@ def prepare_sequence(
       in the VO's convention (``d_true = d_measured + offset``, e.g. ``dpc-jax vo``'s online
       estimate): the right images are resampled at ``u + offset`` before resizing, so the stored
       pairs are rectified with the residual removed and their disparity is ``fu·B/Z``.
-    * ``name``: folder name, default ``sequence.name``; ``force`` rebuilds even when up to date.
+    * ``name``: folder name, default ``sequence.name``; ``force`` rebuilds even when up to date;
+      ``verify`` reuses a cache only when every byte of every file matches its digest (default:
+      its sizes and sampled digests, as every reader checks).
     * ``progress``: tqdm bars (default: when stderr is a terminal), or ``"lines"`` for plain
       progress lines (see :mod:`dpc_jax.runtime.progress`); ``workers``: decoding and flow threads
       (default: CPU count).
 
     Bad input (unreadable or differently sized images, prior or ground truth of the wrong length
-    or not rigid) raises ``ValueError``/``FileNotFoundError`` naming the file and frame, and no
-    cache is written.
+    or not rigid, a prior recorded for other frames, a ``size`` larger than the images) raises
+    ``ValueError``/``FileNotFoundError`` naming the file and frame, and no cache is written; a cache
+    of a newer format at ``out_dir/name`` raises :class:`~dpc_jax.data.sequence_cache.CacheError`,
+    and a cache being built by another process :class:`dpc_jax._io.LockError` (an ``OSError``).
     """
     out_dir = Path(out_dir)
     name = name or sequence.name
@@ -215,6 +230,12 @@ def prepare_sequence(
         raise ValueError(f"image size {size} too small; expected (H, W) of at least 8×8")
 
     inputs = _load_inputs(sequence, prior, prior_format, ground_truth, frames, mono_rescale)
+    source = inputs.sequence.image_size
+    if size[0] > source[0] or size[1] > source[1]:
+        raise ValueError(
+            f"{sequence.name}: size {size[0]}x{size[1]} is larger than the source images "
+            f"({source[0]}x{source[1]}); a cache is never upsampled: give at most {source[0]}x{source[1]}"
+        )
     parameters = {
         "size": list(size), "remove_static": remove_static, "flow": flow, "flow_augment": flow_augment,
         "mono_rescale": mono_rescale, "frames": [inputs.start, inputs.stop], "prior_format": prior_format,
@@ -225,35 +246,51 @@ def prepare_sequence(
     extra = [inputs.gt_source] if isinstance(inputs.gt_source, np.ndarray) else []
     digest = input_hash(inputs.sequence, prior, parameters, extra)
     target = out_dir / name
-    existing = read_manifest(target)
-    if not force and existing is not None and existing.get("input_hash") == digest:
-        # Same inputs; reused only if every file still reads as the manifest says (what train and
-        # correct check), else rebuilt: a truncated or edited file is not "up to date".
-        try:
-            load_cache(target)
-        except (CacheError, FileNotFoundError) as error:
-            log.warning("%s: rebuilding a damaged cache (%s)", target, error)
-        else:
-            log.info("%s: up to date (input hash %s)", target, digest[:12])
-            return target
+    with output_lock(target, name):
+        newer = newer_cache_problem(target)
+        if newer is not None:
+            raise CacheError(newer)
+        existing = read_manifest(target)
+        if not force and existing is not None and existing.get("input_hash") == digest:
+            # Same inputs; reused only if every file still reads as the manifest says (what train and
+            # correct check), else rebuilt: a truncated or edited file is not "up to date".
+            try:
+                load_cache(target, verify=verify)
+            except (CacheError, FileNotFoundError) as error:
+                log.warning("%s: rebuilding a damaged cache (%s)", target, error)
+            else:
+                log.info("%s: up to date (input hash %s)", target, digest[:12])
+                return target
+        _build(inputs, prior, target, digest, parameters, size=size, remove_static=remove_static,
+               flow=flow, flow_augment=flow_augment, disparity_offset=disparity_offset,
+               half_pixel_intrinsics=half_pixel_intrinsics, workers=workers, progress=progress)
+    return target
 
+
+def _build(
+    inputs: _Inputs, prior: str | Path | np.ndarray, target: Path, digest: str, parameters: dict, *,
+    size: tuple[int, int], remove_static: bool, flow: bool, flow_augment: bool, disparity_offset: float,
+    half_pixel_intrinsics: bool, workers: int, progress: Progress,
+) -> None:
+    """Build the cache ``target`` (``OUT/NAME``) of ``inputs`` in a temporary folder beside it, then
+    install it (module docstring); the arguments are :func:`prepare_sequence`'s."""
+    name = target.name
     kept = _kept_frames(inputs, remove_static)
     K = _resized_intrinsics(inputs.sequence, size, half_pixel_intrinsics)
-    tmp = _new_temp_folder(out_dir, name)
+    tmp = _new_temp_folder(target.parent, name)
     try:
         kinds = tuple(FLOW_FILES) if flow_augment else ("forward",) if flow else ()
-        _write_arrays(
+        records = _write_arrays(
             tmp, inputs.sequence, kept, size, K, disparity_offset=disparity_offset, flow_kinds=kinds,
             label=name, workers=workers, progress=progress,
         )
-        _write_poses_and_calibration(tmp, inputs, kept, K)
-        manifest = _manifest(tmp, name, inputs, prior, digest, parameters, kept, size, K)
+        records |= _write_poses_and_calibration(tmp, inputs, kept, K)
+        manifest = _manifest(tmp, name, inputs, prior, digest, parameters, kept, size, K, records)
         atomic_write(tmp / MANIFEST, json.dumps(manifest, indent=2))
         install_folder(tmp, target)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    return target
 
 
 @dataclasses.dataclass(frozen=True)
@@ -341,10 +378,11 @@ def _write_arrays(
     label: str,
     workers: int,
     progress: Progress,
-) -> None:
+) -> dict[str, dict[str, int | str]]:
     """Write the images (uint8 ``[N, H, W, 3]``, ``size = (H, W)``) of the ``kept`` frames into
     ``tmp`` with their StereoSGBM disparity (when the images are wide enough for it) and the flows
-    of ``flow_kinds``, in one pass (:func:`~dpc_jax.data.cache_products.write_frame_products`).
+    of ``flow_kinds``, in one pass (:func:`~dpc_jax.data.cache_products.write_frame_products`);
+    return each file's record for the manifest.
 
     Each frame is decoded, resized and matched on one of ``workers`` threads; ``disparity_offset``
     (px at the source resolution) shifts the right images before resizing.
@@ -360,7 +398,7 @@ def _write_arrays(
         right = _resized_frame(sequence.right_paths[i], sequence.image_size, size, float(disparity_offset))
         return left, right, sgbm_disparity(left, right, fu, baseline) if depth else None
 
-    write_frame_products(
+    return write_frame_products(
         tmp, ordered_map(frame, kept.tolist(), workers), kept.size, size, depth=depth,
         flow_kinds=flow_kinds, flow_step=flow_step(size), label=label, workers=workers, progress=progress,
     )
@@ -375,15 +413,17 @@ def _resized_intrinsics(sequence: StereoSequence, size: tuple[int, int], half_pi
                                            half_pixel=half_pixel), np.float64)
 
 
-def _write_poses_and_calibration(tmp: Path, inputs: _Inputs, kept: np.ndarray, K: np.ndarray) -> None:
-    """Write the ``kept`` frames' poses, source frame numbers and times, and K and baseline, into ``tmp``."""
-    np.save(tmp / "prior.npy", inputs.prior_poses[kept])
+def _write_poses_and_calibration(
+    tmp: Path, inputs: _Inputs, kept: np.ndarray, K: np.ndarray
+) -> dict[str, dict[str, int | str]]:
+    """Write the ``kept`` frames' poses, source frame numbers and times, and K and baseline, into
+    ``tmp``; return each file's record for the manifest."""
+    arrays = {"prior.npy": inputs.prior_poses[kept], "K.npy": K,
+              "baseline.npy": np.float64(inputs.sequence.baseline), "indices.npy": kept + inputs.start,
+              "times.npy": inputs.sequence.times[kept]}
     if inputs.gt is not None:
-        np.save(tmp / "gt.npy", inputs.gt[kept])
-    np.save(tmp / "K.npy", K)
-    np.save(tmp / "baseline.npy", np.float64(inputs.sequence.baseline))
-    np.save(tmp / "indices.npy", kept + inputs.start)
-    np.save(tmp / "times.npy", inputs.sequence.times[kept])
+        arrays["gt.npy"] = inputs.gt[kept]
+    return {file: save_array(tmp / file, np.asarray(array)) for file, array in arrays.items()}
 
 
 def _manifest(
@@ -396,8 +436,10 @@ def _manifest(
     kept: np.ndarray,
     size: tuple[int, int],
     K: np.ndarray,
+    records: dict[str, dict[str, int | str]],
 ) -> dict:
-    """The manifest of the cache being built in ``tmp``; its ``flows`` are the flow files found there."""
+    """The manifest of the cache being built in ``tmp``; its ``flows`` are the flow files found there,
+    ``records`` each array file's size and digests (``arrays``)."""
     sequence, gt, gt_source = inputs.sequence, inputs.gt, inputs.gt_source
     return {
         "version": CACHE_VERSION,
@@ -426,6 +468,7 @@ def _manifest(
         "flows": [k for k, f in FLOW_FILES.items() if (tmp / f).exists()],
         "flow_step": flow_step(size),
         "stereo_depth": (tmp / DISPARITY_FILE).exists(),
+        "arrays": dict(sorted(records.items())),
     }
 
 

@@ -5,12 +5,16 @@ resized stereo pairs in order; each frame's StereoSGBM disparity (``dpc_jax.data
 is computed with it, and the Farnebäck flows (docs/method.md §6) of the pairs that end at it are
 computed as soon as it arrives, so nothing is read back from the folder and only a few frames are
 in memory at any time, however long the sequence. Arrays are appended to their ``.npy`` files with
-plain writes (:class:`NpyWriter`): written pages are the page cache's, not the process's.
+plain writes (:class:`NpyWriter`): written pages are the page cache's, not the process's. Each file's
+size and digests for the manifest (:class:`~dpc_jax.data.sequence_cache.ArrayDigest`) are computed
+from the bytes as they are written, so nothing is read back for them either.
 """
 
 from __future__ import annotations
 
+import io
 import logging
+import math
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -20,7 +24,7 @@ from typing import TypedDict
 import cv2
 import numpy as np
 
-from dpc_jax.data.sequence_cache import DISPARITY_FILE, FLOW_FILES, PAIR_KINDS, encode_flow
+from dpc_jax.data.sequence_cache import DISPARITY_FILE, FLOW_FILES, PAIR_KINDS, ArrayDigest, encode_flow
 from dpc_jax.runtime.progress import Progress, progress_bar
 
 log = logging.getLogger(__name__)
@@ -75,20 +79,28 @@ class NpyWriter:
     """A ``.npy`` file of a known ``shape`` and ``dtype`` written row by row (along axis 0).
 
     The header is written first, then each :meth:`append`'s bytes; closing checks that exactly
-    ``shape[0]`` rows came, so a short file is never left looking complete.
+    ``shape[0]`` rows came, so a short file is never left looking complete. :meth:`record` is the
+    file's size and digests for the manifest, computed from the bytes written.
     """
 
     def __init__(self, path: Path, dtype: np.dtype | type, shape: tuple[int, ...]) -> None:
         self.path, self.dtype, self.shape = path, np.dtype(dtype), shape
         self.rows = 0
+        header = io.BytesIO()
+        descr = np.lib.format.dtype_to_descr(self.dtype)
+        np.lib.format.write_array_header_1_0(header, {"descr": descr, "fortran_order": False, "shape": shape})
+        self._digest = ArrayDigest(header.tell() + math.prod(shape) * self.dtype.itemsize)
         self._file = path.open("wb")
-        header = {"descr": np.lib.format.dtype_to_descr(self.dtype), "fortran_order": False, "shape": shape}
-        np.lib.format.write_array_header_1_0(self._file, header)
+        self._write(header.getvalue())
+
+    def _write(self, data: bytes) -> None:
+        self._file.write(data)
+        self._digest.update(data)
 
     def append(self, row: np.ndarray) -> None:
         if row.shape != self.shape[1:]:
             raise ValueError(f"{self.path}: row of shape {row.shape}, expected {self.shape[1:]}")
-        self._file.write(np.ascontiguousarray(row, self.dtype).tobytes())
+        self._write(np.ascontiguousarray(row, self.dtype).tobytes())
         self.rows += 1
 
     def close(self) -> None:
@@ -97,6 +109,22 @@ class NpyWriter:
     def check_complete(self) -> None:
         if self.rows != self.shape[0]:
             raise RuntimeError(f"{self.path}: {self.rows} rows written, expected {self.shape[0]}")
+
+    def record(self) -> dict[str, int | str]:
+        """The manifest's record of the complete file (:meth:`ArrayDigest.record`)."""
+        return self._digest.record()
+
+
+def save_array(path: Path, array: np.ndarray) -> dict[str, int | str]:
+    """``np.save(path, array)`` of a small array (poses, intrinsics, times); returns the manifest's
+    record of the file (:class:`~dpc_jax.data.sequence_cache.ArrayDigest`) from the bytes written."""
+    buffer = io.BytesIO()
+    np.lib.format.write_array(buffer, np.asanyarray(array), allow_pickle=False)
+    data = buffer.getvalue()
+    path.write_bytes(data)
+    digest = ArrayDigest(len(data))
+    digest.update(data)
+    return digest.record()
 
 
 def write_frame_products(
@@ -111,10 +139,11 @@ def write_frame_products(
     label: str,
     workers: int,
     progress: Progress,
-) -> None:
+) -> dict[str, dict[str, int | str]]:
     """Write ``left.npy``/``right.npy`` (uint8 ``[n, H, W, 3]``), with ``depth`` the disparity
     (int16 ``[n, 2, H, W]``) and the flows of ``flow_kinds`` (int16 ``[n - step, 2, H, W, 2]`` in
-    units of ``flow_step`` px) into ``tmp``.
+    units of ``flow_step`` px) into ``tmp``; return each file's record for the manifest (file name →
+    :meth:`NpyWriter.record`).
 
     ``frames`` yields ``(left, right, disparity or None)`` of each of the ``n`` frames in order.
     The flows of the pairs ending at frame ``k`` are computed on ``workers`` threads while later
@@ -170,3 +199,4 @@ def write_frame_products(
             writer.close()
     for writer in writers.values():
         writer.check_complete()
+    return {writer.path.name: writer.record() for writer in writers.values()}

@@ -5,11 +5,20 @@ A cache folder ``OUT/NAME/`` is written by :func:`~dpc_jax.data.cache.prepare_se
 docstring has the table of the arrays); :func:`load_cache` memory-maps it and checks every file
 against ``manifest.json``. This module imports no JAX (nor OpenCV): numpy, json and the trajectory
 checks of :mod:`dpc_jax.data.poses_io` only, so the command line checks a cache before it starts JAX.
+
+The manifest records each array file's size and two SHA-256 digests, computed by the writer from
+the bytes it writes (:class:`ArrayDigest`): of the whole file, and of its sample
+(:func:`sample_ranges`: the whole file up to :data:`FULL_CHECK_BYTES`, which holds every pose,
+time and intrinsics array of a sequence of up to 8,000 frames; else :data:`SAMPLE_BLOCKS` blocks of
+:data:`SAMPLE_BLOCK` bytes spread evenly from the first to the last byte). Opening a cache checks
+every file's size and sample digest (a few hundred KiB read per file, whatever its size); with
+``verify`` it checks the whole file's digest, which reads every byte.
 """
 
 from __future__ import annotations
 
 import functools
+import hashlib
 import json
 import math
 import os
@@ -25,8 +34,13 @@ from dpc_jax.data.splits import training_names
 
 MANIFEST = "manifest.json"
 # The format written by dpc_jax.data.cache.prepare_sequence; a cache of another version is refused.
-# Version 2 stores SGBM's fixed-point disparity and fixed-point flow as int16 (version 1: float32).
-CACHE_VERSION = 2
+# Version 2 stores SGBM's fixed-point disparity and fixed-point flow as int16 (version 1: float32);
+# version 3 adds the size and digests of every array file (manifest["arrays"]).
+CACHE_VERSION = 3
+# Files up to this size are checked whole on every open; larger ones by a sample (module docstring).
+FULL_CHECK_BYTES = 1 << 20
+SAMPLE_BLOCK = 4096
+SAMPLE_BLOCKS = 64
 FLOW_FILES = {
     "forward": "flow.npy",
     "reverse": "flow_reverse.npy",
@@ -111,6 +125,55 @@ def stereo_depth_views(fixed: np.ndarray, focal_baseline: float) -> tuple[Decode
             Decoded(fixed, disparity_valid))
 
 
+def sample_ranges(size: int) -> list[tuple[int, int]]:
+    """The byte ranges ``[start, stop)`` of a file of ``size`` bytes whose digest an open checks:
+    the whole file up to :data:`FULL_CHECK_BYTES`, else :data:`SAMPLE_BLOCKS` blocks of
+    :data:`SAMPLE_BLOCK` bytes, the first at byte 0 (the ``.npy`` header), the last ending at the end."""
+    if size <= FULL_CHECK_BYTES:
+        return [(0, size)]
+    last = size - SAMPLE_BLOCK
+    starts = [round(i * last / (SAMPLE_BLOCKS - 1)) for i in range(SAMPLE_BLOCKS)]
+    return [(start, start + SAMPLE_BLOCK) for start in starts]
+
+
+class ArrayDigest:
+    """The size and digests a manifest records of one file of ``size`` bytes, computed from its bytes
+    as they are written (:meth:`update`, in order), so the writer reads nothing back."""
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self.offset = 0
+        self._whole = hashlib.sha256()
+        self._sample = hashlib.sha256()
+        self._ranges = sample_ranges(size)
+
+    def update(self, data: bytes | memoryview) -> None:
+        """The next ``len(data)`` bytes of the file."""
+        end = self.offset + len(data)
+        self._whole.update(data)
+        for start, stop in self._ranges:
+            if start < end and stop > self.offset:
+                self._sample.update(data[max(start, self.offset) - self.offset:min(stop, end) - self.offset])
+        self.offset = end
+
+    def record(self) -> dict[str, int | str]:
+        """``{"bytes", "sha256", "sample_sha256"}`` of the file, once all its bytes were given."""
+        if self.offset != self.size:
+            raise RuntimeError(f"{self.offset} bytes digested of a file of {self.size}")
+        return {"bytes": self.size, "sha256": self._whole.hexdigest(),
+                "sample_sha256": self._sample.hexdigest()}
+
+
+def file_record(path: str | os.PathLike[str]) -> dict[str, int | str]:
+    """The manifest's record (:class:`ArrayDigest`) of the file at ``path``, read whole: for a file
+    written by other means than the cache writers (a benchmark's random cache)."""
+    digest = ArrayDigest(os.path.getsize(path))
+    with open(path, "rb") as file:
+        for chunk in iter(lambda: file.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.record()
+
+
 @dataclass(frozen=True)
 class SequenceCache:
     """A prepared sequence, memory-mapped (see :mod:`dpc_jax.data.cache` for the arrays)."""
@@ -143,7 +206,31 @@ class CacheError(ValueError):
     """A cache folder whose files disagree with its manifest (or are unreadable); names the file."""
 
 
-_MANIFEST_KEYS = {"name": str, "n_frames": int, "image_size": list, "has_gt": bool, "flows": list}
+_MANIFEST_KEYS = {"name": str, "n_frames": int, "image_size": list, "has_gt": bool, "flows": list,
+                  "arrays": dict}
+
+
+def newer_cache_problem(folder: str | os.PathLike[str]) -> str | None:
+    """Why a writer must not replace the cache ``folder``, written by a newer dpc_jax
+    (:func:`newer_version_problem`), or None: also when it holds no readable manifest."""
+    path = Path(folder) / MANIFEST
+    try:
+        manifest = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    return newer_version_problem(manifest, path) if isinstance(manifest, dict) else None
+
+
+def newer_version_problem(manifest: dict, path: str | os.PathLike[str]) -> str | None:
+    """Why the cache whose manifest (at ``path``) is ``manifest`` is of a newer format than this
+    dpc_jax reads, or None. Such a cache is neither read nor rebuilt over: the dpc_jax that wrote it
+    reads it."""
+    version = manifest.get("version")
+    if not isinstance(version, int) or isinstance(version, bool) or version <= CACHE_VERSION:
+        return None
+    return (f"{path}: this cache was written by a newer dpc_jax (cache format version {version}; this one "
+            f"reads version {CACHE_VERSION} and does not replace it); use that dpc_jax, or prepare "
+            "into another folder")
 
 
 def _read_manifest(path: Path) -> dict:
@@ -155,6 +242,9 @@ def _read_manifest(path: Path) -> dict:
         raise CacheError(f"{path}: not valid JSON ({error}); prepare the cache again") from None
     if not isinstance(manifest, dict):
         raise CacheError(f"{path}: expected a JSON object, got {type(manifest).__name__}")
+    newer = newer_version_problem(manifest, path)
+    if newer is not None:
+        raise CacheError(newer)
     if manifest.get("version") != CACHE_VERSION:
         raise CacheError(
             f"{path}: cache format version {manifest.get('version')}, this dpc_jax reads version "
@@ -199,6 +289,32 @@ def _load_array(
     return array
 
 
+def _check_bytes(path: Path, manifest_path: Path, record: Any, verify: bool) -> None:
+    """Check the file at ``path`` against its ``record`` in the manifest (:class:`ArrayDigest`): its
+    size, and the digest of its sample, or with ``verify`` of all its bytes; names the file."""
+    if not (isinstance(record, dict) and isinstance(record.get("bytes"), int)
+            and all(isinstance(record.get(key), str) for key in ("sha256", "sample_sha256"))):
+        raise CacheError(f"{manifest_path}: field 'arrays' holds no size and digests of {path.name}; "
+                         "prepare the cache again")
+    size = path.stat().st_size
+    if size != record["bytes"]:
+        raise CacheError(f"{path}: {size} bytes, but {manifest_path} says {record['bytes']}; the file was "
+                         "changed or damaged since it was prepared: prepare the cache again")
+    digest = hashlib.sha256()
+    with path.open("rb") as file:
+        if verify:
+            for chunk in iter(lambda: file.read(1 << 20), b""):
+                digest.update(chunk)
+        else:
+            for start, stop in sample_ranges(size):
+                file.seek(start)
+                digest.update(file.read(stop - start))
+    if digest.hexdigest() != record["sha256" if verify else "sample_sha256"]:
+        what = "its bytes differ" if verify or size <= FULL_CHECK_BYTES else "a sample of its bytes differs"
+        raise CacheError(f"{path}: {what} from those `dpc-jax prepare` wrote (SHA-256 in {manifest_path}); "
+                         "the file was changed or damaged since: prepare the cache again")
+
+
 def _check_finite_poses(path: Path, poses: np.ndarray) -> None:
     """Finite, rigid camera-to-world poses (the check of the trajectory readers), naming the file."""
     finite = np.isfinite(poses).all(axis=(1, 2))
@@ -212,14 +328,16 @@ def _check_finite_poses(path: Path, poses: np.ndarray) -> None:
         raise CacheError(str(error)) from None
 
 
-def load_cache(path: str | os.PathLike[str]) -> SequenceCache:
+def load_cache(path: str | os.PathLike[str], *, verify: bool = False) -> SequenceCache:
     """Memory-map the cache folder ``path`` written by :func:`~dpc_jax.data.cache.prepare_sequence`.
 
     Everything is checked against ``manifest.json`` before it is used: the manifest itself (valid
-    JSON with the expected fields), the shape and dtype of every array (a truncated ``.npy`` does
-    not load), finite and rigid prior and ground-truth poses, finite intrinsics, baseline and
-    times. Raises ``FileNotFoundError`` when the folder has no manifest (not a cache, or an
-    interrupted prepare) and :class:`CacheError` (a ``ValueError``) naming the file otherwise.
+    JSON with the expected fields, of this format version), the shape and dtype of every array (a
+    truncated ``.npy`` does not load), finite and rigid prior and ground-truth poses, finite
+    intrinsics, baseline and times, and then every file's bytes: its size and the digest of its
+    sample, or with ``verify`` of every byte (module docstring). Raises ``FileNotFoundError`` when
+    the folder has no manifest (not a cache, or an interrupted prepare) and :class:`CacheError` (a
+    ``ValueError``) naming the file otherwise.
     """
     path = Path(path)
     manifest_path = path / MANIFEST
@@ -229,7 +347,10 @@ def load_cache(path: str | os.PathLike[str]) -> SequenceCache:
     n = manifest["n_frames"]
     h, w = manifest["image_size"]
 
+    loaded: list[str] = []
+
     def array(file: str, shape: tuple[int, ...], dtype: str, mmap: bool = False) -> np.ndarray:
+        loaded.append(file)
         return _load_array(path / file, manifest_path, shape, dtype, mmap)
 
     left = array("left.npy", (n, h, w, 3), "uint8", mmap=True)
@@ -258,6 +379,9 @@ def load_cache(path: str | os.PathLike[str]) -> SequenceCache:
             raise CacheError(
                 f"{path / file}: holds a value that is not finite (NaN or inf); prepare the cache again"
             )
+    # Last: what the checks above name more precisely (a truncated file, a NaN pose) is said so.
+    for file in loaded:
+        _check_bytes(path / file, manifest_path, manifest["arrays"].get(file), verify)
     stereo_depth = None
     if disparity is not None:
         # The product prepare matched with (dpc_jax.data.cache_products), from the same stored values.

@@ -376,12 +376,14 @@ def summary(result: VOResult) -> VOSummary:
     }
 
 
-def per_frame_table(result: VOResult) -> str:
-    """CSV text, one row per pair ``(k, k+1)``: ``frame`` (= k+1), ``inliers``, ``status``,
+def per_frame_table(result: VOResult, first_frame: int = 0) -> str:
+    """CSV text, one row per pair ``(k, k+1)``: ``frame`` (= k+1, numbered in the source sequence:
+    ``first_frame`` is the number of the run's frame 0), ``inliers``, ``status``,
     ``disparity_offset_px``, ``time_s``."""
     rows = ["frame,inliers,status,disparity_offset_px,time_s"]
     for k, (inliers, status, offset, seconds) in enumerate(
         zip(result.inliers, result.status, result.disparity_offset, result.times, strict=True)
     ):
-        rows.append(f"{k + 1},{inliers},{VOStatus(int(status)).name.lower()},{offset:.4f},{seconds:.6f}")
+        status_name = VOStatus(int(status)).name.lower()
+        rows.append(f"{first_frame + k + 1},{inliers},{status_name},{offset:.4f},{seconds:.6f}")
     return "\n".join(rows) + "\n"
