@@ -78,7 +78,8 @@ def data(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     write_kitti_poses(root / "gt.txt", gt)
     write_kitti_poses(root / "est.txt", est)
     scipy.io.savemat(root / "pair.mat",
-                     {"poses_gt": np.moveaxis(gt, 0, -1), "poses_est": np.moveaxis(est, 0, -1)})
+                     {"poses_gt": np.moveaxis(gt, 0, -1), "poses_est": np.moveaxis(est, 0, -1),
+                      "convention": "Twv"})
     (root / "run" / "checkpoints").mkdir(parents=True)
     # A config that fits the cache: correct checks the run's image size, method and flow first.
     run_config = {"validation_sequences": ["00"], "image_size": list(CACHE_SIZE)}
@@ -458,6 +459,67 @@ def test_silent_and_late_mistakes_are_one_line_and_exit_2_before_jax(
         assert needle.format(o=out, p=data["prior"]) in line, (needle, line)
     assert imported == [] and status == [2] * len(cases), (status, imported)
     assert not out.exists()
+
+
+def test_slow_and_unclear_failures_are_one_line_before_jax(data: dict[str, Path], tmp_path: Path) -> None:
+    """``correct`` from raw inputs checks --frames and the prior's length before JAX (it did after JAX
+    loaded); a sequence given as a path, the root of several caches as --data and --no-judge with --data
+    (no judge to turn off) are named in one line, exit status 2, nothing written."""
+    out = tmp_path / "out"
+    short = tmp_path / "short.txt"
+    short.write_text("".join(data["prior"].read_text().splitlines(keepends=True)[:3]))
+    shutil.copytree(data["cache"], tmp_path / "caches" / "00")
+    raw = ["correct", "--checkpoint", data["run"], "--kitti-odometry", data["kitti"], "--out", out / "c.txt"]
+    cached = ["correct", "--checkpoint", data["run"], "--out", out / "c.txt"]
+    cases = {
+        "--frames 2:9: 00 has 6 frames (0 to 5); STOP must be at most 6": [
+            *raw, "--sequence", "00", "--prior", data["prior"], "--frames", "2:9"],
+        f"--prior {short}: 3 prior poses for 6 frames": [*raw, "--sequence", "00", "--prior", short],
+        "sequence '../sequences/00': expected the name of a folder in": [
+            *raw, "--sequence", "../sequences/00", "--prior", data["prior"]],
+        f"--data {tmp_path / 'caches'}: a folder of caches (00), not one; give one of them, e.g. --data "
+        f"{tmp_path / 'caches' / '00'}": [*cached, "--data", tmp_path / "caches"],
+        "--no-judge goes with raw inputs": [*cached, "--data", data["cache"], "--no-judge"],
+    }
+    status, imported, done = _in_one_process(list(cases.values()))
+    lines = done.stderr.splitlines()
+    assert len(lines) == len(cases) and "Traceback" not in done.stderr, done.stderr
+    for needle, line in zip(cases, lines, strict=True):
+        assert needle in line, (needle, line)
+    assert imported == [] and status == [2] * len(cases), (status, imported)
+    assert not out.exists()
+
+
+def test_a_file_output_spelled_as_a_folder_is_refused(
+    data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``vo --out vo/newdir/`` (no such folder) wrote a file named vo/newdir; the slash now means a folder."""
+    folder = f"{tmp_path}/new/"
+    for argv in (["vo", "--kitti-odometry", data["kitti"], "--sequence", "00", "--out", folder],
+                 ["evaluate", "--gt", data["gt"], "--est", data["est"], "--json", folder],
+                 ["correct", "--checkpoint", data["run"], "--data", data["cache"], "--out", folder]):
+        with pytest.raises(SystemExit) as exited:
+            main([str(a) for a in argv])
+        assert exited.value.code == 2
+        assert f"'{tmp_path}/new/' ends in '/', the spelling of a folder" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_standard_output_into_an_input_is_refused(data: dict[str, Path], tmp_path: Path) -> None:
+    """``dpc-jax evaluate ... >> est.txt`` appended the table (or the JSON of --json /dev/stdout) to its
+    own input; the command tells by the inode that its standard output is a file it reads."""
+    est = tmp_path / "est.txt"
+    shutil.copy(data["est"], est)
+    before = est.read_bytes()
+    code = "import sys; from dpc_jax.cli import main; sys.exit(main(sys.argv[1:]))"
+    for extra in ([], ["--json", "/dev/stdout"]):
+        with est.open("ab") as stdout:
+            argv = [sys.executable, "-c", code, "evaluate", "--gt", str(data["gt"]), "--est", str(est),
+                    *extra]
+            done = subprocess.run(argv, stdout=stdout, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+        assert done.returncode == 2
+        _one_line(done.stderr, f"standard output is the input --est {est} (redirected there with > or >>)")
+    assert est.read_bytes() == before
 
 
 def _train_config(path: Path, cache_root: Path, **fields: object) -> None:

@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 
 from dpc_jax.cli import main
 from dpc_jax.data.poses_io import read_kitti_poses, read_mat, read_tum, write_kitti_poses, write_tum
-from dpc_jax.eval.evaluation import SUMMARY_KEYS, evaluate
+from dpc_jax.eval.evaluation import SUMMARY_KEYS, associate_by_time, evaluate
 from dpc_jax.geometry.poses import compose
 
 MAT = DATA / "kitti-libviso2" / "stereo_00.mat"
@@ -149,8 +149,10 @@ def test_cli_json_report_export(
     assert main([*args, "--json", str(out_json), "--report", str(report), "--export", str(export)]) == 0
     assert "| prior |" in capsys.readouterr().out  # the table goes to stdout
     assert json.loads(out_json.read_text()) == printed
+    # .dpc-jax-files: the record of the files the command wrote, which a rerun may replace.
     assert sorted(p.name for p in report.iterdir()) == [
-        "c_ate.png", "metrics.csv", "report.md", "segment_errors.csv", "segment_errors.png", "trajectory.png"
+        ".dpc-jax-files", "c_ate.png", "metrics.csv", "report.md", "segment_errors.csv", "segment_errors.png",
+        "trajectory.png"
     ]
     for png in report.glob("*.png"):
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
@@ -165,7 +167,8 @@ def test_cli_json_report_export(
     np.testing.assert_allclose(times, np.arange(N))
     np.testing.assert_allclose(poses, gt[0] @ np.linalg.inv(est[0]) @ est, atol=1e-9)
     assert sorted(p.name for p in export.iterdir()) == [
-        "gt.kitti.txt", "gt.tum.txt", "prior.kitti.txt", "prior.tum.txt", "tum.kitti.txt", "tum.tum.txt"
+        ".dpc-jax-files", "gt.kitti.txt", "gt.tum.txt", "prior.kitti.txt", "prior.tum.txt", "tum.kitti.txt",
+        "tum.tum.txt"
     ]
 
 
@@ -223,3 +226,71 @@ def test_cli_real_sequence_subprocess() -> None:
     m = printed["estimates"]["est"]
     assert set(m) == set(SUMMARY_KEYS)
     assert 2.0 < m["seg_trans_pct"] < 3.5 and 0.8 < m["seg_rot_deg_per_100m"] < 2.0  # libviso2-s on 00
+
+
+def test_evaluate_names_a_shape_that_is_not_a_pose_count(pair: tuple[np.ndarray, np.ndarray]) -> None:
+    gt, est = pair
+    with pytest.raises(ValueError, match=r"^estimates\['p'\]: poses of shape \(300, 3, 4\); expected \[N, 4"):
+        evaluate(gt, {"p": est[:, :3, :]})
+
+
+def _anchored_m_ate(gt: np.ndarray, est: np.ndarray) -> float:
+    """The m-ATE (m) of ``est`` against ``gt``, paired pose by pose, re-anchored on the first pose."""
+    return ref.m_ate(gt, gt[0] @ np.linalg.inv(est[0]) @ est)[0]
+
+
+def test_associate_by_time_keeps_the_poses_every_estimate_pairs() -> None:
+    """Another rate, dropped frames and a second clock, against the indices they must give."""
+    times = 50.0 + 0.1 * np.arange(40)
+    dropped = np.delete(np.arange(40), [3, 4, 5, 6, 7])
+    a = associate_by_time(times, {"half": times[::2], "dropped": times[dropped] + 0.003})
+    np.testing.assert_array_equal(a.gt_indices, np.arange(0, 40, 2)[np.isin(np.arange(0, 40, 2), dropped)])
+    np.testing.assert_array_equal(a.indices["half"], a.gt_indices // 2)
+    np.testing.assert_array_equal(dropped[a.indices["dropped"]], a.gt_indices)
+    assert a.matched == {"half": 20, "dropped": 35} and a.possible == {"half": 20, "dropped": 35}
+    shifted = associate_by_time(times, {"late": times + 100.0}, offset=-100.0)
+    np.testing.assert_array_equal(shifted.indices["late"], np.arange(40))
+    with pytest.raises(ValueError, match=r"^--est x\.tum: 0 of its 40 poses have a ground-truth time within "
+                                         r"0\.01 s \(time offset 0 s\); fewer than half match"):
+        associate_by_time(times, {"late": times + 100.0}, sources={"late": "--est x.tum"})
+    with pytest.raises(ValueError, match="fewer than half"):  # 19 of 40 within 0.01 s
+        associate_by_time(times, {"partly": np.concatenate([times[:19], times[19:] + 0.05])})
+
+
+def test_cli_pairs_timed_trajectories_by_time(
+    pair: tuple[np.ndarray, np.ndarray], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """TUM files are paired by time as evo does: estimate times shifted by 100 s are refused (and paired
+    with --t-offset), 5 dropped frames are paired with the poses of the same times and the summary says
+    how many matched. Paired by index, as before, both exited 0 with other numbers."""
+    gt, est = pair
+    times = 1.0e9 + 0.1 * np.arange(N)
+    write_tum(tmp_path / "gt.tum", gt, times)
+    keep = np.delete(np.arange(N), [50, 51, 52, 53, 54])
+    variants = {"shifted": (est, times + 100.0), "dropped": (est[keep], times[keep]), "same": (est, times)}
+    for name, (poses, stamps) in variants.items():
+        write_tum(tmp_path / f"{name}.tum", poses, stamps)
+
+    def run(name: str, *extra: str) -> dict:
+        assert main(["evaluate", "--gt", str(tmp_path / "gt.tum"), "--est", str(tmp_path / f"{name}.tum"),
+                     "--json", "-", *extra]) == 0
+        return json.loads(capsys.readouterr().out)
+
+    assert main(["evaluate", "--gt", str(tmp_path / "gt.tum"), "--est", str(tmp_path / "shifted.tum")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and f"--est {tmp_path / 'shifted.tum'}: 0 of its 300 poses" in err, err
+    same = run("same")["estimates"]["same"]["m_ate_trans_m"]
+    assert same == pytest.approx(_anchored_m_ate(gt, est), rel=1e-9)
+    assert run("shifted", "--t-offset", "-100")["estimates"]["shifted"]["m_ate_trans_m"] == pytest.approx(
+        same, rel=1e-12)
+    dropped = run("dropped")
+    assert dropped["num_poses"] == keep.size and dropped["association"]["matched"] == {"dropped": keep.size}
+    m_ate = dropped["estimates"]["dropped"]["m_ate_trans_m"]
+    assert m_ate == pytest.approx(_anchored_m_ate(gt[keep], est[keep]), rel=1e-9)
+    assert abs(m_ate - _anchored_m_ate(gt[: keep.size], est[keep])) > 1.0  # what pairing by index gave
+    assert main(["evaluate", "--gt", str(tmp_path / "gt.tum"), "--est", str(tmp_path / "dropped.tum")]) == 0
+    assert "matched: dropped 295 of 295" in capsys.readouterr().out
+    write_kitti_poses(tmp_path / "gt.txt", gt)
+    assert main(["evaluate", "--gt", str(tmp_path / "gt.txt"), "--est", str(tmp_path / "same.tum"),
+                 "--t-max-diff", "0.02"]) == 2
+    assert "--t-max-diff 0.02: pairing by time needs times in every file" in capsys.readouterr().err

@@ -288,3 +288,45 @@ def test_a_run_resumed_from_its_own_config_is_not_an_overlap(
     assert main(["train", "--config", str(own), "--workdir", str(run)]) == 2
     assert "--workdir" in capsys.readouterr().err
     assert own.read_bytes() == before
+
+
+def test_files_a_command_did_not_write_are_never_replaced(
+    kitti: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``evaluate --report/--export`` and ``correct --report`` into a folder holding a user's file of a name
+    they write are refused before any work; into a folder of other files they write theirs beside them and
+    record them (``.dpc-jax-files``), so that a rerun replaces its own files and nothing else."""
+    from dpc_jax._io import OWN_FILES, foreign_files_problem
+    from dpc_jax.report.evaluation_report import REPORT_FILES
+
+    gt = kitti / "poses" / "00.txt"
+    est = tmp_path / "est.txt"
+    est.write_bytes(gt.read_bytes())
+    folders = {"u10": "report.md", "u11": "metrics.json", "u12": "est.kitti.txt", "shared": "notes.txt"}
+    for name, file in folders.items():
+        (tmp_path / name).mkdir()
+        (tmp_path / name / file).write_text("the user's")
+    evaluate = ["evaluate", "--gt", gt, "--est", est]
+    u10, u11, u12, shared = (tmp_path / name for name in folders)
+    not_ours = "exists and was not written by dpc-jax"
+    cases = {
+        f"--report {u10}: {u10 / 'report.md'} {not_ours}": [*evaluate, "--report", u10],
+        f"--export {u12}: {u12 / 'est.kitti.txt'} {not_ours}": [*evaluate, "--export", u12],
+        f"--report {u11}: {u11 / 'metrics.json'} {not_ours}": [
+            "correct", "--checkpoint", tmp_path / "run", "--kitti-odometry", kitti, "--sequence", "00",
+            "--prior", gt, "--out", tmp_path / "c.txt", "--report", u11],
+    }
+    before = _snapshot(tmp_path)
+    for needle, argv in cases.items():
+        assert main([str(a) for a in argv]) == 2, needle
+        _one_error(capsys.readouterr().err, needle)
+    assert _snapshot(tmp_path) == before
+    assert foreign_files_problem(tmp_path / "missing", REPORT_FILES, "--report x") is None
+    for _ in range(2):  # the second round replaces the files the first recorded as its own
+        for option in ("--report", "--export"):
+            assert main([str(a) for a in [*evaluate, option, shared]]) == 0
+            capsys.readouterr()
+    written = {*REPORT_FILES, "gt.kitti.txt", "gt.tum.txt", "est.kitti.txt", "est.tum.txt"}
+    assert sorted(p.name for p in shared.iterdir()) == sorted({*written, "notes.txt", OWN_FILES})
+    assert (shared / OWN_FILES).read_text().split() == sorted(written)
+    assert (shared / "notes.txt").read_text() == "the user's"

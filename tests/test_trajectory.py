@@ -11,7 +11,9 @@ import scipy.io
 from conftest import DATA
 from scipy.spatial.transform import Rotation
 
+from dpc_jax._io import InputWarning
 from dpc_jax.data.poses_io import (
+    associate,
     detect_format,
     read_kitti_poses,
     read_mat,
@@ -228,3 +230,93 @@ def test_remove_static_frames_fixed_point() -> None:
 def test_remove_static_frames_real_sequence() -> None:
     gt, est = read_mat(LIBVISO2 / "stereo_07.mat")
     np.testing.assert_array_equal(remove_static_frames(gt, est), ref.remove_static_frames(est))
+
+
+def _evo_association(stamps_1: np.ndarray, stamps_2: np.ndarray, max_diff: float, offset_2: float
+                     ) -> tuple[list[int], list[int]]:
+    """evo's ``sync.associate_trajectories`` (evo.core.sync, as published): each stamp of the shorter
+    trajectory with its nearest in the longer (``np.argmin``) where within ``max_diff``; ``offset_2``
+    is added to the second trajectory's stamps."""
+    second_longer = len(stamps_2) > len(stamps_1)
+    short, long = (stamps_1, stamps_2 + offset_2) if second_longer else (stamps_2 + offset_2, stamps_1)
+    short_idx, long_idx = [], []
+    for i, stamp in enumerate(short):
+        diffs = np.abs(long - stamp)
+        j = int(np.argmin(diffs))
+        if diffs[j] <= max_diff:
+            short_idx.append(i)
+            long_idx.append(j)
+    return (short_idx, long_idx) if second_longer else (long_idx, short_idx)
+
+
+@pytest.mark.parametrize("case", ["same", "shifted", "other rate", "gaps", "jitter", "sparse estimate"])
+def test_associate_pairs_times_as_evo_does(case: str) -> None:
+    rng = np.random.default_rng(7)
+    reference = np.arange(200) * 0.1 + 1000.0
+    times, offset, max_diff = reference.copy(), 0.0, 0.01
+    if case == "shifted":
+        times, offset = reference + 100.0, -100.0
+    elif case == "other rate":
+        times = np.arange(300) * 0.0666 + 1000.0
+        max_diff = 0.02
+    elif case == "gaps":
+        times = np.delete(reference, [5, 6, 7, 8, 9, 120])
+    elif case == "jitter":
+        times = reference + rng.uniform(-0.015, 0.015, reference.size)
+    elif case == "sparse estimate":
+        times = reference[::3] + 0.004
+    ref_idx, idx = associate(reference, times, max_diff, offset)
+    expected = _evo_association(reference, times, max_diff, offset)
+    # evo may pair two poses with one partner (poses closer than 2 · max_diff); none of these cases does.
+    assert len(set(expected[0])) == len(expected[0]) and len(set(expected[1])) == len(expected[1])
+    assert ref_idx.tolist() == expected[0] and idx.tolist() == expected[1]
+    assert ref_idx.size > 0
+    if case == "shifted":  # without the offset nothing is within the tolerance
+        assert associate(reference, times, max_diff)[0].size == 0
+
+
+def test_associate_keeps_one_pair_per_pose() -> None:
+    """Where evo pairs two poses of the shorter trajectory with one of the longer, the first pair is kept."""
+    reference = np.array([0.0, 1.0, 2.0])
+    times = np.array([0.995, 1.004])  # both nearest to 1.0, within 0.01
+    assert _evo_association(reference, times, 0.01, 0.0) == ([1, 1], [0, 1])
+    ref_idx, idx = associate(reference, times)
+    assert ref_idx.tolist() == [1] and idx.tolist() == [0]
+
+
+def test_mat_without_convention_says_what_it_assumed(tmp_path: Path) -> None:
+    poses = random_trajectory(4)
+    mat = tmp_path / "noconv.mat"
+    scipy.io.savemat(mat, {"poses_gt": np.moveaxis(poses, 0, -1), "poses_est": np.moveaxis(poses, 0, -1)})
+    with pytest.warns(InputWarning, match=r"noconv\.mat: no 'convention' key; read as 'Twv' \(camera-to"):
+        gt, _ = read_mat(mat)
+    np.testing.assert_allclose(gt, poses, atol=1e-12)
+    scipy.io.savemat(mat, {"poses_gt": np.moveaxis(poses, 0, -1), "poses_est": np.moveaxis(poses, 0, -1),
+                           "convention": "Twv"})
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_trajectory(mat)
+
+
+def test_writers_refuse_an_empty_path(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    for write in (write_kitti_poses, write_tum):
+        with pytest.raises(ValueError, match=r"^path: expected a path, got an empty one"):
+            write("", random_trajectory(3))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_zero_correction_gives_back_a_float32_prior() -> None:
+    """libviso2's KITTI 00 as stored (float32-rounded rotations, orthonormal to about 1e-7, not projected
+    as the readers would): ξ = 0 gives back every position to float64 rounding. Composing the steps back
+    with the rigid inverse of unprojected rotations moved them by 2.8 mm over the 4,541 frames."""
+    from dpc_jax.geometry.pose_correction import corrected_trajectory
+
+    stored = np.moveaxis(scipy.io.loadmat(LIBVISO2 / "stereo_00.mat")["poses_est"], -1, 0).astype(np.float64)
+    rotations = stored[:, :3, :3]
+    assert np.abs(np.einsum("nji,njk->nik", rotations, rotations) - np.eye(3)).max() > 1e-8  # not projected
+    corrected = corrected_trajectory(np.zeros((len(stored) - 1, 6)), stored, stored[0])
+    assert np.abs(corrected[:, :3, 3] - stored[:, :3, 3]).max() < 1e-9
+    assert np.abs(corrected[:, :3, :3] - rotations).max() < 1e-6

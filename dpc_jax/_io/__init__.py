@@ -22,7 +22,10 @@ output-path checks, and the removal of temporary folders that killed runs left b
   output path may be, contain or lie inside an input or another output of the command (by resolved
   path and by inode); a folder a command would replace must be one it made; an empty path is
   refused. Outputs named after another (a ``.csv`` beside a trajectory) are not made beside a
-  stream (:func:`is_stream`).
+  stream (:func:`is_stream`). A command whose standard output is a file it reads is refused
+  (:func:`stdout_problem`).
+* :func:`foreign_files_problem`, :func:`record_own_files`: files written into a folder that may hold
+  other files (a report, an export) replace only the files a command recorded there as its own.
 * Temporary names carry the writing process's id (:func:`temp_name`); :func:`remove_stale` removes
   the ones whose process is gone (``kill -9``, a power cut), never those of a live run.
 * :func:`output_lock`: one writer per output; a lock file beside a cache being built, a training
@@ -44,16 +47,19 @@ from pathlib import Path
 from dpc_jax._io._atomic_write import OutputKind, atomic_write, install_folder, output_target, stream_write
 from dpc_jax._io._lock import LockError, lock_path, output_lock
 from dpc_jax._io._output_set import STAGING_PREFIX, OutputSet, new_folders_removed_on_failure
+from dpc_jax._io._own_files import OWN_FILES, foreign_files_problem, record_own_files
 from dpc_jax._io._temporaries import remove_stale, temp_name
 
 __all__ = [
     "EMPTY_PATH",
+    "OWN_FILES",
     "STAGING_PREFIX",
     "InputWarning",
     "LockError",
     "OutputKind",
     "OutputSet",
     "atomic_write",
+    "foreign_files_problem",
     "foreign_folder_problem",
     "install_folder",
     "is_stdout",
@@ -65,7 +71,9 @@ __all__ = [
     "output_problem",
     "output_target",
     "overlap_problem",
+    "record_own_files",
     "remove_stale",
+    "stdout_problem",
     "stream_write",
     "temp_name",
     "writable",
@@ -230,6 +238,27 @@ def overlap_problem(inputs: list[Named], outputs: list[Named]) -> str | None:
             if relation is not None:
                 return (f"{option} {path}: {relation} the output {other_option} {other_path}; give each "
                         "output a path of its own")
+    return None
+
+
+def stdout_problem(inputs: list[Named]) -> str | None:
+    """Why this process's standard output may not be written: it is one of the ``inputs`` (a shell
+    redirection such as ``>> est.txt`` onto a file the command reads, which what it prints would then
+    follow), or None. Compared by inode, like :func:`overlap_problem`."""
+    try:
+        out = os.fstat(1)
+    except OSError:
+        return None
+    for option, path in inputs:
+        if path is None:
+            continue
+        try:
+            same = os.path.samestat(os.stat(path), out)
+        except OSError:
+            continue
+        if same:
+            return (f"standard output is the input {option} {path} (redirected there with > or >>); what "
+                    "the command prints would be written into it: redirect it elsewhere")
     return None
 
 

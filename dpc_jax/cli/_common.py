@@ -47,7 +47,7 @@ class Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsH
         return super()._get_help_string(action)
 
     def _get_default_metavar_for_optional(self, action: argparse.Action) -> str:
-        metavars: dict[object, str] = {int: "N", float: "X", path_option: "PATH"}
+        metavars: dict[object, str] = {int: "N", float: "X", path_option: "PATH", file_path_option: "FILE"}
         return metavars.get(action.type, "VALUE")
 
 
@@ -64,6 +64,21 @@ def path_option(text: str) -> Path:
     """argparse type of a path option: ``Path(text)``, unless ``text`` is empty (``Path("")`` would
     be the current folder)."""
     return Path(path_text(text))
+
+
+def file_path_text(text: str) -> str:
+    """argparse type of a file output kept as text: :func:`path_text`, unless it ends in ``/``, a
+    folder's spelling (``Path`` drops the slash, so a missing ``vo/new/`` would become a file ``vo/new``)."""
+    text = path_text(text)
+    if text.endswith("/"):
+        raise argparse.ArgumentTypeError(f"{text!r} ends in '/', the spelling of a folder; expected a file "
+                                         "name")
+    return text
+
+
+def file_path_option(text: str) -> Path:
+    """argparse type of a file output: ``Path(text)`` of :func:`file_path_text`."""
+    return Path(file_path_text(text))
 
 
 def image_size(text: str) -> tuple[int, int]:

@@ -11,9 +11,18 @@ import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from dpc_jax._io import foreign_folder_problem, is_stdout, is_stream, output_problem, overlap_problem
+from dpc_jax._io import (
+    foreign_files_problem,
+    foreign_folder_problem,
+    is_stdout,
+    is_stream,
+    output_problem,
+    overlap_problem,
+    stdout_problem,
+)
 from dpc_jax.cli._common import (
     Formatter,
+    file_path_option,
     frame_range,
     frames_problem,
     image_size,
@@ -25,6 +34,7 @@ from dpc_jax.cli._common import (
 )
 from dpc_jax.data.holdout import MIN_EVERY, adaptable_pairs, held_out_pairs
 from dpc_jax.report.correction_report import applied_words
+from dpc_jax.report.evaluation_report import REPORT_FILES as EVALUATION_FILES
 
 if TYPE_CHECKING:
     from dpc_jax.correction.adapt import Adaptation
@@ -43,6 +53,9 @@ HOLDOUT_EVERY = 5
 # size): the photometric loss at 64x96 resolves rotations too coarsely to tell a helpful correction from
 # a harmful one (docs/method.md §8; experiments/protocols/configs/kitti_raw_excerpt.py).
 JUDGE_SIZE = (240, 376)
+# Every file --report may write (dpc_jax.report.correction_report.write_correction_report): with ground
+# truth the evaluation's report and metrics.json, and always report.md and summary.json.
+REPORT_FILES = (*EVALUATION_FILES, "metrics.json", "summary.json")
 
 EPILOG = """The sequence (--data, one of):
   a prepared cache   --data cache/05   (from `dpc-jax prepare`; corrects its own prior unless --prior)
@@ -102,7 +115,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="raw inputs: drop static frames first (ss-DPC-Net rule, read on the prior)")
     parser.add_argument("--mono-rescale", action="store_true",
                         help="raw inputs: rescale each prior step to the ground-truth step (monocular VO)")
-    parser.add_argument("--out", required=True, type=path_option, metavar="FILE", help="corrected trajectory")
+    parser.add_argument("--out", required=True, type=file_path_option, metavar="FILE",
+                        help="corrected trajectory")
     parser.add_argument("--format", choices=("kitti", "tum"), default="kitti", help="format of --out")
     parser.add_argument("--rotation-only", action=argparse.BooleanOptionalAction, default=None,
                         help="apply only the rotation of the correction (default: the run's rotation_only)")
@@ -168,7 +182,15 @@ def _check_arguments(args: argparse.Namespace) -> str | None:
         if not args.data.is_dir():
             return f"--data {args.data}: not a folder (expected a cache prepared by `dpc-jax prepare`)"
         if not (args.data / "manifest.json").is_file():
+            caches = sorted(p.name for p in args.data.iterdir() if (p / "manifest.json").is_file())
+            if caches:
+                return (f"--data {args.data}: a folder of caches ({', '.join(caches[:5])}"
+                        f"{', ...' if len(caches) > 5 else ''}), not one; give one of them, e.g. --data "
+                        f"{args.data / caches[0]}")
             return f"--data {args.data}: not a prepared cache (no manifest.json); run `dpc-jax prepare`"
+        if args.no_judge:
+            return ("--no-judge goes with raw inputs (--kitti-odometry/--kitti-raw), whose default judge it "
+                    "turns off; a --data cache is judged only with --judge CACHE")
     elif args.kitti_odometry is not None:
         if not args.sequence or args.date or args.drive:
             return "--kitti-odometry needs --sequence (and no --date/--drive)"
@@ -207,12 +229,15 @@ def _check_arguments(args: argparse.Namespace) -> str | None:
     if args.adapt and is_stream(args.out):
         return (f"--adapt: the adapted network goes beside --out (OUT's stem + '.adapted/'), and --out "
                 f"{args.out} is a stream; give --out a file")
-    problem = overlap_problem(
-        [("--checkpoint", args.checkpoint), ("--data", args.data), ("--judge", args.judge),
-         ("--kitti-odometry", args.kitti_odometry), ("--kitti-raw", args.kitti_raw), ("--prior", args.prior),
-         ("--gt", args.gt)],
-        [("--out", args.out), ("--report", args.report), ("--cache", args.cache),
-         ("--adapt", adapted_path(args.out) if args.adapt else None)])
+    inputs = [("--checkpoint", args.checkpoint), ("--data", args.data), ("--judge", args.judge),
+              ("--kitti-odometry", args.kitti_odometry), ("--kitti-raw", args.kitti_raw),
+              ("--prior", args.prior), ("--gt", args.gt)]
+    outputs = [("--out", args.out), ("--report", args.report), ("--cache", args.cache),
+               ("--adapt", adapted_path(args.out) if args.adapt else None)]
+    problem = (overlap_problem(inputs, outputs)
+               or stdout_problem(inputs)
+               or (foreign_files_problem(args.report, REPORT_FILES, f"--report {args.report}")
+                   if args.report is not None else None))
     if problem is not None:
         return problem
     if args.cache is not None:
@@ -222,6 +247,34 @@ def _check_arguments(args: argparse.Namespace) -> str | None:
     if not (args.checkpoint / "checkpoints" / "config.json").is_file():
         return (f"--checkpoint {args.checkpoint}: not a training run (expected "
                 f"{args.checkpoint / 'checkpoints' / 'config.json'}, written by `dpc-jax train`)")
+    return _raw_inputs_problem(args) if args.data is None else None
+
+
+def _raw_inputs_problem(args: argparse.Namespace) -> str | None:
+    """Why ``--frames``, ``--prior`` or ``--gt`` do not fit the raw inputs' sequence (its frame count, one
+    rigid pose per frame), or None: read before JAX starts, as ``prepare`` reads them, so that such a
+    mistake costs no JAX start-up."""
+    from dpc_jax.data.kitti import read_ground_truth
+    from dpc_jax.data.priors import load_prior
+
+    try:
+        sequence = _open_sequence(args)
+    except (OSError, ValueError, KeyError) as error:
+        return str(error)
+    problem = frames_problem(args.frames, len(sequence), sequence.name)
+    if problem is not None:
+        return problem
+    try:
+        load_prior(args.prior, len(sequence), args.prior_format, frames=args.frames)
+    except (OSError, ValueError) as error:
+        return f"--prior {error}"
+    try:
+        poses = None if args.gt is None else read_ground_truth(args.gt)
+    except (OSError, ValueError) as error:
+        return f"--gt {error}"
+    if poses is not None and poses.shape[0] != len(sequence):
+        return (f"--gt {args.gt}: {poses.shape[0]} ground-truth poses for the {len(sequence)} frames of "
+                f"{sequence.name}; expected one per frame")
     return None
 
 
@@ -468,9 +521,6 @@ def _sequence(
     from dpc_jax.data.cache import prepare_sequence
 
     sequence = _open_sequence(args)
-    problem = frames_problem(args.frames, len(sequence), sequence.name)
-    if problem is not None:
-        raise ValueError(problem)
     # The pid in the name lets a later run remove the folder of a killed one.
     remove_stale(tempfile.gettempdir(), "dpc-correct-")
     cache_root = args.cache or Path(
@@ -521,7 +571,7 @@ def _write_outputs(
     adapted: Correction | None,
 ) -> list[Path]:
     """Write ``--out`` (and its frame list), ``--report`` and the adapted network; the trajectory files."""
-    from dpc_jax._io import OutputSet
+    from dpc_jax._io import OutputSet, record_own_files
     from dpc_jax.correction.corrector import write_trajectory
     from dpc_jax.report.correction_report import write_correction_report
 
@@ -530,7 +580,9 @@ def _write_outputs(
         staged = write_trajectory(outputs.file(args.out), correction, args.format)
         if args.report is not None:
             title = f"DPC correction: {correction.name}"
-            write_correction_report(outputs.folder(args.report), correction, title)
+            folder = outputs.folder(args.report)
+            reported = write_correction_report(folder, correction, title)
+            record_own_files(folder, args.report, [path.name for path in reported])
         if adaptation is not None and adapted is not None:
             from dpc_jax.correction.adapt import save_adapted
 

@@ -12,11 +12,13 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from dpc_jax._io import is_stdout, output_problem, overlap_problem
-from dpc_jax.cli._common import Formatter, import_jax, input_problem, path_option, path_text
+from dpc_jax._io import foreign_files_problem, is_stdout, output_problem, overlap_problem, stdout_problem
+from dpc_jax.cli._common import Formatter, file_path_text, import_jax, input_problem, path_option
 
 if TYPE_CHECKING:
     import numpy as np
+
+    from dpc_jax.eval.evaluation import Association
 
 HELP = "Evaluate trajectories against ground truth (m-ATE, segment errors, ATE, RPE, loop closures)."
 # No huge-page restart (dpc_jax.runtime.hugepages): it would not make the metrics faster, only add a start.
@@ -27,8 +29,10 @@ EPILOG = """examples:
   dpc-jax evaluate --gt 00.txt --est prior.txt --est corrected.txt --label prior --label corrected \\
       --align se3 --report out/report --export out/trajectories
 Formats by extension (.mat, .tum) or column count (12 KITTI, 8 TUM), or --format. A .mat given to --gt
-is read for its poses_gt, given to --est for its poses_est (--mat reads both). Estimates are paired with
-the ground truth pose by pose, in order."""
+is read for its poses_gt, given to --est for its poses_est (--mat reads both). Where the ground truth and
+every estimate have times (TUM), poses are paired by time as evo does: the nearest times within
+--t-max-diff (estimate times shifted by --t-offset); fewer than half matched is refused. Otherwise they
+are paired pose by pose, in order."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -70,7 +74,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--focal", type=float, default=None, metavar="PX",
         help="with --diagnose: focal length (px) for the mean rotation's image shift per step",
     )
-    parser.add_argument("--json", type=path_text, metavar="PATH",
+    parser.add_argument(
+        "--t-max-diff", type=float, metavar="S",
+        help="pairing by time: the largest time difference of two paired poses, in seconds (default: "
+        "0.01, evo's)",
+    )
+    parser.add_argument(
+        "--t-offset", type=float, metavar="S",
+        help="pairing by time: seconds added to every estimate's times (default: 0)",
+    )
+    parser.add_argument("--json", type=file_path_text, metavar="PATH",
                         help="write the metrics as JSON to PATH ('-': stdout; there, as to /dev/stdout, "
                         "instead of the table)")
     parser.add_argument(
@@ -86,16 +99,30 @@ def _error(message: str) -> int:
     return 2
 
 
-def _inputs(args: argparse.Namespace) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """Read ground truth and estimates -> ``(gt, {label: estimate})``; raises ValueError/OSError."""
-    from dpc_jax.data.poses_io import read_mat, read_trajectory
-    from dpc_jax.eval.evaluation import check_label
+def _inputs(
+    args: argparse.Namespace,
+) -> tuple[np.ndarray, dict[str, np.ndarray], Association | None]:
+    """Read ground truth and estimates -> ``(gt, {label: estimate}, association)``, paired: by time where
+    every file has times (``association`` says how), else by order; raises ValueError/OSError."""
+    from dpc_jax.data.poses_io import (
+        MAX_TIME_DIFF,
+        detect_format,
+        read_mat,
+        read_timed_trajectory,
+        read_trajectory,
+    )
+    from dpc_jax.eval.evaluation import associate_by_time, check_label
 
+    timing = [f"{option} {value:g}" for option, value in (("--t-max-diff", args.t_max_diff),
+                                                         ("--t-offset", args.t_offset)) if value is not None]
     if args.mat is not None:
         if args.est or args.label:
             raise ValueError("--mat holds the estimate; do not combine it with --est or --label")
+        if timing:
+            raise ValueError(f"{', '.join(timing)}: pairing by time needs times, and --mat {args.mat} has "
+                             "none")
         gt, est = read_mat(args.mat)
-        return gt, {"est": est}
+        return gt, {"est": est}, None
     if not args.est:
         raise ValueError("--gt needs at least one --est FILE")
     if args.label and len(args.label) != len(args.est):
@@ -112,33 +139,75 @@ def _inputs(args: argparse.Namespace) -> tuple[np.ndarray, dict[str, np.ndarray]
                              "one with --label NAME (one --label per --est)") from None
     if len(set(labels)) != len(labels):
         raise ValueError(f"estimate labels must be unique, got {labels}; use --label")
-    gt = read_trajectory(args.gt, args.format, mat_key="poses_gt")
-    estimates: dict[str, np.ndarray] = {}
-    for label, path in zip(labels, args.est, strict=True):
-        est = read_trajectory(path, args.format)
-        if est.shape[0] != gt.shape[0]:
-            raise ValueError(
-                f"{path} has {est.shape[0]} poses but the ground truth {args.gt} has {gt.shape[0]}"
-            )
-        estimates[label] = est
-    return gt, estimates
+    if args.t_max_diff is not None and not (0.0 <= args.t_max_diff < float("inf")):
+        raise ValueError(f"--t-max-diff {args.t_max_diff}: expected a time difference >= 0 in seconds")
+    if args.t_offset is not None and not abs(args.t_offset) < float("inf"):
+        raise ValueError(f"--t-offset {args.t_offset}: expected a finite number of seconds")
+    # Paired by time only where every file has times: a file without them is paired by order, and then
+    # so is every other (and a jump in a TUM file's times warns).
+    files = [args.gt, *args.est]
+    timed = all((args.format or detect_format(path)) == "tum" for path in files)
+    if timing and not timed:
+        untimed = next(path for path in files if (args.format or detect_format(path)) != "tum")
+        raise ValueError(f"{', '.join(timing)}: pairing by time needs times in every file, and {untimed} "
+                         "has none (a KITTI or .mat trajectory is paired by order)")
+    if not timed:
+        gt = read_trajectory(args.gt, args.format, mat_key="poses_gt")
+        estimates = {label: read_trajectory(path, args.format)
+                     for label, path in zip(labels, args.est, strict=True)}
+        for path, est in zip(args.est, estimates.values(), strict=True):
+            if est.shape[0] != gt.shape[0]:
+                raise ValueError(
+                    f"{path} has {est.shape[0]} poses but the ground truth {args.gt} has {gt.shape[0]}"
+                )
+        return gt, estimates, None
+    gt_times, gt = read_timed_trajectory(args.gt, args.format, mat_key="poses_gt")
+    read = {label: read_timed_trajectory(path, args.format)
+            for label, path in zip(labels, args.est, strict=True)}
+    # Every file is TUM here, so every one has its times.
+    assert gt_times is not None and all(stamps is not None for stamps, _ in read.values())
+    times = {label: stamps for label, (stamps, _) in read.items() if stamps is not None}
+    try:
+        association = associate_by_time(
+            gt_times, times, max_diff=MAX_TIME_DIFF if args.t_max_diff is None else args.t_max_diff,
+            offset=args.t_offset or 0.0,
+            sources={label: f"--est {path}" for label, path in zip(labels, args.est, strict=True)})
+    except ValueError as error:
+        raise ValueError(f"{error} (--t-offset S shifts the estimate's times, --t-max-diff S sets the "
+                         "tolerance)") from None
+    picked = {label: est[association.indices[label]] for label, (_, est) in read.items()}
+    return gt[association.gt_indices], picked, association
+
+
+def _own_files_problem(args: argparse.Namespace, labels: list[str]) -> str | None:
+    """Why ``--report`` or ``--export`` would replace a file that no dpc-jax command wrote there, or None."""
+    from dpc_jax.report.evaluation_report import REPORT_FILES, export_files
+
+    return ((foreign_files_problem(args.report, REPORT_FILES, f"--report {args.report}")
+             if args.report is not None else None)
+            or (foreign_files_problem(args.export, export_files(labels), f"--export {args.export}")
+                if args.export is not None else None))
 
 
 def run(args: argparse.Namespace) -> int:
+    inputs = [("--mat", args.mat), ("--gt", args.gt), *(("--est", path) for path in args.est)]
     problem = (
         input_problem(args.mat, "--mat") or input_problem(args.gt, "--gt")
         or next(filter(None, (input_problem(path, "--est") for path in args.est)), None)
         or output_problem(None if args.json == "-" else args.json, "--json")
         or output_problem(args.report, "--report", folder=True)
         or output_problem(args.export, "--export", folder=True)
-        or overlap_problem([("--mat", args.mat), ("--gt", args.gt), *(("--est", path) for path in args.est)],
-                           [("--json", None if args.json == "-" else args.json), ("--report", args.report),
-                            ("--export", args.export)])
+        or overlap_problem(inputs, [("--json", None if args.json == "-" else args.json),
+                                    ("--report", args.report), ("--export", args.export)])
+        or stdout_problem(inputs)
     )
     if problem is not None:
         return _error(problem)
     try:
-        gt, estimates = _inputs(args)
+        gt, estimates, association = _inputs(args)
+        problem = _own_files_problem(args, list(estimates))
+        if problem is not None:
+            return _error(problem)
         if args.focal is not None and not (args.focal > 0 and args.focal < float("inf")):
             raise ValueError(f"--focal must be a positive focal length in pixels, got {args.focal}")
         if args.focal is not None and not args.diagnose:
@@ -152,12 +221,23 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--rpe-delta must be in [1, {gt.shape[0] - 1}] for {gt.shape[0]} poses, "
                              f"got {args.rpe_delta}")
         import_jax()
-        from dpc_jax._io import OutputSet, atomic_write
+        import dataclasses
+
+        from dpc_jax._io import OutputSet, atomic_write, record_own_files
         from dpc_jax.eval.evaluation import evaluate
-        from dpc_jax.report.evaluation_report import export_trajectories, format_table, write_report
+        from dpc_jax.report.evaluation_report import (
+            association_line,
+            export_trajectories,
+            format_table,
+            write_report,
+        )
 
         result = evaluate(gt, estimates, remove_static=args.remove_static, align=args.align,
                           rpe_delta=args.rpe_delta, diagnose=args.diagnose, focal_px=args.focal)
+        if association is not None:
+            # The evaluated frames as indices into the ground-truth file, not into its matched poses.
+            result = dataclasses.replace(result, frames=association.gt_indices[result.frames],
+                                         association=association.to_dict())
     except (ValueError, OSError) as error:
         return _error(str(error))
 
@@ -166,15 +246,21 @@ def run(args: argparse.Namespace) -> int:
             atomic_write(outputs.file(args.json), result.to_json())
         if args.report is not None:
             source = args.mat if args.mat is not None else args.gt
-            write_report(outputs.folder(args.report), result, title=f"Trajectory evaluation: {source.name}")
+            staged = outputs.folder(args.report)
+            written = write_report(staged, result, title=f"Trajectory evaluation: {source.name}")
+            record_own_files(staged, args.report, [path.name for path in written])
         if args.export is not None:
-            export_trajectories(outputs.folder(args.export), result)
+            staged = outputs.folder(args.export)
+            record_own_files(staged, args.export, [path.name for path in export_trajectories(staged, result)])
         outputs.commit()
     if args.json == "-":
         sys.stdout.write(result.to_json())
     elif args.json is None or not is_stdout(args.json):
         # The table would follow the JSON that --json /dev/stdout streamed there, which no JSON
         # reader then accepts.
+        paired = association_line(result)
+        if paired is not None:
+            print(paired)
         sys.stdout.write(format_table(result))
         if result.diagnoses:
             from dpc_jax.report.evaluation_report import format_diagnosis

@@ -10,6 +10,7 @@ from pathlib import Path
 from dpc_jax._io import output_problem
 from dpc_jax.cli._common import (
     Formatter,
+    file_path_option,
     finite_problem,
     frame_range,
     frames_problem,
@@ -56,9 +57,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--drive", metavar="NNNN", help="raw: drive number")
     parser.add_argument("--gt", type=path_option, metavar="FILE",
                         help="raw: ground truth (KITTI/TUM text or .mat, its poses_gt)")
-    parser.add_argument("--out", required=True, type=path_option, metavar="POSES_TXT",
+    parser.add_argument("--out", required=True, type=file_path_option, metavar="POSES_TXT",
                         help="trajectory file to write")
-    parser.add_argument("--csv", type=path_option, metavar="FILE",
+    parser.add_argument("--csv", type=file_path_option, metavar="FILE",
                         help="per-frame CSV (default: OUT with suffix .csv)")
     parser.add_argument("--start", choices=("identity", "gt"), default="identity",
                         help="first pose of the written trajectory")

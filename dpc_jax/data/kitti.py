@@ -319,6 +319,11 @@ def open_odometry(root: str | Path, sequence: str | int, grey: bool = False) -> 
     """
     root = Path(root)
     name = f"{int(sequence):02d}" if str(sequence).isdigit() else str(sequence)
+    # The name becomes a cache's folder name and a file name (vo's priors): a path would put them
+    # elsewhere, after the images were read.
+    problem = _name_problem(name, "sequence", root / "sequences", "05")
+    if problem is not None:
+        raise ValueError(problem)
     seq_dir = root / "sequences" / name
     if not seq_dir.is_dir():
         raise FileNotFoundError(f"{seq_dir}: odometry sequence folder not found")
@@ -339,6 +344,13 @@ def open_odometry(root: str | Path, sequence: str | int, grey: bool = False) -> 
         name=name, left_paths=left, right_paths=right, K=K, baseline=baseline,
         image_size=image_size, times=times, poses=poses, sources=tuple(sources),
     )
+
+
+def _name_problem(name: str, what: str, folder: Path, example: str) -> str | None:
+    """Why ``name`` is not the name of one folder in ``folder`` (empty, ``.``, ``..`` or a path), or None."""
+    if name and name not in (".", "..") and "/" not in name and "\0" not in name:
+        return None
+    return (f"{what} {name!r}: expected the name of a folder in {folder} (such as {example}), not a path")
 
 
 def read_ground_truth(source: str | Path, format: str | None = None) -> np.ndarray:
@@ -390,6 +402,11 @@ def open_raw(
     ``timestamps.txt`` in seconds since the first frame.
     """
     root = Path(root)
+    problem = _name_problem(str(date), "date", root, "2011_09_26")
+    if problem is not None:
+        raise ValueError(problem)
+    if not str(drive).isdigit():
+        raise ValueError(f"drive {drive!r}: expected a drive number such as 0001 (DATE_drive_NNNN_sync)")
     drive_name = f"{date}_drive_{int(drive):04d}"
     drive_dir = root / date / f"{drive_name}_sync"
     if not drive_dir.is_dir():

@@ -11,15 +11,20 @@ Formats:
 
 * **KITTI** pose text: one pose per line, the 12 numbers of the 3×4 matrix ``[R | t]`` row-major.
 * **TUM** text: ``timestamp tx ty tz qx qy qz qw`` per line (Hamilton quaternion, scalar last);
-  lines starting with ``#`` are comments. Timestamps must increase from line to line. Poses are
-  paired with frames and with other trajectories by their order, not by time, so a step more
-  than ``TUM_GAP_FACTOR`` times the median step (a stretch of missing poses) is reported with an
-  :class:`~dpc_jax._io.InputWarning` naming the line; the file is still read (the evaluation
-  exports of static-frame-free sequences have such steps on purpose).
+  lines starting with ``#`` are comments. Timestamps must increase from line to line. Two
+  trajectories that both have times are paired by time (:func:`associate`, evo's rule; ``dpc-jax
+  evaluate`` does this); one paired with frames or with a trajectory without times is paired by
+  order, so there a step more than ``TUM_GAP_FACTOR`` times the median step (a stretch of missing
+  poses) is reported with an :class:`~dpc_jax._io.InputWarning` naming the line
+  (:func:`read_trajectory`, :func:`read_tum`); the file is still read (the evaluation exports of
+  static-frame-free sequences have such steps on purpose).
 * **.mat** (ss-DPC-Net / pyslam release): ``poses_gt`` and ``poses_est`` as ``4 × 4 × N`` arrays
   and ``convention`` ``'Twv'`` (camera-to-world) or ``'Tvw'`` (world-to-camera, inverted on read).
-  A file without ``convention`` is read as ``'Twv'``, the convention of every published file.
-  :func:`read_trajectory` returns the estimate unless asked for ``poses_gt``.
+  A file without ``convention`` is read as ``'Twv'``, the convention of every published file, and
+  an :class:`~dpc_jax._io.InputWarning` says so. :func:`read_trajectory` returns the estimate unless
+  asked for ``poses_gt``.
+
+Writers refuse an empty path (which would be the current folder) with a ``ValueError``.
 """
 
 from __future__ import annotations
@@ -30,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dpc_jax._io import InputWarning, atomic_write
+from dpc_jax._io import EMPTY_PATH, InputWarning, atomic_write
 
 # validate_poses lives with the pose algebra (pure numpy) so that the API functions of
 # dpc_jax.geometry check their poses as the readers do; re-exported here, where it began.
@@ -40,6 +45,8 @@ FORMATS = ("kitti", "tum", "mat")
 WRITE_FORMATS = ("kitti", "tum")
 MAT_KEYS = ("poses_gt", "poses_est")
 TUM_GAP_FACTOR = 10.0
+# The largest time difference (s) of two poses paired by :func:`associate`: evo's default (--t_max_diff).
+MAX_TIME_DIFF = 0.01
 
 
 # ----------------------------------------------------------------------------- text parsing
@@ -165,11 +172,15 @@ def read_tum(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
     Timestamps must increase; a step over ``TUM_GAP_FACTOR`` × the median step warns (see the
     module docstring).
     """
-    path = Path(path)
+    return _read_tum(Path(path), warn_gaps=True)
+
+
+def _read_tum(path: Path, warn_gaps: bool) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`read_tum`; ``warn_gaps``: warn about a jump in the times (poses paired by order)."""
     values, lines = _parse_rows(
         path, _data_lines(path, comment="#"), 8, "timestamp tx ty tz qx qy qz qw"
     )
-    _check_timestamps(path, values[:, 0], lines)
+    _check_timestamps(path, values[:, 0], lines, warn_gaps)
     q = values[:, 4:8]
     norm = np.linalg.norm(q, axis=-1)
     bad = np.flatnonzero(np.abs(norm - 1.0) > 1e-3)
@@ -185,8 +196,9 @@ def read_tum(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
     return values[:, 0], _validate_lines(poses, path, lines)
 
 
-def _check_timestamps(path: Path, stamps: np.ndarray, lines: list[int]) -> None:
-    """Refuse timestamps that do not increase; warn about a step far above the median step."""
+def _check_timestamps(path: Path, stamps: np.ndarray, lines: list[int], warn_gaps: bool) -> None:
+    """Refuse timestamps that do not increase; with ``warn_gaps``, warn about a step far above the
+    median step."""
     steps = np.diff(stamps)
     back = np.flatnonzero(steps <= 0)
     if back.size:
@@ -195,7 +207,7 @@ def _check_timestamps(path: Path, stamps: np.ndarray, lines: list[int]) -> None:
             f"{path}, line {lines[i]}: timestamp {stamps[i]:.15g} does not increase "
             f"(line {lines[i - 1]} has {stamps[i - 1]:.15g}); expected one pose per time, in time order"
         )
-    if steps.size < 2:
+    if not warn_gaps or steps.size < 2:
         return
     median = float(np.median(steps))
     jumps = np.flatnonzero(steps > TUM_GAP_FACTOR * median)
@@ -207,8 +219,44 @@ def _check_timestamps(path: Path, stamps: np.ndarray, lines: list[int]) -> None:
             f"the median step of {median:.6g} s{more}; poses are paired by their order, not by time, "
             "so check that the other trajectory skips the same frames",
             InputWarning,
-            stacklevel=3,
+            stacklevel=4,
         )
+
+
+def associate(
+    reference_times: np.ndarray, times: np.ndarray, max_diff: float = MAX_TIME_DIFF, offset: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pair two trajectories by their times as evo does (``evo.core.sync.associate_trajectories``):
+    ``(reference indices [M], indices [M])``, both int64 and increasing.
+
+    ``reference_times`` ``[N]`` and ``times`` ``[K]`` in seconds, each increasing; ``offset`` (s) is
+    added to ``times`` (evo's ``--t_offset``). Each time of the shorter of the two is paired with the
+    nearest time of the longer one where they differ by at most ``max_diff`` (s); poses without a
+    partner within it are left out. Where two poses of the shorter one have the same nearest partner
+    (poses closer together than ``2 · max_diff``) evo keeps both pairs; here only the first, so that no
+    pose is evaluated twice.
+    """
+    reference = np.asarray(reference_times, np.float64)
+    other = np.asarray(times, np.float64) + float(offset)
+    if reference.ndim != 1 or other.ndim != 1:
+        raise ValueError(f"times must be 1-D, got shapes {reference.shape} and {other.shape}")
+    if not (np.isfinite(max_diff) and max_diff >= 0.0) or not np.isfinite(offset):
+        raise ValueError(f"max_diff must be a finite time >= 0 and offset finite, got {max_diff!r}, "
+                         f"{offset!r}")
+    other_longer = other.size > reference.size
+    short, long = (reference, other) if other_longer else (other, reference)
+    if short.size == 0 or long.size == 0:
+        return np.empty(0, np.int64), np.empty(0, np.int64)
+    # The nearest time of the increasing ``long`` to each time of ``short``: one of its two neighbours
+    # at the insertion point (evo's argmin over every time, in O(N log N)).
+    right = np.minimum(np.searchsorted(long, short), long.size - 1)
+    left = np.maximum(right - 1, 0)
+    nearest = np.where(np.abs(long[left] - short) <= np.abs(long[right] - short), left, right)
+    keep = np.abs(long[nearest] - short) <= max_diff
+    short_idx, long_idx = np.flatnonzero(keep), nearest[keep]
+    first = np.concatenate([[True], np.diff(long_idx) > 0]) if long_idx.size else np.empty(0, bool)
+    short_idx, long_idx = short_idx[first].astype(np.int64), long_idx[first].astype(np.int64)
+    return (short_idx, long_idx) if other_longer else (long_idx, short_idx)
 
 
 def _load_mat(path: Path) -> dict[str, object]:
@@ -225,23 +273,35 @@ def _load_mat(path: Path) -> dict[str, object]:
         raise ValueError(f"{path}: not a readable MATLAB .mat file ({reason})") from None
 
 
+def _mat_convention(path: Path, contents: dict[str, object]) -> str:
+    """The file's ``convention`` (``'Twv'`` or ``'Tvw'``); ``'Twv'`` with a warning when it has none.
+    Asked once the poses are read, so that a file without them is not first warned about."""
+    if "convention" not in contents:
+        warnings.warn(f"{path}: no 'convention' key; read as 'Twv' (camera-to-world poses, the convention of "
+                      "every published file); a file of world-to-camera poses needs convention = 'Tvw'",
+                      InputWarning, stacklevel=4)
+        return "Twv"
+    convention = str(np.asarray(contents["convention"]).ravel()[0]).strip()
+    if convention not in ("Twv", "Tvw"):
+        raise ValueError(f"{path}: 'convention' must be 'Twv' or 'Tvw', got {convention!r}")
+    return convention
+
+
 def _mat_poses(path: Path, contents: dict[str, object], key: str) -> np.ndarray:
-    """The camera-to-world poses stored under ``key`` (inverted when ``convention`` is ``'Tvw'``)."""
+    """The poses stored under ``key``, checked (:func:`_camera_to_world` makes them camera-to-world)."""
     if key not in contents:
         present = sorted(k for k in contents if not k.startswith("__"))
         raise ValueError(f"{path}: no key {key!r} (expected 'poses_gt' and 'poses_est'; found {present})")
     raw = np.asarray(contents[key])
     if raw.ndim != 3 or raw.shape[:2] != (4, 4) or not np.issubdtype(raw.dtype, np.number):
         raise ValueError(f"{path}: {key!r} must be a numeric 4 × 4 × N array, got shape {raw.shape}")
-    poses = validate_poses(np.moveaxis(raw, -1, 0), source=f"{path} [{key!r}]")
-    convention = "Twv"
-    if "convention" in contents:
-        convention = str(np.asarray(contents["convention"]).ravel()[0]).strip()
-    if convention == "Tvw":
-        return invert_poses(poses)
-    if convention != "Twv":
-        raise ValueError(f"{path}: 'convention' must be 'Twv' or 'Tvw', got {convention!r}")
-    return poses
+    return validate_poses(np.moveaxis(raw, -1, 0), source=f"{path} [{key!r}]")
+
+
+def _camera_to_world(path: Path, contents: dict[str, object], *poses: np.ndarray) -> list[np.ndarray]:
+    """``poses`` of the file as camera-to-world: inverted when its ``convention`` is ``'Tvw'``."""
+    inverted = _mat_convention(path, contents) == "Tvw"
+    return [invert_poses(p) if inverted else p for p in poses]
 
 
 def read_mat(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
@@ -254,6 +314,7 @@ def read_mat(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(
             f"{path}: 'poses_gt' has {gt.shape[0]} poses but 'poses_est' has {est.shape[0]}"
         )
+    gt, est = _camera_to_world(path, contents, gt, est)
     return gt, est
 
 
@@ -279,33 +340,52 @@ def detect_format(path: str | os.PathLike[str]) -> str:
 def read_trajectory(
     path: str | os.PathLike[str], format: str | None = None, mat_key: str = "poses_est"
 ) -> np.ndarray:
-    """Read a trajectory file -> ``[N, 4, 4]`` float64 camera-to-world poses.
+    """Read a trajectory file -> ``[N, 4, 4]`` float64 camera-to-world poses, to be paired by order.
 
     ``format``: ``"kitti" | "tum" | "mat" | None`` (None: :func:`detect_format`). For ``.mat`` the
     poses under ``mat_key`` are returned: the estimate (``poses_est``, default) or the ground truth
-    (``poses_gt``); use :func:`read_mat` for both trajectories.
+    (``poses_gt``); use :func:`read_mat` for both trajectories. A jump in a TUM file's times warns
+    (the module docstring); :func:`read_timed_trajectory` keeps the times instead.
     """
-    path = Path(path)
+    return _read(Path(path), format, mat_key, warn_gaps=True)[1]
+
+
+def read_timed_trajectory(
+    path: str | os.PathLike[str], format: str | None = None, mat_key: str = "poses_est"
+) -> tuple[np.ndarray | None, np.ndarray]:
+    """Read a trajectory file with its times -> ``(times [N] s float64, or None for a format without
+    times (KITTI, .mat), poses [N, 4, 4] float64)``, for pairing by time (:func:`associate`).
+    ``format`` and ``mat_key`` as for :func:`read_trajectory`."""
+    return _read(Path(path), format, mat_key, warn_gaps=False)
+
+
+def _read(
+    path: Path, format: str | None, mat_key: str, warn_gaps: bool
+) -> tuple[np.ndarray | None, np.ndarray]:
     if mat_key not in MAT_KEYS:
         raise ValueError(f"mat_key must be one of {', '.join(MAT_KEYS)}, got {mat_key!r}")
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file")
     fmt = detect_format(path) if format is None else format
     if fmt == "kitti":
-        return read_kitti_poses(path)
+        return None, read_kitti_poses(path)
     if fmt == "tum":
-        return read_tum(path)[1]
+        return _read_tum(path, warn_gaps)
     if fmt == "mat":
-        return _mat_poses(path, _load_mat(path), mat_key)
+        contents = _load_mat(path)
+        return None, _camera_to_world(path, contents, _mat_poses(path, contents, mat_key))[0]
     raise ValueError(f"{path}: unknown trajectory format {fmt!r}; expected one of {', '.join(FORMATS)}")
 
 
 # ----------------------------------------------------------------------------- writers
 
 
-def _check_writable(poses: np.ndarray) -> np.ndarray:
+def _check_writable(path: str | os.PathLike[str], poses: np.ndarray) -> np.ndarray:
     """``poses`` as float64, refused (``ValueError`` naming ``poses``) where a reader would refuse the
-    file: a writer never makes a trajectory that cannot be read back. Written as given, unprojected."""
+    file: a writer never makes a trajectory that cannot be read back. Written as given, unprojected.
+    An empty ``path`` is refused too: ``Path("")`` is the current folder."""
+    if not os.fspath(path):
+        raise ValueError(f"path: {EMPTY_PATH}")
     arr = np.asarray(poses, dtype=np.float64)
     validate_poses(arr, source="poses")
     return arr
@@ -313,7 +393,7 @@ def _check_writable(poses: np.ndarray) -> np.ndarray:
 
 def write_kitti_poses(path: str | os.PathLike[str], poses: np.ndarray) -> None:
     """Write ``[N, 4, 4]`` (or ``[N, 3, 4]``) poses as KITTI text, atomically, to full float64 precision."""
-    arr = _check_writable(poses)
+    arr = _check_writable(path, poses)
     rows = arr[:, :3, :].reshape(-1, 12)
     atomic_write(path, "".join(" ".join(f"{v:.17g}" for v in row) + "\n" for row in rows))
 
@@ -322,7 +402,7 @@ def write_tum(
     path: str | os.PathLike[str], poses: np.ndarray, timestamps: np.ndarray | None = None
 ) -> None:
     """Write poses as TUM text, atomically. ``timestamps`` ``[N]`` s (default: the frame index)."""
-    arr = _check_writable(poses)
+    arr = _check_writable(path, poses)
     n = arr.shape[0]
     stamps = np.arange(n, dtype=np.float64) if timestamps is None else np.asarray(timestamps, np.float64)
     if stamps.shape != (n,) or not np.isfinite(stamps).all():

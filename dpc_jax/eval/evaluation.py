@@ -11,6 +11,10 @@ metric of :mod:`dpc_jax.eval.metrics` in one compiled call per estimate:
   ground truth and every estimate lose the same frames, and each estimate is re-composed from its
   relative poses between consecutive kept frames, starting at the first kept ground-truth pose.
 
+**Pairing by time.** :func:`evaluate` pairs the poses of its arrays by index. Trajectories with
+times (TUM files) are paired first by :func:`associate_by_time` (evo's rule, one tolerance and offset
+for every estimate), which says which ground-truth and estimate poses to pass and how many matched.
+
 Precision is an argument, not process state: :func:`evaluate` and :func:`segment_summary` compute in
 float64 by default (``precision="float32"`` for the faster, coarser figures), in a local
 ``jax.enable_x64`` scope whatever the process's setting. The result is an :class:`Evaluation`: a
@@ -30,6 +34,7 @@ from typing import cast
 
 import numpy as np
 
+from dpc_jax.data.poses_io import MAX_TIME_DIFF, associate
 from dpc_jax.eval.diagnosis import Diagnosis
 from dpc_jax.geometry.poses import (
     compose,
@@ -88,6 +93,9 @@ class Evaluation(Mapping[str, object]):
     remove_static: bool = False
     # label -> error composition (dpc_jax.eval.diagnosis); empty unless evaluate(diagnose=True)
     diagnoses: dict[str, Diagnosis] = field(default_factory=dict)
+    # How the poses were paired by time (Association.to_dict), None when paired by index: set with
+    # dataclasses.replace by whoever associated them (the command line does).
+    association: dict[str, object] | None = None
     _summary: dict[str, object] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -95,6 +103,8 @@ class Evaluation(Mapping[str, object]):
             "num_poses": int(self.gt.shape[0]),
             "estimates": {label: dict(m.summary) for label, m in self.metrics.items()},
         }
+        if self.association is not None:
+            summary["association"] = self.association
         if self.diagnoses:
             summary["diagnosis"] = {label: d.to_dict() for label, d in self.diagnoses.items()}
         object.__setattr__(self, "_summary", summary)
@@ -117,6 +127,67 @@ class Evaluation(Mapping[str, object]):
     def to_json(self) -> str:
         """The summary as JSON text (strict: no NaN literals)."""
         return json.dumps(self._summary, indent=2, allow_nan=False) + "\n"
+
+
+@dataclass(frozen=True)
+class Association:
+    """The poses of a ground truth and its estimates that :func:`associate_by_time` paired.
+
+    ``gt_indices`` ``[M]``: the ground-truth poses every estimate has a partner for, increasing;
+    ``indices``: label → ``[M]`` the partner of each in that estimate; ``matched``: label → the pairs
+    that estimate alone has; ``possible``: label → the most it could have (the shorter trajectory's
+    length); ``max_diff``, ``offset`` in seconds.
+    """
+
+    gt_indices: np.ndarray
+    indices: dict[str, np.ndarray]
+    matched: dict[str, int]
+    possible: dict[str, int]
+    max_diff: float
+    offset: float
+
+    def to_dict(self) -> dict[str, object]:
+        """The summary's ``"association"``: tolerance, offset, the evaluated and each estimate's count."""
+        return {"max_diff_s": self.max_diff, "offset_s": self.offset, "evaluated": int(self.gt_indices.size),
+                "matched": dict(self.matched), "possible": dict(self.possible)}
+
+
+def associate_by_time(
+    gt_times: np.ndarray, estimate_times: Mapping[str, np.ndarray], *, max_diff: float = MAX_TIME_DIFF,
+    offset: float = 0.0, sources: Mapping[str, str] | None = None,
+) -> Association:
+    """Pair each estimate's poses with the ground truth's by time (:func:`dpc_jax.data.poses_io.associate`,
+    evo's rule: nearest times within ``max_diff`` s, ``offset`` s added to every estimate's times) and
+    keep the ground-truth poses every estimate has a partner for.
+
+    ``gt_times`` ``[N]`` and ``estimate_times`` label → ``[K]`` in seconds, increasing. Evaluate
+    ``gt[a.gt_indices]`` against ``{label: est[a.indices[label]]}``. Raises ``ValueError`` naming the
+    estimate (``sources[label]``, default ``estimate 'label'``) when fewer than half of the poses it
+    could pair match (times on another clock, or at another rate than the tolerance allows), and when
+    fewer than 2 ground-truth poses are common to every estimate.
+    """
+    gt_times = np.asarray(gt_times, np.float64)
+    names = {label: (sources or {}).get(label, f"estimate {label!r}") for label in estimate_times}
+    pairs: dict[str, dict[int, int]] = {}
+    matched: dict[str, int] = {}
+    possible: dict[str, int] = {}
+    for label, times in estimate_times.items():
+        gt_idx, est_idx = associate(gt_times, times, max_diff, offset)
+        possible[label] = int(min(gt_times.size, np.size(times)))
+        matched[label] = int(gt_idx.size)
+        if 2 * matched[label] < possible[label]:
+            raise ValueError(
+                f"{names[label]}: {matched[label]} of its {possible[label]} poses have a ground-truth time "
+                f"within {max_diff:g} s (time offset {offset:g} s); fewer than half match: the times are on "
+                "another clock or further apart than the tolerance")
+        pairs[label] = dict(zip(gt_idx.tolist(), est_idx.tolist(), strict=True))
+    common = sorted(set.intersection(*(set(p) for p in pairs.values()))) if pairs else []
+    if len(common) < 2:
+        raise ValueError(f"{len(common)} ground-truth pose(s) have a partner in every estimate "
+                         f"({', '.join(names.values())}); a trajectory to evaluate needs at least 2")
+    gt_indices = np.asarray(common, np.int64)
+    indices = {label: np.asarray([p[i] for i in common], np.int64) for label, p in pairs.items()}
+    return Association(gt_indices, indices, matched, possible, float(max_diff), float(offset))
 
 
 def check_label(label: str) -> str:
@@ -182,6 +253,12 @@ def _checked_arguments(
     validate_poses(gt, "gt")
     for label, est in estimates.items():
         validate_poses(est, f"estimates[{label!r}]")
+    # validate_poses takes [N, 3, 4] too (KITTI rows); evaluate needs the same [N, 4, 4] on both sides.
+    for name, poses in (("gt", gt), *((f"estimates[{label!r}]", est) for label, est in estimates.items())):
+        shape = np.shape(poses)
+        if shape[1:] != (4, 4):
+            raise ValueError(f"{name}: poses of shape {shape}; expected [N, 4, 4] (homogeneous poses, the "
+                             "bottom row [0, 0, 0, 1] included)")
     arrays = {label: np.asarray(est, np.float64) for label, est in estimates.items()}
     return np.asarray(gt, np.float64), arrays
 

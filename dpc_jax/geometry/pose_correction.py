@@ -39,9 +39,14 @@ def corrected_trajectory(
     """Compose ``T*_{t+1,t} = Exp(ξ_corr,t) · T_vo_{t+1,t}`` from ``first_pose`` → ``[N, 4, 4]`` float64.
 
     ``xi_corr``: ``[N-1, 6]`` corrections of the consecutive pairs; ``prior``: ``[N, 4, 4]``
-    camera-to-world VO trajectory; ``first_pose``: ``[4, 4]``. The exponential and the products
-    run in float64 (in a local ``enable_x64`` scope), so ξ_corr = 0 gives back the prior's steps
-    exactly and the composition drifts only by float64 rounding.
+    camera-to-world VO trajectory; ``first_pose``: ``[4, 4]``. The prior's and the first pose's rotation
+    blocks are projected onto SO(3) first, as the trajectory readers do
+    (:func:`~dpc_jax.geometry.poses.validate_poses`): a step is composed back with the rigid inverse
+    (Rᵀ), which inverts a rotation only, and a prior stored in float32 is orthonormal to about 1e-7,
+    which over the 4,541 steps of KITTI 00 moved the positions by millimetres. The exponential and the
+    products run in float64 (in a local ``enable_x64`` scope), so ξ_corr = 0 with ``first_pose`` the
+    prior's first pose gives back the prior's positions up to float64 rounding, and its rotations as
+    projected (they move by at most their own deviation from a rotation).
 
     ``ValueError`` naming the argument for a prior or first pose that the trajectory readers would
     refuse (:func:`~dpc_jax.geometry.poses.validate_poses`) and for a non-finite correction, which
@@ -53,9 +58,9 @@ def corrected_trajectory(
         raise ValueError(
             f"need xi_corr [N-1, 6] for a prior [N, 4, 4], got {xi_corr.shape} and {prior.shape}"
         )
-    # Checked, not replaced by the projected poses: ξ_corr = 0 must give back the prior's steps exactly.
-    validate_poses(prior, "prior")
-    validate_poses(np.asarray(first_pose, np.float64)[None], "first_pose")
+    # Projected (see above): the rigid inverse of relative_poses and compose is exact for rotations only.
+    prior = validate_poses(prior, "prior")
+    first_pose = validate_poses(np.asarray(first_pose, np.float64)[None], "first_pose")[0]
     bad = np.flatnonzero(~np.isfinite(xi_corr).all(axis=1))
     if bad.size:
         raise ValueError(f"xi_corr: the correction of pair {int(bad[0])} is not finite (NaN or inf); "

@@ -12,9 +12,12 @@ trajectories against the ground truth. Everything lives under one work folder::
     WORKDIR/corrected/FOLD/NAME.txt corrected trajectories (KITTI pose text)
     WORKDIR/reports/FOLD/NAME/      evaluation reports (report.md, CSV, plots)
     WORKDIR/results.md, results.csv the results table: prior vs corrected per test sequence
+    WORKDIR/.dpc-jax-workdir        the marker: an experiment script made this folder
 
-Runs resume: an interrupted experiment re-run with the same arguments continues each training
-from its newest epoch and redoes only what is missing.
+Every script claims its work folder before any work (:func:`claim_workdir`): the output rule of the
+commands (``dpc_jax._io``) applied to it and to the script's other outputs. Runs resume: an
+interrupted experiment re-run with the same arguments continues each training from its newest epoch
+and redoes only what is missing.
 
 This module also writes *fake* KITTI odometry trees from ``dpc_jax.synth`` (rendered stereo,
 exact poses, priors = ground truth + noise) so the entry points can be run end to end without
@@ -23,9 +26,11 @@ KITTI (their ``--smoke`` tests).
 
 from __future__ import annotations
 
+import argparse
 import io
 import json
 import logging
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,7 +38,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from dpc_jax._io import atomic_write
+from dpc_jax._io import (
+    EMPTY_PATH,
+    atomic_write,
+    foreign_folder_problem,
+    nonempty_path,
+    output_problem,
+    overlap_problem,
+)
 
 if TYPE_CHECKING:
     from dpc_jax.correction.corrector import Correction
@@ -334,8 +346,16 @@ def correct_and_evaluate(
     estimates = correction.evaluation.estimates
     return Result(fold, name, prior_label, run.epoch, select, int(correction.corrected.shape[0]),
                   {"prior": estimates["prior"], "corrected": estimates["corrected"]},
-                  f"{final}" + (f" ({correction.acceptance.part})" if final != "prior" else ""), stages,
-                  decisions, earlier)
+                  applied_label(final, correction.acceptance), stages, decisions, earlier)
+
+
+def applied_label(final: str, acceptance: Any) -> str:
+    """The results table's ``applied``: ``prior``, or the network whose correction the final trajectory
+    holds with what its acceptance test let through (``trained (full)``), or with the test off what was
+    applied regardless (``trained (full, test off: forced)``), which no test let through."""
+    if final == "prior":
+        return final
+    return f"{final} ({acceptance.part}{', test off: forced' if acceptance.forced else ''})"
 
 
 # --------------------------------------------------------------------------- fake KITTI (smoke tests)
@@ -387,12 +407,69 @@ def write_fake_odometry(
 # --------------------------------------------------------------------------- entry-point plumbing
 
 
+WORKDIR_MARKER = ".dpc-jax-workdir"
+# An experiment's outputs and inputs, as (option, path) pairs; a None path was not given.
+Named = tuple[str, str | os.PathLike[str] | None]
+
+
+def path_argument(text: str) -> Path:
+    """argparse type of the scripts' path options: ``Path(text)``, unless ``text`` is empty (``Path("")``
+    is the current folder, where an unset shell variable would send the outputs)."""
+    try:
+        return Path(nonempty_path(text))
+    except ValueError:
+        raise argparse.ArgumentTypeError(EMPTY_PATH) from None
+
+
+def claim_workdir(
+    workdir: str | os.PathLike[str] | None, inputs: Sequence[Named] = (), *, option: str = "--workdir",
+    files: Sequence[Named] = (),
+) -> Path | None:
+    """Check an experiment script's outputs by the commands' rule (``dpc_jax._io``), then make its work
+    folder and mark it as one: call it once the inputs are checked, before any work.
+
+    ``workdir``: the folder the script writes into (None: it has none), named ``option`` in messages;
+    ``inputs``: ``(option, path)`` of every file or folder the script reads (data roots, prior folders,
+    the config, other work folders); ``files``: ``(option, path)`` of file outputs outside the work folder
+    (``--json``, ``--results-page``). Raises ``ValueError`` (one line, naming the option and the path) for
+    an empty path, an output that cannot be written, an output that is, contains or lies inside an input
+    or another output (after links, ``..`` and hard links), and a work folder that holds files but was not
+    made by an experiment script (no :data:`WORKDIR_MARKER` in it; a work folder of an earlier version is
+    taken by creating that empty file). Then creates the work folder with its marker, so that a rerun,
+    or another script sharing the folder, is allowed. Returns ``workdir`` as a ``Path`` (None without one).
+    """
+    outputs = [(option, workdir), *files]
+    for name, path in outputs:
+        if path is not None and not os.fspath(path):
+            raise ValueError(f"{name}: {EMPTY_PATH}")
+    problem = (output_problem(workdir, option, folder=True)
+               or next(filter(None, (output_problem(path, name) for name, path in files)), None)
+               or overlap_problem(list(inputs), outputs))
+    if problem is None and workdir is not None:
+        problem = foreign_folder_problem(workdir, f"{option} {workdir}", marker=WORKDIR_MARKER,
+                                         made_by="the work folder of an experiment script")
+        if problem is not None:
+            problem += f" (a work folder of an earlier version: create the empty file {WORKDIR_MARKER} in it)"
+    if problem is not None:
+        raise ValueError(problem)
+    if workdir is None:
+        return None
+    folder = Path(workdir)
+    folder.mkdir(parents=True, exist_ok=True)
+    if not (folder / WORKDIR_MARKER).is_file():
+        atomic_write(folder / WORKDIR_MARKER, "a work folder of dpc_jax's experiment scripts (experiments/); "
+                     "they write into it and resume from it\n")
+    return folder
+
+
 def add_common_arguments(parser: Any, config: Path) -> None:
     """Options every entry point has: work folder, config, epoch selection, overrides, smoke, progress."""
     from dpc_jax.training.train_config import SELECTIONS
 
-    parser.add_argument("--workdir", required=True, type=Path, metavar="DIR", help="everything goes here")
-    parser.add_argument("--config", type=Path, default=config, metavar="FILE", help="experiment config")
+    parser.add_argument("--workdir", required=True, type=path_argument, metavar="DIR",
+                        help="everything goes here (made by the script, or one it made before)")
+    parser.add_argument("--config", type=path_argument, default=config, metavar="FILE",
+                        help="experiment config")
     parser.add_argument("--select", choices=tuple(SELECTIONS),
                         help="epoch selection (default: the protocol's)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -400,7 +477,7 @@ def add_common_arguments(parser: Any, config: Path) -> None:
     parser.add_argument("--smoke", action="store_true",
                         help=f"wiring check: {', '.join(f'{k}={v}' for k, v in SMOKE.items())}")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
-    parser.add_argument("--results-page", type=Path, metavar="FILE",
+    parser.add_argument("--results-page", type=path_argument, metavar="FILE",
                         help="also write the table into the results block of FILE (a docs/results/ page)")
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
@@ -25,6 +26,27 @@ _TITLES = (
 )
 # The figures of write_figures, by file name.
 TRAJECTORY_PNG, SEGMENT_ERRORS_PNG, C_ATE_PNG = "trajectory.png", "segment_errors.png", "c_ate.png"
+# Every file write_report writes, so that a command can check before any work that none of them would
+# replace a file it did not make.
+REPORT_FILES = ("report.md", "metrics.csv", "segment_errors.csv", TRAJECTORY_PNG, SEGMENT_ERRORS_PNG,
+                C_ATE_PNG)
+
+
+def export_files(labels: list[str]) -> list[str]:
+    """The names :func:`export_trajectories` writes for the estimates ``labels`` (and the ground truth)."""
+    return [f"{name}{ext}" for name in (GT_LABEL, *labels) for ext in (".kitti.txt", ".tum.txt")]
+
+
+def association_line(result: Evaluation) -> str | None:
+    """One sentence on how the poses were paired by time (None when they were paired by index)."""
+    a = result.association
+    if a is None:
+        return None
+    matched, possible = cast(dict[str, int], a["matched"]), cast(dict[str, int], a["possible"])
+    counts = ", ".join(f"{label} {matched[label]} of {possible[label]}" for label in matched)
+    return (f"Poses paired by time (nearest within {a['max_diff_s']:g} s, estimate times shifted by "
+            f"{a['offset_s']:+g} s), matched: {counts}; evaluated: the {a['evaluated']} ground-truth poses "
+            "with a partner in every estimate.")
 
 
 def _fmt(value: float | int | None) -> str:
@@ -150,8 +172,10 @@ def write_report(
         f"ATE alignment: {result.align}",
         f"RPE Δ = {result.rpe_delta} frame(s)",
     ]
+    paired = association_line(result)
     report = "\n".join([
-        f"# {title}", "", "; ".join(settings) + ".", "", format_table(result), *segment_section(result),
+        f"# {title}", "", "; ".join(settings) + ".", "", *([paired, ""] if paired else []),
+        format_table(result), *segment_section(result),
         *(["## What the error is made of", "", format_diagnosis(result.diagnoses)]
           if result.diagnoses else []),
         f"![trajectories]({TRAJECTORY_PNG})", "", f"![segment errors]({SEGMENT_ERRORS_PNG})", "",
@@ -164,8 +188,9 @@ def write_report(
 def export_trajectories(directory: str | Path, result: Evaluation) -> list[Path]:
     """Write the evaluated ground truth and estimates as ``NAME.kitti.txt`` and ``NAME.tum.txt`` (evo).
 
-    ``NAME`` is ``gt`` or the estimate's label. The TUM timestamps are the frame indices of the
-    evaluated frames in the input sequence, so GT and estimates associate one to one in evo.
+    ``NAME`` is ``gt`` or the estimate's label (:func:`export_files`). The TUM timestamps are the
+    indices of the evaluated frames in the input ground truth, so GT and estimates associate one to one
+    in evo.
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)

@@ -69,7 +69,7 @@ def results_markdown(results: Sequence[SequenceResult], title: str, notes: Seque
     lines += ["", "Each cell: prior → corrected. Segment errors are the mean of the per-length means over "
               f"100–800 m ({EMPTY} when the sequence is shorter than 100 m). applied: which network's "
               "correction the final trajectory holds and what its acceptance test let through (full, "
-              "rotation), or prior (no test passed)."]
+              "rotation), or prior (no test passed); with the test off, what was applied (test off: forced)."]
     staged = [r for r in results if r.stages]
     if staged:
         lines += ["", "Per network (each row: that network's correction applied, whatever its test said; "

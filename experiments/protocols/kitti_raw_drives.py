@@ -40,7 +40,7 @@ PRIOR_NAMES = {"vo": "our VO", "libviso2": "libviso2-s"}
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--kitti-raw", type=Path, default=DEFAULT_ROOT, metavar="ROOT",
+    parser.add_argument("--kitti-raw", type=P.path_argument, default=DEFAULT_ROOT, metavar="ROOT",
                         help="raw root holding DATE/ and libviso2/")
     parser.add_argument("--test-drives", nargs="+", metavar="NNNN",
                         help="only these test drives (default: both; e.g. two work folders run side by side)")
@@ -102,7 +102,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         overrides = P.overrides_from(args)
         adapt_steps = 2 if args.smoke else protocol.adapt_steps
         judge_size = protocol.judge_size
-        sequences, priors, offsets = {}, {}, {}
+        unknown = [d for d in args.test_drives or () if d not in drives]
+        if unknown:
+            raise ValueError(f"--test-drives {unknown[0]}: not a drive of {args.config} "
+                             f"({', '.join(drives)})")
+        sequences, libviso2, priors, offsets = {}, {}, {}, {}
         for drive, spec in drives.items():
             mat = args.kitti_raw / spec.libviso2
             gt_all = read_trajectory(mat, mat_key="poses_gt")
@@ -112,10 +116,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             if gt_all.shape[0] < n:
                 raise ValueError(f"{mat}: {gt_all.shape[0]} poses for the {n} frames of drive {drive}")
             # The .mat may cover the whole drive; its first n poses belong to the images (the data README).
-            sequence = open_raw(args.kitti_raw, protocol.date, drive, poses=gt_all[:n])
+            sequences[drive] = open_raw(args.kitti_raw, protocol.date, drive, poses=gt_all[:n])
+            libviso2[drive] = est_all[:n]
+        P.claim_workdir(args.workdir, [("--kitti-raw", args.kitti_raw), ("--config", args.config)],
+                        files=[("--results-page", args.results_page)])
+        for drive, sequence in sequences.items():
             record = P.vo_prior(sequence, args.workdir / "priors" / f"{drive}_vo.txt", progress)
-            sequences[drive] = sequence
-            priors[drive] = {"vo": Path(record["path"]), "libviso2": est_all[:n]}
+            priors[drive] = {"vo": Path(record["path"]), "libviso2": libviso2[drive]}
             offsets[drive] = record["disparity_offset_median_px"] if protocol.rectify_offset else 0.0
         config0 = P.fold_config(base, P.Fold("prepare", ("x",), "y", ()), cache_root, overrides)
         for drive, sequence in sequences.items():
@@ -130,10 +137,6 @@ def main(argv: Sequence[str] | None = None) -> int:
                 P.prepare_judge(sequence, source, cache_root, config0, judge_size, name=f"{drive}_{prior}",
                                 disparity_offset=offsets[drive], progress=progress)
         select = args.select or protocol.select
-        unknown = [d for d in args.test_drives or () if d not in drives]
-        if unknown:
-            raise ValueError(f"--test-drives {unknown[0]}: not a drive of {args.config} "
-                             f"({', '.join(drives)})")
         for test_drive in args.test_drives or drives:
             train_drive = next(d for d in drives if d != test_drive)
             for prior, trained_on in protocol.tests:

@@ -25,7 +25,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--kitti-raw", type=Path, default=DEFAULT_ROOT, metavar="ROOT",
+    parser.add_argument("--kitti-raw", type=P.path_argument, default=DEFAULT_ROOT, metavar="ROOT",
                         help="raw root holding DATE/ and libviso2/")
     P.add_common_arguments(parser, CONFIG)
     return parser
@@ -44,6 +44,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         (t0, t1), (v0, v1) = protocol.train_frames, protocol.validation_frames
         libviso2 = args.kitti_raw / protocol.libviso2
         sequence = open_raw(args.kitti_raw, protocol.date, protocol.drive, poses=libviso2)
+        P.claim_workdir(args.workdir, [("--kitti-raw", args.kitti_raw), ("--config", args.config)],
+                        files=[("--results-page", args.results_page)])
         fold = P.Fold("excerpt", tuple(base.train_sequences), base.validation_sequences[0],
                       tuple(base.test_sequences))
         cache_root = args.workdir / "cache"

@@ -26,7 +26,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--kitti-odometry", required=True, type=Path, metavar="ROOT",
+    parser.add_argument("--kitti-odometry", required=True, type=P.path_argument, metavar="ROOT",
                         help="odometry root (sequences/XX/, poses/XX.txt)")
     parser.add_argument("--priors", required=True, metavar="DIR|vo",
                         help="folder with stereo_XX.mat and mono_XX.mat (libviso2 release); 'vo' = our "
@@ -65,13 +65,27 @@ def main(argv: Sequence[str] | None = None) -> int:
             folds.append((fold, spec.prior))
             cache_root = args.workdir / "cache" / spec.prior
             configs[name] = P.fold_config(base, fold, cache_root, {**spec.overrides, **overrides})
+        # Every sequence opened and every prior found before the first is used.
+        needed = {(kind, name): fold for fold, kind in folds
+                  for name in (*fold.train, fold.validation, *fold.test)}
+        opened = {name: open_odometry(args.kitti_odometry, name) for _, name in needed}
+        for kind, name in needed:
+            if args.priors == "vo" and kind != "stereo":
+                raise ValueError(f"--priors vo gives stereo priors only; the {kind} priors of fold "
+                                 f"{needed[kind, name].name} need a folder")
+            if args.priors != "vo":
+                P.find_prior(Path(args.priors), name, kind)
+        P.claim_workdir(args.workdir, [("--kitti-odometry", args.kitti_odometry),
+                                       ("--priors", None if args.priors == "vo" else args.priors),
+                                       ("--config", args.config)],
+                        files=[("--results-page", args.results_page)])
         prepared: set[tuple[str, str]] = set()
         for fold, kind in folds:
             config = configs[fold.name]
             for name in (*fold.train, fold.validation, *fold.test):
                 if (kind, name) in prepared:
                     continue
-                sequence = open_odometry(args.kitti_odometry, name)
+                sequence = opened[name]
                 prior = P.prior_source(args.priors, kind, sequence, args.workdir, progress)
                 P.prepare(sequence, prior, Path(config.cache_root), config, mono_rescale=kind == "mono",
                           progress=progress)

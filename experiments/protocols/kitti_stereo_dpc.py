@@ -26,14 +26,15 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--kitti-odometry", required=True, type=Path, metavar="ROOT",
+    parser.add_argument("--kitti-odometry", required=True, type=P.path_argument, metavar="ROOT",
                         help="odometry root (sequences/XX/, poses/XX.txt)")
     parser.add_argument("--priors", required=True, metavar="DIR|vo",
                         help="folder of priors (stereo_XX.mat, XX.mat or XX.txt) or 'vo' for our stereo VO")
     parser.add_argument("--test", default="all", metavar="XX|all", help="the fold's test sequence, or all")
     parser.add_argument("--sequences", nargs="+", metavar="XX",
                         help="odometry sequences of the protocol (default: the config's 00 02 05-10)")
-    parser.add_argument("--kitti-raw", type=Path, metavar="ROOT", help="raw root for extra training drives")
+    parser.add_argument("--kitti-raw", type=P.path_argument, metavar="ROOT",
+                        help="raw root for extra training drives")
     parser.add_argument("--raw-drive", nargs="+", default=[], metavar="DATE_drive_NNNN",
                         help="extra training drives, e.g. 2011_09_26_drive_0001 (priors from --priors)")
     P.add_common_arguments(parser, CONFIG)
@@ -69,6 +70,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                 validation = next(s for s in sequences if s != test)
             train = training_names(tuple(opened), (test, validation))
             folds.append(P.Fold(f"test_{test}", train, validation, (test,)))
+        if args.priors != "vo":
+            for sequence in opened.values():  # every prior found before the first is used
+                P.find_prior(Path(args.priors), sequence.name, "stereo")
+        inputs = [("--kitti-odometry", args.kitti_odometry), ("--kitti-raw", args.kitti_raw),
+                  ("--priors", None if args.priors == "vo" else args.priors), ("--config", args.config)]
+        P.claim_workdir(args.workdir, inputs, files=[("--results-page", args.results_page)])
         cache_root = args.workdir / "cache"
         configs = {f.name: P.fold_config(base, f, cache_root, overrides) for f in folds}
         first = next(iter(configs.values()))

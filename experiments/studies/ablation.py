@@ -23,6 +23,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from dpc_jax.pipelines.protocol import claim_workdir, path_argument
 from dpc_jax.report.pages import check_results_page, write_results
 from dpc_jax.report.tables import number, records_csv, table
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
@@ -83,15 +84,16 @@ def ablation_markdown(rows: list[dict[str, Any]], seed: int) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--workdir", type=Path, default=Path("runs/ablation"), metavar="DIR")
+    parser.add_argument("--workdir", type=path_argument, default=Path("runs/ablation"), metavar="DIR")
     parser.add_argument("--seed", type=int, default=0, help="demo seed (its towns and routes)")
     parser.add_argument("--rows", type=int, nargs="+", metavar="K", help="only these rows (0-based)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
-    parser.add_argument("--results-page", type=Path, metavar="FILE",
+    parser.add_argument("--results-page", type=path_argument, metavar="FILE",
                         help="also write the table into the results block of FILE (a docs/results/ page)")
     args = parser.parse_args(argv)
     try:
         check_results_page(args.results_page)
+        claim_workdir(args.workdir, files=[("--results-page", args.results_page)])
     except (OSError, ValueError) as error:
         print(f"ablation: error: {error}", file=sys.stderr)
         return 2

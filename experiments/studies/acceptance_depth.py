@@ -21,6 +21,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from dpc_jax.pipelines.protocol import claim_workdir, path_argument
 from dpc_jax.report.pages import check_results_page, write_results
 from dpc_jax.report.tables import change_pct, table
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
@@ -102,13 +103,18 @@ def report(rows: list[dict[str, Any]]) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("folders", type=Path, nargs="+", metavar="DEMO_OUT")
-    parser.add_argument("--out", type=Path, default=Path("runs/acceptance_depth"), metavar="DIR")
-    parser.add_argument("--results-page", type=Path, metavar="FILE",
+    parser.add_argument("folders", type=path_argument, nargs="+", metavar="DEMO_OUT")
+    parser.add_argument("--out", type=path_argument, default=Path("runs/acceptance_depth"), metavar="DIR")
+    parser.add_argument("--results-page", type=path_argument, metavar="FILE",
                         help="also write the table into the results block of FILE (a docs/results/ page)")
     args = parser.parse_args(argv)
     try:
         check_results_page(args.results_page)
+        missing = [folder for folder in args.folders if not (folder / "summary.json").is_file()]
+        if missing:
+            raise ValueError(f"{missing[0]}: not a finished `dpc-jax demo --out` folder (no summary.json)")
+        claim_workdir(args.out, [("DEMO_OUT", folder) for folder in args.folders], option="--out",
+                      files=[("--results-page", args.results_page)])
     except (OSError, ValueError) as error:
         print(f"acceptance_depth: error: {error}", file=sys.stderr)
         return 2

@@ -29,6 +29,7 @@ from scipy.spatial.transform import Rotation
 
 from dpc_jax import config as config_lib
 from dpc_jax.geometry.poses import compose, relative_poses
+from dpc_jax.pipelines.protocol import claim_workdir, path_argument
 from dpc_jax.report.tables import change_pct, table
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
@@ -108,8 +109,9 @@ def evaluate_test(config: object, workdir: Path, selection: str) -> dict[str, fl
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--config", type=Path, default=ROOT / "experiments/studies/configs/bias_recovery.py")
-    parser.add_argument("--out", type=Path, default=ROOT / "runs/bias_recovery")
+    parser.add_argument("--config", type=path_argument,
+                        default=ROOT / "experiments/studies/configs/bias_recovery.py")
+    parser.add_argument("--out", type=path_argument, default=ROOT / "runs/bias_recovery")
     parser.add_argument("--frames", type=int, default=200, help="frames per synthetic sequence")
     parser.add_argument("--bias-deg", type=float, default=0.15, help="yaw bias per frame (°)")
     parser.add_argument("--rot-noise-deg", type=float, default=0.01, help="rotation noise per axis (°)")
@@ -120,10 +122,16 @@ def main(argv: list[str] | None = None) -> int:
     from dpc_jax.training.loop import train
     from dpc_jax.training.train_config import TrainConfig
 
-    config = config_lib.load_file(args.config, TrainConfig)
-    cache_root = (ROOT / config.cache_root).resolve()
-    if cache_root != (args.out / "cache").resolve():
-        parser.error(f"the config's cache_root {cache_root} is not OUT/cache ({args.out / 'cache'})")
+    try:
+        config = config_lib.load_file(args.config, TrainConfig)
+        cache_root = (ROOT / config.cache_root).resolve()
+        if cache_root != (args.out / "cache").resolve():
+            raise ValueError(f"--config {args.config}: its cache_root {cache_root} is not OUT/cache "
+                             f"({args.out / 'cache'})")
+        claim_workdir(args.out, [("--config", args.config)], option="--out")
+    except (OSError, ValueError) as error:  # a ConfigError is a ValueError
+        print(f"bias_recovery: error: {error}", file=sys.stderr)
+        return 2
     config = config_lib.from_dict(TrainConfig, {**config_lib.to_dict(config), "cache_root": str(cache_root)})
 
     make_data(args.out, config, args)

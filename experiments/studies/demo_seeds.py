@@ -21,6 +21,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from dpc_jax.pipelines.protocol import claim_workdir, path_argument
 from dpc_jax.report.pages import check_results_page, write_results
 from dpc_jax.report.tables import EMPTY, records_csv, table
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
@@ -104,13 +105,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4], metavar="K")
-    parser.add_argument("--workdir", type=Path, default=Path("runs/demo_seeds"), metavar="DIR")
-    parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG, metavar="FILE",
+    parser.add_argument("--workdir", type=path_argument, default=Path("runs/demo_seeds"), metavar="DIR")
+    parser.add_argument("--config", type=path_argument, default=DEFAULT_CONFIG, metavar="FILE",
                         help="demo config (CONFIG = DemoConfig(...) or a dict); its seed is replaced")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a DemoConfig field (JSON value), e.g. --set adapt_steps=0")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
-    parser.add_argument("--results-page", type=Path, metavar="FILE",
+    parser.add_argument("--results-page", type=path_argument, metavar="FILE",
                         help="also write the table into the results block of FILE (a docs/results/ page)")
     args = parser.parse_args(argv)
     try:
@@ -130,6 +131,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 **parse_overrides(args.set)}
         configs = {seed: config_lib.from_dict(DemoConfig, {**base, "seed": seed}, where="--set")
                    for seed in args.seeds}
+        claim_workdir(args.workdir, [("--config", args.config)],
+                      files=[("--results-page", args.results_page)])
     except (OSError, ValueError) as error:  # a ConfigError is a ValueError
         print(f"demo_seeds: error: {error}", file=sys.stderr)
         return 2

@@ -39,6 +39,8 @@ from typing import Any
 
 import numpy as np
 
+from dpc_jax.pipelines.protocol import path_argument
+
 HERE = Path(__file__).resolve().parent
 DEFAULT_ROOT = HERE.parents[2] / "shared" / "data" / "kitti-raw"
 DATE, DRIVE = "2011_09_26", "0001"
@@ -129,18 +131,19 @@ def photometric_errors(sequence: Any, candidates: np.ndarray, offsets_px: Sequen
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--workdir", type=Path, required=True, help="output folder (priors/vo.txt is reused)")
-    parser.add_argument("--kitti-raw", type=Path, default=DEFAULT_ROOT, metavar="ROOT",
+    parser.add_argument("--workdir", type=path_argument, required=True,
+                        help="output folder (priors/vo.txt is reused: kitti_raw_excerpt.py's work folder)")
+    parser.add_argument("--kitti-raw", type=path_argument, default=DEFAULT_ROOT, metavar="ROOT",
                         help="raw root holding DATE/ and libviso2/")
     parser.add_argument("--no-progress", action="store_true", help="no progress line on stderr")
-    parser.add_argument("--results-page", type=Path, metavar="FILE",
+    parser.add_argument("--results-page", type=path_argument, metavar="FILE",
                         help="also write the table into the results block of FILE (a docs/results/ page)")
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from dpc_jax._io import atomic_write, output_problem
+    from dpc_jax._io import atomic_write
     from dpc_jax.report.pages import check_results_page, write_results
     from dpc_jax.report.tables import records_csv, table
 
@@ -150,11 +153,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"excerpt_ground_truth: error: {error}", file=sys.stderr)
         return 2
 
-    for name in ("ground_truth_check.md", "ground_truth_check.csv"):
-        problem = output_problem(args.workdir / name, "--workdir")
-        if problem:
-            print(f"excerpt_ground_truth: error: {problem}", file=sys.stderr)
-            return 2
     progress = not args.no_progress and sys.stderr.isatty()
     try:
         from dpc_jax.data.kitti import open_raw
@@ -165,6 +163,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         sequence = open_raw(args.kitti_raw, DATE, DRIVE, poses=args.kitti_raw / LIBVISO2)
         gt, libviso2 = read_mat(args.kitti_raw / LIBVISO2)
+        P.claim_workdir(args.workdir, [("--kitti-raw", args.kitti_raw)],
+                        files=[("--results-page", args.results_page)])
         record = P.vo_prior(sequence, args.workdir / "priors" / "vo.txt", progress)
         vo = read_trajectory(record["path"])
     except (OSError, ValueError, KeyError) as error:

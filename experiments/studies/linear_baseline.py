@@ -39,6 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dpc_jax._io import atomic_write
+from dpc_jax.pipelines.protocol import claim_workdir, path_argument
 from dpc_jax.report.pages import check_results_page, write_results
 from dpc_jax.report.tables import table
 
@@ -79,16 +81,16 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--data", type=Path, default=DATA, metavar="DIR",
+    parser.add_argument("--data", type=path_argument, default=DATA, metavar="DIR",
                         help="folder with stereo_XX.mat (and mono_XX.mat) (default: %(default)s)")
     parser.add_argument("--mono", action="store_true", help="also libviso2-m (translation rescaled per step "
                         "to the ground-truth step length, the ss-DPC-Net protocol)")
     parser.add_argument("--translation", action="store_true",
                         help="fit and apply the translation part too (default: rotation only)")
-    parser.add_argument("--json", type=Path, metavar="PATH", help="also write the figures as JSON")
-    parser.add_argument("--results-page", type=Path, metavar="FILE",
+    parser.add_argument("--json", type=path_argument, metavar="PATH", help="also write the figures as JSON")
+    parser.add_argument("--results-page", type=path_argument, metavar="FILE",
                         help="also write the table into the results block of FILE (a docs/results/ page)")
-    parser.add_argument("--demo", type=Path, metavar="OUT",
+    parser.add_argument("--demo", type=path_argument, metavar="OUT",
                         help="a finished `dpc-jax demo` folder: fit on its training sequences, test on its "
                         "test sequence")
     return parser
@@ -185,6 +187,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         check_results_page(args.results_page)
+        # No work folder: the figures go to --json and the results page only.
+        claim_workdir(None, [("--data", args.data), ("--demo", args.demo)],
+                      files=[("--json", args.json), ("--results-page", args.results_page)])
     except (OSError, ValueError) as error:
         print(f"linear_baseline: error: {error}", file=sys.stderr)
         return 2
@@ -233,7 +238,7 @@ def main(argv: list[str] | None = None) -> int:
     seconds = time.perf_counter() - start
     print(f"({seconds:.0f} s)")
     if args.json is not None:
-        args.json.write_text(json.dumps(report, indent=2) + "\n")
+        atomic_write(args.json, json.dumps(report, indent=2) + "\n")
     if args.results_page is not None:
         write_results(args.results_page, "\n".join(sections), Path(__file__))
     return 0 if fell >= 6 else 1

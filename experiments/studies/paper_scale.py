@@ -447,13 +447,16 @@ def write_docs(rows: list[list[str]], run: str) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    # Imported here, not at the top: this checkout's dpc_jax is put first on the path above.
+    from dpc_jax.pipelines.protocol import path_argument
+
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument(
-        "--workdir", type=Path, help="work folder (made if missing; a rerun reuses its stages)"
+        "--workdir", type=path_argument, help="work folder (made if missing; a rerun reuses its stages)"
     )
-    parser.add_argument("--config", type=Path, default=CONFIG, help="the experiment's config file")
+    parser.add_argument("--config", type=path_argument, default=CONFIG, help="the experiment's config file")
     parser.add_argument("--frames", type=int, metavar="N", help="total frames (default: KITTI's 23,201)")
     parser.add_argument("--size", metavar="HxW", help="image size (default: the config's, 240x376)")
     parser.add_argument(
@@ -494,7 +497,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         _render_worker(args.render_into, json.loads(args.render_settings))
         return 0
     try:
-        if args.workdir is None or not str(args.workdir):
+        if args.workdir is None:
             raise ValueError("--workdir is required (a folder to make, or one this experiment made)")
         config = runpy.run_path(str(args.config))
         size = tuple(config["SCALE"]["size"])
@@ -503,13 +506,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             size = (int(h), int(w))
         if args.frames is not None and args.frames < 8 * len(config["KITTI_LENGTHS"]):
             raise ValueError(f"--frames {args.frames}: expected at least {8 * len(config['KITTI_LENGTHS'])}")
-        workdir = args.workdir
-        if workdir.exists() and any(workdir.iterdir()) and not (workdir / "stages").is_dir():
-            raise ValueError(f"--workdir {workdir}: a folder this experiment did not make (no stages/)")
+        from dpc_jax.pipelines.protocol import claim_workdir
+
         if args.docs:  # before hours of stages, not after
             from dpc_jax.report.pages import read_block
 
             read_block(DOCS, "scale")
+        workdir = claim_workdir(args.workdir, [("--config", args.config)],
+                                files=[("--docs", DOCS if args.docs else None)])
+        assert workdir is not None  # a work folder was given
     except (ValueError, KeyError, OSError) as error:
         print(f"paper_scale: error: {error}", file=sys.stderr)
         return 2

@@ -44,6 +44,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+from dpc_jax.pipelines.protocol import claim_workdir, path_argument
 from dpc_jax.report.pages import check_results_page, write_results
 from dpc_jax.report.tables import EMPTY, change_pct, csv_text, number, table
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
@@ -350,17 +351,19 @@ def run_seed(seed: int, args: argparse.Namespace, namespace: Mapping[str, Any], 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--workdir", required=True, type=Path, metavar="DIR", help="everything goes here")
+    parser.add_argument("--workdir", required=True, type=path_argument, metavar="DIR",
+                        help="everything goes here")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4], metavar="K",
                         help="demo seeds (default: %(default)s)")
     parser.add_argument("--skip-drives", action="store_true", help="the demo seeds only")
-    parser.add_argument("--config", type=Path, default=CONFIG, metavar="FILE", help="comparison config")
-    parser.add_argument("--kitti-raw", type=Path, metavar="ROOT",
+    parser.add_argument("--config", type=path_argument, default=CONFIG, metavar="FILE",
+                        help="comparison config")
+    parser.add_argument("--kitti-raw", type=path_argument, metavar="ROOT",
                         help="raw root holding DATE/ and libviso2/ (default: kitti_raw_drives.py's)")
     parser.add_argument("--smoke", action="store_true", help="wiring check: tiny demo (the config's "
                         "SMOKE_DEMO) and kitti_raw_drives.py --smoke")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
-    parser.add_argument("--results-page", type=Path, metavar="FILE",
+    parser.add_argument("--results-page", type=path_argument, metavar="FILE",
                         help="also write the table into the results block of FILE (a docs/results/ page)")
     return parser
 
@@ -368,16 +371,13 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     import runpy
 
-    from dpc_jax._io import atomic_write, output_problem
+    from dpc_jax._io import atomic_write
 
     args = build_parser().parse_args(argv)
-    problem = output_problem(args.workdir, "--workdir", folder=True)
     try:
         check_results_page(args.results_page)
     except (OSError, ValueError) as error:
-        problem = str(error)
-    if problem is not None:
-        print(f"supervised_comparison: error: {problem}", file=sys.stderr)
+        print(f"supervised_comparison: error: {error}", file=sys.stderr)
         return 2
     try:
         namespace = runpy.run_path(str(args.config))
@@ -390,6 +390,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not args.skip_drives and not (args.kitti_raw / "libviso2").is_dir():
         print(f"supervised_comparison: error: --kitti-raw {args.kitti_raw}: no libviso2/ folder (or give "
               "--skip-drives)", file=sys.stderr)
+        return 2
+    try:
+        claim_workdir(args.workdir, [("--config", args.config),
+                                     ("--kitti-raw", None if args.skip_drives else args.kitti_raw)],
+                      files=[("--results-page", args.results_page)])
+    except (OSError, ValueError) as error:
+        print(f"supervised_comparison: error: {error}", file=sys.stderr)
         return 2
     logging.getLogger("absl").setLevel(logging.ERROR)
     progress = not args.no_progress and sys.stderr.isatty()
@@ -416,7 +423,6 @@ def main(argv: Sequence[str] | None = None) -> int:
                      "nothing.")
     rows: list[Row] = []
     try:
-        args.workdir.mkdir(parents=True, exist_ok=True)
         tests: list[tuple[str, Callable[[], list[Row]]]] = [
             (f"demo seed {seed}", functools.partial(run_seed, seed, args, namespace, progress, say))
             for seed in args.seeds]
