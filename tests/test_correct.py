@@ -34,12 +34,10 @@ def setup(tmp_path_factory: pytest.TempPathFactory) -> dict:
     test free of the training step's compilation; training itself is tested in test_train.py and
     end to end in test_experiments.py. A second run ("flat") has no epoch with a negative Δ.
     """
-    from dpc_jax import config as config_lib
+    from support import write_stored_run
+
     from dpc_jax.data.cache import prepare_sequence
     from dpc_jax.data.kitti import open_odometry
-    from dpc_jax.nn.models import create_model
-    from dpc_jax.training.checkpoints import Checkpoints
-    from dpc_jax.training.optim import create_train_state, make_optimizer
     from dpc_jax.training.train_config import REFERENCE, TrainConfig
 
     tmp = tmp_path_factory.mktemp("correct")
@@ -51,16 +49,8 @@ def setup(tmp_path_factory: pytest.TempPathFactory) -> dict:
                          size=SIZE, progress=False, workers=1)
     config = TrainConfig(method="stereo_dpc", **dpc_protocol.SMOKE, **REFERENCE, cache_root=str(cache),
                          train_sequences=("00",), validation_sequences=("05",))
-    models = {}
-    for run, figures in (("run", FIGURES), ("flat", {1: (0.5, 0, 0.0)})):
-        config_lib.save_json(tmp / run / "checkpoints" / "config.json", config)
-        with Checkpoints(tmp / run) as checkpoints:
-            best = Checkpoints.best_records(None)
-            for epoch, (gradient_loss, loops, delta) in figures.items():
-                models[epoch] = create_model("stereo_dpc", config.model_config(), SEEDS[epoch])
-                _, state = create_train_state(models[epoch], make_optimizer(config, 1))
-                metrics = {"val_gradient_loss": gradient_loss, "val_loop_closures": loops, "val_delta": delta}
-                best = checkpoints.save(epoch, state, {"step": epoch, "metrics": metrics}, best)
+    models = write_stored_run(tmp / "run", config, {e: (SEEDS[e], *FIGURES[e]) for e in FIGURES})
+    write_stored_run(tmp / "flat", config, {1: (SEEDS[1], 0.5, 0, 0.0)})
     return {"tmp": tmp, "kitti": kitti, "cache": cache, "run": tmp / "run", "flat": tmp / "flat",
             "priors": tmp / "priors", "models": models}
 
@@ -294,7 +284,7 @@ def test_an_untrained_network_leaves_the_prior_unchanged(setup: dict) -> None:
         model = create_model("stereo_dpc", config.model_config(), seed)
         set_prior_statistics(model, np.full(6, 0.1), np.full(6, 0.01))
         graphdef, state = nnx.split(model)
-        prediction = predict_sequence(graphdef, state, cache, config.loss_config(), batch_size=4,
+        prediction = predict_sequence((graphdef, state), cache, config.loss_config(), batch_size=4,
                                       use_flow=False)
         np.testing.assert_array_equal(prediction.xi_corr, 0.0)
         np.testing.assert_array_equal(prediction.delta["full"], 0.0)

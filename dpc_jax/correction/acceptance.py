@@ -14,6 +14,20 @@ optimistic; the default level 0.01 is chosen strict for that reason.
 
 What to apply, from the tests of the correction's parts, is ``dpc_jax.correction.decision``'s;
 :class:`Acceptance` records it.
+
+**While the pairs arrive** (the live correction, ``dpc_jax.correction.live``) the same paired differences
+are tested sequentially: a test that is checked after every pair must keep its false-acceptance rate
+under that continuous monitoring, which a fixed-sample p-value does not. :class:`SequentialTest` is a
+test by betting: the wealth ``W_t = Π_k (1 + λ s_k)``, ``s_k`` the sign of the k-th difference (+1 when
+the correction helped the pair, −1 when it hurt, 0 when it did neither), averaged over a grid of bets
+λ, is a nonnegative supermartingale while the correction helps on at most half the pairs, so by Ville's
+inequality ``P(sup_t W_t ≥ 1/α) ≤ α``: accepting at the first ``t`` with ``W_t ≥ 1/α`` (and the mean
+difference so far below zero, as offline) falsely accepts with probability at most α however long it
+runs. An accepted part is withdrawn when the evidence turns: a CUSUM of the signs (Page's test of the
+rate the correction helped at, while accepted, against one half) raises an alarm within a few pairs of
+a change of scene, lighting or camera that makes the correction neutral or harmful; the test then
+starts again with a smaller level (α spending: the j-th acceptance is at ``α · 6 / (π² j²)``, which
+sums to α over all of them).
 """
 
 from __future__ import annotations
@@ -127,3 +141,82 @@ class Acceptance:
             "forced": self.forced,
             "tests": {name: asdict(test) for name, test in self.tests.items()},
         }
+
+
+# The bets averaged by the sequential test: a mixture of bets is itself a test martingale, and it grows
+# nearly as fast as the best single bet for the rate the correction actually helps at.
+BETS = np.linspace(0.05, 0.8, 16)
+# The CUSUM's alarm level (log of the likelihood ratio): a withdrawal needs about this much evidence that
+# the correction helps on no more than half the pairs.
+WITHDRAW_LOG_LR = math.log(100.0)
+
+
+@dataclass
+class SequentialTest:
+    """The live test of one paired difference (module docstring): fed one difference per pair
+    (:meth:`update`), ``accepted`` says whether the part may be applied to the pair after it.
+
+    ``alpha``: the level over all acceptances (α spending); ``name``: what is tested. The state is a
+    handful of numbers, whatever the number of pairs.
+    """
+
+    name: str
+    alpha: float = DEFAULT_ALPHA
+    accepted: bool = False
+    pairs: int = 0  # pairs seen
+    episode_pairs: int = 0  # pairs since the test (re)started or was accepted
+    acceptances: int = 0  # how many times it was accepted
+    withdrawals: int = 0
+    log_wealth: np.ndarray = field(default_factory=lambda: np.zeros(BETS.size))
+    episode_sum: float = 0.0  # sum of the differences since the test (re)started
+    helped: int = 0  # pairs with a negative difference since acceptance
+    signed: int = 0  # pairs with a nonzero difference since acceptance
+    cusum: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.alpha < 1.0:
+            raise ValueError(f"alpha must be in (0, 1), got {self.alpha}")
+
+    @property
+    def level(self) -> float:
+        """The level of the next acceptance: α · 6 / (π² j²) for the j-th."""
+        j = self.acceptances + 1
+        return self.alpha * 6.0 / (math.pi**2 * j**2)
+
+    @property
+    def evidence(self) -> float:
+        """The mixture wealth ``W_t`` (accepting at ``1 / level``), or the CUSUM while accepted."""
+        return self.cusum if self.accepted else float(np.mean(np.exp(self.log_wealth)))
+
+    def update(self, delta: float) -> str | None:
+        """Take the difference of the next pair; ``"accepted"`` or ``"withdrawn"`` when the state changes
+        at this pair, else None."""
+        if not math.isfinite(delta):
+            raise ValueError(f"{self.name}: the difference of pair {self.pairs} is not finite")
+        self.pairs += 1
+        self.episode_pairs += 1
+        sign = -float(np.sign(delta))  # +1: the correction helped this pair
+        if not self.accepted:
+            self.log_wealth += np.log1p(BETS * sign)
+            self.episode_sum += delta
+            if self.episode_sum < 0 and float(np.mean(np.exp(self.log_wealth))) >= 1.0 / self.level:
+                self.accepted, self.acceptances = True, self.acceptances + 1
+                self.episode_pairs = self.helped = self.signed = 0
+                self.cusum = 0.0
+                return "accepted"
+            return None
+        self.helped += sign > 0
+        self.signed += sign != 0
+        # The rate it helps at while accepted (a prior of two helped pairs in three keeps the ratio finite):
+        # the alarm tests a fall from that rate to one half.
+        rate = min(0.95, max(0.6, (self.helped + 2) / (self.signed + 3)))
+        if sign:
+            self.cusum = max(0.0, self.cusum + math.log(0.5 / (rate if sign > 0 else 1.0 - rate)))
+        if self.cusum >= WITHDRAW_LOG_LR:
+            self.accepted, self.withdrawals = False, self.withdrawals + 1
+            self.log_wealth = np.zeros(BETS.size)
+            self.episode_sum = 0.0
+            self.episode_pairs = 0
+            return "withdrawn"
+        return None
+

@@ -126,7 +126,7 @@ def run_prediction(
             f"prepare the sequence with --size {rh}x{rw}"
         )
     return predict_sequence(
-        run.graphdef, run.state, cache, run.config.loss_config(),
+        (run.graphdef, run.state), cache, run.config.loss_config(),
         batch_size=batch_size or run.config.batch_size, use_flow=run.config.use_flow,
         stereo_depth=stereo_depth_of(cache, acceptance_depth or run.config.acceptance_depth),
         progress=progress,

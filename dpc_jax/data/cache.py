@@ -74,14 +74,13 @@ import shutil
 from collections.abc import Iterable
 from pathlib import Path
 
-import cv2
-import jax
 import numpy as np
 
 from dpc_jax._io import atomic_write, install_folder, output_lock, remove_stale, temp_name
 from dpc_jax.data.cache_products import FARNEBACK, ordered_map, save_array, write_frame_products
 from dpc_jax.data.kitti import StereoSequence, load_image, read_ground_truth
 from dpc_jax.data.poses_io import validate_poses
+from dpc_jax.data.preparation import prepared_pair, resized_intrinsics
 from dpc_jax.data.priors import load_prior, rescale_monocular
 from dpc_jax.data.sequence_cache import (
     CACHE_VERSION,
@@ -93,8 +92,7 @@ from dpc_jax.data.sequence_cache import (
     load_cache,
     newer_cache_problem,
 )
-from dpc_jax.data.stereo_depth import sgbm_disparity, sgbm_fits
-from dpc_jax.geometry.camera import scale_intrinsics
+from dpc_jax.data.stereo_depth import sgbm_fits
 from dpc_jax.geometry.poses import remove_static_frames
 from dpc_jax.runtime.progress import Progress
 
@@ -146,24 +144,15 @@ def read_manifest(cache_dir: str | Path) -> dict | None:
     return manifest if isinstance(manifest, dict) else None
 
 
-def _resized_frame(
-    path: Path, expected: tuple[int, int], size: tuple[int, int], shift: float = 0.0
-) -> np.ndarray:
-    """The image at ``path`` resized to ``size``; first, with ``shift``, resampled at ``u + shift``
-    (bilinear, at the source resolution) so that its content moves ``shift`` px to the left."""
+def _decoded(path: Path, expected: tuple[int, int]) -> np.ndarray:
+    """The image at ``path`` (uint8 ``[H, W, 3]``), checked to be of the sequence's size ``expected``."""
     image = load_image(path)
     if image.shape[:2] != expected:
         raise ValueError(
             f"{path}: image is {image.shape[0]}×{image.shape[1]}, expected {expected[0]}×{expected[1]} "
             "like the sequence's first frame"
         )
-    if shift:
-        move = np.array([[1.0, 0.0, shift], [0.0, 1.0, 0.0]])
-        image = cv2.warpAffine(image, move, (image.shape[1], image.shape[0]),
-                               flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
-    if image.shape[:2] == size:
-        return image
-    return cv2.resize(image, (size[1], size[0]), interpolation=cv2.INTER_AREA)
+    return image
 
 
 def prepare_sequence(
@@ -394,9 +383,10 @@ def _write_arrays(
                  label, size[1])
 
     def frame(i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-        left = _resized_frame(sequence.left_paths[i], sequence.image_size, size)
-        right = _resized_frame(sequence.right_paths[i], sequence.image_size, size, float(disparity_offset))
-        return left, right, sgbm_disparity(left, right, fu, baseline) if depth else None
+        # The one preparation of a frame, the live corrector's too.
+        return prepared_pair(_decoded(sequence.left_paths[i], sequence.image_size),
+                             _decoded(sequence.right_paths[i], sequence.image_size), size, K, baseline,
+                             disparity_offset, match=depth)
 
     return write_frame_products(
         tmp, ordered_map(frame, kept.tolist(), workers), kept.size, size, depth=depth,
@@ -406,11 +396,7 @@ def _write_arrays(
 
 def _resized_intrinsics(sequence: StereoSequence, size: tuple[int, int], half_pixel: bool) -> np.ndarray:
     """float64 ``[3, 3]`` intrinsics of ``sequence``'s images resized to ``size = (H, W)`` px."""
-    (h0, w0), (h1, w1) = sequence.image_size, size
-    # scale_intrinsics is JAX code, which computes in float32 unless x64 is on.
-    with jax.enable_x64(True):
-        return np.asarray(scale_intrinsics(np.asarray(sequence.K, np.float64), w1 / w0, h1 / h0,
-                                           half_pixel=half_pixel), np.float64)
+    return resized_intrinsics(sequence.K, sequence.image_size, size, half_pixel)
 
 
 def _write_poses_and_calibration(

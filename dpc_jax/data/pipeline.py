@@ -352,7 +352,8 @@ def iterate_sequence(
 
             yield task
 
-    return prefetch(tasks(), depth, workers)
+    # A sequence of one batch has nothing to overlap its assembly with: assembled inline, no thread.
+    return prefetch(tasks(), depth, workers if n > batch_size else 0)
 
 
 @dataclass(frozen=True)

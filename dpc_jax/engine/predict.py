@@ -90,9 +90,37 @@ def predict_step(mesh: Mesh | None, graphdef: nnx.GraphDef, treedef: Any, config
     return jax.jit(step, **kwargs)
 
 
+class PreparedModel:
+    """A model ``(graphdef, state)`` prepared once for the backend
+    (``dpc_jax.engine.backend.prepare_for_backend``) and flattened, with its compiled steps bound to it:
+    what :func:`predict_sequence` and :func:`measure_effects` take, so that a caller running them on
+    many short sequences (the live corrector) prepares the model and looks its programs up once."""
+
+    def __init__(self, graphdef: nnx.GraphDef, state: nnx.State) -> None:
+        self.graphdef, self.state = backend.prepare_for_backend(graphdef, state)
+        self.leaves, self.treedef = jax.tree.flatten(self.state)
+        self._steps: dict[tuple[str, Mesh | None, Any], Any] = {}
+
+    def predict_step(self, mesh: Mesh | None, config: Any) -> Any:
+        """:func:`predict_step` of this model."""
+        key = ("predict", mesh, config)
+        if key not in self._steps:
+            self._steps[key] = predict_step(mesh, self.graphdef, self.treedef, config)
+        return self._steps[key]
+
+    def effects_step(self, config: Any) -> Any:
+        """:func:`effects_step` of this model (its depth, or its learned SSIM weight, in Δ)."""
+        key = ("effects", None, config)
+        if key not in self._steps:
+            self._steps[key] = effects_step(self.graphdef, self.treedef, config)
+        return self._steps[key]
+
+
+Model = PreparedModel | tuple[nnx.GraphDef, nnx.State]
+
+
 def predict_sequence(
-    graphdef: nnx.GraphDef,
-    state: nnx.State,
+    model: Model,
     cache: SequenceCache | str | os.PathLike,
     loss_config: Any,
     *,
@@ -102,8 +130,8 @@ def predict_sequence(
     mesh: Mesh | None = None,
     progress: Progress = False,
 ) -> SequencePrediction:
-    """Run the model ``(graphdef, state)`` in evaluation mode over every pair of ``cache``
-    (prepared once for the backend: ``dpc_jax.engine.backend.prepare_for_backend``).
+    """Run ``model`` (``(graphdef, state)``, or a :class:`PreparedModel`) in evaluation mode over every
+    pair of ``cache`` (prepared once for the backend: ``dpc_jax.engine.backend.prepare_for_backend``).
 
     ``loss_config``: the run's loss config (``TrainConfig.loss_config()``). ``stereo_depth``:
     ``(inverse depth, valid)`` ``[N, camera, H, W]`` of every frame (``dpc_jax.data.stereo_depth``)
@@ -114,11 +142,11 @@ def predict_sequence(
     batch k are fetched.
     """
     cache = cache if isinstance(cache, SequenceCache) else load_cache(cache)
-    graphdef, state = backend.prepare_for_backend(graphdef, state)
+    prepared = model if isinstance(model, PreparedModel) else PreparedModel(*model)
     pairs = len(cache) - 1
     size = max(1, min(batch_size, pairs)) if mesh is None else batch_size
-    leaves, treedef = jax.tree.flatten(state)
-    step = predict_step(mesh, graphdef, treedef, loss_config)
+    leaves = prepared.leaves
+    step = prepared.predict_step(mesh, loss_config)
     share = parallel.process_slice(size) if mesh is not None else slice(None)
 
     def place(tree: Any) -> Any:
@@ -194,7 +222,7 @@ def measure_effects(
     *,
     batch_size: int,
     stereo_depth: StereoDepth | None,
-    model: tuple[nnx.GraphDef, nnx.State] | None = None,
+    model: Model | None = None,
     use_flow: bool = False,
     none: np.ndarray | None = None,
     progress: Progress = False,
@@ -206,10 +234,11 @@ def measure_effects(
     network's proposal; ``loss_config``: the loss whose temporal error ``L`` is measured
     (``dpc_jax.nn.losses.temporal_pair_errors``). Depth: ``stereo_depth`` ``[N, camera, H, W]``
     (``dpc_jax.data.stereo_depth``) when given, else the depth of ``model``. ``model``:
-    ``(graphdef, state)``, run in evaluation mode on every batch when given (``use_flow``: it reads
-    flow): for its depth, or, with a stereo depth, for its learned SSIM weight; without a model the
-    loss config's fixed weight is used and no network runs. ``none``: ``L(0)`` ``[N-1]`` when
-    already measured with this depth (a prediction's ``photometric``), which spares its evaluation.
+    ``(graphdef, state)`` or a :class:`PreparedModel`, run in evaluation mode on every batch when
+    given (``use_flow``: it reads flow): for its depth, or, with a stereo depth, for its learned SSIM
+    weight; without a model the loss config's fixed weight is used and no network runs. ``none``:
+    ``L(0)`` ``[N-1]`` when already measured with this depth (a prediction's ``photometric``), which
+    spares its evaluation.
     """
     pairs = len(cache) - 1
     candidates = np.asarray(candidates, np.float32)
@@ -221,11 +250,11 @@ def measure_effects(
     if stereo_depth is None and model is None:
         raise ValueError("measure_effects needs a stereo depth or a model whose depth it uses")
     leaves: list[jax.Array] | None = None
-    graphdef = treedef = None
-    if model is not None:
-        graphdef, state = backend.prepare_for_backend(*model)
-        leaves, treedef = jax.tree.flatten(state)
-    step = effects_step(graphdef, treedef, loss_config)
+    if model is None:
+        step = effects_step(None, None, loss_config)
+    else:
+        prepared = model if isinstance(model, PreparedModel) else PreparedModel(*model)
+        leaves, step = prepared.leaves, prepared.effects_step(loss_config)
     size = max(1, min(batch_size, pairs))
     known = None if none is None else np.asarray(none, np.float32)
     out: dict[str, list[np.ndarray]] = {"none": [], "delta": []}

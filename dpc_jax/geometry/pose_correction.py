@@ -66,5 +66,9 @@ def corrected_trajectory(
         raise ValueError(f"xi_corr: the correction of pair {int(bad[0])} is not finite (NaN or inf); "
                          f"{bad.size} of {xi_corr.shape[0]} pairs are")
     with jax.enable_x64(True):
-        corrected = np.asarray(apply_correction(xi_corr, relative_poses(prior), rotation_only), np.float64)
+        corrected = np.asarray(_applied(xi_corr, relative_poses(prior), rotation_only), np.float64)
     return compose(corrected, first_pose)
+
+
+# Compiled once per shape (and per float precision): a corrector of one pair at a time calls it per frame.
+_applied = jax.jit(apply_correction, static_argnames="rotation_only")

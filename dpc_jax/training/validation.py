@@ -37,7 +37,7 @@ def validate(
     errors: list[tuple[float, float, float, float]] = []
     for seq in data.validation:
         prediction = predict_sequence(
-            model_graphdef, model_state, seq.cache, loss_config, batch_size=config.batch_size,
+            (model_graphdef, model_state), seq.cache, loss_config, batch_size=config.batch_size,
             use_flow=data.use_flow, stereo_depth=seq.stereo_depth, mesh=mesh,
         )
         n = prediction.xi_corr.shape[0]

@@ -1,0 +1,324 @@
+"""Corrected visual odometry live: each pose corrected as its stereo pair arrives (docs/method.md §8).
+
+A :class:`LiveCorrector` is built once from a trained run and the camera's calibration; each call
+takes one stereo pair as the camera gives it (full size, uint8, grey or colour) and the prior's pose
+of that frame, or no prior and it runs dpc_jax's own stereo VO, and returns the frame's corrected
+pose (:class:`LiveFrame`). Per frame:
+
+1. The pair is prepared exactly as ``dpc-jax prepare`` prepares a frame
+   (``dpc_jax.data.preparation``): resized, matched with StereoSGBM.
+2. The previous frame and this one form a two-frame sequence held in memory, on which the network
+   predicts ξ for the pair and the measurement gives Δ of its parts, through the same functions as
+   ``dpc-jax correct`` (``dpc_jax.engine.predict``): the network was compiled for it before the first
+   frame.
+3. The parts of ξ (the full correction and its rotation, each whole and without its running mean)
+   are tested sequentially on their Δ (``dpc_jax.correction.acceptance.SequentialTest``: a false
+   acceptance stays below α however long it runs, and an accepted part is withdrawn when the evidence
+   turns); the pair gets the largest part accepted, in the order of the offline decision
+   (``dpc_jax.correction.decision``), or nothing.
+4. ``T_w_k = T_w_{k-1} · inv(Exp(ξ_applied) · T_vo_{k,k-1})``: a pose once returned is never changed.
+
+What is kept between frames is what the next frame needs: the previous prepared frame and poses, the
+tests' running statistics and the sum of the corrections (for the running mean); memory does not
+grow with the frames.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dpc_jax.correction.acceptance import DEFAULT_ALPHA, SequentialTest
+from dpc_jax.correction.corrector import default_acceptance_depth
+from dpc_jax.correction.decision import COMPONENTS, Part, part_of
+from dpc_jax.correction.inference import TrainedRun, load_run
+from dpc_jax.data.preparation import as_rgb, prepared_pair, resized_intrinsics
+from dpc_jax.data.sequence_cache import (
+    SequenceCache,
+    decode_flow,
+    encode_flow,
+    flow_step,
+    stereo_depth_views,
+)
+from dpc_jax.geometry.poses import validate_poses
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A rectified stereo camera: ``K`` ``[3, 3]`` (px) of its full-size images of ``image_size`` =
+    ``(H, W)`` px, the right camera ``baseline`` m along x of the left one."""
+
+    K: np.ndarray
+    baseline: float
+    image_size: tuple[int, int]
+
+    @classmethod
+    def of(cls, sequence: Any) -> Calibration:
+        """The calibration of an opened sequence (``dpc_jax.data.kitti.StereoSequence``)."""
+        return cls(np.asarray(sequence.K, np.float64), float(sequence.baseline), tuple(sequence.image_size))
+
+
+@dataclass(frozen=True)
+class LiveFrame:
+    """One frame's output.
+
+    ``index``: the frame's number (0: the first); ``pose``: ``[4, 4]`` float64 corrected
+    camera-to-world pose; ``prior``: the prior's pose (composed from the same first pose);
+    ``proposal``: ``[6]`` the network's ξ for the pair ending at this frame (None for frame 0);
+    ``applied``: ``[6]`` the part of it applied (zeros when none); ``state``: which state produced
+    the pose: ``start``, ``prior`` (no part accepted yet, or withdrawn), ``forced``, or the part
+    applied (``rotation``, ``rotation − mean``, ``full``, ``full − mean``); ``events``: tests
+    accepted or withdrawn at this pair; ``seconds``: time per stage.
+    """
+
+    index: int
+    time: float | None
+    pose: np.ndarray
+    prior: np.ndarray
+    proposal: np.ndarray | None
+    applied: np.ndarray
+    state: str
+    events: tuple[str, ...] = ()
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class _Previous:
+    """What the next frame needs of this one."""
+
+    left: np.ndarray
+    right: np.ndarray
+    disparity: np.ndarray | None
+    raw: np.ndarray  # the prior's camera-to-world pose as given (or as our VO composed it)
+    prior: np.ndarray  # the prior's pose composed from the first pose
+    pose: np.ndarray  # the corrected one
+
+
+class LiveCorrector:
+    """Correct a VO's poses as the frames arrive (module docstring).
+
+    ``run``: a trained run (:class:`~dpc_jax.correction.inference.TrainedRun`, or its folder with
+    ``select`` the epoch criterion); ``calibration``: the camera's; ``rotation_only``: None = the
+    run's; ``alpha``: the level of the sequential tests; ``mean_test``: test the correction's mean
+    apart (False: whole parts only); ``force``: apply the correction to every pair whatever the
+    tests say; ``first_pose``: ``[4, 4]`` the pose of frame 0 (default: the prior's first pose, or
+    the identity for our VO); ``disparity_offset``: px, the rig's calibration residual the images
+    are rectified by (``dpc_jax.data.cache.prepare_sequence``); ``vo``: the configuration of our VO
+    when no prior is given (``dpc_jax.vo.VOConfig``).
+    """
+
+    def __init__(
+        self,
+        run: TrainedRun | str | os.PathLike,
+        calibration: Calibration,
+        *,
+        select: str = "delta",
+        rotation_only: bool | None = None,
+        alpha: float = DEFAULT_ALPHA,
+        mean_test: bool = True,
+        force: bool = False,
+        first_pose: np.ndarray | None = None,
+        disparity_offset: float = 0.0,
+        vo: Any = None,
+    ) -> None:
+        from dpc_jax.engine.predict import PreparedModel
+
+        self.run = run if isinstance(run, TrainedRun) else load_run(run, select)
+        self.calibration = calibration
+        rotation_only = self.run.config.rotation_only if rotation_only is None else bool(rotation_only)
+        self.components = ("rotation",) if rotation_only else COMPONENTS
+        self.mean_test, self.force = bool(mean_test), bool(force)
+        self.depth = default_acceptance_depth(self.run)
+        self.size = self.run.image_size
+        self.K = resized_intrinsics(calibration.K, calibration.image_size, self.size)
+        self.disparity_offset = float(disparity_offset)
+        self.first_pose = None if first_pose is None else np.asarray(first_pose, np.float64)
+        self.tests = {name: SequentialTest(name, alpha) for name in self._test_names()}
+        self._vo_config = vo
+        self._vo: Any = None
+        self._previous: _Previous | None = None
+        self._sum = np.zeros(6)
+        self._pairs = 0
+        self._loss = self.run.config.loss_config()
+        self._flow = self.run.use_flow
+        # Prepared for the backend once; compiled below, before the first frame.
+        self._model = PreparedModel(self.run.graphdef, self.run.state)
+        self._compile()
+
+    def _test_names(self) -> list[str]:
+        names = []
+        for component in self.components:
+            names.append(component)
+            if self.mean_test:
+                names += [f"mean of {component}", f"{component} − mean"]
+        return names
+
+    def _compile(self) -> None:
+        """Predict and measure once on a blank pair, so that the first frame compiles nothing."""
+        h, w = self.size
+        blank = np.zeros((h, w, 3), np.uint8)
+        _, _, disparity = prepared_pair(blank, blank, self.size, self.K, self.calibration.baseline,
+                                        match=self.depth == "sgbm")
+        frame = _Previous(blank, blank, disparity, np.eye(4), np.eye(4), np.eye(4))
+        self._correction_of(self._window(frame, frame, np.eye(4)))
+
+    def _window(self, previous: _Previous, current: _Previous, prior_pose: np.ndarray) -> SequenceCache:
+        """The two frames as a cache in memory: what prediction and measurement read."""
+        depth = None
+        if previous.disparity is not None and current.disparity is not None:
+            fixed = np.stack([previous.disparity, current.disparity])
+            depth = stereo_depth_views(fixed, float(self.K[0, 0]) * self.calibration.baseline)
+        flows: dict[str, Any] = {}
+        if self._flow:
+            from dpc_jax.data.cache_products import farneback_flow, grey
+
+            step = flow_step(self.size)
+            pair = np.stack([farneback_flow(grey(a), grey(b)) for a, b in
+                             ((previous.left, current.left), (previous.right, current.right))])
+            flows["forward"] = decode_flow(encode_flow(pair, step)[None], step)
+        return SequenceCache(
+            path=Path("<live>"), name="live", left=np.stack([previous.left, current.left]),
+            right=np.stack([previous.right, current.right]), prior=np.stack([previous.raw, prior_pose]),
+            gt=None, K=self.K, baseline=self.calibration.baseline, indices=np.arange(2), times=np.zeros(2),
+            flows=flows, manifest={}, stereo_depth=depth)
+
+    def _correction_of(self, window: SequenceCache) -> tuple[np.ndarray, dict[str, float]]:
+        """ξ ``[6]`` of the window's pair and Δ of each part (running mean included) → ``(ξ, Δ)``."""
+        from dpc_jax.engine.predict import measure_effects, predict_sequence, stereo_depth_of
+
+        stereo = stereo_depth_of(window, self.depth)
+        prediction = predict_sequence(self._model, window, self._loss, batch_size=1, use_flow=self._flow,
+                                      stereo_depth=stereo)
+        xi = prediction.xi_corr[0]
+        mean = (self._sum + xi) / (self._pairs + 1)
+        parts = {}
+        for component in self.components:
+            parts[component] = part_of(xi[None], component)[0]
+            if self.mean_test:
+                parts[f"{component} − mean"] = part_of(xi[None], component, True, mean=mean)[0]
+        model = None if stereo is not None and not self.run.config.learn_ssim_weight else self._model
+        effects = measure_effects(window, np.stack(list(parts.values()))[:, None], self._loss, batch_size=1,
+                                  stereo_depth=stereo, model=model, use_flow=self._flow,
+                                  none=prediction.photometric)
+        return xi, {name: float(effects["delta"][i, 0]) for i, name in enumerate(parts)}
+
+    def _part(self) -> Part | None:
+        """The largest part whose tests have accepted, in the offline decision's order."""
+        if self.force:
+            return Part(self.components[0])
+        for component in self.components:
+            mean_accepted = not self.mean_test or self.tests[f"mean of {component}"].accepted
+            if self.tests[component].accepted and mean_accepted:
+                return Part(component)
+            if self.mean_test and self.tests[f"{component} − mean"].accepted:
+                return Part(component, remainder=True)
+        return None
+
+    @property
+    def state(self) -> str:
+        """``forced``, the part now applied, or ``prior``."""
+        if self.force:
+            return "forced"
+        part = self._part()
+        return "prior" if part is None else part.name
+
+    def __call__(
+        self, left: np.ndarray, right: np.ndarray, prior: np.ndarray | None = None, *,
+        time_s: float | None = None, grey: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> LiveFrame:
+        """Correct the next frame (module docstring).
+
+        ``left``, ``right``: the stereo pair at the calibration's size (uint8, ``[H, W]`` grey or
+        ``[H, W, 3]`` RGB); ``prior``: ``[4, 4]`` the prior VO's camera-to-world pose of this frame,
+        or None to run our VO (on ``grey``, the pair as grey images, when given: e.g. decoded in
+        grey as ``dpc-jax vo`` does; else converted here); ``time_s``: the frame's time, reported.
+        """
+        began = time.perf_counter()
+        seconds: dict[str, float] = {}
+        left, right = as_rgb(left, "left"), as_rgb(right, "right")
+        if left.shape[:2] != tuple(self.calibration.image_size) or right.shape != left.shape:
+            h, w = self.calibration.image_size
+            index = self._pairs + (self._previous is not None)
+            raise ValueError(f"frame {index}: images of {left.shape[:2]} and {right.shape[:2]}, expected "
+                             f"both {h}x{w} (the calibration's)")
+        t = time.perf_counter()
+        prior_pose = self._prior_pose(left, right, prior, grey)
+        seconds["vo"] = time.perf_counter() - t
+        t = time.perf_counter()
+        small_left, small_right, disparity = prepared_pair(
+            left, right, self.size, self.K, self.calibration.baseline, self.disparity_offset,
+            match=self.depth == "sgbm")
+        current = _Previous(small_left, small_right, disparity, prior_pose, prior_pose, prior_pose)
+        seconds["prepare"] = time.perf_counter() - t
+        previous = self._previous
+        if previous is None:
+            start = prior_pose if self.first_pose is None else self.first_pose
+            current.pose = current.prior = start
+            self._previous = current
+            seconds["total"] = time.perf_counter() - began
+            return LiveFrame(0, time_s, start.copy(), current.prior.copy(), None, np.zeros(6), "start",
+                             (), seconds)
+        t = time.perf_counter()
+        xi, delta = self._correction_of(self._window(previous, current, prior_pose))
+        seconds["network"] = time.perf_counter() - t
+        events = self._update_tests(delta)
+        part = self._part()
+        self._sum += xi
+        self._pairs += 1
+        mean = self._sum / self._pairs
+        applied = np.zeros(6) if part is None else part_of(xi[None], part.component, part.remainder,
+                                                            mean=mean if part.remainder else None)[0]
+        current.pose, current.prior = self._compose(previous, prior_pose, applied)
+        self._previous = current
+        seconds["total"] = time.perf_counter() - began
+        return LiveFrame(self._pairs, time_s, current.pose.copy(), current.prior.copy(), xi, applied,
+                         self.state, events, seconds)
+
+    def _prior_pose(self, left: np.ndarray, right: np.ndarray, prior: np.ndarray | None,
+                    grey: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+        """The prior's pose of this frame: given (checked rigid), or our VO's from the previous one."""
+        index = self._pairs + (self._previous is not None)
+        if prior is not None:
+            pose = np.asarray(prior, np.float64)
+            validate_poses(pose[None], f"prior pose of frame {index}")
+            return pose
+        import cv2
+
+        from dpc_jax.vo import StereoVO
+
+        if self._vo is None:
+            self._vo = StereoVO(self.calibration.K, self.calibration.baseline, self._vo_config)
+        pair = grey if grey is not None else tuple(cv2.cvtColor(x, cv2.COLOR_RGB2GRAY) for x in (left, right))
+        estimate = self._vo.process(*pair)
+        if estimate is None:
+            return np.eye(4) if self.first_pose is None else self.first_pose
+        assert self._previous is not None
+        return self._previous.raw @ np.linalg.inv(estimate.relative)
+
+    def _update_tests(self, delta: dict[str, float]) -> tuple[str, ...]:
+        events = []
+        for component in self.components:
+            differences = {component: delta[component]}
+            if self.mean_test:
+                rest = delta[f"{component} − mean"]
+                differences |= {f"mean of {component}": delta[component] - rest, f"{component} − mean": rest}
+            for name, value in differences.items():
+                change = self.tests[name].update(value)
+                if change is not None:
+                    events.append(f"{name} {change}")
+        return tuple(events)
+
+    def _compose(self, previous: _Previous, prior_pose: np.ndarray,
+                 applied: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The corrected pose and the prior's (both from the same first pose) of this frame."""
+        from dpc_jax.geometry.pose_correction import corrected_trajectory
+
+        step_prior = np.stack([previous.raw, prior_pose])
+        corrected = corrected_trajectory(applied[None], step_prior, previous.pose)[1]
+        prior_from_start = corrected_trajectory(np.zeros((1, 6)), step_prior, previous.prior)[1]
+        return corrected, prior_from_start
