@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 from conftest import load_script
 
+from dpc_jax.pipelines.protocol import WORKDIR_MARKER
+
 SCRIPT = Path(__file__).resolve().parents[1] / "experiments" / "studies" / "detection_limit.py"
 
 
@@ -150,6 +152,7 @@ def test_the_quick_grid_runs_end_to_end(study, tmp_path: Path, capsys) -> None:
     reference = {"source": "test", "sequences": {"00": {"mean": [0.0, 0.0, 0.25], "spread": [0.5, 0.8, 0.6]}},
                  "mean": [0.0, 0.0, 0.25], "spread": [0.5, 0.8, 0.6]}
     (workdir / "reference.json").write_text(json.dumps(reference))
+    (workdir / WORKDIR_MARKER).write_text("")  # the folder is the study's (reference.json made here)
     assert study.main(["--quick", "--workdir", str(workdir)]) == 0
     cell_file, matched_file = sorted((workdir / "cells").glob("*.json"))
     cell, matched = json.loads(cell_file.read_text()), json.loads(matched_file.read_text())
@@ -175,4 +178,4 @@ def test_the_quick_grid_runs_end_to_end(study, tmp_path: Path, capsys) -> None:
     (other / "notes.txt").write_text("mine")
     capsys.readouterr()
     assert study.main(["--quick", "--workdir", str(other)]) == 2
-    assert "not a work folder of this study" in capsys.readouterr().err
+    assert "is not the work folder of an experiment script" in capsys.readouterr().err

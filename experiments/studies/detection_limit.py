@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from dpc_jax._io import atomic_write
+from dpc_jax.pipelines.protocol import claim_workdir, path_argument
 from dpc_jax.report.pages import check_results_page, commit, write_results
 from dpc_jax.report.tables import csv_text, table
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
@@ -631,7 +632,7 @@ def image_size(text: str) -> tuple[int, int]:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--workdir", type=Path, required=True,
+    parser.add_argument("--workdir", type=path_argument, required=True,
                         help="where everything is made (reused on a rerun)")
     parser.add_argument("--profile", choices=("cpu", "worlds", "gpu"), default="cpu",
                         help="the grid (configs/detection_limit.py)")
@@ -693,19 +694,17 @@ def main(argv: Sequence[str] | None = None) -> int:
                 grid = ", ".join(f"{v:g}" for v in study.scales)
                 raise ValueError(f"--scales {unknown_scales[0]:g}: not a scale of the grid ({grid})")
             study = dataclasses.replace(study, scales=tuple(v for v in study.scales if v in args.scales))
-        workdir = args.workdir
-        made = [workdir / n for n in ("reference.json", "cells", "data")]
-        if workdir.exists() and any(workdir.iterdir()) and not any(p.exists() for p in made):
-            raise ValueError(f"--workdir {workdir}: holds files but is not a work folder of this study")
         for other in args.include:
             if not (other / "cells").is_dir():
                 raise ValueError(f"--include {other}: no cells/ folder (not a work folder of this study)")
         recorded = sorted({json.loads(p.read_text()).get("world_seed", 0)
-                           for p in (workdir / "cells").glob("*.json")})
+                           for p in (args.workdir / "cells").glob("*.json")})
         if recorded and recorded != [args.world_seed]:
-            raise ValueError(f"--workdir {workdir}: holds the cells of world {recorded[0]}, not of "
+            raise ValueError(f"--workdir {args.workdir}: holds the cells of world {recorded[0]}, not of "
                              f"--world-seed {args.world_seed}; each world needs a work folder of its own")
-        workdir.mkdir(parents=True, exist_ok=True)
+        inputs = [("--libviso2", args.libviso2), *(("--include", other) for other in args.include)]
+        workdir = claim_workdir(args.workdir, inputs, files=[("--results-page", args.results_page)])
+        assert workdir is not None
         reference_path = workdir / "reference.json"
         if not reference_path.is_file():
             atomic_write(reference_path, json.dumps(libviso2_reference(args.libviso2), indent=1))
