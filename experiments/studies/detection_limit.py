@@ -315,11 +315,10 @@ def run_cell(study: Study, workdir: Path, cache_root: Path, cell: tuple[tuple[in
     with the study's correction."""
     size, scale, pairs, matched = cell
     key = cell_key(size, scale, pairs, matched)
-    if done and "steps" in done:
-        train_s, steps = done["train_s"], done["steps"]
-    else:  # a record from before steps were recorded: the run, finished, reports them at once
+    if done:  # trained: its training is kept
+        train_s, steps = done["train_s"], done.get("steps") or _steps_made(workdir / "runs" / key)
+    else:
         train_s, steps = train_cell(study, workdir, cache_root, size, pairs, matched, key)
-        train_s = done["train_s"] if done else train_s
     epoch, tests = measure_cell(study, workdir / "runs" / key, cache_root)
     bias = scale * float(np.linalg.norm(study_reference_mean(workdir)))
     trained = {k: done[k] for k in ("machine", "commit", "python")} if done else stamp
@@ -327,6 +326,14 @@ def run_cell(study: Study, workdir: Path, cache_root: Path, cell: tuple[tuple[in
             "steps": steps, "world_seed": study.world_seed, "bias_mrad": bias, "train_s": train_s,
             "epoch": epoch, "correction": study.correction, "tests": tests, **trained,
             "measured_commit": stamp["commit"]}
+
+
+def _steps_made(run_dir: Path) -> int:
+    """The optimizer steps a finished run made: its metrics log's last ``step``."""
+    import csv
+
+    with (run_dir / "metrics.csv").open(newline="") as log:
+        return int(list(csv.DictReader(log))[-1]["step"])
 
 
 def study_reference_mean(workdir: Path) -> np.ndarray:
