@@ -10,59 +10,38 @@ from dpc_jax.runtime.lazy import lazy_getattr
 
 __version__ = "0.1.0"
 
+# The face: what a user calls to correct, evaluate and read or write trajectories, the networks with their
+# configurations, the Lie functions, the data and the synthetic world they run on, training, the live
+# corrector and the demo. Everything else (the warps, losses and convolutions the networks are built of,
+# the step driver, the caches' format) lives in its package and may move between releases.
 _EXPORTS: dict[str, tuple[str, ...]] = {
-    "dpc_jax.geometry.lie": (
-        "so3_hat", "so3_vee", "so3_exp", "so3_log", "so3_left_jacobian", "so3_left_jacobian_inv",
-        "se3_exp", "se3_log", "se3_inverse", "transform_points", "project_to_so3",
-    ),
-    "dpc_jax.geometry.camera": ("scale_intrinsics", "pixel_grid", "backproject", "project"),
-    "dpc_jax.geometry.warp": ("bilinear_sample", "inverse_warp", "stereo_warp", "disparity_consistency"),
-    "dpc_jax.geometry.ssim": ("ssim_loss",),
+    # The Lie groups (docs/method.md §1).
+    "dpc_jax.geometry.lie": ("so3_exp", "so3_log", "se3_exp", "se3_log", "se3_inverse", "transform_points"),
+    # A correction applied to a VO step or a trajectory.
     "dpc_jax.geometry.pose_correction": ("apply_correction", "corrected_trajectory"),
-    "dpc_jax.nn.model_config": (
-        "ModelConfig", "PRESETS", "SSDPCLossConfig", "StereoDPCLossConfig", "SupervisedLossConfig",
-    ),
-    "dpc_jax.nn.losses": (
-        "ss_dpc_loss", "stereo_dpc_loss", "dpc_loss", "supervised_dpc_loss",
-        "gradient_loss", "temporal_pair_errors", "correction_deltas",
-    ),
-    "dpc_jax.nn.batch": ("Batch",),
-    "dpc_jax.nn.outputs": ("BranchOutputs", "DPCOutputs"),
-    "dpc_jax.geometry.poses": ("relative_poses", "compose", "remove_static_frames"),
-    "dpc_jax.data.poses_io": (
-        "read_trajectory", "read_kitti_poses", "read_tum", "read_mat", "write_kitti_poses", "write_tum",
-        "validate_poses",
-    ),
-    "dpc_jax.eval.metrics": (
-        "m_ate", "c_ate", "segment_errors", "kitti_devkit_errors", "ate", "rpe", "count_loop_closures",
-        "trajectory_metrics",
-    ),
-    "dpc_jax.eval.evaluation": ("evaluate", "Evaluation"),
-    "dpc_jax.report.evaluation_report": ("write_report", "export_trajectories"),
-    "dpc_jax.eval.diagnosis": ("diagnose", "Diagnosis"),
-    "dpc_jax.eval.linear_baseline": ("LinearCorrection", "fit_linear_correction", "apply_linear_correction"),
-    "dpc_jax.data": (
-        "StereoSequence", "open_odometry", "open_raw", "load_image", "prepare_sequence",
-        "TrainLoader", "iterate_sequence", "leave_one_out",
-    ),
+    "dpc_jax.geometry.poses": ("relative_poses", "compose"),
+    # Trajectory files.
+    "dpc_jax.data.poses_io": ("read_trajectory", "write_kitti_poses", "write_tum", "associate"),
+    # Sequences on disk and their preparation.
+    "dpc_jax.data": ("StereoSequence", "open_odometry", "open_raw", "prepare_sequence"),
     "dpc_jax.data.sequence_cache": ("load_cache",),
+    # The networks and their configurations.
+    "dpc_jax.nn.model_config": ("ModelConfig", "SSDPCLossConfig", "StereoDPCLossConfig"),
+    "dpc_jax.nn.models": ("MonoDPC", "StereoDPC", "create_model"),
+    "dpc_jax.training.train_config": ("TrainConfig",),
+    "dpc_jax.training.loop": ("train",),
+    # Correcting: restore a run, correct a prepared sequence (or frame by frame, live), write it.
+    "dpc_jax.correction.inference": ("load_run", "TrainedRun"),
+    "dpc_jax.correction.corrector": ("correct_cache", "correct_sequence", "Correction", "write_trajectory"),
+    "dpc_jax.correction.acceptance": ("Acceptance",),
+    "dpc_jax.correction.live": ("LiveCorrector", "Calibration"),
+    # Evaluating against ground truth, and what a prior's error is made of.
+    "dpc_jax.eval.evaluation": ("evaluate", "Evaluation"),
+    "dpc_jax.eval.metrics": ("m_ate", "segment_errors", "ate", "rpe"),
+    "dpc_jax.eval.diagnosis": ("diagnose",),
+    # The classical VO, the synthetic world and the demo.
+    "dpc_jax.vo": ("StereoVO", "VOConfig", "run_vo"),
     "dpc_jax.synth": ("SynthConfig", "render_sequence", "write_sequences"),
-    "dpc_jax.vo": ("StereoVO", "VOConfig", "VOResult", "VOStatus", "run_vo", "run_vo_frames"),
-    "dpc_jax.nn.conv": ("conv_s2", "upconv3x3_s2", "conv3x3_few_outputs"),
-    "dpc_jax.nn.models": (
-        "MonoDPC", "StereoDPC", "create_model", "count_parameters", "prepare_inference",
-    ),
-    "dpc_jax.training.train_config": ("TrainConfig", "REFERENCE"),
-    "dpc_jax.training.optim": ("make_optimizer", "create_train_state", "learning_rate_schedule"),
-    "dpc_jax.training.steps": ("make_train_step", "NonFiniteLossError"),
-    "dpc_jax.training.checkpoints": ("Checkpoints",),
-    "dpc_jax.engine.parallel": ("make_mesh", "shard_batch", "replicate"),
-    "dpc_jax.runtime.hugepages": ("reexec_with_huge_pages", "huge_pages_requested"),
-    "dpc_jax.config": ("ConfigError", "load_file"),
-    "dpc_jax.correction.inference": ("load_run", "predict_sequence", "predict_corrections", "TrainedRun"),
-    "dpc_jax.correction.acceptance": ("Acceptance", "paired_test"),
-    "dpc_jax.correction.decision": ("decide",),
-    "dpc_jax.correction.corrector": ("correct_cache", "correct_sequence", "write_trajectory"),
     "dpc_jax.pipelines.synthetic_demo": ("DemoConfig", "run_demo"),
 }
 __all__ = ["__version__", *(name for names in _EXPORTS.values() for name in names)]

@@ -52,3 +52,18 @@ def test_training_configs_are_checked_without_jax() -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     preset = "preset must be one of ['reference', 'small'], got 'tiny'"
     assert out.splitlines() == [preset, "model", "loss", "[]"]
+
+
+def test_the_face_is_the_one_the_architecture_page_names() -> None:
+    """Each exported name is listed, in backticks, in docs/architecture.md's "The public face", and that
+    section lists no other dpc_jax function or class (a name added or dropped changes both)."""
+    import re
+    from pathlib import Path
+
+    page = (Path(__file__).resolve().parents[1] / "docs" / "architecture.md").read_text()
+    section = page.split("## The public face", 1)[1].split("\n## ", 1)[0]
+    listed = set(re.findall(r"\* \*\*[^*]+\*\*: (.*?)(?=\n\* |\n\n)", section, flags=re.S))
+    names = {n for text in listed for n in re.findall(r"`([A-Za-z_][A-Za-z_0-9]*)`", text)}
+    exported = set(dpc_jax.__all__) - {"__version__"}
+    assert names == exported, (sorted(names - exported), sorted(exported - names))
+    assert f"{len(exported)} names" in section
