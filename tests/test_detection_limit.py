@@ -125,7 +125,7 @@ def test_the_grid_names_its_training_sequences(study) -> None:
     assert len(cells) == 2 * 3 * (4 + 2) and cells[0] == ((64, 96), 10.0, 100, False)
     assert cells[1] == ((64, 96), 10.0, 100, True) and study.cell_key(*cells[1]) == "64x96_s10_n100_steps"
     other, _ = study.load_study("worlds", quick=False, world_seed=2)
-    assert other.seed == grid.seed + 2000 and other.pairs == (100, 1000)
+    assert other.seed == grid.seed + 2000 and other.pairs == (100, 1000) and other.matched == ()
     assert list(grid.sequences()) == ["train0", "train1", "train2", "train3", "val", "test0", "test1"]
     with pytest.raises(ValueError, match="neither below nor a multiple"):
         grid.train_names(1500)

@@ -137,7 +137,8 @@ def load_study(profile: str, quick: bool, world_seed: int = 0) -> tuple[Study, i
     pairs = tuple(int(n) for n in grid["pairs"])
     study = Study(tuple(float(s) for s in grid["scales"]), pairs, tuple(tuple(s) for s in grid["sizes"]),
                   tuple(grid["render"]), world, training, dict(config["CORRECTION"]),
-                  tuple(n for n in matched["pairs"] if n in pairs), int(matched["steps_of"]), world_seed)
+                  tuple(n for n in matched["pairs"] if n in pairs and grid.get("matched", True)),
+                  int(matched["steps_of"]), world_seed)
     for n in study.pairs:
         study.train_names(n)
     return study, int(config["PAPER_PAIRS"])

@@ -82,8 +82,9 @@ PROFILES = {
     # N = 300 between them.
     "cpu": {"scales": (1.0, 3.0, 10.0), "pairs": (100, 300, 1000, 4000), "sizes": ((64, 96), (120, 188)),
             "render": (120, 188)},
-    # Another world (--world-seed): the cells the spread over worlds is given for.
-    "worlds": {"scales": (1.0, 3.0), "pairs": (100, 1000), "sizes": ((64, 96),), "render": (120, 188)},
+    # Another world (--world-seed): the cells the spread over worlds is given for (fixed epochs only).
+    "worlds": {"scales": (1.0, 3.0), "pairs": (100, 1000), "sizes": ((64, 96),), "render": (120, 188),
+               "matched": False},
     # The papers' resolution, on a GPU machine.
     "gpu": {"scales": (1.0, 3.0, 10.0), "pairs": (1000, 4000), "sizes": ((240, 376),),
             "render": (240, 376)},
