@@ -55,7 +55,7 @@ def test_forced_live_gives_the_poses_of_forced_correct(world: dict) -> None:
 
     run = load_run(world["run"], "delta")
     gt, prior = read_mat(world["priors"] / "stereo_05.mat")
-    offline = correct_cache(run, world["cache"], force=True)
+    offline = correct_cache(run, world["cache"], force=True, batch_size=1)  # the live programs, compiled once
     assert offline.acceptance.forced and np.abs(offline.corrected - offline.prior).max() > 1e-6
     calibration = Calibration.of(world["sequence"])
     live = LiveCorrector(run, calibration, force=True, first_pose=gt[0])
