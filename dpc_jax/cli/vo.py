@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
+from typing import Any
 
 from dpc_jax._io import output_problem
 from dpc_jax.cli._common import (
@@ -18,9 +20,12 @@ from dpc_jax.cli._common import (
     input_problem,
     offset_problem,
     path_option,
+    restore_problem,
 )
+from dpc_jax.cli.live import add_correction_arguments, correction_problem, run_size_problem
 
-HELP = "Classical stereo visual odometry (libviso2-s-like): write the trajectory and a per-frame CSV."
+HELP = ("Classical stereo visual odometry (libviso2-s-like): write the trajectory and a per-frame CSV; "
+        "with --correct RUN, each pose corrected live by a trained network as it is made.")
 # Restart with huge-page malloc (dpc_jax.runtime.hugepages): the VO is about 6 % faster.
 HUGE_PAGES = True
 
@@ -37,7 +42,20 @@ With ground truth the m-ATE and final-position error are printed. OUT with suffi
 frames, fallbacks and their share, median inliers, final offset, and a warning when more than 5 % of the
 pairs fell back to constant velocity, which is also printed on stderr). The three files are written
 together or not at all; beside a stream (--out /dev/stdout) no file is made: only the trajectory, and the
-CSV where --csv names it; with either on standard output, the lines this command prints go to stderr."""
+CSV where --csv names it; with either on standard output, the lines this command prints go to stderr.
+
+Live correction (--correct RUN): each frame's pose is corrected by the run's network the moment the VO
+has made it, behind sequential tests that apply a correction only once the frames seen so far show that
+it helps (docs/method.md §8), and written at once: OUT gets one corrected KITTI pose row per frame,
+flushed; the prior (this VO's poses, those `dpc-jax vo` writes without --correct) goes beside it, to
+--prior-out (default: OUT's stem + '.prior' + its suffix, live.txt -> live.prior.txt, with the .json
+record above); the CSV gets one row per frame with its pose: which state produced it (start, prior,
+forced, or the part of the correction applied), the tests' events, the VO's columns and the time of
+each stage (`dpc-jax live --help` lists the columns); OUT with suffix .json the summary at the end.
+--realtime HZ replays the sequence at the camera's rate and reports the frames whose pose was written
+after the next frame was due. Ctrl-C: exit status 130, every line written so far whole.
+  dpc-jax vo --kitti-raw ROOT --date 2011_09_26 --drive 0001 --gt GT.mat --start gt \\
+      --correct runs/drive_0005 --realtime 10 --out live.txt"""
 
 
 
@@ -72,6 +90,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fixed-offset", action="store_true",
                         help="do not self-calibrate the disparity offset online")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    parser.add_argument("--correct", type=path_option, metavar="RUN",
+                        help="correct each pose live with this training run's network (dpc-jax train "
+                        "--workdir) and write it as soon as it is made; OUT is then the corrected trajectory")
+    parser.add_argument("--prior-out", type=file_path_option, metavar="FILE",
+                        help="with --correct: where the prior (this VO's poses) goes, as they are made "
+                        "(default: OUT's stem + '.prior' + its suffix; none beside a stream)")
+    add_correction_arguments(parser, requires="--correct")
 
 
 def _open(args: argparse.Namespace):  # -> StereoSequence (imported lazily)
@@ -112,6 +137,12 @@ def _same_file_problem(out: Path, csv_path: Path | None, json_path: Path | None)
     return None
 
 
+def prior_path(out: Path) -> Path:
+    """Where ``--correct`` writes the prior by default: ``live.txt`` → ``live.prior.txt`` (``live`` →
+    ``live.prior.txt``, so that its ``.json`` record is not the output's)."""
+    return out.with_name(f"{out.stem}.prior{out.suffix or '.txt'}")
+
+
 def run(args: argparse.Namespace) -> int:
     from dpc_jax._io import is_stdout, is_stream, overlap_problem
 
@@ -120,15 +151,24 @@ def run(args: argparse.Namespace) -> int:
     streamed = is_stream(args.out)
     csv_path = args.csv if args.csv is not None or streamed else args.out.with_suffix(".csv")
     json_path = None if streamed else args.out.with_suffix(".json")
+    prior_out = None
+    if args.correct is not None:
+        prior_out = args.prior_out if args.prior_out is not None or streamed else prior_path(args.out)
+    prior_json = None if prior_out is None or is_stream(prior_out) else prior_out.with_suffix(".json")
     problem = (input_problem(args.kitti_odometry, "--kitti-odometry", folder=True)
                or input_problem(args.kitti_raw, "--kitti-raw", folder=True) or input_problem(args.gt, "--gt")
+               or correction_problem(args, "--correct", args.correct)
+               or (f"--prior-out {args.prior_out}: only used with --correct RUN (the live correction), which "
+                   "is not given" if args.prior_out is not None and args.correct is None else None)
                or output_problem(args.out, "--out") or output_problem(csv_path, "--csv")
-               or output_problem(json_path, "--out")
+               or output_problem(json_path, "--out") or output_problem(prior_out, "--prior-out")
                or finite_problem(disparity_offset=args.disparity_offset))
     if problem is None:
+        inputs = [("--kitti-odometry", args.kitti_odometry), ("--kitti-raw", args.kitti_raw),
+                  ("--gt", args.gt), ("--correct", args.correct)]
         problem = _same_file_problem(args.out, csv_path, json_path) or overlap_problem(
-            [("--kitti-odometry", args.kitti_odometry), ("--kitti-raw", args.kitti_raw), ("--gt", args.gt)],
-            [("--out", args.out), ("--csv", csv_path), ("--out (its .json summary)", json_path)])
+            inputs, [("--out", args.out), ("--csv", csv_path), ("--out (its .json summary)", json_path),
+                     ("--prior-out", prior_out), ("--prior-out (its .json record)", prior_json)])
     if problem is not None:
         print(f"dpc-jax vo: error: {problem}", file=sys.stderr)
         return 2
@@ -160,6 +200,13 @@ def run(args: argparse.Namespace) -> int:
         return 1
 
     config = VOConfig(disparity_offset=args.disparity_offset, estimate_offset=not args.fixed_offset)
+    if args.correct is not None:
+        problem = run_size_problem(args.correct, "--correct", sequence.image_size, sequence.name)
+        if problem is not None:
+            print(f"dpc-jax vo: error: {problem}", file=sys.stderr)
+            return 2
+        return _correct_live(args, sequence, config, (first, stop), csv_path, json_path, prior_out,
+                             prior_json)
     first_pose = sequence.poses[0] if args.start == "gt" else None
     try:
         progress = not args.no_progress and sys.stderr.isatty()
@@ -206,4 +253,138 @@ def run(args: argparse.Namespace) -> int:
         )
     written = [str(path) for path in (args.out, csv_path, json_path) if path is not None]
     print(f"wrote {', '.join(written)}", file=report)
+    return 0
+
+
+def _correct_live(
+    args: argparse.Namespace, sequence: Any, config: Any, frames: tuple[int, int], csv_path: Path | None,
+    json_path: Path | None, prior_out: Path | None, prior_json: Path | None,
+) -> int:
+    """``--correct``: the VO and the run's correction frame by frame, each pose written as it is made
+    (``dpc_jax.cli.live``); then, as without it, the VO's summary, the evaluation against ground truth
+    and the ``.json`` records. ``frames``: the source frames ``(START, STOP)`` of ``sequence``."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import numpy as np
+
+    from dpc_jax.cli.live import (
+        Arrived,
+        Corrected,
+        LiveOutputs,
+        LiveSummary,
+        correct_frames,
+        corrector,
+        network_words,
+        report_stream,
+        write_summary,
+    )
+    from dpc_jax.data.kitti import load_image
+    from dpc_jax.data.priors import FRAMES_KEY
+    from dpc_jax.vo import StereoVO, VOResult
+    from dpc_jax.vo.odometry import summary
+
+    import_jax()
+    from dpc_jax.correction.live import Calibration
+    from dpc_jax.training.checkpoints import CheckpointError
+
+    first, stop = frames
+    start = sequence.poses[0] if args.start == "gt" else np.eye(4)
+    began = time.perf_counter()
+    try:
+        live = corrector(args, args.correct, Calibration.of(sequence))
+    except CheckpointError as failed:
+        problem = restore_problem(failed.folder, failed.__cause__ or failed)
+        print(f"dpc-jax vo: error: {problem}", file=sys.stderr)
+        return 1
+    live_summary = LiveSummary(args.realtime, time.perf_counter() - began)
+    vo = StereoVO(sequence.K, sequence.baseline, config)
+    h, w = sequence.image_size
+    # Per pair, for the VO's own summary and record; per frame, both trajectories for the evaluation.
+    kept: dict[str, list[Any]] = {k: [] for k in ("relative", "inliers", "status", "times", "offset", "prior",
+                                                   "corrected")}
+    # The four images of a frame (colour for the network, grey decoded as `dpc-jax vo` decodes it, so that
+    # the prior is its trajectory) are decoded two at a time.
+    decoder = ThreadPoolExecutor(2)
+
+    def decoded(path: Path, grey: bool) -> np.ndarray:
+        image = load_image(path, grey=grey)
+        if image.shape[:2] != (h, w):
+            raise ValueError(f"{path}: image is {image.shape[0]}x{image.shape[1]}, expected {h}x{w} like the "
+                             "sequence's first frame")
+        return image
+
+    def arrivals() -> Any:
+        for k, paths in enumerate(zip(sequence.left_paths, sequence.right_paths, strict=True)):
+            def load(paths: tuple[Path, Path] = paths) -> list[np.ndarray]:
+                jobs = [decoder.submit(decoded, path, grey) for grey in (False, True) for path in paths]
+                return [job.result() for job in jobs]
+
+            yield Arrived(first + k, float(sequence.times[k]), f"{sequence.name} frame {first + k}", load)
+
+    def step(images: list[np.ndarray]) -> Corrected:
+        t = time.perf_counter()
+        estimate = vo.process(images[2], images[3])
+        vo_s = time.perf_counter() - t
+        if estimate is None:
+            pose, columns = start, None
+            kept["times"].append(vo_s)  # counted with the first pair, as `dpc-jax vo` does
+        else:
+            pose = kept["prior"][-1] @ np.linalg.inv(estimate.relative)
+            status = estimate.status.name.lower()
+            columns = (estimate.inliers, status, vo.disparity_offset)
+            for key, value in (("relative", estimate.relative), ("inliers", estimate.inliers),
+                               ("status", int(estimate.status)), ("offset", vo.disparity_offset)):
+                kept[key].append(value)
+            kept["times"].append(vo_s + (kept["times"].pop() if len(kept["times"]) == 1 else 0.0))
+        frame = live(images[0], images[1], pose)
+        kept["prior"].append(frame.prior)
+        kept["corrected"].append(frame.pose)
+        return Corrected(frame, columns, vo_s)
+
+    report = report_stream(args.out, csv_path, prior_out)
+    try:
+        with decoder, LiveOutputs(args.out, prior_out, csv_path, (json_path, prior_json)) as outputs:
+            correct_frames(arrivals(), step, outputs, live_summary)
+    except KeyboardInterrupt:
+        print(f"dpc-jax vo: interrupted after {live_summary.frames} frames; their poses in {args.out} are "
+              "whole lines", file=sys.stderr)
+        raise
+    except (OSError, ValueError) as error:
+        print(f"dpc-jax vo: error: {error} (the {live_summary.frames} frames before it are written)",
+              file=sys.stderr)
+        return 1
+
+    result = VOResult(
+        poses=np.stack(kept["prior"]), relative=np.stack(kept["relative"]),
+        inliers=np.asarray(kept["inliers"], np.int64), status=np.asarray(kept["status"], np.int8),
+        times=np.asarray(kept["times"]), disparity_offset=np.asarray(kept["offset"]))
+    counts = summary(result)
+    write_summary(prior_json, {"sequence": sequence.name, FRAMES_KEY: [first, stop], **counts})
+    write_summary(json_path, {"sequence": sequence.name, FRAMES_KEY: [first, stop],
+                              "prior": None if prior_out is None else str(prior_out),
+                              "checkpoint": str(args.correct), "epoch": live.run.epoch,
+                              "method": live.run.config.method, "image_size": list(live.size),
+                              **live_summary.record()})
+    rate = len(result.times) / result.times.sum()
+    print(f"{sequence.name}: {len(result.poses)} frames, VO {rate:.1f} frames/s alone, median inliers "
+          f"{int(np.median(result.inliers))}, constant-velocity fallbacks {counts['fallbacks']} "
+          f"({100 * counts['fallback_share']:.1f} %), disparity offset "
+          f"{result.disparity_offset[-1]:+.2f} px; corrected live by {network_words(live, args.correct)}",
+          file=report)
+    for line in live_summary.lines():
+        print(line, file=report)
+    if counts["warning"] is not None:
+        print(f"dpc-jax vo: warning: {sequence.name}: {counts['warning']}", file=sys.stderr)
+    if sequence.poses is not None:
+        from dpc_jax.eval.metrics import m_ate
+
+        gt = sequence.poses
+        for name, poses in (("prior", result.poses), ("corrected", np.stack(kept["corrected"]))):
+            est = gt[0] @ np.linalg.inv(poses[0]) @ poses
+            trans, rot = m_ate(gt, est)
+            final = float(np.linalg.norm(est[-1, :3, 3] - gt[-1, :3, 3]))
+            print(f"vs ground truth, {name}: m-ATE {float(trans):.3f} m / {float(rot):.3f} deg, "
+                  f"final-position error {final:.3f} m", file=report)
+    written = [path for path in (args.out, prior_out, csv_path, json_path, prior_json) if path is not None]
+    print(f"wrote {', '.join(map(str, written))}", file=report)
     return 0

@@ -73,7 +73,11 @@ class LiveFrame:
     ``applied``: ``[6]`` the part of it applied (zeros when none); ``state``: which state produced
     the pose: ``start``, ``prior`` (no part accepted yet, or withdrawn), ``forced``, or the part
     applied (``rotation``, ``rotation − mean``, ``full``, ``full − mean``); ``events``: tests
-    accepted or withdrawn at this pair; ``seconds``: time per stage.
+    accepted or withdrawn at this pair; ``seconds``: time per stage: ``vo`` (our VO, or the check of
+    the given prior), ``prepare`` (the pair resized and matched; then the two frames made a batch on
+    the device, with their optical flow for a network that reads flow), ``network`` (its forward pass),
+    ``measure`` (Δ of the parts for the tests), ``total`` (the call); frame 0 has no ``network`` and no
+    ``measure``.
     """
 
     index: int
@@ -159,13 +163,15 @@ class LiveCorrector:
         return names
 
     def _compile(self) -> None:
-        """Predict and measure once on a blank pair, so that the first frame compiles nothing."""
+        """Predict, measure and compose once on a blank pair, so that the first frame compiles nothing
+        (the composition's compilation alone took 0.4 s)."""
         h, w = self.size
         blank = np.zeros((h, w, 3), np.uint8)
         _, _, disparity = prepared_pair(blank, blank, self.size, self.K, self.calibration.baseline,
                                         match=self.depth == "sgbm")
         frame = _Previous(blank, blank, disparity, np.eye(4), np.eye(4), np.eye(4))
         self._correction_of(self._window(frame, frame, np.eye(4)))
+        self._compose(frame, np.eye(4), np.zeros(6))
 
     def _window(self, previous: _Previous, current: _Previous, prior_pose: np.ndarray) -> SequenceCache:
         """The two frames as a cache in memory: what prediction and measurement read."""
@@ -187,25 +193,45 @@ class LiveCorrector:
             gt=None, K=self.K, baseline=self.calibration.baseline, indices=np.arange(2), times=np.zeros(2),
             flows=flows, manifest={}, stereo_depth=depth)
 
-    def _correction_of(self, window: SequenceCache) -> tuple[np.ndarray, dict[str, float]]:
-        """ξ ``[6]`` of the window's pair and Δ of each part (running mean included) → ``(ξ, Δ)``."""
-        from dpc_jax.engine.predict import measure_effects, predict_sequence, stereo_depth_of
+    def _correction_of(self, window: SequenceCache,
+                       seconds: dict[str, float] | None = None) -> tuple[np.ndarray, dict[str, float]]:
+        """ξ ``[6]`` of the window's pair and Δ of each part (running mean included) → ``(ξ, Δ)``;
+        ``seconds`` gets the time of the batch's assembly and transfer (added to ``prepare``), of the
+        network (``network``) and of the measurement (``measure``).
 
+        The steps of ``correct`` on one pair, assembled and moved to the device once for both: the
+        network's forward pass (``dpc_jax.engine.predict.xi_step``; ``correct``'s prediction also
+        computes the training loss and Δ of the whole correction, which this does not need), then Δ of
+        the parts with the same measurement as ``correct`` (``effects_step``: the stereo depth and no
+        network, else the network's depth), L(0) included.
+        """
+        import jax.numpy as jnp
+
+        from dpc_jax.engine.predict import effects_step, pair_batch, stereo_depth_of
+
+        seconds = {} if seconds is None else seconds
+        began = time.perf_counter()
         stereo = stereo_depth_of(window, self.depth)
-        prediction = predict_sequence(self._model, window, self._loss, batch_size=1, use_flow=self._flow,
-                                      stereo_depth=stereo)
-        xi = prediction.xi_corr[0]
+        batch = pair_batch(window, self._flow, stereo)
+        assembled = time.perf_counter()
+        seconds["prepare"] = seconds.get("prepare", 0.0) + assembled - began
+        xi = np.asarray(self._model.xi_step(self.run.config.method)(self._model.leaves, batch), np.float64)[0]
+        predicted = time.perf_counter()
+        seconds["network"] = predicted - assembled
         mean = (self._sum + xi) / (self._pairs + 1)
         parts = {}
         for component in self.components:
             parts[component] = part_of(xi[None], component)[0]
             if self.mean_test:
                 parts[f"{component} − mean"] = part_of(xi[None], component, True, mean=mean)[0]
-        model = None if stereo is not None and not self.run.config.learn_ssim_weight else self._model
-        effects = measure_effects(window, np.stack(list(parts.values()))[:, None], self._loss, batch_size=1,
-                                  stereo_depth=stereo, model=model, use_flow=self._flow,
-                                  none=prediction.photometric)
-        return xi, {name: float(effects["delta"][i, 0]) for i, name in enumerate(parts)}
+        candidates = jnp.asarray(np.stack(list(parts.values()))[:, None], jnp.float32)
+        if stereo is not None and not self.run.config.learn_ssim_weight:
+            effects = effects_step(None, None, self._loss)(None, batch, candidates, None)
+        else:
+            effects = self._model.effects_step(self._loss)(self._model.leaves, batch, candidates, None)
+        delta = np.asarray(effects["delta"], np.float64)[:, 0]
+        seconds["measure"] = time.perf_counter() - predicted
+        return xi, {name: float(delta[i]) for i, name in enumerate(parts)}
 
     def _part(self) -> Part | None:
         """The largest part whose tests have accepted, in the offline decision's order."""
@@ -264,8 +290,9 @@ class LiveCorrector:
             return LiveFrame(0, time_s, start.copy(), current.prior.copy(), None, np.zeros(6), "start",
                              (), seconds)
         t = time.perf_counter()
-        xi, delta = self._correction_of(self._window(previous, current, prior_pose))
-        seconds["network"] = time.perf_counter() - t
+        window = self._window(previous, current, prior_pose)  # with its optical flow, for ss-DPC-Net
+        seconds["prepare"] += time.perf_counter() - t
+        xi, delta = self._correction_of(window, seconds)
         events = self._update_tests(delta)
         part = self._part()
         self._sum += xi

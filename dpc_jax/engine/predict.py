@@ -90,6 +90,23 @@ def predict_step(mesh: Mesh | None, graphdef: nnx.GraphDef, treedef: Any, config
     return jax.jit(step, **kwargs)
 
 
+@functools.cache
+def xi_step(graphdef: nnx.GraphDef, treedef: Any, method: str) -> Any:
+    """The jitted ``step(leaves, batch) -> xi_corr [B, 6]`` (evaluation mode) of the model ``graphdef``
+    (its state the flat ``leaves``): the network's forward pass alone, compiled with the backend's
+    options for ``method``. What a caller that measures Δ of its own corrections
+    (:func:`effects_step`; the live corrector) needs of a prediction: :func:`predict_step` also
+    computes the training loss and the Δ of ``DELTAS``, which at 64×96 on a CPU took a third of
+    the live corrector's time."""
+
+    def step(leaves: list[jax.Array], batch: Batch) -> jax.Array:
+        model = nnx.merge(graphdef, jax.tree.unflatten(treedef, leaves))
+        model.eval()
+        return model(batch).xi_corr
+
+    return jax.jit(step, compiler_options=backend.compiler_options(method, training=False))
+
+
 class PreparedModel:
     """A model ``(graphdef, state)`` prepared once for the backend
     (``dpc_jax.engine.backend.prepare_for_backend``) and flattened, with its compiled steps bound to it:
@@ -106,6 +123,13 @@ class PreparedModel:
         key = ("predict", mesh, config)
         if key not in self._steps:
             self._steps[key] = predict_step(mesh, self.graphdef, self.treedef, config)
+        return self._steps[key]
+
+    def xi_step(self, method: str) -> Any:
+        """:func:`xi_step` of this model."""
+        key = ("xi", None, method)
+        if key not in self._steps:
+            self._steps[key] = xi_step(self.graphdef, self.treedef, method)
         return self._steps[key]
 
     def effects_step(self, config: Any) -> Any:
@@ -279,6 +303,16 @@ def measure_effects(
     drive(run, None, batches, total=pairs, desc=f"measure {cache.name}", unit="pair", progress=progress,
           consume=consume)
     return {"none": np.concatenate(out["none"]), "delta": np.concatenate(out["delta"], axis=1)}
+
+
+def pair_batch(cache: SequenceCache, use_flow: bool, stereo_depth: StereoDepth | None) -> Batch:
+    """The pair ``(0, 1)`` of a two-frame ``cache`` as :func:`predict_sequence` and :func:`measure_effects`
+    assemble it (``dpc_jax.data.pipeline.iterate_sequence``: with its flow when ``use_flow``, its
+    ``stereo_depth``), on the device: assembled and moved once for both steps of a live frame."""
+    if len(cache) != 2:
+        raise ValueError(f"{cache.path}: pair_batch takes a cache of two frames, got {len(cache)}")
+    [batch] = iterate_sequence(cache, 1, flow=use_flow, put=jax.device_put, stereo_depth=stereo_depth)
+    return batch
 
 
 def stereo_depth_of(cache: SequenceCache, acceptance_depth: str) -> StereoDepth | None:
