@@ -215,10 +215,18 @@ def table(lines: Sequence[Sequence[str]]) -> str:
     return "\n".join("| " + " | ".join(c.replace("|", "\\|") for c in row) + " |" for row in cells)
 
 
-def parse_table(block: str) -> list[list[str]]:
+def block(lines: Sequence[Sequence[str]]) -> str:
+    """What goes between the markers: the table, under a warning when a row is from ``--quick``."""
+    quick = [row for row in lines if row[-1].endswith(QUICK)]
+    warning = ("Rows dated *quick* are from `--quick` (the small preset, 16 frames): they show that the "
+               "benchmark runs, not how fast.\n\n" if quick else "")
+    return warning + table(lines)
+
+
+def parse_table(text: str) -> list[list[str]]:
     """The rows of a table :func:`table` wrote (to keep the rows not measured again)."""
     found = []
-    for line in block.splitlines():
+    for line in text.splitlines():
         if not line.startswith("|"):
             continue
         cells = [c.strip().replace("\\|", "|") for c in line.strip().strip("|").split(" | ")]
@@ -325,7 +333,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.write_docs:
         from dpc_jax.report.pages import replace_block
 
-        replace_block(DOCS, BLOCK, table(merge(previous, measured)))
+        replace_block(DOCS, BLOCK, block(merge(previous, measured)))
         print(f"wrote the rows into {DOCS}")
     return 0
 
