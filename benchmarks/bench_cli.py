@@ -7,7 +7,7 @@ Three commands, each run as a new process and timed by the wall clock from start
 * ``dpc-jax evaluate --mat FILE --json -`` with an empty compilation cache (``cold``: the first run);
 * the same with the cache the cold run filled (``warm``: every later run;
   ``dpc_jax.runtime.compilation_cache``);
-* the same metrics by the float64 loops of ``tests/reference_metrics.py`` (``float64 loop``), this
+* the same metrics by the float64 loops of ``dpc_jax.eval.reference_metrics`` (``float64 loop``), this
   script run with ``--reference-loop FILE``: it reads the file, re-anchors the estimate as
   ``evaluate`` does and prints the same JSON summary, without JAX.
 
@@ -30,7 +30,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from machine import this_cpu
+from dpc_jax.runtime.machine import this_cpu
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_MAT = ROOT.parent / "shared" / "data" / "kitti-libviso2" / "stereo_00.mat"
@@ -40,10 +40,8 @@ def reference_loop(mat: Path) -> str:
     """The JSON summary of ``dpc-jax evaluate --mat mat --json -``, computed by the float64 loops."""
     import numpy as np
 
-    sys.path.insert(0, str(ROOT / "tests"))
-    import reference_metrics as ref
-
     from dpc_jax.data.poses_io import read_mat
+    from dpc_jax.eval import reference_metrics as ref
     from dpc_jax.eval.evaluation import SUMMARY_KEYS
 
     gt, est = read_mat(mat)
@@ -107,7 +105,7 @@ def main() -> None:
     loop_s = statistics.median(times["loop"])
     for name, title in (("cold", "dpc-jax evaluate (empty compilation cache)"),
                         ("warm", "dpc-jax evaluate (cache filled)"),
-                        ("loop", "float64 loop (tests/reference_metrics.py)")):
+                        ("loop", "float64 loop (dpc_jax.eval.reference_metrics)")):
         median = statistics.median(times[name])
         runs = " ".join(f"{t:.2f}" for t in times[name])
         print(f"{title:<44} {median:>8.2f} {runs:>28} {loop_s / median:>7.1f}×")

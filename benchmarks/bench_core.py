@@ -15,12 +15,12 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
-from machine import this_cpu
 
 from dpc_jax.geometry.lie import se3_exp, se3_log
 from dpc_jax.geometry.ssim import ssim_loss
 from dpc_jax.geometry.warp import inverse_warp
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
+from dpc_jax.runtime.machine import this_cpu
 
 
 def timeit(fn: Callable[[], object], repeats: int) -> tuple[float, float]:

@@ -23,7 +23,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-from machine import this_cpu
 
 from dpc_jax.data.pipeline import TrainLoader
 from dpc_jax.data.sequence_cache import (
@@ -36,6 +35,7 @@ from dpc_jax.data.sequence_cache import (
     flow_step,
     load_cache,
 )
+from dpc_jax.runtime.machine import this_cpu
 
 
 def write_random_cache(

@@ -1,17 +1,16 @@
-"""Speed of the jitted trajectory metrics against the plain float64 loops of the tests.
+"""Speed of the jitted trajectory metrics against their plain float64 loops.
 
     python benchmarks/bench_metrics.py [--mat PATH] [--repeats 7] [--reference-repeats 1]
 
 Uses the libviso2-s estimate of KITTI 00 (4541 poses) by default. Our times are the median of
 ``--repeats`` calls after a warm-up call (compilation excluded; compile time is printed apart);
-the reference loops (``tests/reference_metrics.py``) run ``--reference-repeats`` times.
+the reference loops (``dpc_jax.eval.reference_metrics``) run ``--reference-repeats`` times.
 """
 
 from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -20,16 +19,13 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
-
-import reference_metrics as ref  # noqa: E402
-from machine import this_cpu  # noqa: E402
-
 from dpc_jax.data.poses_io import read_mat  # noqa: E402
 from dpc_jax.eval import metrics  # noqa: E402
+from dpc_jax.eval import reference_metrics as ref  # noqa: E402
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages  # noqa: E402
+from dpc_jax.runtime.machine import this_cpu  # noqa: E402
 
+ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_MAT = ROOT.parent / "shared" / "data" / "kitti-libviso2" / "stereo_00.mat"
 
 

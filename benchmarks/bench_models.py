@@ -39,7 +39,6 @@ import jax
 import numpy as np
 from bench_train import train_step_runner
 from flax import nnx
-from machine import this_cpu
 
 from dpc_jax.engine.backend import compiler_options, prepare_for_backend
 from dpc_jax.nn.batch import Batch
@@ -47,6 +46,7 @@ from dpc_jax.nn.losses import ss_dpc_loss, stereo_dpc_loss
 from dpc_jax.nn.model_config import PRESETS, SSDPCLossConfig, StereoDPCLossConfig
 from dpc_jax.nn.models import create_model
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
+from dpc_jax.runtime.machine import this_cpu
 
 
 def timeit(fn: Callable[..., object], args: tuple, repeats: int) -> tuple[float, float, float, float]:

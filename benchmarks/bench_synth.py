@@ -17,9 +17,9 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-from machine import this_cpu
 
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
+from dpc_jax.runtime.machine import this_cpu
 from dpc_jax.synth import SynthConfig, iter_frames, write_sequence
 from dpc_jax.synth import render as R
 from dpc_jax.synth.sequence import _plan, frame_scene, kitti_intrinsics

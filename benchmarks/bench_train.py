@@ -20,13 +20,13 @@ from collections.abc import Callable
 
 import jax
 import numpy as np
-from machine import this_cpu
 
 from dpc_jax.engine import parallel
 from dpc_jax.nn.batch import Batch
 from dpc_jax.nn.model_config import PRESETS
 from dpc_jax.nn.models import create_model
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
+from dpc_jax.runtime.machine import this_cpu
 from dpc_jax.training.optim import create_train_state, make_optimizer
 from dpc_jax.training.steps import make_train_step
 from dpc_jax.training.train_config import REFERENCE, TrainConfig

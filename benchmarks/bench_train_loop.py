@@ -49,9 +49,9 @@ from typing import Any
 
 import jax
 from bench_data import write_random_cache
-from machine import this_cpu
 
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
+from dpc_jax.runtime.machine import this_cpu
 
 METHODS = ("stereo_dpc", "ss_dpc")
 

@@ -19,9 +19,9 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from machine import this_cpu
 
 from dpc_jax.data.kitti import load_image, open_raw
+from dpc_jax.runtime.machine import this_cpu
 from dpc_jax.vo import STAGES, VOConfig, run_vo_frames
 
 EXCERPT = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti-raw"

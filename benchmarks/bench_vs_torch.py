@@ -51,7 +51,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from machine import this_cpu
+from dpc_jax.runtime.machine import this_cpu
 
 ROOT = Path(__file__).resolve().parents[1]
 TORCH_BENCH = ROOT.parent / "shared" / "bench" / "torch_reference" / "bench_torch.py"

@@ -7,7 +7,7 @@
 Each benchmark of :data:`BENCHMARKS` runs as its own process (the way a reader reproduces a row:
 the table's command column is that exact command line); the figures are read from its output,
 JSON where the benchmark writes it (``bench_vs_torch.py --ours``, ``bench_train_loop.py --json``),
-its printed table otherwise. The full table, with the CPU that ``benchmarks/machine.py`` names, the
+its printed table otherwise. The full table, with the CPU that ``dpc_jax.runtime.machine`` names, the
 commit (``git rev-parse --short HEAD``, ``-dirty`` when tracked files differ from it) and the date of
 each row, goes into ``docs/performance.md`` between ``<!-- performance:begin -->`` and
 ``<!-- performance:end -->``; a short table (what, shape, figure, command) into the README's
@@ -36,9 +36,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from machine import this_cpu
-
 from dpc_jax.report.pages import commit, read_block, replace_block
+from dpc_jax.runtime.machine import this_cpu
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs" / "performance.md"
@@ -145,7 +144,7 @@ def parse_cli(text: str) -> list[Row]:
 
     cold = seconds("dpc-jax evaluate (empty compilation cache)")
     warm = seconds("dpc-jax evaluate (cache filled)")
-    loop = seconds("float64 loop (tests/reference_metrics.py)")
+    loop = seconds("float64 loop (dpc_jax.eval.reference_metrics)")
     return [Row("`dpc-jax evaluate --mat … --json -` as a whole process", f"{poses[1]} poses",
                 f"{warm:.2f} s with the compilation cache filled, {cold:.2f} s the first time; "
                 f"the float64 loop {loop:.2f} s")]

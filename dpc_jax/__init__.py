@@ -32,8 +32,9 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "dpc_jax.training.loop": ("train",),
     # Correcting: restore a run, correct a prepared sequence (or frame by frame, live), write it.
     "dpc_jax.correction.inference": ("load_run", "TrainedRun"),
-    "dpc_jax.correction.corrector": ("correct_cache", "correct_sequence", "Correction", "write_trajectory"),
-    "dpc_jax.correction.acceptance": ("Acceptance",),
+    "dpc_jax.correction.corrector": ("correct_cache", "correct_sequence", "write_trajectory"),
+    "dpc_jax.results.correction": ("Correction",),
+    "dpc_jax.results.acceptance": ("Acceptance",),
     "dpc_jax.correction.live": ("LiveCorrector", "Calibration"),
     # Evaluating against ground truth, and what a prior's error is made of.
     "dpc_jax.eval.evaluation": ("evaluate", "Evaluation"),

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import reference_metrics as ref
 
+from dpc_jax.eval import reference_metrics as ref
 from dpc_jax.pipelines import protocol as dpc_protocol
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -369,8 +369,8 @@ def test_cli_adapt_writes_the_adapted_network_that_made_the_trajectory(setup: di
 def _candidate(delta: np.ndarray, tested: np.ndarray | None, label: float):
     """A Correction whose full correction was decided on ``delta[tested]``; its trajectories are filled
     with ``label`` so the chosen one can be told apart."""
-    from dpc_jax.correction.corrector import Correction
     from dpc_jax.correction.decision import decide
+    from dpc_jax.results.correction import Correction
 
     acceptance = decide(np.ones((delta.size, 6)), lambda candidates: {name: delta for name in candidates},
                         tested=tested, mean_test=False)
@@ -513,10 +513,10 @@ def test_the_measurement_without_the_network_is_the_prediction_with_stereo_depth
 
 
 def test_a_scaled_part_is_composed_as_decided(setup: dict, run) -> None:
-    from dpc_jax.correction.acceptance import Acceptance
     from dpc_jax.correction.corrector import compose_correction
     from dpc_jax.data.sequence_cache import load_cache
     from dpc_jax.geometry.pose_correction import corrected_trajectory
+    from dpc_jax.results.acceptance import Acceptance
 
     cache = load_cache(setup["cache"] / "05")
     xi = np.random.default_rng(0).normal(scale=1e-3, size=(len(cache) - 1, 6))

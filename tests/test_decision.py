@@ -13,7 +13,7 @@ import math
 import numpy as np
 import pytest
 
-from dpc_jax.correction.acceptance import Acceptance, paired_test
+from dpc_jax.correction.acceptance import paired_test
 from dpc_jax.correction.decision import (
     applied_correction,
     component_mask,
@@ -21,6 +21,7 @@ from dpc_jax.correction.decision import (
     part_of,
     rotation_component,
 )
+from dpc_jax.results.acceptance import Acceptance
 
 WEIGHT = np.array([1.0, 1.0, 1.0, 40.0, 40.0, 40.0])  # the images resolve a rotation better than a shift
 

@@ -12,6 +12,7 @@ from dpc_jax import config as config_lib
 from dpc_jax.cli import main as cli_main
 from dpc_jax.data.poses_io import read_trajectory
 from dpc_jax.pipelines.synthetic_demo import DemoConfig, DemoError, run_demo
+from dpc_jax.results.demo import DemoSummary
 
 ROOT = Path(__file__).resolve().parents[1]
 # At 48×80 the VO falls back on most pairs; the tiny demo accepts that (the refusal is tested below).
@@ -24,7 +25,7 @@ TINY = {
 
 
 @pytest.fixture(scope="module")
-def demo(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict, list[str]]:
+def demo(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, DemoSummary, list[str]]:
     out = tmp_path_factory.mktemp("demo")
     lines: list[str] = []
     summary = run_demo(config_lib.from_dict(DemoConfig, TINY), out, log=lines.append)
@@ -32,7 +33,7 @@ def demo(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict, list[str
 
 
 @pytest.mark.slow
-def test_outputs_and_report(demo: tuple[Path, dict, list[str]]) -> None:
+def test_outputs_and_report(demo: tuple[Path, DemoSummary, list[str]]) -> None:
     out, summary, lines = demo
     assert [line.split(":")[0] for line in lines[:3]] == ["train0", "val", "test"]
     assert all("(rendered)" in line for line in lines[:3])
@@ -56,7 +57,10 @@ def test_outputs_and_report(demo: tuple[Path, dict, list[str]]) -> None:
         assert (out / image).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
     stored = json.loads((out / "summary.json").read_text())
-    assert stored["report"] == str(out / "report.md") == summary["report"]
+    assert stored["report"] == str(out / "report.md") == summary.report
+    # The summary reads back as it was written.
+    text = (out / "summary.json").read_text()
+    assert json.dumps(DemoSummary.from_dict(stored).to_dict(), indent=2, sort_keys=True) + "\n" == text
     assert set(stored["test"]) == {"prior", "trained", "adapted", "corrected"}
     assert set(stored["decisions"]) == {"trained", "adapted"}
     # The final trajectory is the adapted correction if accepted, else the trained one, else the prior.
@@ -76,7 +80,7 @@ def test_outputs_and_report(demo: tuple[Path, dict, list[str]]) -> None:
 
 
 @pytest.mark.slow
-def test_second_run_reuses_everything(demo: tuple[Path, dict, list[str]]) -> None:
+def test_second_run_reuses_everything(demo: tuple[Path, DemoSummary, list[str]]) -> None:
     out, summary, _ = demo
     files = [out / "vo" / "test.txt", out / "cache" / "test" / "left.npy",
              out / "data" / "sequences" / "val" / "image_2" / "000000.png"]
@@ -85,15 +89,15 @@ def test_second_run_reuses_everything(demo: tuple[Path, dict, list[str]]) -> Non
     again = run_demo(config_lib.from_dict(DemoConfig, TINY), out, log=lines.append)
     assert all("(reused)" in line for line in lines[:3])
     assert {p: p.stat().st_mtime_ns for p in stamps} == stamps
-    assert again["test"] == summary["test"]  # the finished run is restored, not retrained
-    assert again["seconds"]["train"] < summary["seconds"]["train"]
+    assert again.test == summary.test  # the finished run is restored, not retrained
+    assert again.seconds["train"] < summary.seconds["train"]
 
 
 @pytest.mark.slow
-def test_a_prior_that_is_not_vo_is_refused(demo: tuple[Path, dict, list[str]]) -> None:
+def test_a_prior_that_is_not_vo_is_refused(demo: tuple[Path, DemoSummary, list[str]]) -> None:
     out, summary, _ = demo
-    fallbacks = summary["sequences"]["train0"]["fallbacks"]
-    assert fallbacks > 0.05 * summary["sequences"]["train0"]["pairs"]  # 48×80 is too small for the VO
+    fallbacks = summary.sequences["train0"]["fallbacks"]
+    assert fallbacks > 0.05 * summary.sequences["train0"]["pairs"]  # 48×80 is too small for the VO
     strict = config_lib.from_dict(DemoConfig, {**TINY, "max_fallback_share": 0.05})
     with pytest.raises(DemoError, match=rf"train0: our VO fell back to constant velocity on {fallbacks} of"):
         run_demo(strict, out)

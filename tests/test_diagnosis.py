@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import reference_metrics as ref
 from scipy.spatial.transform import Rotation
 
 from dpc_jax.cli import main
 from dpc_jax.data.poses_io import write_kitti_poses
+from dpc_jax.eval import reference_metrics as ref
 from dpc_jax.eval.diagnosis import diagnose
 from dpc_jax.eval.evaluation import evaluate
 from dpc_jax.report.evaluation_report import format_diagnosis, write_report

@@ -10,13 +10,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import reference_metrics as ref
 import scipy.io
 from conftest import DATA
 from scipy.spatial.transform import Rotation
 
 from dpc_jax.cli import main
 from dpc_jax.data.poses_io import read_kitti_poses, read_mat, read_tum, write_kitti_poses, write_tum
+from dpc_jax.eval import reference_metrics as ref
 from dpc_jax.eval.evaluation import SUMMARY_KEYS, associate_by_time, evaluate
 from dpc_jax.geometry.poses import compose
 

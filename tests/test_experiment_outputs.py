@@ -200,8 +200,8 @@ def test_every_other_script_claims_its_outputs(tmp_path: Path, capsys: pytest.Ca
 def test_the_results_table_says_when_the_test_was_off() -> None:
     """kitti_stereo_dpc.py's table said "trained (full)" under "what its acceptance test let through"
     when the protocol had the test off (acceptance False): what was forced now says so."""
-    from dpc_jax.correction.acceptance import Acceptance
     from dpc_jax.pipelines.protocol import applied_label
+    from dpc_jax.results.acceptance import Acceptance
 
     assert applied_label("trained", Acceptance(0.01, decision="full", forced=True)) == (
         "trained (full, test off: forced)")

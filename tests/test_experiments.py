@@ -15,13 +15,12 @@ from dpc_jax.pipelines import protocol as dpc_protocol
 
 ROOT = Path(__file__).resolve().parents[1]
 PROTOCOLS = ROOT / "experiments" / "protocols"
-STUDIES = ROOT / "experiments" / "studies"
 
 FRAMES = 10
 
 
-def _entry(name: str, folder: Path = PROTOCOLS):
-    spec = importlib.util.spec_from_file_location(f"experiment_{name}", folder / f"{name}.py")
+def _entry(name: str):
+    spec = importlib.util.spec_from_file_location(f"experiment_{name}", PROTOCOLS / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -188,10 +187,12 @@ def test_kitti_ss_dpc_smoke_corrects_rotation_only(kitti: Path, tmp_path: Path) 
 
 
 def test_excerpt_ground_truth_step_geometry_round_trip() -> None:
-    """Travel length, elevation and lateral angle of known camera motions (closed form), and back."""
+    """Travel length, elevation and lateral angle of known camera motions (closed form), and back
+    (``dpc_jax.experiments.steps``, what excerpt_ground_truth.py checks steps with)."""
     from scipy.spatial.transform import Rotation
 
-    check = _entry("excerpt_ground_truth", STUDIES)
+    from dpc_jax.experiments import steps as check
+
     rng = np.random.default_rng(0)
     n = 6
     length = rng.uniform(0.5, 2.0, n)

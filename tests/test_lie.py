@@ -13,12 +13,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-import reference_metrics as ref
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from dpc_jax.data.poses_io import validate_poses
+from dpc_jax.eval import reference_metrics as ref
 from dpc_jax.geometry.lie import (
     project_to_so3,
     se3_exp,

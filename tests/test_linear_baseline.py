@@ -5,8 +5,8 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
-import reference_metrics as ref
 
+from dpc_jax.eval import reference_metrics as ref
 from dpc_jax.eval.linear_baseline import (
     apply_linear_correction,
     fit_linear_correction,

@@ -1,14 +1,9 @@
-"""benchmarks/machine.py: the CPU line of the benchmarks' headers, from /proc/cpuinfo texts."""
+"""dpc_jax.runtime.machine: the CPU line of the benchmarks' headers and the studies' records, from
+/proc/cpuinfo texts."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
-sys.path.insert(0, str(BENCHMARKS))
-
-from machine import cpu_description, this_cpu  # noqa: E402
+from dpc_jax.runtime.machine import cpu_description, this_cpu
 
 # Two processors of a 2-core x86 machine, as the kernel prints them (trimmed).
 X86 = """processor\t: 0

@@ -7,12 +7,12 @@ import itertools
 import jax.numpy as jnp
 import numpy as np
 import pytest
-import reference_metrics as ref
 from conftest import DATA
 from scipy.spatial.transform import Rotation
 
 from dpc_jax.data.poses_io import read_mat
 from dpc_jax.eval import metrics
+from dpc_jax.eval import reference_metrics as ref
 from dpc_jax.geometry.poses import compose
 
 LIBVISO2 = DATA / "kitti-libviso2"

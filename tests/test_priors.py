@@ -9,12 +9,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import reference_metrics as ref
 import scipy.io
 from conftest import DATA
 
 from dpc_jax.data.poses_io import validate_poses
 from dpc_jax.data.priors import load_prior, relative_xi, rescale_monocular
+from dpc_jax.eval import reference_metrics as ref
 
 LIBVISO = DATA / "kitti-raw" / "libviso2"
 STEREO = LIBVISO / "stereo_2011_09_26_drive_0001.mat"

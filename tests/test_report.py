@@ -7,19 +7,19 @@ import json
 import math
 import subprocess
 import sys
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
+import numpy as np
 import pytest
 
-from dpc_jax.correction.acceptance import Acceptance, PairedTest
-from dpc_jax.pipelines.protocol import Result
 from dpc_jax.report.correction_report import acceptance_markdown, choice_markdown, write_correction_report
 from dpc_jax.report.demo_report import decision_label
 from dpc_jax.report.pages import read_block, replace_block, write_results
 from dpc_jax.report.protocol_report import results_csv, results_markdown
 from dpc_jax.report.tables import EMPTY, change_pct, csv_text, number, records_csv, table
+from dpc_jax.results.acceptance import Acceptance, PairedTest
+from dpc_jax.results.correction import Correction
+from dpc_jax.results.fold import Final, FoldResult, read_fold_results, write_fold_results
 
 METRICS = {"seg_trans_pct": 2.5, "seg_rot_deg_per_100m": None, "m_ate_trans_m": 12345.678,
            "m_ate_rot_deg": math.nan, "ate_m": 0.125}
@@ -57,9 +57,9 @@ def test_a_page_block_is_replaced_and_nothing_else(tmp_path: Path) -> None:
 def test_results_table_and_csv() -> None:
     corrected = {**METRICS, "seg_trans_pct": 2.0}
     results = [
-        Result("f", "00", "libviso2", 3, "delta", 100, {"prior": METRICS, "corrected": corrected},
-               "trained (full)", {"trained": METRICS}, {"trained": "full"}),
-        Result("g", "05", "vo", 1, "last", 7, {"prior": METRICS, "corrected": METRICS}, "prior"),
+        FoldResult("f", "00", "libviso2", 3, "delta", 100, {"prior": METRICS, "corrected": corrected},
+                   "trained (full)", {"trained": METRICS}, {"trained": "full"}),
+        FoldResult("g", "05", "vo", 1, "last", 7, {"prior": METRICS, "corrected": METRICS}, "prior"),
     ]
     text = results_markdown(results, "Title", ["a note"])
     lines = text.splitlines()
@@ -87,7 +87,7 @@ def test_results_table_and_csv() -> None:
 
 
 def _test(component: str, passed: bool) -> PairedTest:
-    return PairedTest(component, 12, -1.5e-3, -2e-4, 0.75, 10.0, 0.0123, passed)
+    return PairedTest(component, 12, -1.5e-3, -2e-4, 0.75, 10.0, 0.0123, passed, 3e-3)
 
 
 def test_acceptance_and_choice_markdown() -> None:
@@ -115,24 +115,13 @@ def test_acceptance_and_choice_markdown() -> None:
     assert decision_label(Acceptance(0.05, decision="rotation", forced=True)) == "not tested (applied)"
 
 
-@dataclass(frozen=True)
-class _Correction:
-    """The fields of dpc_jax.correction.corrector.Correction that the report reads, without ground truth."""
-
-    acceptance: Acceptance
-    adaptation: dict[str, Any] | None = None
-    choice: dict[str, object] | None = None
-    evaluation: None = None
-    extra: dict[str, object] = field(default_factory=dict)
-
-    def summary(self) -> dict[str, object]:
-        return {"applied": self.acceptance.decision}
-
-
 def test_correction_report_without_ground_truth(tmp_path: Path) -> None:
     acceptance = Acceptance(0.05, {"rotation": _test("rotation", False)}, "none", "rotation: failed")
     adaptation = {"steps": 30, "seconds": 90.0, "held_out": 6, "holdout_every": 5, "source_epoch": 2}
-    written = write_correction_report(tmp_path / "r", _Correction(acceptance, adaptation), "T")
+    poses = np.tile(np.eye(4), (3, 1, 1))
+    correction = Correction("05", np.arange(3), np.arange(3) / 10, poses, poses, poses, None,
+                            np.zeros((2, 6)), True, acceptance, 2, None, adaptation=adaptation)
+    written = write_correction_report(tmp_path / "r", correction, "T")
     assert [p.name for p in written] == ["report.md", "summary.json"]
     text = (tmp_path / "r" / "report.md").read_text()
     assert text.startswith("# T\n\nNo ground truth: nothing to evaluate.\n\n"
@@ -140,7 +129,28 @@ def test_correction_report_without_ground_truth(tmp_path: Path) -> None:
                            "1.5 min; 6 pairs kept out for the acceptance test (every 5th).\n\n"
                            "## Acceptance test (no ground truth used)\n\n")
     assert "**Applied: nothing: the corrected trajectory is the prior** (rotation: failed)." in text
-    assert json.loads((tmp_path / "r" / "summary.json").read_text()) == {"applied": "none"}
+    summary = json.loads((tmp_path / "r" / "summary.json").read_text())
+    assert summary == {"sequence": "05", "epoch": 2, "applied": "none", "part": "none", "rotation_only": True,
+                       "acceptance": acceptance.to_dict(), "adaptation": adaptation}
+
+
+def test_results_read_back_as_they_were_written(tmp_path: Path) -> None:
+    """An acceptance test and a fold's result read back from their JSON equal what was written (an
+    acceptance's Δ is not written: it reads back as None)."""
+    tests = {"rotation": _test("rotation", True), "mean of rotation": _test("mean of rotation", False)}
+    acceptance = Acceptance(0.01, tests, "rotation", "r", scale=0.5, remainder=True,
+                            mean=(0, 0, 0, 1e-4, 0, 0), delta=np.ones(3))
+    again = Acceptance.from_dict(json.loads(json.dumps(acceptance.to_dict())))
+    assert again == acceptance and again.delta is None and again.part == "rotation − mean ×0.5"
+    metrics = {**METRICS, "m_ate_rot_deg": 1.5}  # an evaluation's summary holds None, never NaN
+    results = [FoldResult("f", "00", "vo", 3, "delta", 10, {"prior": metrics, "corrected": metrics},
+                          "trained (rotation)", {"trained": metrics}, {"trained": "rotation"},
+                          Final("prior", metrics)),
+               FoldResult("f", "02", "vo", 3, "delta", 10, {"prior": metrics, "corrected": metrics}, "prior")]
+    write_fold_results(tmp_path / "results.json", results)
+    read = read_fold_results(tmp_path / "results.json")
+    assert [r.earlier for r in read] == [Final("prior", metrics), None]
+    assert [r.to_dict() for r in read] == json.loads(json.dumps([r.to_dict() for r in results]))
 
 
 def test_table_reports_do_not_import_matplotlib() -> None:

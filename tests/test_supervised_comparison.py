@@ -1,32 +1,25 @@
-"""experiments/studies/supervised_comparison.py: its table from hand-made summaries and drive rows (no
-training)."""
+"""experiments/studies/supervised_comparison.py: its table (``dpc_jax.experiments.comparison``) from
+hand-made demo summaries and drive results (no training), and its config."""
 
 from __future__ import annotations
 
 import csv
 import dataclasses
-import importlib.util
 import io
-import sys
+import runpy
 from pathlib import Path
-from typing import Any
 
 import pytest
 
+from dpc_jax.experiments import comparison
+from dpc_jax.experiments.demos import demo_config
 from dpc_jax.pipelines import protocol as dpc_protocol
+from dpc_jax.results.acceptance import Acceptance
+from dpc_jax.results.demo import DemoSummary
+from dpc_jax.results.fold import FoldResult
 
 ROOT = Path(__file__).resolve().parents[1]
-SCRIPT = ROOT / "experiments" / "studies" / "supervised_comparison.py"
 CONFIG = ROOT / "experiments" / "studies" / "configs" / "supervised_comparison.py"
-
-
-@pytest.fixture(scope="module")
-def comparison() -> Any:
-    spec = importlib.util.spec_from_file_location("experiment_supervised_comparison", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # its dataclass resolves its annotations through sys.modules
-    spec.loader.exec_module(module)
-    return module
 
 
 def _values(t: float | None, r: float | None, ate: float) -> dict[str, float | None]:
@@ -34,38 +27,53 @@ def _values(t: float | None, r: float | None, ate: float) -> dict[str, float | N
             "ate_m": ate * 1.5, "rpe_trans_m": 0.04, "rpe_rot_deg": 0.02, "loop_closures": 0}
 
 
-def _demo(trained: float, adapted: float, final: str) -> dict[str, Any]:
-    """A demo summary.json: prior 10 % / 4 °/100 m, the network rows scaled by the given factors."""
+def _demo(trained: float, adapted: float | None, final: str) -> DemoSummary:
+    """A demo's summary: prior 10 % / 4 °/100 m, the network rows scaled by the given factors."""
     corrected = {"trained": trained, "adapted": adapted, "prior": 1.0}[final]
-    return {
-        "test": {"prior": _values(10.0, 4.0, 2.0), "trained": _values(10 * trained, 4 * trained, 2 * trained),
-                 "adapted": _values(10 * adapted, 4 * adapted, 2 * adapted),
-                 "corrected": _values(10 * corrected, 4 * corrected, 2 * corrected)},
-        "decisions": {"trained": "accepted (full 6-DoF)", "adapted": "rejected"},
-        "final": final,
-    }
+    test = {"prior": _values(10.0, 4.0, 2.0), "trained": _values(10 * trained, 4 * trained, 2 * trained),
+            "corrected": _values(10 * corrected, 4 * corrected, 2 * corrected)}
+    decisions = {"trained": "accepted (full 6-DoF)"}
+    if adapted is not None:
+        test["adapted"] = _values(10 * adapted, 4 * adapted, 2 * adapted)
+        decisions["adapted"] = "rejected"
+    return DemoSummary(test, decisions, {k: Acceptance(0.01) for k in decisions}, final, None, {}, False, 1,
+                       "delta", 2, {}, {}, {}, [], {})
 
 
-def _drive_csv(drive: str, prior_t: float | None, scale: float, decision: str) -> list[dict[str, str]]:
-    """``kitti_raw_drives.py`` results.csv rows (text cells, empty where undefined)."""
-    def cells(factor: float) -> dict[str, str]:
-        values = _values(None if prior_t is None else prior_t * factor, None if prior_t is None else factor,
-                         0.8 * factor)
-        return {k: "" if v is None else str(v) for k, v in values.items()}
+def _drive(drive: str, prior_t: float | None, scale: float, decision: str) -> FoldResult:
+    """A ``kitti_raw_drives.py`` result of test drive ``drive`` with our VO's prior."""
+    def values(factor: float) -> dict[str, float | None]:
+        return _values(None if prior_t is None else prior_t * factor, None if prior_t is None else factor,
+                       0.8 * factor)
 
-    rows = [("prior", "", 1.0), ("trained", decision, scale), ("adapted", "none", 1.1),
-            ("final", f"trained ({decision})", scale)]
-    return [{"drive": drive, "prior": "vo", "trained_on": "x our VO", "estimate": e, "decision": d,
-             **cells(f)} for e, d, f in rows]
+    return FoldResult("train_x_vo", f"{drive}_vo", "vo", 3, "delta", 90,
+                      {"prior": values(1.0), "corrected": values(scale)}, f"trained ({decision})",
+                      {"trained": values(scale), "adapted": values(1.1)},
+                      {"trained": decision, "adapted": "none"})
+
+
+def _demo_rows(seed: int, supervised: DemoSummary, own: DemoSummary, baselines: dict,
+               trained_on: str = "train0, train1") -> list[comparison.Row]:
+    prior = comparison.metrics_of(own.test["prior"])
+    return comparison.rows_of(f"demo seed {seed}", trained_on, prior, baselines,
+                              {"supervised": comparison.demo_stages(supervised),
+                               "self": comparison.demo_stages(own)})
+
+
+def _drive_rows(drive: str, supervised: FoldResult, own: FoldResult, baselines: dict) -> list[comparison.Row]:
+    return comparison.rows_of(f"drive {drive}", "drive 0001, frames 0–79",
+                              comparison.metrics_of(own.metrics["prior"]), baselines,
+                              {"supervised": comparison.fold_stages(supervised),
+                               "self": comparison.fold_stages(own)})
 
 
 BASELINES_0 = {"linear": _values(9.0, 1.0, 1.0), "constant": _values(9.5, 2.0, 1.0)}
 BASELINES_1 = {"linear": _values(5.0, 2.0, 1.0), "constant": _values(9.5, 2.0, 1.0)}
+SHORT = {"linear": _values(None, None, 0.7), "constant": _values(None, None, 0.75)}
 
 
-def test_demo_rows_keep_every_stage_its_decision_and_the_prior(comparison: Any) -> None:
-    rows = comparison.demo_rows(3, _demo(0.5, 0.4, "adapted"), _demo(0.8, 1.2, "trained"),
-                                BASELINES_0, "train0, train1")
+def test_demo_rows_keep_every_stage_its_decision_and_the_prior() -> None:
+    rows = _demo_rows(3, _demo(0.5, 0.4, "adapted"), _demo(0.8, 1.2, "trained"), BASELINES_0)
     assert [r.kind for r in rows] == list(comparison.KINDS)
     by_kind = {r.kind: r for r in rows}
     assert {r.test for r in rows} == {"demo seed 3"} and {r.trained_on for r in rows} == {"train0, train1"}
@@ -80,22 +88,19 @@ def test_demo_rows_keep_every_stage_its_decision_and_the_prior(comparison: Any) 
     assert "loop_closures" not in by_kind["self_trained"].metrics
 
 
-def test_a_demo_without_adaptation_and_kept_prior(comparison: Any) -> None:
-    summary = _demo(1.1, 1.0, "prior")
-    del summary["test"]["adapted"], summary["decisions"]["adapted"]
-    rows = comparison.demo_rows(0, summary, summary, {"linear": _values(None, None, 1.0),
-                                                      "constant": _values(None, None, 1.0)}, "train0")
+def test_a_demo_without_adaptation_and_kept_prior() -> None:
+    summary = _demo(1.1, None, "prior")
+    rows = _demo_rows(0, summary, summary, {"linear": _values(None, None, 1.0),
+                                            "constant": _values(None, None, 1.0)}, "train0")
     kinds = [r.kind for r in rows]
     assert "self_adapted" not in kinds and "supervised_adapted" not in kinds
     assert {r.decision for r in rows if r.kind.endswith("_final")} == {"prior"}
     assert next(r for r in rows if r.kind == "linear").metrics["seg_trans_pct"] is None
 
 
-def test_drive_rows_from_the_results_csv(comparison: Any) -> None:
-    rows = comparison.drive_rows("0005", "drive 0001, frames 0–79",
-                                 _drive_csv("0005", None, 0.9, "rotation_xz"),
-                                 _drive_csv("0005", None, 0.95, "none"),
-                                 {"linear": _values(None, None, 0.7), "constant": _values(None, None, 0.75)})
+def test_drive_rows_from_the_fold_results() -> None:
+    rows = _drive_rows("0005", _drive("0005", None, 0.9, "rotation_xz"), _drive("0005", None, 0.95, "none"),
+                       SHORT)
     assert [r.kind for r in rows] == list(comparison.KINDS)
     by_kind = {r.kind: r for r in rows}
     assert by_kind["prior"].metrics["m_ate_trans_m"] == pytest.approx(0.8)
@@ -107,14 +112,11 @@ def test_drive_rows_from_the_results_csv(comparison: Any) -> None:
     assert by_kind["linear"].metrics["m_ate_trans_m"] == 0.7
 
 
-def test_markdown_csv_and_the_change_over_seeds(comparison: Any) -> None:
-    rows = [*comparison.demo_rows(0, _demo(0.5, 0.4, "adapted"), _demo(0.8, 1.2, "trained"),
-                                  BASELINES_0, "train0, train1"),
-            *comparison.demo_rows(1, _demo(0.9, 1.1, "trained"), _demo(0.3, 0.6, "trained"),
-                                  BASELINES_1, "train0, train1"),
-            *comparison.drive_rows("0005", "drive 0001, frames 0–79", _drive_csv("0005", None, 0.9, "none"),
-                                   _drive_csv("0005", None, 0.95, "none"),
-                                 {"linear": _values(None, None, 0.7), "constant": _values(None, None, 0.75)})]
+def test_markdown_csv_and_the_change_over_seeds() -> None:
+    rows = [*_demo_rows(0, _demo(0.5, 0.4, "adapted"), _demo(0.8, 1.2, "trained"), BASELINES_0),
+            *_demo_rows(1, _demo(0.9, 1.1, "trained"), _demo(0.3, 0.6, "trained"), BASELINES_1),
+            *_drive_rows("0005", _drive("0005", None, 0.9, "none"), _drive("0005", None, 0.95, "none"),
+                         SHORT)]
     text = comparison.comparison_markdown(rows, ["a note"])
     lines = text.splitlines()
     assert lines[2] == "a note"
@@ -141,14 +143,12 @@ def test_markdown_csv_and_the_change_over_seeds(comparison: Any) -> None:
     assert float(parsed[-1]["m_ate_trans_m"]) == pytest.approx(0.8 * 0.95)
 
 
-def test_no_seed_no_summary_and_a_missing_metric_is_na(comparison: Any) -> None:
-    drive = comparison.drive_rows("0001", "drive 0005, frames 0–67", _drive_csv("0001", 0.6, 0.9, "none"),
-                                  _drive_csv("0001", 0.6, 0.95, "none"),
-                                  {"linear": _values(0.5, 0.5, 0.7), "constant": _values(0.5, 0.5, 0.7)})
+def test_no_seed_no_summary_and_a_missing_metric_is_na() -> None:
+    drive = _drive_rows("0001", _drive("0001", 0.6, 0.9, "none"), _drive("0001", 0.6, 0.95, "none"),
+                        {"linear": _values(0.5, 0.5, 0.7), "constant": _values(0.5, 0.5, 0.7)})
     assert comparison.change_summary(drive) == []
-    short = comparison.demo_rows(0, _demo(0.5, 0.4, "adapted"), _demo(0.8, 1.2, "trained"),
-                                 {"linear": _values(None, None, 1.0), "constant": _values(None, None, 1.0)},
-                                 "train0")
+    short = _demo_rows(0, _demo(0.5, 0.4, "adapted"), _demo(0.8, 1.2, "trained"),
+                       {"linear": _values(None, None, 1.0), "constant": _values(None, None, 1.0)}, "train0")
     for row in short:
         row.metrics["seg_trans_pct"] = None
     summary = comparison.change_summary(short)
@@ -164,36 +164,20 @@ def test_the_config_states_its_command_and_narrows_the_drives_to_our_vo() -> Non
     assert config == drives_config and config.supervision == "self"
     assert protocol.tests == (("vo", "vo"),)
     assert dataclasses.replace(protocol, tests=()) == dataclasses.replace(drives_protocol, tests=())
-    import runpy
-
     namespace = runpy.run_path(str(CONFIG))
     supervised = dpc_protocol.fold_config(config, dpc_protocol.Fold("f", ("a",), "b", ()), Path("c"),
                                           namespace["SUPERVISED"])
     assert supervised.supervision == "supervised" and supervised.precision is not None
 
 
-def test_smoke_keeps_the_supervised_demo_supervised(comparison: Any) -> None:
-    import runpy
-
+def test_smoke_keeps_the_supervised_demo_supervised() -> None:
     namespace = runpy.run_path(str(CONFIG))
     smoke = namespace["SMOKE_DEMO"]
-    configs = {kind: comparison.demo_config(Path(path), 7, smoke) for kind, path in namespace["DEMO"].items()}
+    configs = {kind: demo_config(Path(path), 7, smoke) for kind, path in namespace["DEMO"].items()}
     assert configs["supervised"].train_config("c").supervision == "supervised"
     assert configs["self"].train_config("c").supervision == "self"
     for config in configs.values():
         assert config.seed == 7 and config.train_frames == smoke["train_frames"]
         assert config.train_config("c").image_size == smoke["training"]["image_size"]
-    full = comparison.demo_config(Path(namespace["DEMO"]["supervised"]), 0, None)
+    full = demo_config(Path(namespace["DEMO"]["supervised"]), 0)
     assert full.train_config("c").precision == configs["supervised"].train_config("c").precision
-
-
-def test_share_links_what_the_second_run_lacks(comparison: Any, tmp_path: Path) -> None:
-    source, target = tmp_path / "seed_0", tmp_path / "supervised" / "seed_0"
-    (source / "data").mkdir(parents=True)
-    (source / "data" / "x.txt").write_text("x")
-    (target / "vo").mkdir(parents=True)
-    (source / "vo").mkdir()
-    comparison.share(source, target, ("data", "vo", "cache"))
-    assert (target / "data").is_symlink() and (target / "data" / "x.txt").read_text() == "x"
-    assert not (target / "vo").is_symlink()  # a folder of its own is kept
-    assert not (target / "cache").exists()  # nothing to share

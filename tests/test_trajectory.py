@@ -6,7 +6,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import reference_metrics as ref
 import scipy.io
 from conftest import DATA
 from scipy.spatial.transform import Rotation
@@ -22,6 +21,7 @@ from dpc_jax.data.poses_io import (
     write_kitti_poses,
     write_tum,
 )
+from dpc_jax.eval import reference_metrics as ref
 from dpc_jax.geometry.poses import compose, invert_poses, relative_poses, remove_static_frames
 
 LIBVISO2 = DATA / "kitti-libviso2"

@@ -98,12 +98,12 @@ def run(args: argparse.Namespace) -> int:
         return 2
 
     def errors(label: str) -> str:
-        values = summary["test"][label]
+        values = summary.test[label]
         t, r = (values[k] for k in ("seg_trans_pct", "seg_rot_deg_per_100m"))
         return f"{EMPTY} (shorter than 100 m)" if t is None or r is None else f"{t:.3f} % / {r:.3f} °/100 m"
 
-    rows = ", ".join(f"{label} {errors(label)}" for label in summary["test"] if label != "corrected")
-    print(f"test sequence segment errors: {rows}; final ({summary['final']}) {errors('corrected')}; "
-          f"{summary['seconds_total'] / 60:.1f} min")
-    print(f"report: {summary['report']}")
+    rows = ", ".join(f"{label} {errors(label)}" for label in summary.test if label != "corrected")
+    print(f"test sequence segment errors: {rows}; final ({summary.final}) {errors('corrected')}; "
+          f"{summary.seconds_total / 60:.1f} min")
+    print(f"report: {summary.report}")
     return 0

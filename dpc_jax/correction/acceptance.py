@@ -13,7 +13,7 @@ Consecutive pairs share images and motion, so the Δ are not independent and the
 optimistic; the default level 0.01 is chosen strict for that reason.
 
 What to apply, from the tests of the correction's parts, is ``dpc_jax.correction.decision``'s;
-:class:`Acceptance` records it.
+``dpc_jax.results.acceptance.Acceptance`` records it.
 
 **While the pairs arrive** (the live correction, ``dpc_jax.correction.live``) the same paired differences
 are tested sequentially: a test that is checked after every pair must keep its false-acceptance rate
@@ -33,33 +33,13 @@ sums to α over all of them).
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
-from typing import Any
+from dataclasses import dataclass, field
 
 import numpy as np
 
+from dpc_jax.results.acceptance import PairedTest
+
 DEFAULT_ALPHA = 0.01
-
-
-@dataclass(frozen=True)
-class PairedTest:
-    """The test of one paired difference over ``pairs`` frame pairs.
-
-    ``mean_delta``/``median_delta``: of the differences; ``improved_share``: fraction below 0;
-    ``statistic``, ``p_value``: Wilcoxon signed-rank (``nan``/1 when every difference is 0);
-    ``passed``: ``p_value < alpha`` and ``mean_delta < 0``; ``std_delta``: the standard deviation of
-    the differences (what the power of the test on more pairs follows from).
-    """
-
-    component: str
-    pairs: int
-    mean_delta: float
-    median_delta: float
-    improved_share: float
-    statistic: float
-    p_value: float
-    passed: bool
-    std_delta: float = math.nan
 
 
 def paired_test(name: str, delta: np.ndarray, alpha: float = DEFAULT_ALPHA) -> PairedTest:
@@ -88,59 +68,6 @@ def paired_test(name: str, delta: np.ndarray, alpha: float = DEFAULT_ALPHA) -> P
         passed=bool(p_value < alpha and mean < 0),
         std_delta=float(delta.std()),
     )
-
-
-@dataclass(frozen=True)
-class Acceptance:
-    """What the acceptance test let through (``dpc_jax.correction.decision.decide``).
-
-    ``decision``: the component applied, ``full | rotation | rotation_<axes> | none``;
-    ``remainder``: True when the correction's mean over the sequence was removed (its per-step
-    remainder is applied; the mean failed its own test); ``scale``: the factor a judge chose (1
-    otherwise); ``mean``: ``[6]`` the mean removed (``[ρ (m), φ (rad)]``), None when none was;
-    ``tests``: every test made, by name (e.g. ``rotation``, ``mean of rotation``,
-    ``rotation − mean``, ``rotation_x``, ``rotation (judge)``); ``reason``: why, in words;
-    ``forced``: applied whatever the tests said; ``delta``: Δ ``[M]`` of the applied correction on
-    every pair, measured where it was decided (at the judge's size when there is one), None when
-    nothing is applied.
-    """
-
-    alpha: float
-    tests: dict[str, PairedTest] = field(default_factory=dict)
-    decision: str = "none"
-    reason: str = ""
-    forced: bool = False
-    scale: float = 1.0
-    remainder: bool = False
-    mean: tuple[float, ...] | None = None
-    delta: np.ndarray | None = field(default=None, compare=False, repr=False)
-
-    @property
-    def part(self) -> str:
-        """What is applied, in one name: ``none``, ``rotation``, ``rotation_xz − mean ×0.75``."""
-        if self.decision == "none":
-            return "none"
-        return self.decision + (" − mean" if self.remainder else "") + (
-            f" ×{self.scale:g}" if self.scale != 1.0 else "")
-
-    @property
-    def mean_delta(self) -> float:
-        """Mean Δ of the first part tested (the full correction, or the rotation alone when only that
-        was tested): the figure a run's record keeps."""
-        return next(iter(self.tests.values())).mean_delta if self.tests else math.nan
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "alpha": self.alpha,
-            "decision": self.decision,
-            "remainder": self.remainder,
-            "scale": self.scale,
-            "part": self.part,
-            "mean": None if self.mean is None else list(self.mean),
-            "reason": self.reason,
-            "forced": self.forced,
-            "tests": {name: asdict(test) for name, test in self.tests.items()},
-        }
 
 
 # The bets averaged by the sequential test: a mixture of bets is itself a test martingale, and it grows

@@ -45,7 +45,7 @@ from dpc_jax.training.optim import create_train_state, make_optimizer
 from dpc_jax.training.steps import make_train_step
 
 if TYPE_CHECKING:
-    from dpc_jax.correction.corrector import AdaptationSummary, Correction
+    from dpc_jax.results.correction import AdaptationSummary, Correction
 
 
 @dataclass(frozen=True)

@@ -28,99 +28,27 @@ trajectory.
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TypedDict
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from dpc_jax._io import atomic_write
-from dpc_jax.correction.acceptance import DEFAULT_ALPHA, Acceptance, paired_test
+from dpc_jax.correction.acceptance import DEFAULT_ALPHA, paired_test
 from dpc_jax.correction.decision import applied_correction, decide, refused
 from dpc_jax.correction.inference import TrainedRun, run_prediction
 from dpc_jax.correction.measure import judge_measurement, measurement
 from dpc_jax.data.poses_io import WRITE_FORMATS, write_kitti_poses, write_tum
 from dpc_jax.data.priors import prior_for_cache
 from dpc_jax.data.sequence_cache import SequenceCache, load_cache
-from dpc_jax.eval.evaluation import Evaluation
+from dpc_jax.results.acceptance import Acceptance
+from dpc_jax.results.correction import Correction
 from dpc_jax.runtime.progress import Progress
 
 if TYPE_CHECKING:
     from dpc_jax.correction.adapt import Adaptation, AdaptConfig
-
-
-class AdaptationSummary(TypedDict):
-    """What ``dpc_jax.correction.adapt`` did before a correction (:attr:`Correction.adaptation`)."""
-
-    steps: int
-    seconds: float
-    held_out: int
-    holdout_every: int
-    source_epoch: int
-
-
-@dataclass(frozen=True)
-class Correction:
-    """A corrected sequence (all trajectories ``[N, 4, 4]`` float64 camera-to-world, N cached frames).
-
-    ``frames``: the cached frames' numbers in the source sequence; ``times`` their times (s);
-    ``xi_corr [N-1, 6]``: the network's corrections; ``proposed``: the trajectory with them
-    applied (only their rotation for a rotation-only run); ``corrected``: the final trajectory, with
-    what ``acceptance`` applied (the prior re-composed when nothing); ``evaluation``: ``prior``,
-    ``network`` (the proposal) and ``corrected`` against the ground truth, or None without ground
-    truth; ``delta``: Δ ``[N-1]`` of the proposal (``full``) and of its rotation (``rotation``) on
-    every pair; ``tested``: the pairs the acceptance test used (None: all); ``adaptation``: what
-    ``dpc_jax.correction.adapt`` did first (steps, seconds, held-out pairs), if anything;
-    ``choice``: how :func:`choose` picked it among candidates.
-    """
-
-    name: str
-    frames: np.ndarray
-    times: np.ndarray
-    prior: np.ndarray
-    proposed: np.ndarray
-    corrected: np.ndarray
-    ground_truth: np.ndarray | None
-    xi_corr: np.ndarray
-    rotation_only: bool
-    acceptance: Acceptance
-    epoch: int
-    evaluation: Evaluation | None
-    delta: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
-    tested: np.ndarray | None = None
-    adaptation: AdaptationSummary | None = None
-    choice: dict[str, object] | None = None
-
-    @property
-    def applied(self) -> str:
-        """The component in :attr:`corrected`: ``full``, ``rotation``, ``rotation_<axes>`` or ``none``
-        (whole or without its mean, at a scale: ``acceptance.part``)."""
-        return self.acceptance.decision
-
-    @property
-    def all_source_frames(self) -> bool:
-        """Whether the trajectory has every frame ``0 … N-1`` of its source sequence."""
-        return bool(np.array_equal(self.frames, np.arange(self.frames.size)))
-
-    def summary(self) -> dict[str, object]:
-        """JSON-ready: the decision with every test's statistics, and the evaluation summary if any."""
-        out: dict[str, object] = {
-            "sequence": self.name,
-            "epoch": self.epoch,
-            "applied": self.applied,
-            "part": self.acceptance.part,
-            "rotation_only": self.rotation_only,
-            "acceptance": self.acceptance.to_dict(),
-        }
-        if self.adaptation is not None:
-            out["adaptation"] = self.adaptation
-        if self.choice is not None:
-            out["choice"] = self.choice
-        if self.evaluation is not None:
-            out["evaluation"] = json.loads(self.evaluation.to_json())
-        return out
 
 
 def default_acceptance_depth(run: TrainedRun) -> str:

@@ -41,7 +41,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dpc_jax.correction.acceptance import DEFAULT_ALPHA, Acceptance, PairedTest, paired_test
+from dpc_jax.correction.acceptance import DEFAULT_ALPHA, paired_test
+from dpc_jax.results.acceptance import Acceptance, PairedTest
 
 COMPONENTS = ("full", "rotation")
 AXES = "xyz"  # camera axes: x right (pitch), y down (yaw), z forward (roll)

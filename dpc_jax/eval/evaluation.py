@@ -59,13 +59,15 @@ SUMMARY_KEYS: tuple[str, ...] = (
 _LABEL = re.compile(r"[A-Za-z0-9_.+-]+")
 GT_LABEL = "gt"
 PRECISIONS = ("float64", "float32")
+# One estimate's summary: SUMMARY_KEYS -> value (None for NaN); what a results table reads of an estimate.
+Metrics = dict[str, float | int | None]
 
 
 @dataclass(frozen=True)
 class EstimateMetrics:
     """Metrics of one estimate: the summary scalars and the curves behind the plots."""
 
-    summary: dict[str, float | int | None]  # SUMMARY_KEYS -> value (None for NaN)
+    summary: Metrics
     seg_lengths_m: np.ndarray  # [L]
     seg_per_length_trans_pct: np.ndarray  # [L], NaN where no segment exists
     seg_per_length_rot_deg_per_100m: np.ndarray  # [L]
@@ -113,10 +115,10 @@ class Evaluation(Mapping[str, object]):
         return self._summary[key]
 
     @property
-    def estimates(self) -> dict[str, dict[str, float | int | None]]:
+    def estimates(self) -> dict[str, Metrics]:
         """``self["estimates"]`` with its type: label -> the estimate's summary (SUMMARY_KEYS)."""
         # Built in __post_init__ with this type; the mapping's values are typed ``object``.
-        return cast(dict[str, dict[str, float | int | None]], self._summary["estimates"])
+        return cast(dict[str, Metrics], self._summary["estimates"])
 
     def __iter__(self) -> Iterator[str]:
         return iter(self._summary)

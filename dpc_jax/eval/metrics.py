@@ -3,7 +3,7 @@
 Inputs are trajectories ``[N, 4, 4]`` of camera-to-world poses ``T_w_c`` — ground truth ``G`` and
 estimate ``E`` of the same frames, the estimate already re-anchored to the first ground-truth pose
 (see :mod:`dpc_jax.eval.evaluation`). Every function is dtype-preserving (float64 in, float64 out) and
-equals a plain float64 loop over poses and segments (``tests/reference_metrics.py``) to rounding.
+equals a plain float64 loop over poses and segments (:mod:`dpc_jax.eval.reference_metrics`) to rounding.
 Rotation errors are reported in degrees, translations in metres, segment errors in % and °/100 m.
 
 Definitions:

@@ -3,9 +3,10 @@
 Written straight from the definitions of docs/method.md §5–§7 and the published code they describe
 (pyslam ``TrajectoryMetrics.segment_errors``, the KITTI devkit ``evaluate_odometry.cpp``,
 ss-DPC-Net's static-frame loop), one pose or one segment at a time, with scipy's rotation
-vector as an independent SO(3) log. Shared by the tests and ``benchmarks/bench_metrics.py``; its
-numpy SE(3) functions (``so3_hat``, ``se3_exp``, ``se3_log``, ``se3_logm``) are the tests' references
-for the Lie algebra too.
+vector as an independent SO(3) log: the reference the compiled metrics (:mod:`dpc_jax.eval.metrics`) are
+tested against to 1e-9 and timed against (``benchmarks/bench_metrics.py``, ``bench_cli.py``). Its numpy
+SE(3) functions (``so3_hat``, ``se3_exp``, ``se3_log``, ``se3_logm``) are the tests' references for the
+Lie algebra too. Numpy and scipy only: no JAX.
 """
 
 from __future__ import annotations
@@ -74,7 +75,7 @@ def remove_static_frames(prior: np.ndarray, trans: float = 1.5, rot: float = 0.0
 
 
 def cumulative_distance(traj: np.ndarray) -> np.ndarray:
-    steps = [0.0] + [np.linalg.norm(traj[i, :3, 3] - traj[i - 1, :3, 3]) for i in range(1, len(traj))]
+    steps = [0.0] + [float(np.linalg.norm(traj[i, :3, 3] - traj[i - 1, :3, 3])) for i in range(1, len(traj))]
     return np.cumsum(steps)
 
 
@@ -115,7 +116,9 @@ def segment_errors(
 ) -> tuple[float, float, np.ndarray, np.ndarray, np.ndarray]:
     """(trans %, rot °/100 m, per-length trans %, per-length rot °/100 m, counts): every start frame."""
     c = cumulative_distance(gt)
-    per_t, per_r, counts = [], [], []
+    per_t: list[float] = []
+    per_r: list[float] = []
+    counts = []
     for length in lengths:
         errs = []
         for start in range(len(gt)):
@@ -125,13 +128,13 @@ def segment_errors(
                 errs.append((np.linalg.norm(xi[:3]) / length, np.linalg.norm(xi[3:]) / length))
         counts.append(len(errs))
         if errs:
-            per_t.append(100.0 * np.mean([e[0] for e in errs]))
-            per_r.append(100.0 * np.degrees(np.mean([e[1] for e in errs])))
+            per_t.append(100.0 * float(np.mean([e[0] for e in errs])))
+            per_r.append(100.0 * float(np.degrees(np.mean([e[1] for e in errs]))))
         else:
             per_t.append(np.nan)
             per_r.append(np.nan)
-    per_t, per_r = np.array(per_t), np.array(per_r)
-    return float(np.nanmean(per_t)), float(np.nanmean(per_r)), per_t, per_r, np.array(counts)
+    t, r = np.array(per_t), np.array(per_r)
+    return float(np.nanmean(t)), float(np.nanmean(r)), t, r, np.array(counts)
 
 
 def kitti_devkit_errors(
@@ -140,7 +143,7 @@ def kitti_devkit_errors(
     """evaluate_odometry.cpp calcSequenceErrors + the pooled mean: (trans %, rot °/100 m, count)."""
     dist = [0.0]
     for i in range(1, len(gt)):
-        dist.append(dist[i - 1] + np.linalg.norm(gt[i - 1, :3, 3] - gt[i, :3, 3]))
+        dist.append(dist[i - 1] + float(np.linalg.norm(gt[i - 1, :3, 3] - gt[i, :3, 3])))
     t_errs, r_errs = [], []
     for first in range(0, len(gt), step):
         for length in lengths:

@@ -1,5 +1,5 @@
 """What the experiment entry points share: priors, caches, folds, training, correction (the results
-table: :mod:`dpc_jax.report.protocol_report`).
+table: :mod:`dpc_jax.report.protocol_report`; the scripts' runner: ``dpc_jax.experiments.folds``).
 
 An experiment is a list of *folds*. A fold trains one network (``dpc_jax.training.loop.train``) on its
 training sequences, selects the epoch on its validation sequence without ground truth, corrects
@@ -12,6 +12,7 @@ trajectories against the ground truth. Everything lives under one work folder::
     WORKDIR/corrected/FOLD/NAME.txt corrected trajectories (KITTI pose text)
     WORKDIR/reports/FOLD/NAME/      evaluation reports (report.md, CSV, plots)
     WORKDIR/results.md, results.csv the results table: prior vs corrected per test sequence
+    WORKDIR/results.json            the results (dpc_jax.results.fold.FoldResult), read by other studies
     WORKDIR/.dpc-jax-workdir        the marker: an experiment script made this folder
 
 Every script claims its work folder before any work (:func:`claim_workdir`): the output rule of the
@@ -46,9 +47,11 @@ from dpc_jax._io import (
     output_problem,
     overlap_problem,
 )
+from dpc_jax.eval.evaluation import Metrics
+from dpc_jax.results.fold import Final, FoldResult
 
 if TYPE_CHECKING:
-    from dpc_jax.correction.corrector import Correction
+    from dpc_jax.results.correction import Correction
 
 # Odometry sequence ↔ raw drive (docs/method.md §6): raw drives that *are* an odometry sequence must not be
 # used for training when that sequence is tested.
@@ -71,24 +74,6 @@ class Fold:
     train: tuple[str, ...]
     validation: str
     test: tuple[str, ...]
-
-
-@dataclass(frozen=True)
-class Result:
-    """Prior and corrected figures of one test sequence (segment errors: t in %, r in °/100 m)."""
-
-    fold: str
-    sequence: str
-    prior_label: str
-    epoch: int
-    selection: str
-    frames: int
-    metrics: dict[str, dict[str, Any]]  # {"prior": summary, "corrected": summary}
-    applied: str = "full"  # which network's correction the final trajectory holds (or "prior")
-    stages: dict[str, dict[str, Any]] = field(default_factory=dict)  # network label → its proposal's summary
-    decisions: dict[str, str] = field(default_factory=dict)  # network label → acceptance decision
-    # The final trajectory with the earlier decision (the mean not tested apart): applied and summary.
-    earlier: dict[str, Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -281,7 +266,7 @@ def train_fold(config: Any, workdir: Path, progress: bool) -> dict[str, Any]:
     return train(config, workdir, resume=True, progress=progress)
 
 
-def _estimates(correction: Correction) -> dict[str, dict[str, Any]]:
+def _estimates(correction: Correction) -> dict[str, Metrics]:
     """The per-estimate summaries of ``correction``'s evaluation (ValueError without ground truth)."""
     if correction.evaluation is None:
         raise ValueError(f"{correction.name}: no ground truth; the experiment needs it to evaluate")
@@ -292,7 +277,7 @@ def correct_and_evaluate(
     fold: str, run_dir: Path, cache: Path, out_root: Path, protocol: ExperimentProtocol, *,
     select: str | None = None, prior_label: str = "prior", adapt_steps: int | None = None,
     judge: Path | None = None, progress: bool = False,
-) -> Result:
+) -> FoldResult:
     """Correct the prior of ``cache`` with the run's epoch by ``select`` (None: the protocol's) as the
     ``protocol`` says (its ``acceptance``, ``mean_test``, ``rotation_only``, ``adapt_steps`` unless
     ``adapt_steps`` is given, ``holdout_every``, ``earlier_decision``): behind the acceptance test and,
@@ -328,9 +313,8 @@ def correct_and_evaluate(
     earlier = None
     if protocol.earlier_decision and protocol.acceptance and protocol.mean_test:
         again = decided_again(done, run, loaded, mean_test=False, **options)
-        earlier = {"applied": again.final + (f" ({again.result.acceptance.part})" if again.final != "prior"
-                                             else ""),
-                   "metrics": _estimates(again.result)["corrected"]}
+        applied = again.final + (f" ({again.result.acceptance.part})" if again.final != "prior" else "")
+        earlier = Final(applied, _estimates(again.result)["corrected"])
     if correction.evaluation is None:
         raise ValueError(f"{cache}: no ground truth; the experiment needs it to evaluate")
     (out_root / "corrected" / fold).mkdir(parents=True, exist_ok=True)
@@ -344,9 +328,9 @@ def correct_and_evaluate(
     decisions = {label: "forced" if c.acceptance.forced else c.acceptance.part
                  for label, c in corrections.items()}
     estimates = correction.evaluation.estimates
-    return Result(fold, name, prior_label, run.epoch, select, int(correction.corrected.shape[0]),
-                  {"prior": estimates["prior"], "corrected": estimates["corrected"]},
-                  applied_label(final, correction.acceptance), stages, decisions, earlier)
+    return FoldResult(fold, name, prior_label, run.epoch, select, int(correction.corrected.shape[0]),
+                      {"prior": estimates["prior"], "corrected": estimates["corrected"]},
+                      applied_label(final, correction.acceptance), stages, decisions, earlier)
 
 
 def applied_label(final: str, acceptance: Any) -> str:
@@ -495,16 +479,3 @@ def prior_source(priors: str, directory_kind: str, sequence: Any, workdir: Path,
             raise ValueError(f"--priors vo gives stereo priors only; {directory_kind} priors need a folder")
         return Path(vo_prior(sequence, workdir / "priors" / f"{sequence.name}.txt", progress)["path"])
     return find_prior(Path(priors), sequence.name, directory_kind)
-
-
-def print_results(path: Path, page: Path | None, script: Path) -> None:
-    """Print the results table ``path``; with ``page``, also write it into that page's results block
-    (``dpc_jax.report.pages.write_results``, ``script`` named as its writer)."""
-    from dpc_jax.report.pages import write_results
-
-    text = path.read_text()
-    print(text)
-    print(f"results: {path}")
-    if page is not None:
-        write_results(page, text, script)
-        print(f"results page: {page}")

@@ -39,6 +39,7 @@ finished training run (resumed when interrupted; a run with a different config i
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import time
@@ -53,13 +54,14 @@ from dpc_jax import config as config_lib
 from dpc_jax.pipelines.demo_config import DemoConfig
 from dpc_jax.report.demo_report import decision_label, write_demo_report
 from dpc_jax.report.tables import change_pct
+from dpc_jax.results.demo import SUMMARY, DemoSummary
 
 if TYPE_CHECKING:
     from dpc_jax.correction.adapt import Adaptation
-    from dpc_jax.correction.corrector import Correction
     from dpc_jax.data.kitti import StereoSequence
     from dpc_jax.data.sequence_cache import SequenceCache
     from dpc_jax.eval.evaluation import Evaluation
+    from dpc_jax.results.correction import Correction
     from dpc_jax.training.train_config import TrainConfig
 
 # The run and the caches inside OUT (the report lists them as `run/` and `cache/`).
@@ -123,10 +125,18 @@ def _vo_prior(config: DemoConfig, name: str, sequence: StereoSequence, first_pos
     return prior, calibration["disparity_offset_median_px"]
 
 
+@dataclass(frozen=True)
+class _Prepared:
+    """Each sequence's prior record (fallbacks, pairs, offset in px, error composition) and length (m)."""
+
+    records: dict[str, dict[str, Any]]
+    lengths: dict[str, float]
+
+
 def _prepare_sequences(config: DemoConfig, out: Path, size: tuple[int, int], seconds: dict[str, float],
-                       progress: bool, say: ProgressFn) -> tuple[dict[str, dict[str, Any]], dict[str, float]]:
+                       progress: bool, say: ProgressFn) -> _Prepared:
     """Render every sequence, run its VO prior and calibration, and prepare its cache, one sequence at a
-    time; return each sequence's prior record (fallbacks, pairs, offset, error) and its length (m)."""
+    time."""
     from dpc_jax.data.cache import prepare_sequence
     from dpc_jax.data.kitti import open_odometry
     from dpc_jax.data.poses_io import read_kitti_poses
@@ -155,7 +165,7 @@ def _prepare_sequences(config: DemoConfig, out: Path, size: tuple[int, int], sec
         say(f"{name}: {len(sequence)} frames, {lengths[name]:.0f} m"
             + (" (rendered)" if rendered else " (reused)")
             + f"; prior: {prior['fallbacks']} fallbacks, measured disparity offset {offset:+.3f} px")
-    return records, lengths
+    return _Prepared(records, lengths)
 
 
 def _train(train_config: TrainConfig, run_dir: Path, seconds: dict[str, float], progress: bool,
@@ -216,10 +226,11 @@ def _correct_test(config: DemoConfig, out: Path, seconds: dict[str, float], prog
     return _TestCorrections(run.epoch, test_cache, corrections, adaptation, final, result)
 
 
-def _evaluate_test(config: DemoConfig, tested: _TestCorrections,
-                   trained: dict[str, Any]) -> tuple[Evaluation, dict[str, Any]]:
+def _evaluate_test(config: DemoConfig, tested: _TestCorrections, trained: dict[str, Any], prepared: _Prepared,
+                   seconds: dict[str, float], began: float) -> tuple[Evaluation, DemoSummary]:
     """Evaluate the test trajectories against the ground truth (read here only); return the evaluation and
-    the summary's entries on the test sequence and the network."""
+    the demo's summary (its report's wall time and path still to come)."""
+    import jax
 
     from dpc_jax.eval.evaluation import evaluate
 
@@ -230,46 +241,75 @@ def _evaluate_test(config: DemoConfig, tested: _TestCorrections,
     test_metrics = {label: dict(evaluation.estimates[label]) for label in estimates}
     change = {k: change_pct(test_metrics["prior"][k], test_metrics["corrected"][k])
               for k in ("seg_trans_pct", "seg_rot_deg_per_100m")}
-    return evaluation, {
-        "test": test_metrics,
-        "decisions": {k: decision_label(c.acceptance) for k, c in tested.corrections.items()},
-        "acceptance": {k: c.acceptance.to_dict() for k, c in tested.corrections.items()},
-        "final": tested.final,
-        "choice": tested.result.choice,
-        "change_pct": change,
-        "corrected_better": all(v < 0 for v in change.values()),
-        "selected_epoch": tested.epoch,
-        "select": config.select,
-        "steps_per_epoch": trained["step"] // max(1, trained["epochs"]),
-    }
+    return evaluation, DemoSummary(
+        test=test_metrics,
+        decisions={k: decision_label(c.acceptance) for k, c in tested.corrections.items()},
+        acceptance={k: c.acceptance for k, c in tested.corrections.items()},
+        final=tested.final,
+        choice=tested.result.choice,
+        change_pct=change,
+        corrected_better=all(v < 0 for v in change.values()),
+        selected_epoch=tested.epoch,
+        select=config.select,
+        steps_per_epoch=trained["step"] // max(1, trained["epochs"]),
+        sequences=prepared.records,
+        lengths_m=prepared.lengths,
+        seconds=seconds,
+        devices=[str(d) for d in jax.devices()],
+        config=config_lib.to_dict(config),
+        adaptation=None if tested.adaptation is None else tested.adaptation.summary(),
+        # The report states the wall time up to itself; the summary then gets the total with the report's.
+        seconds_total=time.perf_counter() - began,
+    )
+
+
+def _overview(config: DemoConfig, train_config: TrainConfig, summary: DemoSummary) -> list[str]:
+    """The report's title and its paragraph on the data, the prior and the network."""
+    lengths = ", ".join(f"{n}: {summary.lengths_m[n]:.0f} m" for n in config.sequences)
+    size = train_config.resolved_image_size
+    return [
+        "# dpc_jax synthetic demo: Stereo DPC corrects a classical stereo VO",
+        "",
+        f"Synthetic stereo sequences ({config.render_size[0]}×{config.render_size[1]}, 10 Hz) with moving "
+        f"cars ({config.moving_objects}), an illumination drift (±{config.illumination_drift:g}), image "
+        f"noise (σ = {config.noise:g}) and a stereo calibration residual of {config.disparity_offset:+g} px: "
+        f"{config.train_sequences} for training, one for validation (epoch selection), one held-out test "
+        f"sequence ({lengths}). Prior: our classical stereo VO with its online disparity-offset estimate "
+        f"{'on' if config.vo_estimate_offset else 'off (as libviso2)'}. "
+        + ("The network's images are rectified by the residual our VO measures with the estimate on. "
+           if config.rectify_offset else "")
+        + f"Network: Stereo DPC, `{train_config.preset}` preset, {size[0]}×{size[1]} input, "
+        f"{train_config.epochs} epoch(s) of {summary.steps_per_epoch} steps (batch "
+        f"{train_config.batch_size}); epoch {summary.selected_epoch} selected by `{config.select}`."
+        + (" **Trained with DPC-Net's supervised loss: the training steps read the training sequences' "
+           "ground truth** (`supervision: supervised`); validation, the acceptance test and the "
+           "adaptation do not." if train_config.supervision == "supervised" else ""),
+        "",
+    ]
 
 
 def _write_results(out: Path, config: DemoConfig, train_config: TrainConfig, evaluation: Evaluation,
-                   summary: dict[str, Any], began: float) -> None:
-    """Write ``report.md`` (with its plots and metric files), then ``summary.json``."""
+                   summary: DemoSummary, began: float) -> DemoSummary:
+    """Write ``report.md`` (with its plots and metric files), then ``summary.json``; the summary written."""
     t = time.perf_counter()
-    # The report states the wall time up to itself; summary.json then gets the total with the report's time.
-    summary["seconds_total"] = time.perf_counter() - began
-    report = write_demo_report(out, config, train_config, evaluation, summary, out / _RUN_DIR)
-    summary["seconds"]["report"] = time.perf_counter() - t
-    summary["seconds_total"] = time.perf_counter() - began
-    summary["report"] = str(report)
-    config_lib.save_json(out / "summary.json", summary)
+    report = write_demo_report(out, _overview(config, train_config, summary), evaluation, summary,
+                               out / _RUN_DIR)
+    summary = dataclasses.replace(summary, seconds={**summary.seconds, "report": time.perf_counter() - t},
+                                  seconds_total=time.perf_counter() - began, report=str(report))
+    config_lib.save_json(out / SUMMARY, summary.to_dict())
+    return summary
 
 
 def run_demo(config: DemoConfig, out: str | os.PathLike, progress: bool = False,
-             log: ProgressFn | None = None) -> dict[str, Any]:
-    """Run the demo into ``out`` (see the module docstring); return its summary.
-
+             log: ProgressFn | None = None) -> DemoSummary:
+    """Run the demo into ``out`` (see the module docstring); return its summary (also ``OUT/summary.json``:
+    :class:`dpc_jax.results.demo.DemoSummary`), which holds per sequence the prior's error composition;
+    for the test sequence the metrics of ``prior``, ``trained``, ``adapted`` and the final ``corrected``
+    trajectory, the acceptance ``decisions``, ``final`` (which one is in ``corrected.txt``) and
+    ``change_pct`` (final against prior, %); the selected epoch, the seconds per stage and ``report``.
     ``progress``: bars for every stage; ``log``: called with one line per finished stage (e.g.
-    ``print``). The summary (also ``OUT/summary.json``) holds per sequence the prior's error
-    composition; for the test sequence the metrics of ``prior``, ``trained``, ``adapted`` and the
-    final ``corrected`` trajectory, the acceptance ``decisions``, ``final`` (which one is in
-    ``corrected.txt``) and ``change_pct`` (final against prior, %); the selected epoch, the
-    seconds per stage and ``report``. Raises :class:`DemoError` for a VO prior that is not VO.
+    ``print``). Raises :class:`DemoError` for a VO prior that is not VO.
     """
-    import jax
-
     say = log or (lambda line: None)
     out = Path(out).absolute()
     out.mkdir(parents=True, exist_ok=True)
@@ -278,21 +318,11 @@ def run_demo(config: DemoConfig, out: str | os.PathLike, progress: bool = False,
     seconds = dict.fromkeys(("render", "vo", "prepare"), 0.0)
     began = time.perf_counter()
 
-    records, lengths = _prepare_sequences(config, out, size, seconds, progress, say)
+    prepared = _prepare_sequences(config, out, size, seconds, progress, say)
     trained = _train(train_config, out / _RUN_DIR, seconds, progress, say)
     tested = _correct_test(config, out, seconds, progress, say)
-    evaluation, summary = _evaluate_test(config, tested, trained)
-    summary.update({
-        "sequences": records,
-        "lengths_m": lengths,
-        "seconds": seconds,  # the same dict: the report stage adds its time after the report is written
-        "devices": [str(d) for d in jax.devices()],
-        "config": config_lib.to_dict(config),
-    })
-    if tested.adaptation is not None:
-        summary["adaptation"] = tested.adaptation.summary()
-    _write_results(out, config, train_config, evaluation, summary, began)
-    return summary
+    evaluation, summary = _evaluate_test(config, tested, trained, prepared, seconds, began)
+    return _write_results(out, config, train_config, evaluation, summary, began)
 
 
 def decided_again_in(out: str | os.PathLike, config: DemoConfig, **options: Any) -> tuple[str, Correction]:

@@ -4,7 +4,7 @@
 against the prior; ``pages`` the generated blocks of hand-written pages; ``plots`` the figures.
 ``evaluation_report`` reports an evaluation against ground truth
 (:class:`dpc_jax.eval.evaluation.Evaluation`); ``correction_report``, ``demo_report`` and
-``protocol_report`` report a correction, the synthetic demo and an experiment's folds. The package
-sits below the correction and the pipelines, which call it: correction, acceptance-test, demo and
-experiment results are read through the protocols each module declares, so it imports neither.
+``protocol_report`` report a correction, the synthetic demo and an experiment's folds from their result
+types (``dpc_jax.results``, the floor below). The package sits below the correction and the pipelines,
+which call it, and imports neither.
 """

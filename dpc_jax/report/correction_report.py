@@ -1,4 +1,4 @@
-"""The report of a corrected sequence (:class:`dpc_jax.correction.corrector.Correction`): the
+"""The report of a corrected sequence (:class:`dpc_jax.results.correction.Correction`): the
 acceptance test, how the final correction was chosen, what the adaptation did, and the evaluation
 when there is ground truth."""
 
@@ -9,72 +9,14 @@ import math
 import os
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Protocol
 
 from dpc_jax._io import atomic_write
-from dpc_jax.eval.evaluation import Evaluation
 from dpc_jax.report.evaluation_report import write_report
 from dpc_jax.report.tables import row, rule
+from dpc_jax.results.acceptance import Acceptance, PairedTest
+from dpc_jax.results.correction import AdaptationSummary, Correction
 
 _TEST_COLUMNS = ("pairs", "mean Δ", "median Δ", "pairs improved", "Wilcoxon W", "p (one-sided)", "passed")
-
-
-class TestResult(Protocol):
-    """What the report reads of one component's test
-    (:class:`dpc_jax.correction.acceptance.PairedTest`)."""
-
-    @property
-    def component(self) -> str: ...
-
-    @property
-    def pairs(self) -> int: ...
-
-    @property
-    def mean_delta(self) -> float: ...
-
-    @property
-    def median_delta(self) -> float: ...
-
-    @property
-    def improved_share(self) -> float: ...
-
-    @property
-    def statistic(self) -> float: ...
-
-    @property
-    def p_value(self) -> float: ...
-
-    @property
-    def passed(self) -> bool: ...
-
-
-class AcceptanceResult(Protocol):
-    """What the reports read of an acceptance test (:class:`dpc_jax.correction.acceptance.Acceptance`;
-    protocols, so that the correction can import the reports and not the reverse)."""
-
-    @property
-    def alpha(self) -> float: ...
-
-    @property
-    def tests(self) -> Mapping[str, TestResult]: ...
-
-    @property
-    def decision(self) -> str: ...
-
-    @property
-    def reason(self) -> str: ...
-
-    @property
-    def forced(self) -> bool: ...
-
-    @property
-    def scale(self) -> float: ...
-
-    @property
-    def remainder(self) -> bool: ...
-
-    @property
-    def mean(self) -> tuple[float, ...] | None: ...
 
 
 def rotation_axes_words(component: str) -> str:
@@ -82,7 +24,7 @@ def rotation_axes_words(component: str) -> str:
     return "rotation about " + ", ".join(component.removeprefix("rotation_"))
 
 
-def applied_words(acceptance: AcceptanceResult, rotation_only: bool = False) -> str:
+def applied_words(acceptance: Acceptance, rotation_only: bool = False) -> str:
     """What an acceptance test let through, in words: ``none``, ``full 6-DoF``, ``rotation only``,
     ``rotation about x, z only``, each with ``without its mean`` (the mean over the sequence removed,
     in mm and mrad) and the judge's scale."""
@@ -102,26 +44,7 @@ def applied_words(acceptance: AcceptanceResult, rotation_only: bool = False) -> 
     return words
 
 
-class CorrectionResult(Protocol):
-    """What the report reads of a :class:`dpc_jax.correction.corrector.Correction` (a protocol, so that the
-    correction can import this module and not the reverse)."""
-
-    @property
-    def acceptance(self) -> AcceptanceResult: ...
-
-    @property
-    def evaluation(self) -> Evaluation | None: ...
-
-    @property
-    def adaptation(self) -> Mapping[str, Any] | None: ...
-
-    @property
-    def choice(self) -> Mapping[str, object] | None: ...
-
-    def summary(self) -> dict[str, object]: ...
-
-
-def _test_row(t: TestResult) -> str:
+def _test_row(t: PairedTest) -> str:
     return _row(t.component, t.pairs, t.mean_delta, t.median_delta, t.improved_share, t.statistic, t.p_value,
                 t.passed)
 
@@ -133,7 +56,7 @@ def _row(component: str, pairs: int, mean_delta: float, median_delta: float, imp
                 "yes" if passed else "no"])
 
 
-def acceptance_markdown(acceptance: AcceptanceResult) -> str:
+def acceptance_markdown(acceptance: Acceptance) -> str:
     """The acceptance test as Markdown: one row per component tested, then the decision."""
     lines = [row(["component", *_TEST_COLUMNS]), rule(1 + len(_TEST_COLUMNS)),
              *(_test_row(t) for t in acceptance.tests.values())]
@@ -162,8 +85,8 @@ def choice_markdown(choice: Mapping[str, object]) -> str:
     return "\n".join(lines)
 
 
-def adaptation_markdown(adaptation: Mapping[str, Any]) -> str:
-    """What the adaptation did (``dpc_jax.correction.corrector.AdaptationSummary``), as a Markdown section."""
+def adaptation_markdown(adaptation: AdaptationSummary) -> str:
+    """What the adaptation did, as a Markdown section."""
     a = adaptation
     return (f"## Adaptation (no ground truth used)\n\n{a['steps']} steps on this sequence's own "
             f"pairs in {a['seconds'] / 60:.1f} min; {a['held_out']} pairs kept out for the acceptance "
@@ -171,7 +94,7 @@ def adaptation_markdown(adaptation: Mapping[str, Any]) -> str:
 
 
 def write_correction_report(
-    directory: str | os.PathLike, correction: CorrectionResult, title: str
+    directory: str | os.PathLike, correction: Correction, title: str
 ) -> list[Path]:
     """``report.md`` (acceptance test; with ground truth also the metrics, CSV tables and plots),
     ``summary.json`` and, with ground truth, ``metrics.json`` in ``directory``."""
@@ -193,5 +116,5 @@ def write_correction_report(
         text = f"# {title}\n\nNo ground truth: nothing to evaluate.\n\n{section}"
         atomic_write(directory / "report.md", text)
         written.append(directory / "report.md")
-    atomic_write(directory / "summary.json", json.dumps(correction.summary(), indent=2) + "\n")
+    atomic_write(directory / "summary.json", json.dumps(correction.to_dict(), indent=2) + "\n")
     return [*written, directory / "summary.json"]

@@ -2,82 +2,33 @@
 and network overview, each sequence's prior error composition, the test table, the per-length errors, the
 training record and the plots, beside the evaluation's CSV and JSON files.
 
-It is built from the demo's summary (``summary.json``: see ``dpc_jax.pipelines.synthetic_demo.run_demo``), the
-test sequence's :class:`dpc_jax.eval.evaluation.Evaluation` and the run's ``metrics.csv``; the demo's
-and the training's settings are read through :class:`DemoSettings` and :class:`TrainingSettings`.
+It is built from the demo's summary (:class:`dpc_jax.results.demo.DemoSummary`), the test sequence's
+:class:`dpc_jax.eval.evaluation.Evaluation`, the run's ``metrics.csv`` and the overview paragraph the demo
+writes of its own settings.
 """
 
 from __future__ import annotations
 
 import csv
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 from dpc_jax._io import atomic_write
 from dpc_jax.eval.evaluation import Evaluation
-from dpc_jax.report.correction_report import AcceptanceResult, applied_words
+from dpc_jax.report.correction_report import applied_words
 from dpc_jax.report.evaluation_report import segment_section, write_figures, write_tables
 from dpc_jax.report.tables import EMPTY, number, row, rule, table
-
-
-class DemoSettings(Protocol):
-    """What the report reads of a ``dpc_jax.pipelines.synthetic_demo.DemoConfig``."""
-
-    @property
-    def render_size(self) -> tuple[int, int]: ...
-
-    @property
-    def moving_objects(self) -> int: ...
-
-    @property
-    def illumination_drift(self) -> float: ...
-
-    @property
-    def noise(self) -> float: ...
-
-    @property
-    def disparity_offset(self) -> float: ...
-
-    @property
-    def train_sequences(self) -> int: ...
-
-    @property
-    def vo_estimate_offset(self) -> bool: ...
-
-    @property
-    def rectify_offset(self) -> bool: ...
-
-    @property
-    def select(self) -> str: ...
-
-    @property
-    def sequences(self) -> dict[str, str]: ...
-
-
-class TrainingSettings(Protocol):
-    """What the report reads of the demo run's ``dpc_jax.training.train_config.TrainConfig``."""
-
-    @property
-    def preset(self) -> str: ...
-
-    @property
-    def epochs(self) -> int: ...
-
-    @property
-    def batch_size(self) -> int: ...
-
-    @property
-    def supervision(self) -> str: ...
-
-    @property
-    def resolved_image_size(self) -> tuple[int, int]: ...
+from dpc_jax.results.acceptance import Acceptance
+from dpc_jax.results.correction import AdaptationSummary
+from dpc_jax.results.demo import DemoSummary
 
 
 def _fmt(value: float | None, digits: int = 3) -> str:
     return number(value, f".{digits}f")
 
 
-def decision_label(acceptance: AcceptanceResult) -> str:
+def decision_label(acceptance: Acceptance) -> str:
     """What the acceptance test let through, in the words of the test table and the progress lines."""
     if acceptance.forced:
         return "not tested (applied)"
@@ -117,46 +68,22 @@ def _composition_table(records: dict[str, dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _results_table(summary: dict[str, Any]) -> str:
+def _results_table(summary: DemoSummary) -> str:
     columns = (("seg_trans_pct", "seg. t (%)"), ("seg_rot_deg_per_100m", "seg. r (°/100 m)"),
                ("m_ate_trans_m", "m-ATE (m)"), ("m_ate_rot_deg", "m-ATE (°)"), ("ate_m", "ATE (m)"))
     rows = [("prior (our VO)", "prior", "")]
     labels = (("trained", "network as trained"), ("adapted", "network adapted to the test sequence"))
     for key, label in labels:
-        if key in summary["test"]:
-            rows.append((f"{label} (epoch {summary['selected_epoch']})", key, summary["decisions"][key]))
-    rows.append((f"**final: {summary['final']}** (corrected.txt)", "corrected", summary["choice"]["reason"]))
+        if key in summary.test:
+            rows.append((f"{label} (epoch {summary.selected_epoch})", key, summary.decisions[key]))
+    reason = "" if summary.choice is None else str(summary.choice["reason"])
+    rows.append((f"**final: {summary.final}** (corrected.txt)", "corrected", reason))
     return table(["estimate", "acceptance test", *(t for _, t in columns)],
-                 ([label, decision, *(_fmt(summary["test"][key][k]) for k, _ in columns)]
+                 ([label, decision, *(_fmt(summary.test[key][k]) for k, _ in columns)]
                   for label, key, decision in rows))
 
 
-def _overview(config: DemoSettings, train_config: TrainingSettings, summary: dict[str, Any]) -> list[str]:
-    """The report's title and its paragraph on the data, the prior and the network."""
-    lengths = ", ".join(f"{n}: {summary['lengths_m'][n]:.0f} m" for n in config.sequences)
-    size = train_config.resolved_image_size
-    return [
-        "# dpc_jax synthetic demo: Stereo DPC corrects a classical stereo VO",
-        "",
-        f"Synthetic stereo sequences ({config.render_size[0]}×{config.render_size[1]}, 10 Hz) with moving "
-        f"cars ({config.moving_objects}), an illumination drift (±{config.illumination_drift:g}), image "
-        f"noise (σ = {config.noise:g}) and a stereo calibration residual of {config.disparity_offset:+g} px: "
-        f"{config.train_sequences} for training, one for validation (epoch selection), one held-out test "
-        f"sequence ({lengths}). Prior: our classical stereo VO with its online disparity-offset estimate "
-        f"{'on' if config.vo_estimate_offset else 'off (as libviso2)'}. "
-        + ("The network's images are rectified by the residual our VO measures with the estimate on. "
-           if config.rectify_offset else "")
-        + f"Network: Stereo DPC, `{train_config.preset}` preset, {size[0]}×{size[1]} input, "
-        f"{train_config.epochs} epoch(s) of {summary['steps_per_epoch']} steps (batch "
-        f"{train_config.batch_size}); epoch {summary['selected_epoch']} selected by `{config.select}`."
-        + (" **Trained with DPC-Net's supervised loss: the training steps read the training sequences' "
-           "ground truth** (`supervision: supervised`); validation, the acceptance test and the "
-           "adaptation do not." if train_config.supervision == "supervised" else ""),
-        "",
-    ]
-
-
-def _composition_section(summary: dict[str, Any]) -> list[str]:
+def _composition_section(summary: DemoSummary) -> list[str]:
     """The report's section on what each sequence's prior error consists of."""
     return [
         "## What the prior's error consists of (ground truth, for this report only)",
@@ -168,11 +95,11 @@ def _composition_section(summary: dict[str, Any]) -> list[str]:
         "rotation's image shift at the principal point at the rendered images' focal length "
         "(`dpc-jax evaluate --diagnose`).",
         "",
-        _composition_table(summary["sequences"]),
+        _composition_table(summary.sequences),
     ]
 
 
-def _adaptation_paragraph(adaptation: dict[str, Any] | None) -> str:
+def _adaptation_paragraph(adaptation: AdaptationSummary | None) -> str:
     """What the adaptation to the test sequence did, or that there was none."""
     if not adaptation:
         return "No adaptation (adapt_steps = 0)."
@@ -184,11 +111,11 @@ def _adaptation_paragraph(adaptation: dict[str, Any] | None) -> str:
     )
 
 
-def _test_section(evaluation: Evaluation, summary: dict[str, Any]) -> list[str]:
+def _test_section(evaluation: Evaluation, summary: DemoSummary) -> list[str]:
     """The report's test section: the table, the final trajectory against the prior, the adaptation, the
     per-length errors and the plots."""
-    prior, corrected = (summary["test"][k] for k in ("prior", "corrected"))
-    change = {k: summary["change_pct"][k] for k in ("seg_trans_pct", "seg_rot_deg_per_100m")}
+    prior, corrected = (summary.test[k] for k in ("prior", "corrected"))
+    change = {k: summary.change_pct[k] for k in ("seg_trans_pct", "seg_rot_deg_per_100m")}
     return [
         "## Test sequence",
         "",
@@ -199,7 +126,7 @@ def _test_section(evaluation: Evaluation, summary: dict[str, Any]) -> list[str]:
         f"({change['seg_rot_deg_per_100m']:+.1f} %). The acceptance test decides without ground truth "
         "(docs/method.md §8); the network rows show each network's proposal whatever its test said.",
         "",
-        _adaptation_paragraph(summary.get("adaptation")),
+        _adaptation_paragraph(summary.adaptation),
         "",
         *segment_section(evaluation),
         "![trajectories](trajectory.png)",
@@ -211,14 +138,14 @@ def _test_section(evaluation: Evaluation, summary: dict[str, Any]) -> list[str]:
     ]
 
 
-def _training_section(summary: dict[str, Any], run_dir: Path) -> list[str]:
+def _training_section(summary: DemoSummary, run_dir: Path) -> list[str]:
     """The report's training section (per-epoch validation figures), the wall time and the list of files."""
-    stages = ", ".join(f"{k} {v:.0f} s" for k, v in summary["seconds"].items())
+    stages = ", ".join(f"{k} {v:.0f} s" for k, v in summary.seconds.items())
     return [
         "## Training (validation sequence; ground-truth errors logged, never used)",
         "",
-        _epoch_table(run_dir / "metrics.csv", summary["selected_epoch"]),
-        f"Wall time: {summary['seconds_total']:.0f} s ({stages}).",
+        _epoch_table(run_dir / "metrics.csv", summary.selected_epoch),
+        f"Wall time: {summary.seconds_total:.0f} s ({stages}).",
         "",
         "Files: `corrected.txt` (KITTI poses of the final test trajectory), `metrics.csv`, "
         "`segment_errors.csv`, `metrics.json`, `summary.json`, `run/` (checkpoints, metrics.csv, "
@@ -228,15 +155,17 @@ def _training_section(summary: dict[str, Any], run_dir: Path) -> list[str]:
     ]
 
 
-def write_demo_report(out: Path, config: DemoSettings, train_config: TrainingSettings, evaluation: Evaluation,
-                      summary: dict[str, Any], run_dir: Path) -> Path:
+def write_demo_report(out: Path, overview: Sequence[str], evaluation: Evaluation, summary: DemoSummary,
+                      run_dir: Path) -> Path:
     """``OUT/report.md`` with the tables, the per-length errors, the records and the plots, and beside it
-    the plots and the metric files (``metrics.csv``, ``segment_errors.csv``, ``metrics.json``)."""
+    the plots and the metric files (``metrics.csv``, ``segment_errors.csv``, ``metrics.json``).
+    ``overview``: the report's first lines (title and the paragraph on the data and the network, in the
+    demo's words of its own settings)."""
     write_figures(out, evaluation)
     write_tables(out, evaluation)
     atomic_write(out / "metrics.json", evaluation.to_json())
     text = "\n".join([
-        *_overview(config, train_config, summary),
+        *overview,
         *_composition_section(summary),
         *_test_section(evaluation, summary),
         *_training_section(summary, run_dir),

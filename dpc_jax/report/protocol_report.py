@@ -1,14 +1,12 @@
-"""The results table of an experiment (``dpc_jax.pipelines.protocol``): prior against corrected per test
-sequence, as ``results.md`` and ``results.csv``."""
+"""The results table of an experiment's folds (:class:`dpc_jax.results.fold.FoldResult`): prior against
+corrected per test sequence, as the text of ``results.md`` and ``results.csv``."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from pathlib import Path
-from typing import Any, Protocol
+from collections.abc import Sequence
 
-from dpc_jax._io import atomic_write
 from dpc_jax.report.tables import EMPTY, csv_text, number, row, rule
+from dpc_jax.results.fold import FoldResult
 
 COLUMNS = (
     ("seg_trans_pct", "seg. t (%)"), ("seg_rot_deg_per_100m", "seg. r (°/100 m)"),
@@ -16,47 +14,7 @@ COLUMNS = (
 )
 
 
-class SequenceResult(Protocol):
-    """What the table reads of one test sequence's result (``dpc_jax.pipelines.protocol.Result``):
-    ``metrics`` ``{"prior": summary, "corrected": summary}`` (``dpc_jax.eval.evaluation`` summaries),
-    ``stages`` network label → its proposal's summary, ``decisions`` network label → acceptance
-    decision, ``applied`` which network's correction the final trajectory holds (or ``prior``)."""
-
-    @property
-    def fold(self) -> str: ...
-
-    @property
-    def sequence(self) -> str: ...
-
-    @property
-    def prior_label(self) -> str: ...
-
-    @property
-    def epoch(self) -> int: ...
-
-    @property
-    def selection(self) -> str: ...
-
-    @property
-    def frames(self) -> int: ...
-
-    @property
-    def metrics(self) -> Mapping[str, Mapping[str, Any]]: ...
-
-    @property
-    def applied(self) -> str: ...
-
-    @property
-    def stages(self) -> Mapping[str, Mapping[str, Any]]: ...
-
-    @property
-    def decisions(self) -> Mapping[str, str]: ...
-
-    @property
-    def earlier(self) -> Mapping[str, Any] | None: ...
-
-
-def results_markdown(results: Sequence[SequenceResult], title: str, notes: Sequence[str] = ()) -> str:
+def results_markdown(results: Sequence[FoldResult], title: str, notes: Sequence[str] = ()) -> str:
     """The results table: one row per test sequence and prior, prior → corrected for each metric."""
     header = ["fold", "sequence", "prior", "epoch", "applied", "frames", *(t for _, t in COLUMNS)]
     preamble: list[str | None] = [f"# {title}", "", *(f"{n}" for n in notes), "" if notes else None]
@@ -81,14 +39,14 @@ def results_markdown(results: Sequence[SequenceResult], title: str, notes: Seque
             rows += [(f"network {label}", r.decisions[label], m) for label, m in r.stages.items()]
             rows.append((f"final ({r.applied})", "", r.metrics["corrected"]))
             if r.earlier is not None:
-                rows.append((f"final, earlier decision ({r.earlier['applied']})", "", r.earlier["metrics"]))
+                rows.append((f"final, earlier decision ({r.earlier.applied})", "", r.earlier.metrics))
             for label, decision, m in rows:
                 cells = [number(m[k]) for k, _ in COLUMNS]
                 lines.append(row([r.sequence, r.prior_label, label, decision, *cells]))
     return "\n".join(lines) + "\n"
 
 
-def results_csv(results: Sequence[SequenceResult]) -> str:
+def results_csv(results: Sequence[FoldResult]) -> str:
     """CSV: one row per test sequence, prior and corrected value of every summary metric."""
     keys = list(results[0].metrics["prior"]) if results else []
     return csv_text(
@@ -97,12 +55,3 @@ def results_csv(results: Sequence[SequenceResult]) -> str:
         ([r.fold, r.sequence, r.prior_label, r.epoch, r.selection, r.applied, r.frames,
           *(r.metrics[which][k] for which in ("prior", "corrected") for k in keys)] for r in results),
     )
-
-
-def write_fold_results(workdir: Path, results: Sequence[SequenceResult], title: str,
-                  notes: Sequence[str] = ()) -> Path:
-    """``WORKDIR/results.md`` and ``results.csv`` (atomic); returns the Markdown path."""
-    workdir.mkdir(parents=True, exist_ok=True)
-    atomic_write(workdir / "results.csv", results_csv(results))
-    atomic_write(workdir / "results.md", results_markdown(results, title, notes))
-    return workdir / "results.md"

@@ -1,4 +1,5 @@
-"""The CPU a benchmark ran on, in the one line every benchmark prints in its header.
+"""The CPU a measurement ran on, in the one line every benchmark prints in its header and every study
+records with its figures.
 
 Speed ratios against PyTorch differ by CPU generation as much as by code (``docs/performance.md``
 records figures from more than one machine), and "x86_64" or a bare "AMD EPYC" does not tell

@@ -12,20 +12,16 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from dpc_jax.data.splits import training_names
+from dpc_jax.experiments.folds import Context, FoldRun, Plan, Test, run_protocol
+from dpc_jax.experiments.script import new_parser
 from dpc_jax.pipelines import protocol as P
-from dpc_jax.report.pages import check_results_page
-from dpc_jax.report.protocol_report import write_fold_results
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
-HERE = Path(__file__).resolve().parent
-
-CONFIG = HERE / "configs" / "kitti_ss_dpc.py"
+CONFIG = Path(__file__).resolve().parent / "configs" / "kitti_ss_dpc.py"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = new_parser(__doc__)
     parser.add_argument("--kitti-odometry", required=True, type=P.path_argument, metavar="ROOT",
                         help="odometry root (sequences/XX/, poses/XX.txt)")
     parser.add_argument("--priors", required=True, metavar="DIR|vo",
@@ -40,77 +36,56 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+def plan(context: Context) -> Plan:
+    """The protocol's named folds, each with its prior kind (stereo, mono) and cache; every sequence opened
+    and every prior found before the first is prepared."""
     from dpc_jax.data.kitti import open_odometry
 
-    progress = not args.no_progress and sys.stderr.isatty()
-    try:
-        base, protocol = P.load_protocol(args.config)
-        check_results_page(args.results_page)
-        overrides = P.overrides_from(args)
-        sequences = tuple(args.sequences or protocol.sequences)
-        specs = protocol.folds
-        if args.fold != "all" and args.fold not in specs:
-            raise ValueError(f"--fold {args.fold!r}: expected one of {', '.join(specs)} or all")
-        names = list(specs) if args.fold == "all" else [args.fold]
-        folds, configs = [], {}
-        for name in names:
-            spec = specs[name]
-            held_out = (spec.validation, *spec.test)
-            missing = [s for s in held_out if s not in sequences]
-            if missing:
-                raise ValueError(f"fold {name} needs sequence(s) {missing}, not among {list(sequences)}")
-            fold = P.Fold(name, training_names(sequences, held_out), spec.validation, spec.test)
-            folds.append((fold, spec.prior))
-            cache_root = args.workdir / "cache" / spec.prior
-            configs[name] = P.fold_config(base, fold, cache_root, {**spec.overrides, **overrides})
-        # Every sequence opened and every prior found before the first is used.
-        needed = {(kind, name): fold for fold, kind in folds
-                  for name in (*fold.train, fold.validation, *fold.test)}
-        opened = {name: open_odometry(args.kitti_odometry, name) for _, name in needed}
-        for kind, name in needed:
-            if args.priors == "vo" and kind != "stereo":
-                raise ValueError(f"--priors vo gives stereo priors only; the {kind} priors of fold "
-                                 f"{needed[kind, name].name} need a folder")
-            if args.priors != "vo":
-                P.find_prior(Path(args.priors), name, kind)
-        P.claim_workdir(args.workdir, [("--kitti-odometry", args.kitti_odometry),
-                                       ("--priors", None if args.priors == "vo" else args.priors),
-                                       ("--config", args.config)],
-                        files=[("--results-page", args.results_page)])
-        prepared: set[tuple[str, str]] = set()
-        for fold, kind in folds:
-            config = configs[fold.name]
-            for name in (*fold.train, fold.validation, *fold.test):
-                if (kind, name) in prepared:
-                    continue
-                sequence = opened[name]
-                prior = P.prior_source(args.priors, kind, sequence, args.workdir, progress)
-                P.prepare(sequence, prior, Path(config.cache_root), config, mono_rescale=kind == "mono",
-                          progress=progress)
+    args, specs = context.args, context.protocol.folds
+    sequences = tuple(args.sequences or context.protocol.sequences)
+    if args.fold != "all" and args.fold not in specs:
+        raise ValueError(f"--fold {args.fold!r}: expected one of {', '.join(specs)} or all")
+    names = list(specs) if args.fold == "all" else [args.fold]
+    runs = []
+    for name in names:
+        spec = specs[name]
+        held_out = (spec.validation, *spec.test)
+        missing = [s for s in held_out if s not in sequences]
+        if missing:
+            raise ValueError(f"fold {name} needs sequence(s) {missing}, not among {list(sequences)}")
+        fold = P.Fold(name, training_names(sequences, held_out), spec.validation, spec.test)
+        cache_root = context.cache_root / spec.prior
+        config = P.fold_config(context.base, fold, cache_root, {**spec.overrides, **context.overrides})
+        label = f"libviso2-{spec.prior[0]}" if args.priors != "vo" else "vo"
+        runs.append(FoldRun(fold, config, tuple(Test(cache_root / t, label) for t in fold.test)))
+    needed = {(specs[run.fold.name].prior, name): run.fold
+              for run in runs for name in (*run.fold.train, run.fold.validation, *run.fold.test)}
+    opened = {name: open_odometry(args.kitti_odometry, name) for _, name in needed}
+    for kind, name in needed:
+        if args.priors == "vo" and kind != "stereo":
+            raise ValueError(f"--priors vo gives stereo priors only; the {kind} priors of fold "
+                             f"{needed[kind, name].name} need a folder")
+        if args.priors != "vo":
+            P.find_prior(Path(args.priors), name, kind)
+    context.claim([("--kitti-odometry", args.kitti_odometry),
+                   ("--priors", None if args.priors == "vo" else args.priors)])
+    prepared: set[tuple[str, str]] = set()
+    for run in runs:
+        kind = specs[run.fold.name].prior
+        for name in (*run.fold.train, run.fold.validation, *run.fold.test):
+            if (kind, name) not in prepared:
+                prior = P.prior_source(args.priors, kind, opened[name], context.workdir, context.progress)
+                P.prepare(opened[name], prior, Path(run.config.cache_root), run.config,
+                          mono_rescale=kind == "mono", progress=context.progress)
                 prepared.add((kind, name))
-        select = args.select or protocol.select
-        results = []
-        for fold, kind in folds:
-            run_dir = args.workdir / "runs" / fold.name
-            P.train_fold(configs[fold.name], run_dir, progress)
-            for test in fold.test:
-                results.append(P.correct_and_evaluate(
-                    fold.name, run_dir, Path(configs[fold.name].cache_root) / test, args.workdir, protocol,
-                    select=select, prior_label=f"libviso2-{kind[0]}" if args.priors != "vo" else "vo",
-                    progress=progress,
-                ))
-    except (OSError, ValueError, KeyError) as error:
-        print(f"kitti_ss_dpc: error: {error}", file=sys.stderr)
-        return 2
-    notes = [f"ss-DPC-Net (Wagstaff et al.); folds {', '.join(names)}; priors: {args.priors} "
-             f"(mono rescaled to the ground-truth step length); stereo: rotation-only correction; "
-             f"epoch selection: {select}."
-             + (" SMOKE RUN (1 epoch of 2 steps): the numbers mean nothing." if args.smoke else "")]
-    table = write_fold_results(args.workdir, results, "ss-DPC-Net on KITTI odometry", notes)
-    P.print_results(table, args.results_page, Path(__file__))
-    return 0
+    return Plan(runs, "ss-DPC-Net on KITTI odometry",
+                f"ss-DPC-Net (Wagstaff et al.); folds {', '.join(names)}; priors: {args.priors} (mono "
+                f"rescaled to the ground-truth step length); stereo: rotation-only correction; epoch "
+                f"selection: {context.select}.")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    return run_protocol(__file__, build_parser(), plan, argv)
 
 
 if __name__ == "__main__":

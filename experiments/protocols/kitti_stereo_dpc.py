@@ -12,20 +12,16 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from dpc_jax.data.splits import training_names
+from dpc_jax.experiments.folds import Context, FoldRun, Plan, Test, run_protocol
+from dpc_jax.experiments.script import new_parser
 from dpc_jax.pipelines import protocol as P
-from dpc_jax.report.pages import check_results_page
-from dpc_jax.report.protocol_report import write_fold_results
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
-HERE = Path(__file__).resolve().parent
-
-CONFIG = HERE / "configs" / "kitti_stereo_dpc.py"
+CONFIG = Path(__file__).resolve().parent / "configs" / "kitti_stereo_dpc.py"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = new_parser(__doc__)
     parser.add_argument("--kitti-odometry", required=True, type=P.path_argument, metavar="ROOT",
                         help="odometry root (sequences/XX/, poses/XX.txt)")
     parser.add_argument("--priors", required=True, metavar="DIR|vo",
@@ -41,66 +37,51 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+def plan(context: Context) -> Plan:
+    """One fold per test sequence: validated on the protocol's validation sequence for it, trained on the
+    others (and the extra raw drives); every sequence prepared once."""
     from dpc_jax.data.kitti import open_odometry, open_raw
 
-    progress = not args.no_progress and sys.stderr.isatty()
-    try:
-        base, protocol = P.load_protocol(args.config)
-        check_results_page(args.results_page)
-        overrides = P.overrides_from(args)
-        sequences = tuple(args.sequences or protocol.sequences)
-        tests = sequences if args.test == "all" else (args.test,)
-        unknown = [t for t in tests if t not in sequences]
-        if unknown:
-            raise ValueError(f"--test {unknown[0]} is not one of the sequences {list(sequences)}")
-        if args.raw_drive and args.kitti_raw is None:
-            raise ValueError("--raw-drive needs --kitti-raw ROOT")
-        opened = {name: open_odometry(args.kitti_odometry, name) for name in sequences}
-        for drive in args.raw_drive:
-            date, _, number = drive.partition("_drive_")
-            if drive in P.ODOMETRY_DRIVES.values():
-                raise ValueError(f"--raw-drive {drive} is an odometry sequence's drive (test data leak)")
-            opened[drive] = open_raw(args.kitti_raw, date, number)
-        folds = []
-        for test in tests:
-            validation = protocol.validation.get(test, protocol.validation["default"])
-            if validation not in sequences or validation == test:
-                validation = next(s for s in sequences if s != test)
-            train = training_names(tuple(opened), (test, validation))
-            folds.append(P.Fold(f"test_{test}", train, validation, (test,)))
-        if args.priors != "vo":
-            for sequence in opened.values():  # every prior found before the first is used
-                P.find_prior(Path(args.priors), sequence.name, "stereo")
-        inputs = [("--kitti-odometry", args.kitti_odometry), ("--kitti-raw", args.kitti_raw),
-                  ("--priors", None if args.priors == "vo" else args.priors), ("--config", args.config)]
-        P.claim_workdir(args.workdir, inputs, files=[("--results-page", args.results_page)])
-        cache_root = args.workdir / "cache"
-        configs = {f.name: P.fold_config(base, f, cache_root, overrides) for f in folds}
-        first = next(iter(configs.values()))
-        for sequence in opened.values():
-            P.prepare(sequence, P.prior_source(args.priors, "stereo", sequence, args.workdir, progress),
-                      cache_root, first, progress=progress)
-        select = args.select or protocol.select
-        results = []
-        for fold in folds:
-            run_dir = args.workdir / "runs" / fold.name
-            P.train_fold(configs[fold.name], run_dir, progress)
-            for test in fold.test:
-                results.append(P.correct_and_evaluate(
-                    fold.name, run_dir, cache_root / test, args.workdir, protocol, select=select,
-                    prior_label=Path(args.priors).name if args.priors != "vo" else "vo", progress=progress,
-                ))
-    except (OSError, ValueError, KeyError) as error:
-        print(f"kitti_stereo_dpc: error: {error}", file=sys.stderr)
-        return 2
-    notes = [f"Stereo DPC (Zhang et al.), leave-one-out; validation per fold as in {args.config.name}; "
-             f"priors: {args.priors}; epoch selection: {select}."
-             + (" SMOKE RUN (1 epoch of 2 steps): the numbers mean nothing." if args.smoke else "")]
-    table = write_fold_results(args.workdir, results, "Stereo DPC on KITTI odometry", notes)
-    P.print_results(table, args.results_page, Path(__file__))
-    return 0
+    args, protocol = context.args, context.protocol
+    sequences = tuple(args.sequences or protocol.sequences)
+    tests = sequences if args.test == "all" else (args.test,)
+    unknown = [t for t in tests if t not in sequences]
+    if unknown:
+        raise ValueError(f"--test {unknown[0]} is not one of the sequences {list(sequences)}")
+    if args.raw_drive and args.kitti_raw is None:
+        raise ValueError("--raw-drive needs --kitti-raw ROOT")
+    opened = {name: open_odometry(args.kitti_odometry, name) for name in sequences}
+    for drive in args.raw_drive:
+        date, _, number = drive.partition("_drive_")
+        if drive in P.ODOMETRY_DRIVES.values():
+            raise ValueError(f"--raw-drive {drive} is an odometry sequence's drive (test data leak)")
+        opened[drive] = open_raw(args.kitti_raw, date, number)
+    folds = []
+    for test in tests:
+        validation = protocol.validation.get(test, protocol.validation["default"])
+        if validation not in sequences or validation == test:
+            validation = next(s for s in sequences if s != test)
+        folds.append(P.Fold(f"test_{test}", training_names(tuple(opened), (test, validation)), validation,
+                            (test,)))
+    if args.priors != "vo":
+        for sequence in opened.values():  # every prior found before the first is used
+            P.find_prior(Path(args.priors), sequence.name, "stereo")
+    context.claim([("--kitti-odometry", args.kitti_odometry), ("--kitti-raw", args.kitti_raw),
+                   ("--priors", None if args.priors == "vo" else args.priors)])
+    configs = {f.name: P.fold_config(context.base, f, context.cache_root, context.overrides) for f in folds}
+    first = next(iter(configs.values()))
+    for sequence in opened.values():
+        prior = P.prior_source(args.priors, "stereo", sequence, context.workdir, context.progress)
+        P.prepare(sequence, prior, context.cache_root, first, progress=context.progress)
+    label = Path(args.priors).name if args.priors != "vo" else "vo"
+    return Plan([FoldRun(f, configs[f.name], tuple(Test(context.cache_root / t, label) for t in f.test))
+                 for f in folds], "Stereo DPC on KITTI odometry",
+                f"Stereo DPC (Zhang et al.), leave-one-out; validation per fold as in {args.config.name}; "
+                f"priors: {args.priors}; epoch selection: {context.select}.")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    return run_protocol(__file__, build_parser(), plan, argv)
 
 
 if __name__ == "__main__":

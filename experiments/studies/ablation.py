@@ -15,7 +15,6 @@ correction; the data are made once, by the first row). The table goes to ``WORKD
 
 from __future__ import annotations
 
-import argparse
 import logging
 import sys
 import time
@@ -23,8 +22,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from dpc_jax.pipelines.protocol import claim_workdir, path_argument
-from dpc_jax.report.pages import check_results_page, write_results
+from dpc_jax.experiments import script as kit
+from dpc_jax.experiments.demos import share
+from dpc_jax.pipelines.protocol import path_argument
 from dpc_jax.report.tables import number, records_csv, table
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
@@ -48,6 +48,8 @@ ROWS: list[tuple[str, dict[str, Any]]] = [
     ("+ correction from the prior alone", {"training": {"pose_features": "prior"}}),
     ("+ adaptation to the test sequence (300 steps)", {"adapt_steps": 300}),
 ]
+# The inputs every row shares: the first row makes them.
+SHARED = ("data", "vo", "cache")
 
 
 def row_configs(base: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
@@ -82,75 +84,57 @@ def ablation_markdown(rows: list[dict[str, Any]], seed: int) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = kit.new_parser(__doc__)
     parser.add_argument("--workdir", type=path_argument, default=Path("runs/ablation"), metavar="DIR")
     parser.add_argument("--seed", type=int, default=0, help="demo seed (its towns and routes)")
     parser.add_argument("--rows", type=int, nargs="+", metavar="K", help="only these rows (0-based)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
-    parser.add_argument("--results-page", type=path_argument, metavar="FILE",
-                        help="also write the table into the results block of FILE (a docs/results/ page)")
+    kit.add_no_progress(parser)
+    kit.add_results_page(parser)
     args = parser.parse_args(argv)
     try:
-        check_results_page(args.results_page)
-        claim_workdir(args.workdir, files=[("--results-page", args.results_page)])
+        kit.claim(args.workdir, page=args.results_page)
     except (OSError, ValueError) as error:
-        print(f"ablation: error: {error}", file=sys.stderr)
-        return 2
+        return kit.refuse("ablation", error)
 
     from dpc_jax import config as config_lib
     from dpc_jax._io import atomic_write
     from dpc_jax.pipelines.synthetic_demo import DemoConfig, DemoError, run_demo
 
     logging.getLogger("absl").setLevel(logging.ERROR)
-    base = {**config_lib.to_dict(DemoConfig()), "seed": args.seed}
-    configs = row_configs(base)
-    chosen = range(len(configs)) if args.rows is None else args.rows
-    shared = args.workdir / "shared"
-    progress = not args.no_progress and sys.stderr.isatty()
+    configs = row_configs({**config_lib.to_dict(DemoConfig()), "seed": args.seed})
     results = []
-    for k in chosen:
+    for k in range(len(configs)) if args.rows is None else args.rows:
         name, values = configs[k]
         out = args.workdir / f"row_{k}"
-        out.mkdir(parents=True, exist_ok=True)
-        for folder in ("data", "vo", "cache"):
-            (shared / folder).mkdir(parents=True, exist_ok=True)
-            if not (out / folder).exists():
-                (out / folder).symlink_to((shared / folder).absolute(), target_is_directory=True)
+        for folder in SHARED:
+            (args.workdir / "shared" / folder).mkdir(parents=True, exist_ok=True)
+        share(args.workdir / "shared", out, SHARED)
         began = time.perf_counter()
         try:
             config = config_lib.from_dict(DemoConfig, values, where=f"row {k}")
-            summary = run_demo(config, out, progress=progress,
+            summary = run_demo(config, out, progress=kit.progress_flag(args.no_progress),
                                log=lambda line, k=k: print(f"[row {k}] {line}", flush=True))
         except (OSError, ValueError, DemoError) as error:
-            print(f"ablation: error: row {k}: {error}", file=sys.stderr)
-            return 1
+            return kit.refuse("ablation", f"row {k}: {error}", 1)
         minutes = (time.perf_counter() - began) / 60 - sum(
-            summary["seconds"].get(s, 0.0) for s in ("render", "vo", "prepare")) / 60
-        # The network whose correction the final trajectory holds (the last one tried if none).
-        tried = summary["acceptance"]
-        final = summary["final"] if summary["final"] in tried else list(tried)[-1]
-        test = summary["acceptance"][final]["tests"]["full"]
-        decision = summary["decisions"][final]
+            summary.seconds.get(s, 0.0) for s in ("render", "vo", "prepare")) / 60
+        prior, final = summary.test["prior"], summary.test["corrected"]
+        network = summary.final_network
         results.append({
             "row": name,
-            "prior_t": summary["test"]["prior"]["seg_trans_pct"],
-            "prior_r": summary["test"]["prior"]["seg_rot_deg_per_100m"],
-            "final_t": summary["test"]["corrected"]["seg_trans_pct"],
-            "final_r": summary["test"]["corrected"]["seg_rot_deg_per_100m"],
-            "change_t": summary["change_pct"]["seg_trans_pct"],
-            "change_r": summary["change_pct"]["seg_rot_deg_per_100m"],
-            "delta": test["mean_delta"],
-            "acceptance": f"{decision} → final: {summary['final']}",
+            "prior_t": prior["seg_trans_pct"],
+            "prior_r": prior["seg_rot_deg_per_100m"],
+            "final_t": final["seg_trans_pct"],
+            "final_r": final["seg_rot_deg_per_100m"],
+            "change_t": summary.change_pct["seg_trans_pct"],
+            "change_r": summary.change_pct["seg_rot_deg_per_100m"],
+            "delta": summary.acceptance[network].mean_delta,
+            "acceptance": f"{summary.decisions[network]} → final: {summary.final}",
             "minutes": minutes,
         })
-        args.workdir.mkdir(parents=True, exist_ok=True)
         atomic_write(args.workdir / "ablation.md", ablation_markdown(results, args.seed))
         atomic_write(args.workdir / "ablation.csv", records_csv(results))
-    text = ablation_markdown(results, args.seed)
-    print(text, end="")
-    if args.results_page is not None:
-        write_results(args.results_page, text, Path(__file__))
+    kit.publish(ablation_markdown(results, args.seed), args.results_page, __file__)
     return 0
 
 

@@ -14,16 +14,16 @@ against the ground truth: *helps* (both test segment errors lower), *hurts* (eit
 
 from __future__ import annotations
 
-import argparse
 import logging
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from dpc_jax.pipelines.protocol import claim_workdir, path_argument
-from dpc_jax.report.pages import check_results_page, write_results
+from dpc_jax.experiments import script as kit
+from dpc_jax.pipelines.protocol import path_argument
 from dpc_jax.report.tables import change_pct, table
+from dpc_jax.results.demo import SUMMARY
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
 DEPTHS = ("network", "sgbm")
@@ -63,7 +63,8 @@ def evaluate_folder(folder: Path) -> list[dict[str, Any]]:
         row: dict[str, Any] = {"folder": folder.name, "label": label, "decision": {}}
         for depth in DEPTHS:
             correction = correct_cache(run, cache, acceptance_depth=depth, held_out=pairs, force=False)
-            estimates = correction.evaluation["estimates"]
+            assert correction.evaluation is not None  # the demo's test sequence has its ground truth
+            estimates = correction.evaluation.estimates
             applied = correction.applied
             row["decision"][depth] = applied if applied == "none" else (
                 f"{applied}: {_outcome(estimates['prior'], estimates['corrected'])}")
@@ -101,33 +102,26 @@ def report(rows: list[dict[str, Any]]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = kit.new_parser(__doc__)
     parser.add_argument("folders", type=path_argument, nargs="+", metavar="DEMO_OUT")
     parser.add_argument("--out", type=path_argument, default=Path("runs/acceptance_depth"), metavar="DIR")
-    parser.add_argument("--results-page", type=path_argument, metavar="FILE",
-                        help="also write the table into the results block of FILE (a docs/results/ page)")
+    kit.add_results_page(parser)
     args = parser.parse_args(argv)
     try:
-        check_results_page(args.results_page)
-        missing = [folder for folder in args.folders if not (folder / "summary.json").is_file()]
+        missing = [folder for folder in args.folders if not (folder / SUMMARY).is_file()]
         if missing:
-            raise ValueError(f"{missing[0]}: not a finished `dpc-jax demo --out` folder (no summary.json)")
-        claim_workdir(args.out, [("DEMO_OUT", folder) for folder in args.folders], option="--out",
-                      files=[("--results-page", args.results_page)])
+            raise ValueError(f"{missing[0]}: not a finished `dpc-jax demo --out` folder (no {SUMMARY})")
+        kit.claim(args.out, [("DEMO_OUT", folder) for folder in args.folders], option="--out",
+                  page=args.results_page)
     except (OSError, ValueError) as error:
-        print(f"acceptance_depth: error: {error}", file=sys.stderr)
-        return 2
+        return kit.refuse("acceptance_depth", error)
     from dpc_jax._io import atomic_write
 
     logging.getLogger("absl").setLevel(logging.ERROR)
     rows = [row for folder in args.folders for row in evaluate_folder(folder)]
-    args.out.mkdir(parents=True, exist_ok=True)
     text = report(rows)
     atomic_write(args.out / "acceptance_depth.md", text)
-    print(text, end="")
-    if args.results_page is not None:
-        write_results(args.results_page, text, Path(__file__))
+    kit.publish(text, args.results_page, __file__)
     return 0
 
 

@@ -23,28 +23,20 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dpc_jax import config as config_lib
+from dpc_jax.experiments import script as kit
+from dpc_jax.experiments.world import World
 from dpc_jax.geometry.poses import compose, relative_poses
-from dpc_jax.pipelines.protocol import claim_workdir, path_argument
+from dpc_jax.pipelines.protocol import path_argument
 from dpc_jax.report.tables import change_pct, table
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def render(root: Path, name: str, frames: int, seed: int, size: tuple[int, int]) -> np.ndarray:
-    """Render one synthetic sequence into the KITTI odometry layout under ``root`` (once); its poses."""
-    from dpc_jax.synth.sequence import SynthConfig, sequence_poses
-    from dpc_jax.synth.writer import write_sequence
-
-    config = SynthConfig(frames=frames, height=size[0], width=size[1], seed=seed)
-    if not (root / "poses" / f"{name}.txt").is_file():
-        write_sequence(root, name, config, overwrite=True)
-    return sequence_poses(config)[0]
 
 
 def biased_prior(
@@ -62,16 +54,19 @@ def biased_prior(
     return compose(perturbation @ relative, gt[0])
 
 
-def make_data(out: Path, config: object, args: argparse.Namespace) -> None:
-    """Render every sequence of the split and prepare its cache with the biased prior."""
+def make_data(out: Path, config: Any, args: argparse.Namespace) -> None:
+    """Render every sequence of the split (sequence i seeded 100 + i, at twice the network's size) and
+    prepare its cache with the biased prior."""
     from dpc_jax.data.cache import prepare_sequence
     from dpc_jax.data.kitti import open_odometry
+    from dpc_jax.synth import sequence_poses
 
     names = [*config.train_sequences, *config.validation_sequences, *config.test_sequences]
-    render_size = (2 * config.image_size[0], 2 * config.image_size[1])
+    world = World((2 * config.image_size[0], 2 * config.image_size[1]), seed=100)
+    world.render(out / "data", {name: (args.frames, i) for i, name in enumerate(names)})
     for i, name in enumerate(names):
         began = time.perf_counter()
-        gt = render(out / "data", name, args.frames, seed=100 + i, size=render_size)
+        gt = sequence_poses(world.config(args.frames, i))[0]  # exact, as rendered
         prior = biased_prior(gt, args.bias_deg, args.rot_noise_deg, args.trans_noise, seed=200 + i)
         sequence = open_odometry(out / "data", name)
         prepare_sequence(sequence, prior, out / "cache", size=config.image_size, progress=False)
@@ -83,7 +78,7 @@ def trajectory_length(poses: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
 
 
-def evaluate_test(config: object, workdir: Path, selection: str) -> dict[str, float]:
+def evaluate_test(config: Any, workdir: Path, selection: str) -> dict[str, float]:
     """Correct the test sequence with the epoch chosen by ``selection`` (acceptance test on its own
     images); prior vs corrected."""
     from dpc_jax.correction.corrector import correct_cache
@@ -108,7 +103,7 @@ def evaluate_test(config: object, workdir: Path, selection: str) -> dict[str, fl
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = kit.new_parser(__doc__)
     parser.add_argument("--config", type=path_argument,
                         default=ROOT / "experiments/studies/configs/bias_recovery.py")
     parser.add_argument("--out", type=path_argument, default=ROOT / "runs/bias_recovery")
@@ -128,10 +123,9 @@ def main(argv: list[str] | None = None) -> int:
         if cache_root != (args.out / "cache").resolve():
             raise ValueError(f"--config {args.config}: its cache_root {cache_root} is not OUT/cache "
                              f"({args.out / 'cache'})")
-        claim_workdir(args.out, [("--config", args.config)], option="--out")
+        kit.claim(args.out, [("--config", args.config)], option="--out")
     except (OSError, ValueError) as error:  # a ConfigError is a ValueError
-        print(f"bias_recovery: error: {error}", file=sys.stderr)
-        return 2
+        return kit.refuse("bias_recovery", error)
     config = config_lib.from_dict(TrainConfig, {**config_lib.to_dict(config), "cache_root": str(cache_root)})
 
     make_data(args.out, config, args)

@@ -12,7 +12,6 @@ the prior, and the minutes the demo took. Re-running reuses each seed's finished
 
 from __future__ import annotations
 
-import argparse
 import logging
 import math
 import sys
@@ -21,13 +20,14 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from dpc_jax.pipelines.protocol import claim_workdir, path_argument
-from dpc_jax.report.pages import check_results_page, write_results
-from dpc_jax.report.tables import EMPTY, records_csv, table
+from dpc_jax.experiments import script as kit
+from dpc_jax.experiments.demos import demo_config
+from dpc_jax.pipelines.protocol import parse_overrides, path_argument
+from dpc_jax.report.tables import EMPTY, change_pct, records_csv, table
+from dpc_jax.results.demo import DemoSummary
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
-ROOT = Path(__file__).resolve().parent
-DEFAULT_CONFIG = ROOT / "configs" / "synthetic_demo.py"
+DEFAULT_CONFIG = Path(__file__).resolve().parent / "configs" / "synthetic_demo.py"
 SEG = ("seg_trans_pct", "seg_rot_deg_per_100m")
 
 
@@ -38,29 +38,23 @@ def _pair(values: dict[str, Any] | None) -> str:
     return EMPTY if t is None or r is None else f"{t:.2f} / {r:.2f}"
 
 
-def _row(seed: int, summary: dict[str, Any], minutes: float, earlier: dict[str, Any]) -> dict[str, Any]:
-    test = summary["test"]
-    change = summary["change_pct"]
+def _row(seed: int, summary: DemoSummary, minutes: float, earlier: dict[str, Any]) -> dict[str, Any]:
+    test, change = summary.test, summary.change_pct
     return {
         "seed": seed,
         "prior": _pair(test["prior"]),
         "trained": _pair(test.get("trained")),
-        "trained_test": summary["decisions"].get("trained", EMPTY),
+        "trained_test": summary.decisions.get("trained", EMPTY),
         "adapted": _pair(test.get("adapted")),
-        "adapted_test": summary["decisions"].get("adapted", EMPTY),
-        "final": f"{summary['final']}: {_pair(test['corrected'])}",
+        "adapted_test": summary.decisions.get("adapted", EMPTY),
+        "final": f"{summary.final}: {_pair(test['corrected'])}",
         "change_t_pct": change["seg_trans_pct"],
         "change_r_pct": change["seg_rot_deg_per_100m"],
         "earlier": f"{earlier['final']}: {_pair(earlier['metrics'])}",
-        "earlier_change_t_pct": _change(test["prior"], earlier["metrics"], SEG[0]),
-        "earlier_change_r_pct": _change(test["prior"], earlier["metrics"], SEG[1]),
+        "earlier_change_t_pct": change_pct(test["prior"][SEG[0]], earlier["metrics"][SEG[0]]),
+        "earlier_change_r_pct": change_pct(test["prior"][SEG[1]], earlier["metrics"][SEG[1]]),
         "minutes": minutes,
     }
-
-
-def _change(prior: dict[str, Any], after: dict[str, Any], key: str) -> float:
-    before, value = prior[key], after[key]
-    return math.nan if before is None or value is None or not before else 100.0 * (value / before - 1.0)
 
 
 def earlier_decision(workdir: Path, config: Any) -> dict[str, Any]:
@@ -102,59 +96,41 @@ def seeds_markdown(rows: list[dict[str, Any]], config_name: str) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = kit.new_parser(__doc__)
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4], metavar="K")
     parser.add_argument("--workdir", type=path_argument, default=Path("runs/demo_seeds"), metavar="DIR")
     parser.add_argument("--config", type=path_argument, default=DEFAULT_CONFIG, metavar="FILE",
                         help="demo config (CONFIG = DemoConfig(...) or a dict); its seed is replaced")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a DemoConfig field (JSON value), e.g. --set adapt_steps=0")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
-    parser.add_argument("--results-page", type=path_argument, metavar="FILE",
-                        help="also write the table into the results block of FILE (a docs/results/ page)")
+    kit.add_no_progress(parser)
+    kit.add_results_page(parser)
     args = parser.parse_args(argv)
     try:
-        check_results_page(args.results_page)
-    except (OSError, ValueError) as error:
-        print(f"demo_seeds: error: {error}", file=sys.stderr)
-        return 2
+        overrides = parse_overrides(args.set)
+        configs = {seed: demo_config(args.config, seed, overrides) for seed in args.seeds}
+        kit.claim(args.workdir, [("--config", args.config)], page=args.results_page)
+    except (OSError, ValueError) as error:  # a ConfigError is a ValueError
+        return kit.refuse("demo_seeds", error)
 
-    from dpc_jax import config as config_lib
     from dpc_jax._io import atomic_write
-    from dpc_jax.pipelines.protocol import parse_overrides
-    from dpc_jax.pipelines.synthetic_demo import DemoConfig, DemoError, run_demo
+    from dpc_jax.pipelines.synthetic_demo import DemoError, run_demo
 
     logging.getLogger("absl").setLevel(logging.ERROR)
-    try:
-        base = {**config_lib.to_dict(config_lib.load_file(args.config, DemoConfig)),
-                **parse_overrides(args.set)}
-        configs = {seed: config_lib.from_dict(DemoConfig, {**base, "seed": seed}, where="--set")
-                   for seed in args.seeds}
-        claim_workdir(args.workdir, [("--config", args.config)],
-                      files=[("--results-page", args.results_page)])
-    except (OSError, ValueError) as error:  # a ConfigError is a ValueError
-        print(f"demo_seeds: error: {error}", file=sys.stderr)
-        return 2
-    progress = not args.no_progress and sys.stderr.isatty()
-    rows = []
+    progress, rows = kit.progress_flag(args.no_progress), []
     for seed, config in configs.items():
         began = time.perf_counter()
         try:
             summary = run_demo(config, args.workdir / f"seed_{seed}", progress=progress,
                                log=lambda line, seed=seed: print(f"[seed {seed}] {line}", flush=True))
         except (OSError, ValueError, DemoError) as error:
-            print(f"demo_seeds: error: seed {seed}: {error}", file=sys.stderr)
-            return 1
+            return kit.refuse("demo_seeds", f"seed {seed}: {error}", 1)
         minutes = (time.perf_counter() - began) / 60
         rows.append(_row(seed, summary, minutes, earlier_decision(args.workdir / f"seed_{seed}", config)))
-        args.workdir.mkdir(parents=True, exist_ok=True)
         text = seeds_markdown(rows, args.config.name + (" " + " ".join(args.set) if args.set else ""))
         atomic_write(args.workdir / "seeds.md", text)
         atomic_write(args.workdir / "seeds.csv", records_csv(rows))
-    print(text, end="")
-    if args.results_page is not None:
-        write_results(args.results_page, text, Path(__file__))
+    kit.publish(text, args.results_page, __file__)
     return 0
 
 

@@ -21,18 +21,14 @@ rows (``OUT/summary.json``: the prior, the network as trained and as adapted).
 Prints the Markdown table and how many sequences' rotational segment error fell; exit status 0
 when it fell on at least six of the eight stereo sequences, 1 otherwise, 2 for bad input.
 
-Published rows: libviso2-s and ss-DPC-Net (self-supervised; "best loss" and "loop closure" epoch
-selection) are the ss-DPC-Net authors' released results table
-(github.com/utiasSTARS/ss-dpc-net, ``paper_plots_and_data/stereo_results_kitti.csv`` and
-``mono_results_kitti.csv``); DPC-Net (supervised, Peretroukhin & Kelly 2018) is the row the same
-release's ``generate_stereo_results.py`` lists for 00, 02 and 05. Zhang et al. (Stereo DPC,
-Sensors 2021) are not included: their tables could not be read from the sources available here.
+The published rows and their sources: ``configs/linear_baseline.py``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import runpy
 import sys
 import time
 from pathlib import Path
@@ -40,56 +36,29 @@ from pathlib import Path
 import numpy as np
 
 from dpc_jax._io import atomic_write
-from dpc_jax.pipelines.protocol import claim_workdir, path_argument
-from dpc_jax.report.pages import check_results_page, write_results
+from dpc_jax.experiments import script as kit
+from dpc_jax.experiments.baselines import linear_baselines
+from dpc_jax.pipelines.protocol import path_argument
+from dpc_jax.report.pages import write_results
 from dpc_jax.report.tables import table
+from dpc_jax.results.demo import SUMMARY, DemoSummary
 
-ROOT = Path(__file__).resolve().parents[2]
-DATA = ROOT.parent / "shared" / "data" / "kitti-libviso2"
-SEQUENCES = ("00", "02", "05", "06", "07", "08", "09", "10")
-
-# (seg. t %, seg. r °/100 m, m-ATE m, m-ATE °) as published; see the module docstring for the sources.
-PUBLISHED: dict[str, dict[str, tuple[float, float, float, float]]] = {
-    "stereo": {
-        "00 libviso2-s": (2.791, 1.292, 53.766, 13.301),
-        "00 + DPC-Net (supervised)": (1.62, 0.559, 15.68, 3.07),
-        "00 + ss-DPC-Net, best loss": (0.991, 0.457, 12.589, 2.469),
-        "00 + ss-DPC-Net, loop closure": (1.033, 0.444, 14.654, 3.322),
-        "02 libviso2-s": (2.417, 0.923, 68.604, 12.554),
-        "02 + DPC-Net (supervised)": (1.16, 0.436, 17.69, 2.86),
-        "02 + ss-DPC-Net, best loss": (1.108, 0.499, 15.687, 3.524),
-        "02 + ss-DPC-Net, loop closure": (0.83, 0.373, 21.308, 1.907),
-        "05 libviso2-s": (2.313, 1.135, 19.677, 6.298),
-        "05 + DPC-Net (supervised)": (1.34, 0.562, 9.82, 3.57),
-        "05 + ss-DPC-Net, best loss": (1.327, 0.597, 10.924, 4.097),
-        "05 + ss-DPC-Net, loop closure": (0.829, 0.304, 4.034, 1.178),
-    },
-    "mono": {
-        "09 libviso2-m": (8.666, 2.755, 81.345, 15.4),
-        "09 + ss-DPC-Net, best loss": (2.824, 0.757, 16.369, 3.46),
-        "09 + ss-DPC-Net, loop closure": (2.132, 0.803, 11.129, 3.887),
-        "10 libviso2-m": (7.991, 3.317, 51.633, 16.454),
-        "10 + ss-DPC-Net, best loss": (3.806, 1.343, 13.038, 3.367),
-        "10 + ss-DPC-Net, loop closure": (3.479, 1.377, 11.947, 3.515),
-    },
-}
+CONFIG = runpy.run_path(str(Path(__file__).resolve().parent / "configs" / "linear_baseline.py"))
+SEQUENCES, PUBLISHED = CONFIG["SEQUENCES"], CONFIG["PUBLISHED"]
 KEYS = ("seg_trans_pct", "seg_rot_deg_per_100m", "m_ate_trans_m", "m_ate_rot_deg")
 TITLES = ("seg. t (%)", "seg. r (°/100 m)", "m-ATE (m)", "m-ATE (°)")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.add_argument("--data", type=path_argument, default=DATA, metavar="DIR",
+    parser = kit.new_parser(__doc__)
+    parser.add_argument("--data", type=path_argument, default=kit.DATA / "kitti-libviso2", metavar="DIR",
                         help="folder with stereo_XX.mat (and mono_XX.mat) (default: %(default)s)")
     parser.add_argument("--mono", action="store_true", help="also libviso2-m (translation rescaled per step "
                         "to the ground-truth step length, the ss-DPC-Net protocol)")
     parser.add_argument("--translation", action="store_true",
                         help="fit and apply the translation part too (default: rotation only)")
     parser.add_argument("--json", type=path_argument, metavar="PATH", help="also write the figures as JSON")
-    parser.add_argument("--results-page", type=path_argument, metavar="FILE",
-                        help="also write the table into the results block of FILE (a docs/results/ page)")
+    kit.add_results_page(parser)
     parser.add_argument("--demo", type=path_argument, metavar="OUT",
                         help="a finished `dpc-jax demo` folder: fit on its training sequences, test on its "
                         "test sequence")
@@ -99,33 +68,27 @@ def build_parser() -> argparse.ArgumentParser:
 def demo_table(out: Path) -> str:
     """The linear baseline on a finished demo's test sequence, beside the demo's rows."""
     from dpc_jax.data.poses_io import read_kitti_poses
-    from dpc_jax.eval.linear_baseline import apply_linear_correction, fit_linear_correction
 
-    summary = json.loads((out / "summary.json").read_text())
+    summary = DemoSummary.read(out)
     # The demo names its training sequences train0, train1, … (dpc_jax.pipelines.synthetic_demo.DemoConfig).
     train = sorted(p.stem for p in (out / "data" / "poses").glob("train*.txt"))
 
     def pair(name: str) -> tuple[np.ndarray, np.ndarray]:
-        poses = out / "data" / "poses" / f"{name}.txt"
-        return read_kitti_poses(poses), read_kitti_poses(out / "vo" / f"{name}.txt")
+        return (read_kitti_poses(out / "data" / "poses" / f"{name}.txt"),
+                read_kitti_poses(out / "vo" / f"{name}.txt"))
 
-    gt, prior = pair("test")
-    rows = {"prior (our VO)": metrics(gt, prior)}
-    for rotation_only, label in ((True, "rotation"), (False, "full 6-DoF")):
-        model = fit_linear_correction([pair(n) for n in train], rotation_only=rotation_only)
-        rows[f"linear, **supervised** ({label}; fit on {', '.join(train)})"] = metrics(
-            gt, apply_linear_correction(model, prior)
-        )
-    supervision = summary["config"].get("training", {}).get("supervision", "self")
+    fits = {"rotation": {"rotation_only": True}, "full": {"rotation_only": False}}
+    figures = linear_baselines([pair(n) for n in train], *pair("test"), fits)
+    rows = {"prior (our VO)": figures["prior"]}
+    for fit, label in (("rotation", "rotation"), ("full", "full 6-DoF")):
+        rows[f"linear, **supervised** ({label}; fit on {', '.join(train)})"] = figures[fit]
+    supervision = summary.config.get("training", {}).get("supervision", "self")
     trained_by = "DPC-Net's supervised loss" if supervision == "supervised" else "the self-supervised loss"
     labels = (("trained", f"network trained with {trained_by}"),
               ("adapted", "the same, then adapted to the test sequence (self-supervised)"))
     for key, label in labels:
-        if key in summary["test"]:
-            decision = summary["decisions"].get(key, "")
-            rows[f"{label}; acceptance test: {decision}"] = {
-                k: summary["test"][key][k] for k in KEYS
-            }
+        if key in summary.test:
+            rows[f"{label}; acceptance test: {summary.decisions.get(key, '')}"] = summary.test[key]
     return table(["test sequence", *TITLES],
                  ([label, *(f"{v[k]:.3f}" for k in KEYS)] for label, v in rows.items()))
 
@@ -186,57 +149,44 @@ def results_table(kind: str, results: dict[str, dict[str, dict[str, float]]], ro
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        check_results_page(args.results_page)
         # No work folder: the figures go to --json and the results page only.
-        claim_workdir(None, [("--data", args.data), ("--demo", args.demo)],
-                      files=[("--json", args.json), ("--results-page", args.results_page)])
+        kit.claim(None, [("--data", args.data), ("--demo", args.demo)], page=args.results_page,
+                  files=[("--json", args.json)])
     except (OSError, ValueError) as error:
-        print(f"linear_baseline: error: {error}", file=sys.stderr)
-        return 2
-    if args.demo is not None:
-        if not (args.demo / "summary.json").is_file():
-            print(f"linear_baseline: error: {args.demo / 'summary.json'} not found (give a finished "
-                  "`dpc-jax demo --out` folder)", file=sys.stderr)
-            return 2
-        import jax
+        return kit.refuse("linear_baseline", error)
+    import jax
 
-        jax.config.update("jax_enable_x64", True)
+    jax.config.update("jax_enable_x64", True)
+    if args.demo is not None:
+        if not (args.demo / SUMMARY).is_file():
+            return kit.refuse("linear_baseline", f"{args.demo / SUMMARY} not found (give a finished "
+                              "`dpc-jax demo --out` folder)")
         print(demo_table(args.demo))
         return 0
     kinds = ("stereo", "mono") if args.mono else ("stereo",)
     missing = [str(args.data / f"{k}_{s}.mat") for k in kinds for s in SEQUENCES
                if not (args.data / f"{k}_{s}.mat").is_file()]
     if missing:
-        print(f"linear_baseline: error: {missing[0]} not found (need {{stereo,mono}}_XX.mat for XX in "
-              f"{' '.join(SEQUENCES)} under --data)", file=sys.stderr)
-        return 2
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
-    start = time.perf_counter()
-    rotation_only = not args.translation
+        return kit.refuse("linear_baseline", f"{missing[0]} not found (need {{stereo,mono}}_XX.mat for XX "
+                          f"in {' '.join(SEQUENCES)} under --data)")
+    start, rotation_only = time.perf_counter(), not args.translation
     report: dict[str, object] = {"rotation_only": rotation_only}
-    fell = 0
-    sections = []
+    fell, sections = 0, []
     for kind in kinds:
         try:
             sequences = load(args.data, kind)
         except (ValueError, OSError) as error:
-            print(f"linear_baseline: error: {error}", file=sys.stderr)
-            return 2
+            return kit.refuse("linear_baseline", error)
         results = held_out_linear_metrics(sequences, rotation_only)
         report[kind] = results
-        down = sum(
-            r["linear"]["seg_rot_deg_per_100m"] < r["prior"]["seg_rot_deg_per_100m"] for r in results.values()
-        )
-        if kind == "stereo":
-            fell = down
+        down = sum(r["linear"]["seg_rot_deg_per_100m"] < r["prior"]["seg_rot_deg_per_100m"]
+                   for r in results.values())
+        fell = down if kind == "stereo" else fell
         sections.append(f"## libviso2-{kind[0]}: supervised linear correction, leave one sequence out\n\n"
                         f"{results_table(kind, results, rotation_only)}\n"
                         f"Rotational segment error fell on {down} of {len(results)} sequences.\n")
         print(sections[-1])
-    seconds = time.perf_counter() - start
-    print(f"({seconds:.0f} s)")
+    print(f"({time.perf_counter() - start:.0f} s)")
     if args.json is not None:
         atomic_write(args.json, json.dumps(report, indent=2) + "\n")
     if args.results_page is not None:

@@ -51,3 +51,17 @@ SMOKE_DEMO = {
     "holdout_every": 4,
     "training": {"image_size": (32, 48), "batch_size": 2, "epochs": 1, "steps_per_epoch": 2},
 }
+
+# The paragraph above the table: what its rows are.
+NOTES = (
+    "Rows: the prior; the linear baseline (a correction linear in the prior's step, rotation only, fit by "
+    "least squares on the training sequences' ground truth: **supervised**) and its constant term alone "
+    "(the mean correction per step: a bias, which does not depend on the speed); Stereo DPC trained with "
+    "DPC-Net's loss on the training sequences' ground truth (**supervised**) and the same network trained "
+    "self-supervised, each as trained, adapted to the test sequence's images (self-supervised, no ground "
+    "truth) and final (what the acceptance tests and the choice keep). Decision: the network's "
+    "ground-truth-free acceptance test (demo: `dpc-jax demo`'s words; drives: the axes applied, "
+    "`kitti_raw_drives.py`'s). Demo: the held-out test sequence, trained on the training sequences named. "
+    "Drives: real KITTI raw, prior our VO, trained on the other drive's frames named, rotation only "
+    "applied; segment errors n/a where the test is shorter than 100 m; RPE over one frame."
+)

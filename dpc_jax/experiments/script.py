@@ -1,0 +1,88 @@
+"""What every experiment script does around its work: claim its outputs, say what goes wrong in one line,
+show progress, log with the elapsed time, print its table and put it into its results page."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+from dpc_jax.pipelines.protocol import Named, claim_workdir, path_argument
+from dpc_jax.report.pages import check_results_page, read_block, replace_block, write_results
+from dpc_jax.report.tables import row, table
+
+# The checkout the scripts run from (the package is installed from it in editable mode), and the real
+# data beside it: KITTI raw drives (``kitti-raw/``) and the libviso2 estimates (``kitti-libviso2/``).
+CHECKOUT = Path(__file__).resolve().parents[2]
+DATA = CHECKOUT.parent / "shared" / "data"
+
+
+def new_parser(doc: str | None) -> argparse.ArgumentParser:
+    """A script's parser: its docstring (the command and what it writes) as ``--help``'s text, verbatim."""
+    return argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+
+
+def add_results_page(parser: argparse.ArgumentParser) -> None:
+    """``--results-page FILE``: also write the table into that page's results block."""
+    parser.add_argument("--results-page", type=path_argument, metavar="FILE",
+                        help="also write the table into the results block of FILE (a docs/results/ page)")
+
+
+def add_no_progress(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def progress_flag(no_progress: bool) -> bool:
+    """Progress bars when stderr is a terminal and ``--no-progress`` was not given (a log gets none)."""
+    return not no_progress and sys.stderr.isatty()
+
+
+def claim(workdir: str | os.PathLike[str] | None, inputs: Sequence[Named] = (), *, page: Path | None = None,
+          option: str = "--workdir", files: Sequence[Named] = ()) -> Path | None:
+    """Check the results page (it must have a results block) and claim the work folder and file outputs
+    (``dpc_jax.pipelines.protocol.claim_workdir``, the page among them): before any work. Raises
+    ``OSError`` or ``ValueError`` with one line."""
+    check_results_page(page)
+    return claim_workdir(workdir, inputs, option=option, files=[*files, ("--results-page", page)])
+
+
+def refuse(script: str, error: BaseException | str, status: int = 2) -> int:
+    """Print ``SCRIPT: error: ...`` (one line, on stderr) and return ``status`` (2: bad input; 1: the work
+    failed)."""
+    print(f"{script}: error: {error}", file=sys.stderr)
+    return status
+
+
+def publish(text: str, page: Path | None, script: str | os.PathLike[str]) -> None:
+    """Print the table ``text``; with ``page``, also write it into that page's results block, the script
+    named as its writer."""
+    print(text, end="" if text.endswith("\n") else "\n")
+    if page is not None:
+        write_results(page, text, Path(script))
+        print(f"results page: {page}")
+
+
+def replace_rows(page: Path, block: str, header: Sequence[str], rows: Sequence[Sequence[str]],
+                 run: str) -> None:
+    """Put ``rows`` (their first cell: ``run``) into the table of ``page``'s block ``block`` in place of the
+    rows of the same run, keeping the other runs' rows (a table that gathers runs of several machines)."""
+    kept = [line for line in read_block(page, block).strip().splitlines()[2:]
+            if line.startswith("| ") and not line.startswith(row([run]).removesuffix(" |") + " |")]
+    replace_block(page, block, table(header, []).rstrip("\n") + "\n" + "\n".join([*kept, *map(row, rows)]))
+
+
+class Clock:
+    """The time since a script started, for its log lines: ``[3.2 min] LINE``."""
+
+    def __init__(self) -> None:
+        self.began = time.perf_counter()
+
+    @property
+    def minutes(self) -> float:
+        return (time.perf_counter() - self.began) / 60
+
+    def say(self, line: str) -> None:
+        print(f"[{self.minutes:.1f} min] {line}", flush=True)

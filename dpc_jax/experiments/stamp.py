@@ -1,0 +1,34 @@
+"""What a figure was measured with: the machine (the CPU and the accelerator JAX sees), the commit of the
+checkout, the date and the Python version, recorded beside every finished stage or cell so that a rerun
+may reuse figures of another machine or commit and still say which."""
+
+from __future__ import annotations
+
+import datetime
+import platform
+import subprocess
+import sys
+
+from dpc_jax.experiments.script import CHECKOUT
+from dpc_jax.report.pages import commit
+from dpc_jax.runtime.machine import this_cpu
+
+# Asked in a process of its own: a process that starts JAX's GPU backend keeps most of the GPU's memory,
+# which the measured processes (or the script's own training) would then lack.
+_DEVICE = "import jax; d = jax.devices()[0]; print(d.platform, d.device_kind)"
+
+
+def machine() -> str:
+    """The CPU (``dpc_jax.runtime.machine.this_cpu``) and, when JAX runs on another device, its kind:
+    ``"AMD EPYC (family 25, model 17, AVX-512), 2 CPUs, NVIDIA H100 80GB HBM3"``."""
+    found = subprocess.run([sys.executable, "-c", _DEVICE], capture_output=True, text=True, check=False)
+    platform_name, _, kind = found.stdout.strip().partition(" ")
+    return this_cpu() + ("" if platform_name in ("cpu", "") else f", {kind}")
+
+
+def stamp() -> dict[str, str]:
+    """``{"machine", "commit", "date", "python"}`` of this process and checkout (``git describe --dirty``,
+    the date in UTC)."""
+    return {"machine": machine(), "commit": commit(CHECKOUT),
+            "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d"),
+            "python": platform.python_version()}

@@ -1,0 +1,101 @@
+"""What an acceptance test measured and let through (the tests themselves: ``dpc_jax.correction.acceptance``
+and ``dpc_jax.correction.decision``)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class PairedTest:
+    """The test of one paired difference over ``pairs`` frame pairs.
+
+    ``mean_delta``/``median_delta``: of the differences; ``improved_share``: fraction below 0;
+    ``statistic``, ``p_value``: Wilcoxon signed-rank (``nan``/1 when every difference is 0);
+    ``passed``: ``p_value < alpha`` and ``mean_delta < 0``; ``std_delta``: the standard deviation of
+    the differences (what the power of the test on more pairs follows from).
+    """
+
+    component: str
+    pairs: int
+    mean_delta: float
+    median_delta: float
+    improved_share: float
+    statistic: float
+    p_value: float
+    passed: bool
+    std_delta: float = math.nan
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> PairedTest:
+        return cls(**data)
+
+
+@dataclass(frozen=True)
+class Acceptance:
+    """What the acceptance test let through (``dpc_jax.correction.decision.decide``).
+
+    ``decision``: the component applied, ``full | rotation | rotation_<axes> | none``;
+    ``remainder``: True when the correction's mean over the sequence was removed (its per-step
+    remainder is applied; the mean failed its own test); ``scale``: the factor a judge chose (1
+    otherwise); ``mean``: ``[6]`` the mean removed (``[ρ (m), φ (rad)]``), None when none was;
+    ``tests``: every test made, by name (e.g. ``rotation``, ``mean of rotation``,
+    ``rotation − mean``, ``rotation_x``, ``rotation (judge)``); ``reason``: why, in words;
+    ``forced``: applied whatever the tests said; ``delta``: Δ ``[M]`` of the applied correction on
+    every pair, measured where it was decided (at the judge's size when there is one), None when
+    nothing is applied (and in a record read back: :meth:`to_dict` does not hold it).
+    """
+
+    alpha: float
+    tests: dict[str, PairedTest] = field(default_factory=dict)
+    decision: str = "none"
+    reason: str = ""
+    forced: bool = False
+    scale: float = 1.0
+    remainder: bool = False
+    mean: tuple[float, ...] | None = None
+    delta: np.ndarray | None = field(default=None, compare=False, repr=False)
+
+    @property
+    def part(self) -> str:
+        """What is applied, in one name: ``none``, ``rotation``, ``rotation_xz − mean ×0.75``."""
+        if self.decision == "none":
+            return "none"
+        return self.decision + (" − mean" if self.remainder else "") + (
+            f" ×{self.scale:g}" if self.scale != 1.0 else "")
+
+    @property
+    def mean_delta(self) -> float:
+        """Mean Δ of the first part tested (the full correction, or the rotation alone when only that
+        was tested): the figure a run's record keeps."""
+        return next(iter(self.tests.values())).mean_delta if self.tests else math.nan
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "alpha": self.alpha,
+            "decision": self.decision,
+            "remainder": self.remainder,
+            "scale": self.scale,
+            "part": self.part,
+            "mean": None if self.mean is None else list(self.mean),
+            "reason": self.reason,
+            "forced": self.forced,
+            "tests": {name: test.to_dict() for name, test in self.tests.items()},
+        }
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> Acceptance:
+        """The record of :meth:`to_dict` (its ``part`` is derived, so not read)."""
+        mean = data["mean"]
+        return cls(data["alpha"], {name: PairedTest.from_dict(t) for name, t in data["tests"].items()},
+                   data["decision"], data["reason"], data["forced"], data["scale"], data["remainder"],
+                   None if mean is None else tuple(mean))
