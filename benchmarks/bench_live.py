@@ -92,16 +92,17 @@ def source(synthetic: bool) -> Frames:
 
 
 def _texture(size: tuple[int, int], seed: int = 0) -> np.ndarray:
-    """A smooth random colour texture, wider than the frames (they slide over it)."""
+    """A random colour texture with corners for the VO's FAST detector, wider than the frames (they
+    slide over it)."""
     rng = np.random.default_rng(seed)
     h, w = size
-    noise = rng.integers(0, 256, (h // 4, (w + 400) // 4, 3), np.uint8)
-    return cv2.resize(cv2.GaussianBlur(noise, (5, 5), 1.5), (w + 400, h), interpolation=cv2.INTER_CUBIC)
+    noise = rng.integers(0, 256, (h // 3, (w + 500) // 3, 3), np.uint8)
+    return cv2.resize(cv2.GaussianBlur(noise, (3, 3), 0.8), (w + 500, h), interpolation=cv2.INTER_LINEAR)
 
 
 def frames(where: Frames, count: int) -> Iterator[tuple[int, tuple[Path, Path] | None]]:
     """``count`` frame numbers, the drive played forward and back again as often as it takes."""
-    n = len(where.paths) if where.paths is not None else 120
+    n = len(where.paths) if where.paths is not None else 108  # as many as the drive; the texture fits them
     cycle = list(range(n)) + list(range(n - 2, 0, -1))
     for k in range(count):
         index = cycle[k % len(cycle)]
@@ -111,18 +112,21 @@ def frames(where: Frames, count: int) -> Iterator[tuple[int, tuple[Path, Path] |
 def decode(pool: ThreadPoolExecutor, where: Frames, index: int, paths: tuple[Path, Path] | None,
            texture: np.ndarray) -> list[np.ndarray]:
     """The frame's four images: colour left, right, grey left, right (decoded two at a time, as
-    ``dpc-jax vo --correct`` does; synthetic: cut from the texture, 2 px further each frame, the right
-    image 20 px of disparity away)."""
+    ``dpc-jax vo --correct`` does; synthetic: cut from the texture)."""
     from dpc_jax.data.kitti import load_image
 
     if paths is not None:
         jobs = [pool.submit(load_image, path, grey) for grey in (False, True) for path in paths]
         return [job.result() for job in jobs]
-    w = where.image_size[1]
-    shift = 2 * index % 360
-    left, right = texture[:, shift + 20:shift + 20 + w], texture[:, shift:shift + w]
-    return [np.ascontiguousarray(left), np.ascontiguousarray(right),
-            cv2.cvtColor(left, cv2.COLOR_RGB2GRAY), cv2.cvtColor(right, cv2.COLOR_RGB2GRAY)]
+    h, w = where.image_size
+    # A ground-plane-like scene seen by a camera moving sideways: the disparity grows from 5 px at the top
+    # row to 35 px at the bottom, and each row moves by 2 px per frame at 20 px of disparity.
+    disparity = np.round(5 + 30 * np.arange(h) / h).astype(int)
+    moved = np.round(index * 2 * disparity / 20).astype(int)
+    rows, columns = np.arange(h)[:, None], np.arange(w)[None, :]
+    left = texture[rows, moved[:, None] + columns]
+    right = texture[rows, (moved + disparity)[:, None] + columns]
+    return [left, right, cv2.cvtColor(left, cv2.COLOR_RGB2GRAY), cv2.cvtColor(right, cv2.COLOR_RGB2GRAY)]
 
 
 def untrained_run(method: str, preset: str, size: tuple[int, int]):  # -> TrainedRun
