@@ -13,6 +13,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
 import shutil
 import signal
 import threading
@@ -128,6 +129,9 @@ def test_vo_correct_writes_the_live_correctors_poses_with_their_states_and_the_p
         assert float(row["latency_ms"]) >= sum(float(row[f"{name}_ms"] or 0) for name in stages)
     summary = json.loads((tmp_path / "live.json").read_text())
     assert summary["states"] == {"start": 1, "forced": 5} and summary["source_frames"] == [0, FRAMES]
+    # The VO's rate printed is its pairs over its time, frame 0's included, as the CSV gives them.
+    rate = float(re.search(r"VO ([\d.]+) frames/s alone", printed)[1])
+    assert rate == pytest.approx((FRAMES - 1) / sum(1e-3 * float(row["vo_ms"]) for row in rows), rel=0.01)
     assert "states: forced 5, start 1" in printed and "vs ground truth, corrected: m-ATE" in printed
 
 

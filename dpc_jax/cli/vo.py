@@ -302,6 +302,7 @@ def _correct_live(
     # Per pair, for the VO's own summary and record; per frame, both trajectories for the evaluation.
     kept: dict[str, list[Any]] = {k: [] for k in ("relative", "inliers", "status", "times", "offset", "prior",
                                                    "corrected")}
+    first_s = [0.0]  # the VO's time on frame 0, which has no pair
     # The four images of a frame (colour for the network, grey decoded as `dpc-jax vo` decodes it, so that
     # the prior is its trajectory) are decoded two at a time.
     decoder = ThreadPoolExecutor(2)
@@ -327,15 +328,15 @@ def _correct_live(
         vo_s = time.perf_counter() - t
         if estimate is None:
             pose, columns = start, None
-            kept["times"].append(vo_s)  # counted with the first pair, as `dpc-jax vo` does
+            first_s[0] = vo_s  # counted with the first pair, as `dpc-jax vo` does
         else:
             pose = kept["prior"][-1] @ np.linalg.inv(estimate.relative)
             status = estimate.status.name.lower()
             columns = (estimate.inliers, status, vo.disparity_offset)
             for key, value in (("relative", estimate.relative), ("inliers", estimate.inliers),
-                               ("status", int(estimate.status)), ("offset", vo.disparity_offset)):
+                               ("status", int(estimate.status)), ("offset", vo.disparity_offset),
+                               ("times", vo_s + (0.0 if kept["times"] else first_s[0]))):
                 kept[key].append(value)
-            kept["times"].append(vo_s + (kept["times"].pop() if len(kept["times"]) == 1 else 0.0))
         frame = live(images[0], images[1], pose)
         kept["prior"].append(frame.prior)
         kept["corrected"].append(frame.pose)
