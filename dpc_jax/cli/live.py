@@ -173,9 +173,9 @@ def run_size_problem(run: Path, run_option: str, images: tuple[int, int], where:
 
 
 def corrector(args: argparse.Namespace, run: Path, calibration: Calibration, *,
-              first_pose: np.ndarray | None = None, disparity_offset: float = 0.0) -> LiveCorrector:
-    """The live corrector of the options (JAX imported; the network restored and compiled).
-    ``CheckpointError`` for a run that cannot be restored."""
+              disparity_offset: float = 0.0) -> LiveCorrector:
+    """The live corrector of the options (JAX imported; the network restored and compiled), its first
+    pose the prior's first. ``CheckpointError`` for a run that cannot be restored."""
     import logging
 
     from dpc_jax.correction.acceptance import DEFAULT_ALPHA
@@ -185,8 +185,7 @@ def corrector(args: argparse.Namespace, run: Path, calibration: Calibration, *,
     logging.getLogger("absl").setLevel(logging.ERROR)
     return LiveCorrector(run, calibration, select=args.select or "delta", rotation_only=args.rotation_only,
                          alpha=DEFAULT_ALPHA if args.alpha is None else args.alpha,
-                         mean_test=not args.no_mean_test, force=args.force, first_pose=first_pose,
-                         disparity_offset=disparity_offset)
+                         mean_test=not args.no_mean_test, force=args.force, disparity_offset=disparity_offset)
 
 
 # ------------------------------------------------------------------------------------ the live loop
