@@ -15,9 +15,11 @@ import pytest
 
 from dpc_jax.correction.acceptance import paired_test
 from dpc_jax.correction.decision import (
+    MEAN_WINDOW,
     applied_correction,
     component_mask,
     decide,
+    moving_mean,
     part_of,
     rotation_component,
 )
@@ -76,8 +78,9 @@ def test_a_wrong_mean_is_removed_and_the_per_step_part_kept() -> None:
     assert result.decision == "rotation" and result.remainder, result.reason
     assert not result.tests["mean of rotation"].passed and result.tests["rotation − mean"].passed
     applied = applied_correction(proposal, result)
-    np.testing.assert_allclose(applied, proposal - proposal.mean(axis=0), atol=1e-15)
+    np.testing.assert_allclose(applied, proposal - _moving_mean_loop(proposal, MEAN_WINDOW), atol=1e-15)
     np.testing.assert_allclose(result.mean, proposal.mean(axis=0), atol=1e-15)
+    assert result.window == MEAN_WINDOW
     # The applied steps leave the drift (the mean error of the corrected steps) at the prior's, where the
     # whole proposal had doubled it.
     prior_drift = np.linalg.norm(truth.mean(axis=0))
@@ -161,10 +164,30 @@ def test_each_candidate_is_measured_once_per_size() -> None:
     assert len(measure.asked) == len(set(measure.asked))  # type: ignore[attr-defined]
 
 
+def _moving_mean_loop(x: np.ndarray, window: int) -> np.ndarray:
+    """The reference: each row's mean over the rows within ⌊w/2⌋ before and ⌈w/2⌉ − 1 after it."""
+    out = np.empty_like(x, dtype=np.float64)
+    for k in range(x.shape[0]):
+        out[k] = x[max(0, k - window // 2):min(x.shape[0], k + window - window // 2)].mean(axis=0)
+    return out
+
+
+def test_the_moving_mean_is_a_windowed_average() -> None:
+    x = np.random.default_rng(0).normal(size=(130, 6))
+    for window in (1, 2, 7, 50, 400):
+        np.testing.assert_allclose(moving_mean(x, window), _moving_mean_loop(x, window), atol=1e-12)
+    np.testing.assert_allclose(moving_mean(x[:20], 50), np.broadcast_to(x[:20].mean(axis=0), (20, 6)),
+                               atol=1e-12)  # shorter than half the window: the sequence's own mean
+    np.testing.assert_allclose(moving_mean(x, 1), x, atol=1e-12)
+    with pytest.raises(ValueError, match="window"):
+        moving_mean(x, 0)
+
+
 def test_parts_and_records() -> None:
     xi = np.arange(24, dtype=np.float64).reshape(4, 6)
     np.testing.assert_array_equal(part_of(xi, "rotation_xz"), xi * [0, 0, 0, 1, 0, 1])
     np.testing.assert_allclose(part_of(xi, "full", remainder=True, scale=0.5), 0.5 * (xi - xi.mean(axis=0)))
+    np.testing.assert_allclose(part_of(xi, "full", remainder=True, window=1), np.zeros_like(xi))
     np.testing.assert_allclose(part_of(xi, "rotation", remainder=True, mean=np.ones(6)),
                                xi * component_mask("rotation") - 1.0)
     np.testing.assert_array_equal(component_mask("none"), np.zeros(6))

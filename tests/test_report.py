@@ -99,8 +99,9 @@ def test_acceptance_and_choice_markdown() -> None:
     assert lines[2] == "| full | 12 | -1.500e-03 | -2.000e-04 | 75.0 % | 10 | 0.0123 | yes |"
     assert "**Applied: full 6-DoF** (full: passed)." in lines
     without = Acceptance(0.05, {}, "rotation_xz", "r", scale=0.5, remainder=True,
-                         mean=(0, 0, 0, 1e-4, 0, -2e-4))
-    assert ("**Applied: rotation about x, z only, without its mean (+0.100, +0.000, -0.200 mrad per step), "
+                         mean=(0, 0, 0, 1e-4, 0, -2e-4), window=50)
+    assert ("**Applied: rotation about x, z only, without its mean over 50 pairs (on average +0.100, +0.000, "
+            "-0.200 mrad per step), "
             "×0.5**") in acceptance_markdown(without)
     assert decision_label(without).startswith("accepted (rotation about x, z only, without its mean")
     comparison = dataclasses.asdict(_test("adapted − trained", False))

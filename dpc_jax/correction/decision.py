@@ -7,15 +7,18 @@ No ground truth, no network: the tests of ``dpc_jax.correction.acceptance`` on w
 
 **Parts.** A *component* of ξ is which entries are applied: ``full`` (6-DoF), ``rotation`` (φ only)
 or ``rotation_<axes>`` (the rotation about some camera axes). Each is taken *whole* (``ξ ⊙ m``) or
-as its *remainder* ``ξ ⊙ m − mean(ξ ⊙ m)``: the per-step part with the correction's mean over the
-sequence removed. The two differ in what they do to a trajectory: composed over a sequence, a
-correction's mean turns and stretches the whole path (the drift), its remainder only the single
-steps. And the per-pair test hardly sees the mean: each pair's Δ is dominated by how well the
-correction fits that pair's own error, so a correction that fits the per-step noise well passes with
-any small mean it carries, right or wrong, and a wrong mean then raises the drift
-(``docs/method.md`` §8). So the mean is tested on its own, on the same pairs:
+as its *remainder* ``ξ ⊙ m − mean_W(ξ ⊙ m)``: the per-step part, with the correction's *mean* removed,
+its moving mean over :data:`MEAN_WINDOW` consecutive pairs (:func:`moving_mean`; over the whole
+sequence when it is shorter). The two differ in what they do to a trajectory: composed over a stretch
+of road, a correction's mean there turns and stretches the path (the drift the segment errors
+measure), its remainder only moves single steps. And the per-pair test hardly sees the mean: each
+pair's Δ is dominated by how well the correction fits that pair's own error, so a correction that fits
+the per-step noise well passes with any small mean it carries, right or wrong, and a wrong mean then
+raises the drift (``docs/method.md`` §8). So the mean is tested on its own, on the same pairs:
 ``Δ_i(whole) − Δ_i(remainder) = L_i(whole) − L_i(remainder)`` below zero says that adding the mean
-to the remainder explains the pairs better.
+to the remainder explains the pairs better. The mean is a moving one, not the sequence's: a network
+that is wrong about the mean is wrong about it locally as well (its error varies with the scene and
+the motion), and a remainder that kept those local means would still drift over 100 m.
 
 **Order.** For each component in ``components`` (``full`` then ``rotation``): the whole part is
 applied when its Δ passes *and* its mean passes; else the remainder when its Δ passes; else the next
@@ -46,6 +49,9 @@ from dpc_jax.results.acceptance import Acceptance, PairedTest
 
 COMPONENTS = ("full", "rotation")
 AXES = "xyz"  # camera axes: x right (pitch), y down (yaw), z forward (roll)
+# Pairs the mean of a correction is taken over: well under the shortest segment the segment errors
+# measure (100 m, about 100 frames at KITTI's speeds), so that a remainder drifts over none of them.
+MEAN_WINDOW = 50
 # The scales of a passed correction the judge compares.
 JUDGE_SCALES = (0.25, 0.5, 0.75, 1.0)
 
@@ -74,12 +80,13 @@ def component_mask(component: str) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Part:
-    """A part of a correction: a component, whole or its remainder (the mean over the pairs removed),
-    times a scale."""
+    """A part of a correction: a component, whole or its remainder (its moving mean over ``window``
+    pairs removed), times a scale."""
 
     component: str
     remainder: bool = False
     scale: float = 1.0
+    window: int = MEAN_WINDOW
 
     @property
     def name(self) -> str:
@@ -87,35 +94,52 @@ class Part:
             f" ×{self.scale:g}" if self.scale != 1.0 else "")
 
     def of(self, xi: np.ndarray) -> np.ndarray:
-        """This part of ``xi`` ``[M, 6]`` → ``[M, 6]`` float64 (the mean over all M pairs)."""
-        return part_of(xi, self.component, self.remainder, self.scale)
+        """This part of ``xi`` ``[M, 6]`` → ``[M, 6]`` float64."""
+        return part_of(xi, self.component, self.remainder, self.scale, window=self.window)
 
     def mean(self, xi: np.ndarray) -> np.ndarray:
-        """The mean ``[6]`` over the pairs of the component's entries of ``xi``."""
+        """The mean ``[6]`` over all the pairs of the component's entries of ``xi``."""
         return (np.asarray(xi, np.float64) * component_mask(self.component)).mean(axis=0)
 
 
+def moving_mean(x: np.ndarray, window: int = MEAN_WINDOW) -> np.ndarray:
+    """The centred moving mean ``[M, ...]`` of ``x`` ``[M, ...]`` over ``window`` consecutive rows: row k
+    the mean of rows ``[k − ⌊window/2⌋, k + ⌈window/2⌉)``, cut to the rows there are (at the ends and
+    in a sequence shorter than the window, the mean of fewer rows; the whole mean when ``M ≤
+    window/2``)."""
+    x = np.asarray(x, np.float64)
+    if window < 1:
+        raise ValueError(f"window must be >= 1, got {window}")
+    m = x.shape[0]
+    sums = np.concatenate([np.zeros((1, *x.shape[1:])), np.cumsum(x, axis=0)])
+    start = np.clip(np.arange(m) - window // 2, 0, m)
+    stop = np.clip(np.arange(m) + (window - window // 2), 0, m)
+    shape = (m,) + (1,) * (x.ndim - 1)
+    return (sums[stop] - sums[start]) / (stop - start).reshape(shape)
+
+
 def part_of(xi: np.ndarray, component: str, remainder: bool = False, scale: float = 1.0,
-            mean: np.ndarray | None = None) -> np.ndarray:
+            mean: np.ndarray | None = None, window: int = MEAN_WINDOW) -> np.ndarray:
     """``scale · (ξ ⊙ m − [mean])`` → ``[M, 6]`` float64, ``m`` the mask of ``component``.
 
-    ``xi``: ``[M, 6]`` corrections ``[ρ (m), φ (rad)]``; with ``remainder`` the mean of ``ξ ⊙ m``
-    over the M pairs is removed (``mean``: ``[6]`` to remove instead, e.g. a running mean).
-    The one implementation of "what is applied" (offline and live).
+    ``xi``: ``[M, 6]`` corrections ``[ρ (m), φ (rad)]``; with ``remainder`` the moving mean of
+    ``ξ ⊙ m`` over ``window`` pairs (:func:`moving_mean`) is removed, or ``mean`` (``[6]`` or
+    ``[M, 6]``) when given: the live corrector's mean of the pairs seen. The one implementation of
+    "what is applied" (offline and live).
     """
     xi = np.asarray(xi, np.float64)
     if xi.ndim != 2 or xi.shape[1] != 6:
         raise ValueError(f"xi must be [M, 6], got {xi.shape}")
     masked = xi * component_mask(component)
     if remainder:
-        masked = masked - (masked.mean(axis=0) if mean is None else np.asarray(mean, np.float64))
+        masked = masked - (moving_mean(masked, window) if mean is None else np.asarray(mean, np.float64))
     return scale * masked
 
 
 def applied_correction(xi: np.ndarray, acceptance: Acceptance) -> np.ndarray:
     """The correction ``[M, 6]`` that ``acceptance`` applies to the proposal ``xi`` (zeros for none)."""
-    mean = None if acceptance.mean is None else np.asarray(acceptance.mean)
-    return part_of(xi, acceptance.decision, acceptance.remainder, acceptance.scale, mean)
+    return part_of(xi, acceptance.decision, acceptance.remainder, acceptance.scale,
+                   window=acceptance.window or MEAN_WINDOW)
 
 
 class _Sized:
@@ -140,7 +164,7 @@ class _Sized:
 
     def passes(self, part: Part, mean_test: bool, said: list[str]) -> bool:
         """Whether ``part`` passes here: its Δ, and for a whole part with ``mean_test`` its mean."""
-        rest = Part(part.component, True, part.scale)
+        rest = Part(part.component, True, part.scale, part.window)
         whole = not part.remainder and mean_test
         self.ensure([part, rest] if whole else [part])
         test = self.test(part.name, self.delta[part.name])
@@ -161,6 +185,7 @@ def decide(
     tested: np.ndarray | None = None,
     judge: Measure | None = None,
     mean_test: bool = True,
+    window: int = MEAN_WINDOW,
     force: bool = False,
 ) -> Acceptance:
     """What to apply of ``xi`` ``[M, 6]`` (module docstring) → :class:`Acceptance`.
@@ -170,6 +195,7 @@ def decide(
     rotation-only run: ``("rotation",)``); ``tested``: the pairs the tests use (default all; after
     adaptation, the pairs it never saw; the mean is over all M pairs, as applied); ``judge``: the
     measurement at a larger size; ``mean_test``: test the mean apart (False: the earlier decision);
+    ``window``: the pairs the moving mean is taken over;
     ``force``: apply the first component whole whatever the tests say (they are still made and
     recorded).
     """
@@ -185,12 +211,12 @@ def decide(
     judged = None if judge is None else _Sized(judge, xi, " (judge)", chosen, alpha, tests)
     said: list[str] = []
     if force:
-        part = Part(components[0])
+        part = Part(components[0], window=window)
         network.passes(part, mean_test, said)
         return _record(alpha, tests, part, xi, network, f"forced ({'; '.join(said)})", forced=True)
     for component in components:
         for remainder in (False, True) if mean_test else (False,):
-            part = Part(component, remainder)
+            part = Part(component, remainder, window=window)
             if not network.passes(part, mean_test, said):
                 continue
             candidates = [part]
@@ -207,13 +233,13 @@ def decide(
 def _axes(network: _Sized, part: Part, mean_test: bool, said: list[str]) -> list[Part]:
     """The rotation about the axes whose part passes alone, when some but not all do and it passes
     itself (``[]`` otherwise)."""
-    singles = [Part(rotation_component(a), part.remainder) for a in AXES]
+    singles = [Part(rotation_component(a), part.remainder, window=part.window) for a in AXES]
     network.ensure(singles)
     passing = "".join(a for a, p in zip(AXES, singles, strict=True)
                       if network.test(p.name, network.delta[p.name]).passed)
     if passing in ("", AXES):
         return []
-    subset = Part(rotation_component(passing), part.remainder)
+    subset = Part(rotation_component(passing), part.remainder, window=part.window)
     said.append(f"alone, only the rotation about {', '.join(passing)} passes")
     return [subset] if network.passes(subset, mean_test, said) else []
 
@@ -222,13 +248,13 @@ def _scaled(alpha: float, tests: dict[str, PairedTest], part: Part, xi: np.ndarr
             said: list[str]) -> Acceptance:
     """``part``, passed at both sizes, at the scale of :data:`JUDGE_SCALES` with the lowest mean Δ at
     the judge when that scale passes there."""
-    scaled = [Part(part.component, part.remainder, s) for s in JUDGE_SCALES]
+    scaled = [Part(part.component, part.remainder, s, part.window) for s in JUDGE_SCALES]
     judged.ensure(scaled)
     means = {p.scale: float(judged.delta[p.name][judged.tested].mean()) for p in scaled}
     best = min(means, key=lambda s: means[s])
     said.append("mean Δ at the judge by scale: " + ", ".join(f"×{s:g} {m:.3g}" for s, m in means.items()))
     if best != 1.0:
-        candidate = Part(part.component, part.remainder, best)
+        candidate = Part(part.component, part.remainder, best, part.window)
         test = judged.test(candidate.name, judged.delta[candidate.name])
         if test.passed:
             said.append(f"applied ×{best:g} (p = {test.p_value:.3g})")
@@ -243,7 +269,8 @@ def _record(alpha: float, tests: dict[str, PairedTest], part: Part, xi: np.ndarr
     where.ensure([part])
     mean = tuple(float(v) for v in part.mean(xi)) if part.remainder else None
     return Acceptance(alpha, tests, part.component, reason, forced=forced, scale=part.scale,
-                      remainder=part.remainder, mean=mean, delta=where.delta[part.name])
+                      remainder=part.remainder, mean=mean, window=part.window if part.remainder else None,
+                      delta=where.delta[part.name])
 
 
 def refused(acceptance: Acceptance, why: str) -> Acceptance:

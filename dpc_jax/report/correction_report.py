@@ -26,8 +26,8 @@ def rotation_axes_words(component: str) -> str:
 
 def applied_words(acceptance: Acceptance, rotation_only: bool = False) -> str:
     """What an acceptance test let through, in words: ``none``, ``full 6-DoF``, ``rotation only``,
-    ``rotation about x, z only``, each with ``without its mean`` (the mean over the sequence removed,
-    in mm and mrad) and the judge's scale."""
+    ``rotation about x, z only``, each with ``without its mean`` (its moving mean removed; the overall
+    mean of what was removed in mm and mrad) and the judge's scale."""
     decision = acceptance.decision
     if decision == "none":
         return "none"
@@ -38,7 +38,8 @@ def applied_words(acceptance: Acceptance, rotation_only: bool = False) -> str:
         rotation = ", ".join(f"{1e3 * v:+.3f}" for v in mean[3:])
         translation = ("" if decision != "full"
                        else " mm, ".join(f"{1e3 * v:+.2f}" for v in mean[:3]) + " mm; ")
-        words += f", without its mean ({translation}{rotation} mrad per step)"
+        over = f" over {acceptance.window} pairs" if acceptance.window else ""
+        words += f", without its mean{over} (on average {translation}{rotation} mrad per step)"
     if acceptance.scale != 1.0:
         words += f", ×{acceptance.scale:g}"
     return words
@@ -66,9 +67,9 @@ def acceptance_markdown(acceptance: Acceptance) -> str:
         *lines, "",
         f"Δ = L(ξ_corr) − L(0) per frame pair: the gradient-masked photometric error of the temporal "
         f"reconstructions with the correction minus without it, same depth (negative: the correction "
-        f"explains the images better). \"X − mean\": the correction without its mean over the sequence; "
-        f"\"mean of X\": Δ(X) − Δ(X − mean), whether the mean helps. Test: one-sided Wilcoxon signed-rank "
-        f"at α = {acceptance.alpha:g}.",
+        f"explains the images better). \"X − mean\": the correction without its moving mean over "
+        f"consecutive pairs; \"mean of X\": Δ(X) − Δ(X − mean), whether the mean helps. Test: one-sided "
+        f"Wilcoxon signed-rank at α = {acceptance.alpha:g}.",
         "",
         f"**Applied: {applied}** ({acceptance.reason}).",
         "",

@@ -45,9 +45,11 @@ class Acceptance:
     """What the acceptance test let through (``dpc_jax.correction.decision.decide``).
 
     ``decision``: the component applied, ``full | rotation | rotation_<axes> | none``;
-    ``remainder``: True when the correction's mean over the sequence was removed (its per-step
-    remainder is applied; the mean failed its own test); ``scale``: the factor a judge chose (1
-    otherwise); ``mean``: ``[6]`` the mean removed (``[ρ (m), φ (rad)]``), None when none was;
+    ``remainder``: True when the correction's mean was removed (its per-step remainder is applied;
+    the mean failed its own test), the mean a moving one over ``window`` pairs
+    (``dpc_jax.correction.decision.moving_mean``); ``scale``: the factor a judge chose (1 otherwise);
+    ``mean``: ``[6]`` the overall mean of what was removed (``[ρ (m), φ (rad)]``), None when nothing
+    was;
     ``tests``: every test made, by name (e.g. ``rotation``, ``mean of rotation``,
     ``rotation − mean``, ``rotation_x``, ``rotation (judge)``); ``reason``: why, in words;
     ``forced``: applied whatever the tests said; ``delta``: Δ ``[M]`` of the applied correction on
@@ -63,6 +65,7 @@ class Acceptance:
     scale: float = 1.0
     remainder: bool = False
     mean: tuple[float, ...] | None = None
+    window: int | None = None
     delta: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     @property
@@ -87,6 +90,7 @@ class Acceptance:
             "scale": self.scale,
             "part": self.part,
             "mean": None if self.mean is None else list(self.mean),
+            "window": self.window,
             "reason": self.reason,
             "forced": self.forced,
             "tests": {name: test.to_dict() for name, test in self.tests.items()},
@@ -98,4 +102,4 @@ class Acceptance:
         mean = data["mean"]
         return cls(data["alpha"], {name: PairedTest.from_dict(t) for name, t in data["tests"].items()},
                    data["decision"], data["reason"], data["forced"], data["scale"], data["remainder"],
-                   None if mean is None else tuple(mean))
+                   None if mean is None else tuple(mean), data.get("window"))
