@@ -11,7 +11,8 @@ pose (:class:`LiveFrame`). Per frame:
    predicts ξ for the pair and the measurement gives Δ of its parts, through the same functions as
    ``dpc-jax correct`` (``dpc_jax.engine.predict``): the network was compiled for it before the first
    frame.
-3. The parts of ξ (the full correction and its rotation, each whole and without its running mean)
+3. The parts of ξ (the full correction and its rotation, each whole and without its running mean over
+   the last pairs, the rotation also about each camera axis alone)
    are tested sequentially on their Δ (``dpc_jax.correction.acceptance.SequentialTest``: a false
    acceptance stays below α however long it runs, and an accepted part is withdrawn when the evidence
    turns); the pair gets the largest part accepted, in the order of the offline decision
@@ -19,7 +20,7 @@ pose (:class:`LiveFrame`). Per frame:
 4. ``T_w_k = T_w_{k-1} · inv(Exp(ξ_applied) · T_vo_{k,k-1})``: a pose once returned is never changed.
 
 What is kept between frames is what the next frame needs: the previous prepared frame and poses, the
-tests' running statistics and the sum of the corrections (for the running mean); memory does not
+tests' running statistics and the corrections of the last pairs (for the running mean); memory does not
 grow with the frames.
 """
 
@@ -27,6 +28,7 @@ from __future__ import annotations
 
 import os
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -35,7 +37,15 @@ import numpy as np
 
 from dpc_jax.correction.acceptance import DEFAULT_ALPHA, SequentialTest
 from dpc_jax.correction.corrector import default_acceptance_depth
-from dpc_jax.correction.decision import COMPONENTS, Part, part_of
+from dpc_jax.correction.decision import (
+    AXES,
+    COMPONENTS,
+    MEAN_WINDOW,
+    Part,
+    component_mask,
+    part_of,
+    rotation_component,
+)
 from dpc_jax.correction.inference import TrainedRun, load_run
 from dpc_jax.data.preparation import as_rgb, prepared_pair, resized_intrinsics
 from dpc_jax.data.sequence_cache import (
@@ -146,7 +156,8 @@ class LiveCorrector:
         self._vo_config = vo
         self._vo: Any = None
         self._previous: _Previous | None = None
-        self._sum = np.zeros(6)
+        # The corrections of the last pairs: the running mean a remainder removes (its window as offline).
+        self._recent: deque[np.ndarray] = deque(maxlen=MEAN_WINDOW)
         self._pairs = 0
         self._loss = self.run.config.loss_config()
         self._flow = self.run.use_flow
@@ -160,7 +171,15 @@ class LiveCorrector:
             names.append(component)
             if self.mean_test:
                 names += [f"mean of {component}", f"{component} − mean"]
-        return names
+        return names + [part.name for part in self._singles()]
+
+    def _singles(self) -> list[Part]:
+        """The rotation about each camera axis alone, whole and without its mean: the axis split of the
+        offline decision (an accepted rotation is applied about the axes whose own test has accepted)."""
+        if "rotation" not in self.components:
+            return []
+        return [Part(rotation_component(a), remainder) for remainder in ((False, True) if self.mean_test
+                                                                          else (False,)) for a in AXES]
 
     def _compile(self) -> None:
         """Predict, measure and compose once on a blank pair, so that the first frame compiles nothing
@@ -218,12 +237,15 @@ class LiveCorrector:
         xi = np.asarray(self._model.xi_step(self.run.config.method)(self._model.leaves, batch), np.float64)[0]
         predicted = time.perf_counter()
         seconds["network"] = predicted - assembled
-        mean = (self._sum + xi) / (self._pairs + 1)
+        mean = np.mean([*self._recent, xi][-MEAN_WINDOW:], axis=0)
         parts = {}
         for component in self.components:
             parts[component] = part_of(xi[None], component)[0]
             if self.mean_test:
-                parts[f"{component} − mean"] = part_of(xi[None], component, True, mean=mean)[0]
+                parts[f"{component} − mean"] = self._remainder(xi, component, mean)
+        for single in self._singles():
+            parts[single.name] = (self._remainder(xi, single.component, mean) if single.remainder
+                                  else part_of(xi[None], single.component)[0])
         candidates = jnp.asarray(np.stack(list(parts.values()))[:, None], jnp.float32)
         if stereo is not None and not self.run.config.learn_ssim_weight:
             effects = effects_step(None, None, self._loss)(None, batch, candidates, None)
@@ -233,16 +255,28 @@ class LiveCorrector:
         seconds["measure"] = time.perf_counter() - predicted
         return xi, {name: float(delta[i]) for i, name in enumerate(parts)}
 
+    @staticmethod
+    def _remainder(xi: np.ndarray, component: str, mean: np.ndarray) -> np.ndarray:
+        """``component`` of ``xi`` ``[6]`` without the same entries of the running ``mean`` ``[6]``."""
+        return part_of(xi[None], component, True, mean=mean * component_mask(component))[0]
+
     def _part(self) -> Part | None:
-        """The largest part whose tests have accepted, in the offline decision's order."""
+        """The largest part whose tests have accepted, in the offline decision's order; an accepted
+        rotation about the axes whose own test has accepted, when some but not all have."""
         if self.force:
             return Part(self.components[0])
         for component in self.components:
             mean_accepted = not self.mean_test or self.tests[f"mean of {component}"].accepted
-            if self.tests[component].accepted and mean_accepted:
-                return Part(component)
-            if self.mean_test and self.tests[f"{component} − mean"].accepted:
-                return Part(component, remainder=True)
+            rest_accepted = self.mean_test and self.tests[f"{component} − mean"].accepted
+            for remainder, accepted in ((False, self.tests[component].accepted and mean_accepted),
+                                        (True, rest_accepted)):
+                if not accepted:
+                    continue
+                if component != "rotation":
+                    return Part(component, remainder)
+                axes = "".join(a for a in AXES
+                               if self.tests[Part(rotation_component(a), remainder).name].accepted)
+                return Part(rotation_component(axes) if axes else component, remainder)
         return None
 
     @property
@@ -295,11 +329,11 @@ class LiveCorrector:
         xi, delta = self._correction_of(window, seconds)
         events = self._update_tests(delta)
         part = self._part()
-        self._sum += xi
+        self._recent.append(xi)
         self._pairs += 1
-        mean = self._sum / self._pairs
-        applied = np.zeros(6) if part is None else part_of(xi[None], part.component, part.remainder,
-                                                            mean=mean if part.remainder else None)[0]
+        mean = np.mean(self._recent, axis=0)
+        applied = (np.zeros(6) if part is None else self._remainder(xi, part.component, mean)
+                   if part.remainder else part_of(xi[None], part.component)[0])
         current.pose, current.prior = self._compose(previous, prior_pose, applied)
         self._previous = current
         seconds["total"] = time.perf_counter() - began
@@ -338,6 +372,10 @@ class LiveCorrector:
                 change = self.tests[name].update(value)
                 if change is not None:
                     events.append(f"{name} {change}")
+        for single in self._singles():
+            change = self.tests[single.name].update(delta[single.name])
+            if change is not None:
+                events.append(f"{single.name} {change}")
         return tuple(events)
 
     def _compose(self, previous: _Previous, prior_pose: np.ndarray,
