@@ -134,10 +134,10 @@ def test_the_grid_names_its_training_sequences(study) -> None:
 def test_a_cell_measured_with_another_correction_is_measured_again(study, tmp_path: Path) -> None:
     """Not retrained: its record keeps the training."""
     grid, _ = study.load_study("cpu", quick=False)
-    assert grid.correction == {"rotation_only": True, "mean_test": True}
+    assert grid.correction == {"rotation_only": True, "mean_test": True, "mean_window": 50}
     path = tmp_path / "cell.json"
     assert study._done(path, grid) is None
-    path.write_text(json.dumps({"correction": {"rotation_only": True, "mean_test": True}, "train_s": 5.0}))
+    path.write_text(json.dumps({"correction": grid.correction, "train_s": 5.0}))
     assert study._done(path, grid) is True
     path.write_text(json.dumps({"rotation_only": True, "train_s": 5.0}))  # recorded before the mean test
     assert study._done(path, grid) == {"rotation_only": True, "train_s": 5.0}

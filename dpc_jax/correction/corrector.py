@@ -37,7 +37,7 @@ import numpy as np
 
 from dpc_jax._io import atomic_write
 from dpc_jax.correction.acceptance import DEFAULT_ALPHA, paired_test
-from dpc_jax.correction.decision import applied_correction, decide, refused
+from dpc_jax.correction.decision import MEAN_WINDOW, applied_correction, decide, refused
 from dpc_jax.correction.inference import TrainedRun, run_prediction
 from dpc_jax.correction.measure import judge_measurement, measurement
 from dpc_jax.data.poses_io import WRITE_FORMATS, write_kitti_poses, write_tum
@@ -76,6 +76,7 @@ def correct_cache(
     alpha: float = DEFAULT_ALPHA,
     force: bool = False,
     mean_test: bool = True,
+    window: int = MEAN_WINDOW,
     held_out: np.ndarray | None = None,
     judge: SequenceCache | str | os.PathLike | None = None,
     proposal: np.ndarray | None = None,
@@ -87,9 +88,9 @@ def correct_cache(
     ``rotation_only``: None = the run's ``config.rotation_only``; ``acceptance_depth``:
     ``network`` or ``sgbm`` (None = :func:`default_acceptance_depth`); ``alpha``: the tests' level;
     ``force``: apply the correction whatever the tests say; ``mean_test``: test the correction's
-    mean over the sequence on its own (``dpc_jax.correction.decision``; False: the earlier
-    decision); ``held_out``: the pairs ``k`` the tests use (default all; after adaptation, the pairs
-    it never saw). ``judge``: the same frames prepared at a larger size (a stereo run): what passes
+    mean (its moving mean over ``window`` pairs) on its own (``dpc_jax.correction.decision``; False:
+    the earlier decision); ``held_out``: the pairs ``k`` the tests use (default all; after adaptation,
+    the pairs it never saw). ``judge``: the same frames prepared at a larger size (a stereo run): what passes
     at the network's size must pass there too, with its StereoSGBM depth, and is applied at the
     scale its images support best. A run whose selection ``delta`` found no epoch better than "no
     correction" is never applied unless ``force``. ``proposal``: ``[N-1, 6]`` the run's corrections of
@@ -111,7 +112,8 @@ def correct_cache(
         xi, none, delta = np.asarray(proposal, np.float64), None, {}
     measure = measurement(run, cache, depth=depth, batch_size=batch_size, none=none, progress=progress)
     acceptance = decide(xi, measure, components=("rotation",) if rotation_only else ("full", "rotation"),
-                        alpha=alpha, tested=held_out, judge=judged, mean_test=mean_test, force=force)
+                        alpha=alpha, tested=held_out, judge=judged, mean_test=mean_test, window=window,
+                        force=force)
     if not (force or run.improves_on_prior):
         acceptance = refused(acceptance, "the run holds no epoch that lowered the validation Δ (selection "
                                          "delta, best_delta/)")

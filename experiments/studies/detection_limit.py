@@ -275,7 +275,7 @@ def measure_cell(study: Study, run_dir: Path, cache_root: Path) -> tuple[int, li
     tests = []
     for name in study.tests:
         final = correct_cache(run, cache_root / name, rotation_only=rotation_only,
-                              mean_test=study.correction["mean_test"])
+                              mean_test=study.correction["mean_test"], window=study.correction["mean_window"])
         earlier = correct_cache(run, cache_root / name, rotation_only=rotation_only, mean_test=False,
                                 proposal=final.xi_corr)
         gt = np.asarray(final.ground_truth, np.float64)
