@@ -20,7 +20,6 @@ import signal
 import sys
 import threading
 from pathlib import Path
-from typing import Literal
 
 from dpc_jax._io import nonempty_path
 
@@ -182,13 +181,6 @@ def import_jax(*, x64: bool = False) -> None:
             raise KeyboardInterrupt
     if x64:
         jax.config.update("jax_enable_x64", True)
-
-
-def progress_mode(no_progress: bool) -> bool | Literal["lines"]:
-    """The ``progress`` argument of the data writers: bars on a terminal, lines in a log."""
-    if no_progress:
-        return False
-    return True if sys.stderr.isatty() else "lines"
 
 
 def restore_problem(folder: Path, error: BaseException) -> str:

@@ -35,6 +35,7 @@ from dpc_jax.cli._common import (
 from dpc_jax.data.holdout import MIN_EVERY, adaptable_pairs, held_out_pairs
 from dpc_jax.report.correction_report import applied_words
 from dpc_jax.report.evaluation_report import REPORT_FILES as EVALUATION_FILES
+from dpc_jax.runtime.progress import progress_mode
 
 if TYPE_CHECKING:
     from dpc_jax.correction.adapt import Adaptation
@@ -528,7 +529,7 @@ def _sequence(
     )
     common = {"remove_static": args.remove_static, "mono_rescale": args.mono_rescale, "frames": args.frames,
               "prior_format": args.prior_format, "ground_truth": args.gt, "verify": args.verify,
-              "progress": False if args.no_progress else None}
+              "progress": progress_mode(args.no_progress)}
     cache = prepare_sequence(sequence, args.prior, cache_root, size=run_.image_size, flow=run_.use_flow,
                              **common)
     judge = None
@@ -552,7 +553,7 @@ def _correct(
     network's)."""
     from dpc_jax.correction.corrector import correct_sequence
 
-    show = sys.stderr.isatty() and not args.no_progress
+    show = progress_mode(args.no_progress)
     options = {"rotation_only": args.rotation_only, "batch_size": args.batch_size,
                "acceptance_depth": args.acceptance_depth, "alpha": args.alpha, "force": args.force,
                "mean_test": not args.no_mean_test, "judge": judge}

@@ -16,6 +16,7 @@ from dpc_jax.cli._common import (
     restore_problem,
 )
 from dpc_jax.report.tables import EMPTY
+from dpc_jax.runtime.progress import progress_mode
 
 HELP = "Synthetic end-to-end demo: train Stereo DPC on rendered sequences, correct our VO, write a report."
 # Restart with huge-page malloc (dpc_jax.runtime.hugepages): the demo's time goes to training.
@@ -84,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
     from dpc_jax.pipelines.synthetic_demo import DemoError, run_demo
     from dpc_jax.training.checkpoints import CheckpointError
 
-    progress = not args.no_progress and sys.stderr.isatty()
+    progress = progress_mode(args.no_progress)
     # orbax logs a warning for every read-only checkpoint directory it opens when restoring the run.
     logging.getLogger("absl").setLevel(logging.ERROR)
     try:

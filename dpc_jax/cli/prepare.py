@@ -20,9 +20,9 @@ from dpc_jax.cli._common import (
     offset_problem,
     path_option,
     path_text,
-    progress_mode,
     size_problem,
 )
+from dpc_jax.runtime.progress import progress_mode
 
 if TYPE_CHECKING:
     from dpc_jax.data.kitti import StereoSequence

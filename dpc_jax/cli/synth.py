@@ -12,9 +12,9 @@ from dpc_jax.cli._common import (
     image_size,
     import_jax,
     path_option,
-    progress_mode,
     size_problem,
 )
+from dpc_jax.runtime.progress import progress_mode
 
 HELP = "Render synthetic stereo driving sequences (KITTI odometry layout, exact depth and poses)."
 # Restart with huge-page malloc (dpc_jax.runtime.hugepages): rendering is about a sixth faster.

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 
 from dpc_jax._io import foreign_folder_problem, output_problem, overlap_problem
 from dpc_jax.cli._common import Formatter, import_jax, path_option, restore_problem
+from dpc_jax.runtime.progress import progress_mode
 
 if TYPE_CHECKING:
     from dpc_jax.data.sequence_cache import SequenceCache
@@ -129,7 +130,7 @@ def _train(args: argparse.Namespace, config: TrainConfig) -> int:
             config,
             args.workdir,
             resume=args.resume,
-            progress=False if args.no_progress else None,
+            progress=progress_mode(args.no_progress),
             distributed=distributed,
             workers=args.workers,
         )

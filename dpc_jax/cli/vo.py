@@ -23,6 +23,7 @@ from dpc_jax.cli._common import (
     restore_problem,
 )
 from dpc_jax.cli.live import add_correction_arguments, correction_problem, run_size_problem
+from dpc_jax.runtime.progress import progress_mode
 
 HELP = ("Classical stereo visual odometry (libviso2-s-like): write the trajectory and a per-frame CSV; "
         "with --correct RUN, each pose corrected live by a trained network as it is made.")
@@ -209,8 +210,7 @@ def run(args: argparse.Namespace) -> int:
                              prior_json)
     first_pose = sequence.poses[0] if args.start == "gt" else None
     try:
-        progress = not args.no_progress and sys.stderr.isatty()
-        result = run_vo(sequence, config, first_pose=first_pose, progress=progress)
+        result = run_vo(sequence, config, first_pose=first_pose, progress=progress_mode(args.no_progress))
     except (OSError, ValueError) as error:
         print(f"dpc-jax vo: error: {sequence.name}: {error}", file=sys.stderr)
         return 1

@@ -55,6 +55,7 @@ from dpc_jax.pipelines.demo_config import DemoConfig
 from dpc_jax.report.demo_report import decision_label, write_demo_report
 from dpc_jax.report.tables import change_pct
 from dpc_jax.results.demo import SUMMARY, DemoSummary
+from dpc_jax.runtime.progress import Progress, progress_bar
 
 if TYPE_CHECKING:
     from dpc_jax.correction.adapt import Adaptation
@@ -75,10 +76,8 @@ class DemoError(ValueError):
 ProgressFn = Callable[[str], None]
 
 
-def _render(config: DemoConfig, data_root: Path, name: str, progress: bool) -> bool:
+def _render(config: DemoConfig, data_root: Path, name: str, progress: Progress) -> bool:
     """Render sequence ``name`` unless an identical one is there; whether it rendered."""
-    from tqdm.auto import tqdm
-
     from dpc_jax.synth import write_sequence
 
     synth = config.synth_config(name)
@@ -87,8 +86,7 @@ def _render(config: DemoConfig, data_root: Path, name: str, progress: bool) -> b
         stored = json.loads(record.read_text()).get("config")
         if stored == config_lib.to_dict(synth):
             return False
-    with tqdm(total=synth.frames, unit="frame", desc=f"render {name}", disable=not progress,
-              leave=False) as bar:
+    with progress_bar(synth.frames, f"render {name}", progress) as bar:
         write_sequence(data_root, name, synth, overwrite=True, on_frame=lambda: bar.update(1))
     return True
 
@@ -106,7 +104,7 @@ def prior_error(gt: np.ndarray, prior: np.ndarray, focal_px: float | None = None
 
 
 def _vo_prior(config: DemoConfig, name: str, sequence: StereoSequence, first_pose: np.ndarray, vo_dir: Path,
-              progress: bool) -> tuple[dict[str, Any], float]:
+              progress: Progress) -> tuple[dict[str, Any], float]:
     """Sequence ``name``'s VO prior (refused if it is not VO) and the disparity offset our VO measures."""
     from dpc_jax.vo import VOConfig
     from dpc_jax.vo.prior import write_vo_prior
@@ -134,7 +132,7 @@ class _Prepared:
 
 
 def _prepare_sequences(config: DemoConfig, out: Path, size: tuple[int, int], seconds: dict[str, float],
-                       progress: bool, say: ProgressFn) -> _Prepared:
+                       progress: Progress, say: ProgressFn) -> _Prepared:
     """Render every sequence, run its VO prior and calibration, and prepare its cache, one sequence at a
     time."""
     from dpc_jax.data.cache import prepare_sequence
@@ -168,7 +166,7 @@ def _prepare_sequences(config: DemoConfig, out: Path, size: tuple[int, int], sec
     return _Prepared(records, lengths)
 
 
-def _train(train_config: TrainConfig, run_dir: Path, seconds: dict[str, float], progress: bool,
+def _train(train_config: TrainConfig, run_dir: Path, seconds: dict[str, float], progress: Progress,
            say: ProgressFn) -> dict[str, Any]:
     """Train the network in ``run_dir`` (resuming an interrupted run, restoring a finished one)."""
     from dpc_jax.training.loop import train
@@ -193,7 +191,7 @@ class _TestCorrections:
     result: Correction
 
 
-def _correct_test(config: DemoConfig, out: Path, seconds: dict[str, float], progress: bool,
+def _correct_test(config: DemoConfig, out: Path, seconds: dict[str, float], progress: Progress,
                   say: ProgressFn) -> _TestCorrections:
     """Correct the test sequence with the network as trained and, unless ``adapt_steps`` is 0, adapted to
     it; choose the final correction and write it to ``corrected.txt``."""
@@ -300,7 +298,7 @@ def _write_results(out: Path, config: DemoConfig, train_config: TrainConfig, eva
     return summary
 
 
-def run_demo(config: DemoConfig, out: str | os.PathLike, progress: bool = False,
+def run_demo(config: DemoConfig, out: str | os.PathLike, progress: Progress = False,
              log: ProgressFn | None = None) -> DemoSummary:
     """Run the demo into ``out`` (see the module docstring); return its summary (also ``OUT/summary.json``:
     :class:`dpc_jax.results.demo.DemoSummary`), which holds per sequence the prior's error composition;

@@ -56,6 +56,14 @@ class LineProgress:
         self.close()
 
 
+def progress_mode(no_progress: bool = False) -> Progress:
+    """The one progress policy of the command line: nothing with ``--no-progress``, else a bar on a
+    terminal and a line every few seconds in a log (stderr redirected to a file or a pipe)."""
+    if no_progress:
+        return False
+    return True if sys.stderr.isatty() else "lines"
+
+
 def progress_bar(total: int, desc: str, progress: Progress, unit: str = "frame") -> Any:
     """A tqdm bar, a :class:`LineProgress` or a disabled bar, by ``progress`` (module docstring)."""
     if progress == "lines":

@@ -171,7 +171,7 @@ class _Run:
     schedule: optax.Schedule
     checkpoints: Checkpoints
     log: MetricsLog
-    progress: bool
+    progress: Progress
     is_main: bool
 
 
@@ -199,7 +199,7 @@ def _open_run(
 
 
 def _start_run(
-    config: TrainConfig, workdir: Path, data: TrainData, mesh: Mesh, has_run: bool, progress: bool
+    config: TrainConfig, workdir: Path, data: TrainData, mesh: Mesh, has_run: bool, progress: Progress
 ) -> tuple[_Run, nnx.State, dict[str, Any] | None]:
     """Build the model, optimizer and train state, restore the newest epoch checkpoint of a run being
     resumed (else record the new run's config and split), make the schedule and the train step and
@@ -272,7 +272,7 @@ def train(
     workdir: str | os.PathLike,
     resume: bool = False,
     *,
-    progress: bool | None = None,
+    progress: Progress = None,
     distributed: dict[str, Any] | None = None,
     workers: int = 2,
 ) -> dict[str, Any]:
@@ -286,7 +286,8 @@ def train(
 
     ``resume=True`` continues from the newest epoch checkpoint (same config required); an
     interrupted epoch is redone from its start with the same data order and dropout keys.
-    ``progress``: tqdm bars (default: when stderr is a terminal). ``distributed``: keyword
+    ``progress``: bars, ``"lines"`` for a line every few seconds (``dpc_jax.runtime.progress``), or
+    None: bars when stderr is a terminal. ``distributed``: keyword
     arguments of ``jax.distributed.initialize`` when ``config.distributed``.
 
     Errors before any compute: ``ConfigError`` for a bad split, missing cache, wrong image size,

@@ -28,9 +28,9 @@ from dataclasses import dataclass, field
 from typing import TypedDict
 
 import numpy as np
-from tqdm import tqdm
 
 from dpc_jax.data.kitti import StereoSequence, load_image
+from dpc_jax.runtime.progress import Progress, progress_bar
 from dpc_jax.vo.features import detect_bucketed, track
 from dpc_jax.vo.motion import camera_pixels, estimate_motion
 from dpc_jax.vo.stereo import match_stereo, triangulate
@@ -256,7 +256,7 @@ def run_vo_frames(
     *,
     first_pose: np.ndarray | None = None,
     total: int | None = None,
-    progress: bool = False,
+    progress: Progress = False,
 ) -> VOResult:
     """Run :class:`StereoVO` over an iterable of grey ``(left, right)`` pairs.
 
@@ -265,26 +265,28 @@ def run_vo_frames(
       K, baseline: intrinsics (pixels) and baseline (metres).
       first_pose: ``[4, 4]`` camera-to-world pose of frame 0 (identity when ``None``).
       total: number of frames, for the progress bar only.
-      progress: show a tqdm bar.
+      progress: a bar, or lines in a log (``dpc_jax.runtime.progress``).
     """
     vo = StereoVO(K, baseline, config)
     start = np.eye(4) if first_pose is None else np.asarray(first_pose, np.float64)
     poses, relative, inliers, status, times, offsets = [start], [], [], [], [], []
     pending = 0.0
-    for left, right in tqdm(frames, total=total, disable=not progress, unit="frame", desc="vo"):
-        t = time.perf_counter()
-        estimate = vo.process(left, right)
-        elapsed = time.perf_counter() - t
-        if estimate is None:
-            pending += elapsed
-            continue
-        relative.append(estimate.relative)
-        poses.append(poses[-1] @ np.linalg.inv(estimate.relative))
-        inliers.append(estimate.inliers)
-        status.append(int(estimate.status))
-        times.append(elapsed + pending)
-        offsets.append(vo.disparity_offset)
-        pending = 0.0
+    with progress_bar(total or 0, "vo", progress) as bar:
+        for left, right in frames:
+            t = time.perf_counter()
+            estimate = vo.process(left, right)
+            elapsed = time.perf_counter() - t
+            bar.update(1)
+            if estimate is None:
+                pending += elapsed
+                continue
+            relative.append(estimate.relative)
+            poses.append(poses[-1] @ np.linalg.inv(estimate.relative))
+            inliers.append(estimate.inliers)
+            status.append(int(estimate.status))
+            times.append(elapsed + pending)
+            offsets.append(vo.disparity_offset)
+            pending = 0.0
     if not relative:
         raise ValueError("stereo VO needs at least two frames")
     return VOResult(
@@ -316,7 +318,7 @@ def run_vo(
     config: VOConfig | None = None,
     *,
     first_pose: np.ndarray | None = None,
-    progress: bool = False,
+    progress: Progress = False,
 ) -> VOResult:
     """Stereo VO over a sequence opened with :func:`dpc_jax.data.kitti.open_odometry` / ``open_raw``.
 

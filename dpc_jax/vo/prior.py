@@ -21,6 +21,7 @@ import numpy as np
 from dpc_jax._io import atomic_write
 from dpc_jax.data.kitti import StereoSequence
 from dpc_jax.data.poses_io import write_kitti_poses
+from dpc_jax.runtime.progress import Progress
 from dpc_jax.vo.odometry import VOConfig, run_vo, summary
 
 # Bump when the VO's output changes for the same inputs, so stored priors are recomputed.
@@ -33,7 +34,7 @@ def write_vo_prior(
     config: VOConfig | None = None,
     *,
     first_pose: np.ndarray | None = None,
-    progress: bool = False,
+    progress: Progress = False,
 ) -> dict[str, Any]:
     """Our VO over ``sequence`` (from ``first_pose``, identity by default) as KITTI poses at ``path``
     and its record ``path`` with suffix ``.json``; reused when current. Returns the record's
