@@ -14,7 +14,7 @@ import pytest
 
 from dpc_jax.experiments import script
 from dpc_jax.experiments.records import Records
-from dpc_jax.pipelines.protocol import WORKDIR_MARKER
+from dpc_jax.pipelines.protocol import WORKDIR_MARKER, claim_workdir
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -118,16 +118,25 @@ def test_a_demo_config_at_a_seed_merges_its_training(tmp_path: Path) -> None:
     assert config.training == {"epochs": 1, "batch_size": 4}
     source, target = tmp_path / "a", tmp_path / "b"
     (source / "data").mkdir(parents=True)
-    (target / "vo").mkdir(parents=True)
     (source / "vo").mkdir()
     share(source, target, ("data", "vo", "cache"))
-    assert (target / "data").is_symlink() and not (target / "vo").is_symlink()
+    assert (target / "data").is_symlink() and (target / "vo").is_symlink()
     assert not (target / "cache").exists()  # nothing to share
+    assert claim_workdir(target) == target  # the script of the second run takes the folder
+    (target / "vo").unlink()
+    (target / "vo").mkdir()
+    share(source, target, ("vo",))
+    assert not (target / "vo").is_symlink()  # a folder of its own is kept
 
 
 def test_a_finished_protocol_run_is_read_not_run_again(tmp_path: Path, capsys) -> None:
-    from dpc_jax.experiments.folds import Context, Plan, finished_protocol, run_protocol
-    from dpc_jax.pipelines.protocol import add_common_arguments
+    from dpc_jax.experiments.folds import (
+        Context,
+        Plan,
+        add_protocol_arguments,
+        finished_protocol,
+        run_protocol,
+    )
 
     config = ROOT / "experiments" / "protocols" / "configs" / "kitti_stereo_dpc.py"
     planned: list[Context] = []
@@ -138,7 +147,7 @@ def test_a_finished_protocol_run_is_read_not_run_again(tmp_path: Path, capsys) -
         return Plan([], "No folds", "Nothing ran.")
 
     parser = script.new_parser("a protocol")
-    add_common_arguments(parser, config)
+    add_protocol_arguments(parser, config)
     said: list[str] = []
     for _ in range(2):
         results = finished_protocol("p.py", parser, plan, tmp_path / "w", ["--smoke"], {"v": 1}, said.append)

@@ -159,3 +159,16 @@ def test_table_reports_do_not_import_matplotlib() -> None:
     code = "import sys, dpc_jax.report.evaluation_report; print('matplotlib' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.split() == ["False"]
+
+
+def test_the_demo_summary_names_the_network_its_final_holds() -> None:
+    from dpc_jax.results.demo import DemoSummary
+
+    def summary(final: str, networks: tuple[str, ...]) -> DemoSummary:
+        return DemoSummary({}, {}, {n: Acceptance(0.01) for n in networks}, final, None, {}, False, 1,
+                           "delta", 2, {}, {}, {}, [], {})
+
+    # Read back from summary.json the networks come sorted: the last tried is still the adapted one.
+    assert summary("prior", ("adapted", "trained")).final_network == "adapted"
+    assert summary("trained", ("trained", "adapted")).final_network == "trained"
+    assert summary("prior", ("trained",)).final_network == "trained"

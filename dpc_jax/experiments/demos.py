@@ -11,6 +11,7 @@ from typing import Any
 from dpc_jax import config as config_lib
 from dpc_jax.experiments.records import as_json
 from dpc_jax.pipelines.demo_config import DemoConfig
+from dpc_jax.pipelines.protocol import claim_workdir
 from dpc_jax.results.demo import SUMMARY, DemoSummary
 
 
@@ -39,8 +40,10 @@ def finished_demo(config: DemoConfig, out: Path, say: Callable[[str], None], pro
 
 def share(source: Path, target: Path, names: Sequence[str]) -> None:
     """Link ``target/NAME`` to ``source/NAME`` for each folder ``source/NAME`` that ``target`` lacks, so a
-    second run reads (and reuses) the first one's inputs instead of making them again."""
-    target.mkdir(parents=True, exist_ok=True)
+    second run reads (and reuses) the first one's inputs instead of making them again. ``target`` is
+    claimed first (``dpc_jax.pipelines.protocol.claim_workdir``): the run that writes into it then finds
+    a work folder an experiment script made, not a folder of someone's files."""
+    claim_workdir(target)
     for name in names:
         if (source / name).is_dir() and not os.path.lexists(target / name):
             (target / name).symlink_to(os.path.relpath(source / name, target), target_is_directory=True)

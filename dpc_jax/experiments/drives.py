@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from dpc_jax.experiments.folds import Context, FoldRun, Plan, Tables, Test
+from dpc_jax.experiments.folds import Context, FoldRun, Plan, Tables, Test, add_protocol_arguments
 from dpc_jax.experiments.script import DATA, new_parser
 from dpc_jax.pipelines import protocol as P
 from dpc_jax.report.tables import EMPTY, csv_text, number, table
@@ -35,7 +35,7 @@ def build_parser(doc: str | None, config: Path) -> argparse.ArgumentParser:
                         help="raw root holding DATE/ and libviso2/")
     parser.add_argument("--test-drives", nargs="+", metavar="NNNN",
                         help="only these test drives (default: both; e.g. two work folders run side by side)")
-    P.add_common_arguments(parser, config)
+    add_protocol_arguments(parser, config)
     return parser
 
 

@@ -1,9 +1,9 @@
 """The runner of the protocol scripts (``experiments/protocols/``): load the config, let the script plan and
 prepare its folds, train each fold's network, correct and evaluate its test sequences, write the table.
 
-A script gives :func:`run_protocol` its parser (with ``dpc_jax.pipelines.protocol.add_common_arguments``)
-and its ``plan``: from the :class:`Context` (options, training config, protocol), check the inputs, claim
-the work folder (:meth:`Context.claim`), prepare the caches and return the :class:`Plan`. Everything lands
+A script gives :func:`run_protocol` its parser (with :func:`add_protocol_arguments`) and its ``plan``:
+from the :class:`Context` (options, training config, protocol), check the inputs, claim the work folder
+(:meth:`Context.claim`), prepare the caches and return the :class:`Plan`. Everything lands
 under the work folder (``dpc_jax.pipelines.protocol``'s layout) with ``results.md``, ``results.csv`` and
 ``results.json`` (:class:`dpc_jax.results.fold.FoldResult`); a rerun resumes every training.
 """
@@ -11,6 +11,7 @@ under the work folder (``dpc_jax.pipelines.protocol``'s layout) with ``results.m
 from __future__ import annotations
 
 import argparse
+import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,7 +19,15 @@ from typing import Any
 
 from dpc_jax._io import atomic_write
 from dpc_jax.experiments.records import Records
-from dpc_jax.experiments.script import Clock, claim, progress_flag, publish, refuse
+from dpc_jax.experiments.script import (
+    Clock,
+    add_no_progress,
+    add_results_page,
+    claim,
+    progress_flag,
+    publish,
+    refuse,
+)
 from dpc_jax.pipelines.protocol import (
     SMOKE,
     ExperimentProtocol,
@@ -26,7 +35,8 @@ from dpc_jax.pipelines.protocol import (
     Named,
     correct_and_evaluate,
     load_protocol,
-    overrides_from,
+    parse_overrides,
+    path_argument,
     train_fold,
 )
 from dpc_jax.report.protocol_report import results_csv, results_markdown
@@ -94,6 +104,25 @@ class Context:
         claim(self.workdir, [*inputs, ("--config", self.args.config)], page=self.args.results_page)
 
 
+def add_protocol_arguments(parser: argparse.ArgumentParser, config: Path) -> None:
+    """The options every protocol has: work folder, config (default ``config``), epoch selection, training
+    overrides, smoke, progress, results page."""
+    from dpc_jax.training.train_config import SELECTIONS
+
+    parser.add_argument("--workdir", required=True, type=path_argument, metavar="DIR",
+                        help="everything goes here (made by the script, or one it made before)")
+    parser.add_argument("--config", type=path_argument, default=config, metavar="FILE",
+                        help="experiment config")
+    parser.add_argument("--select", choices=tuple(SELECTIONS),
+                        help="epoch selection (default: the protocol's)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a TrainConfig field (JSON value), e.g. --set epochs=2")
+    parser.add_argument("--smoke", action="store_true",
+                        help=f"wiring check: {', '.join(f'{k}={v}' for k, v in SMOKE.items())}")
+    add_no_progress(parser)
+    add_results_page(parser)
+
+
 def run_protocol(script: str | Path, parser: argparse.ArgumentParser, plan: Callable[[Context], Plan],
                  argv: Sequence[str] | None = None) -> int:
     """Run a protocol script (module docstring): exit status 0, or 2 with one line for bad input or a
@@ -101,10 +130,14 @@ def run_protocol(script: str | Path, parser: argparse.ArgumentParser, plan: Call
     args = parser.parse_args(argv)
     name = Path(script).stem
     clock = Clock()
+    # Orbax warns once per read-only checkpoint manager when a run is restored for correction.
+    logging.getLogger("absl").setLevel(logging.ERROR)
     try:
         base, protocol = load_protocol(args.config)
         claim(None, page=args.results_page)
-        context = Context(args, base, protocol, overrides_from(args), args.select or protocol.select,
+        # --smoke's settings, then the --set overrides on top.
+        overrides = {**(SMOKE if args.smoke else {}), **parse_overrides(args.set)}
+        context = Context(args, base, protocol, overrides, args.select or protocol.select,
                           progress_flag(args.no_progress))
         planned = plan(context)
         results = []

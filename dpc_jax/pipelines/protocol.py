@@ -30,7 +30,6 @@ from __future__ import annotations
 import argparse
 import io
 import json
-import logging
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -444,32 +443,6 @@ def claim_workdir(
         atomic_write(folder / WORKDIR_MARKER, "a work folder of dpc_jax's experiment scripts (experiments/); "
                      "they write into it and resume from it\n")
     return folder
-
-
-def add_common_arguments(parser: Any, config: Path) -> None:
-    """Options every entry point has: work folder, config, epoch selection, overrides, smoke, progress."""
-    from dpc_jax.training.train_config import SELECTIONS
-
-    parser.add_argument("--workdir", required=True, type=path_argument, metavar="DIR",
-                        help="everything goes here (made by the script, or one it made before)")
-    parser.add_argument("--config", type=path_argument, default=config, metavar="FILE",
-                        help="experiment config")
-    parser.add_argument("--select", choices=tuple(SELECTIONS),
-                        help="epoch selection (default: the protocol's)")
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a TrainConfig field (JSON value), e.g. --set epochs=2")
-    parser.add_argument("--smoke", action="store_true",
-                        help=f"wiring check: {', '.join(f'{k}={v}' for k, v in SMOKE.items())}")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
-    parser.add_argument("--results-page", type=path_argument, metavar="FILE",
-                        help="also write the table into the results block of FILE (a docs/results/ page)")
-
-
-def overrides_from(args: Any) -> dict[str, Any]:
-    """``--smoke`` settings, then the ``--set`` overrides on top."""
-    # Orbax warns once per read-only checkpoint manager when a run is restored for correction.
-    logging.getLogger("absl").setLevel(logging.ERROR)
-    return {**(SMOKE if args.smoke else {}), **parse_overrides(args.set)}
 
 
 def prior_source(priors: str, directory_kind: str, sequence: Any, workdir: Path, progress: bool) -> Path:

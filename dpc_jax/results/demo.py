@@ -54,8 +54,10 @@ class DemoSummary:
     @property
     def final_network(self) -> str:
         """The network whose correction the final trajectory holds; when it holds the prior, the last
-        network tried."""
-        return self.final if self.final in self.acceptance else list(self.acceptance)[-1]
+        network tried (the adapted one when the demo adapted)."""
+        if self.final in self.acceptance:
+            return self.final
+        return "adapted" if "adapted" in self.acceptance else "trained"
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {

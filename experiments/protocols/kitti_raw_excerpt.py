@@ -10,7 +10,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from dpc_jax.experiments.folds import Context, FoldRun, Plan, Test, run_protocol
+from dpc_jax.experiments.folds import Context, FoldRun, Plan, Test, add_protocol_arguments, run_protocol
 from dpc_jax.experiments.script import DATA, new_parser
 from dpc_jax.pipelines import protocol as P
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
@@ -22,7 +22,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = new_parser(__doc__)
     parser.add_argument("--kitti-raw", type=P.path_argument, default=DATA / "kitti-raw", metavar="ROOT",
                         help="raw root holding DATE/ and libviso2/")
-    P.add_common_arguments(parser, CONFIG)
+    add_protocol_arguments(parser, CONFIG)
     return parser
 
 

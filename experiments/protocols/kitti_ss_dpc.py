@@ -12,7 +12,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from dpc_jax.data.splits import training_names
-from dpc_jax.experiments.folds import Context, FoldRun, Plan, Test, run_protocol
+from dpc_jax.experiments.folds import Context, FoldRun, Plan, Test, add_protocol_arguments, run_protocol
 from dpc_jax.experiments.script import new_parser
 from dpc_jax.pipelines import protocol as P
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
@@ -32,7 +32,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--sequences", nargs="+", metavar="XX",
                         help="odometry sequences available (default: the config's 00 02 05-10); training "
                         "uses those of them that are not the fold's validation or test sequences")
-    P.add_common_arguments(parser, CONFIG)
+    add_protocol_arguments(parser, CONFIG)
     return parser
 
 

@@ -12,7 +12,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from dpc_jax.data.splits import training_names
-from dpc_jax.experiments.folds import Context, FoldRun, Plan, Test, run_protocol
+from dpc_jax.experiments.folds import Context, FoldRun, Plan, Test, add_protocol_arguments, run_protocol
 from dpc_jax.experiments.script import new_parser
 from dpc_jax.pipelines import protocol as P
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
@@ -33,7 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="raw root for extra training drives")
     parser.add_argument("--raw-drive", nargs="+", default=[], metavar="DATE_drive_NNNN",
                         help="extra training drives, e.g. 2011_09_26_drive_0001 (priors from --priors)")
-    P.add_common_arguments(parser, CONFIG)
+    add_protocol_arguments(parser, CONFIG)
     return parser
 
 

@@ -47,7 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="output folder (priors/vo.txt is reused: kitti_raw_excerpt.py's work folder)")
     parser.add_argument("--kitti-raw", type=path_argument, default=kit.DATA / "kitti-raw", metavar="ROOT",
                         help="raw root holding DATE/ and libviso2/")
-    parser.add_argument("--no-progress", action="store_true", help="no progress line on stderr")
+    kit.add_no_progress(parser)
     kit.add_results_page(parser)
     return parser
 

@@ -40,7 +40,7 @@ from dpc_jax.experiments import script as kit
 from dpc_jax.experiments.baselines import linear_baselines
 from dpc_jax.pipelines.protocol import path_argument
 from dpc_jax.report.pages import write_results
-from dpc_jax.report.tables import table
+from dpc_jax.report.tables import number, table
 from dpc_jax.results.demo import SUMMARY, DemoSummary
 
 CONFIG = runpy.run_path(str(Path(__file__).resolve().parent / "configs" / "linear_baseline.py"))
@@ -90,7 +90,7 @@ def demo_table(out: Path) -> str:
         if key in summary.test:
             rows[f"{label}; acceptance test: {summary.decisions.get(key, '')}"] = summary.test[key]
     return table(["test sequence", *TITLES],
-                 ([label, *(f"{v[k]:.3f}" for k in KEYS)] for label, v in rows.items()))
+                 ([label, *(number(v[k], ".3f") for k in KEYS)] for label, v in rows.items()))
 
 
 def load(data: Path, kind: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
