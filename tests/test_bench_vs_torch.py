@@ -15,9 +15,6 @@ SCRIPT = ROOT / "benchmarks" / "bench_vs_torch.py"
 
 
 def _module():
-    # As when run as a script: its folder is on the path (it imports benchmarks/machine.py).
-    if str(SCRIPT.parent) not in sys.path:
-        sys.path.insert(0, str(SCRIPT.parent))
     spec = importlib.util.spec_from_file_location("bench_vs_torch", SCRIPT)
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module  # its dataclass looks its module up there

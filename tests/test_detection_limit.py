@@ -18,7 +18,11 @@ SCRIPT = Path(__file__).resolve().parents[1] / "experiments" / "studies" / "dete
 
 @pytest.fixture(scope="module")
 def study():
-    return load_script(SCRIPT)
+    """The study's library (what the script runs), and the script as ``study.script``."""
+    from dpc_jax.experiments import detection
+
+    detection.script = load_script(SCRIPT)
+    return detection
 
 
 def _cell(size, scale, pairs, removed, final_change=0.0, mate_change=0.0, earlier=None, world=0,
@@ -110,7 +114,7 @@ def test_refused_means_worlds_and_the_goal(study) -> None:
 
 
 def test_the_grid_names_its_training_sequences(study) -> None:
-    grid, _ = study.load_study("cpu", quick=False)
+    grid, _ = study.load_study(study.script.CONFIG, "cpu", quick=False)
     assert grid.scales == (1.0, 3.0, 10.0) and grid.pairs == (100, 300, 1000, 4000)
     assert grid.train_names(4000) == ("train0", "train1", "train2", "train3")
     assert grid.train_names(100) == ("train0_first100",)
@@ -124,23 +128,22 @@ def test_the_grid_names_its_training_sequences(study) -> None:
     cells = grid.cells()
     assert len(cells) == 2 * 3 * (4 + 2) and cells[0] == ((64, 96), 10.0, 100, False)
     assert cells[1] == ((64, 96), 10.0, 100, True) and study.cell_key(*cells[1]) == "64x96_s10_n100_steps"
-    other, _ = study.load_study("worlds", quick=False, world_seed=2)
+    other, _ = study.load_study(study.script.CONFIG, "worlds", quick=False, world_seed=2)
     assert other.seed == grid.seed + 2000 and other.pairs == (100, 1000) and other.matched == ()
     assert list(grid.sequences()) == ["train0", "train1", "train2", "train3", "val", "test0", "test1"]
     with pytest.raises(ValueError, match="neither below nor a multiple"):
         grid.train_names(1500)
 
 
-def test_a_cell_measured_with_another_correction_is_measured_again(study, tmp_path: Path) -> None:
-    """Not retrained: its record keeps the training."""
-    grid, _ = study.load_study("cpu", quick=False)
-    assert grid.correction == {"rotation_only": True, "mean_test": True, "mean_window": 50}
-    path = tmp_path / "cell.json"
-    assert study._done(path, grid) is None
-    path.write_text(json.dumps({"correction": grid.correction, "train_s": 5.0}))
-    assert study._done(path, grid) is True
-    path.write_text(json.dumps({"rotation_only": True, "train_s": 5.0}))  # recorded before the mean test
-    assert study._done(path, grid) == {"rotation_only": True, "train_s": 5.0}
+def test_restricting_the_grid(study) -> None:
+    grid, _ = study.load_study(study.script.CONFIG, "cpu", quick=False)
+    small = grid.restricted([100, 4000], [(64, 96)], None)
+    assert small.pairs == (100, 4000) and small.sizes == ((64, 96),) and small.scales == grid.scales
+    assert grid.restricted(None, None, None) == grid
+    with pytest.raises(ValueError, match=r"--pairs 1500: not in the grid \(100, 300, 1000, 4000\)"):
+        grid.restricted([1500], None, None)
+    with pytest.raises(ValueError, match="--sizes 32x48: not in the grid"):
+        grid.restricted(None, [(32, 48)], None)
 
 
 @pytest.mark.slow
@@ -153,7 +156,7 @@ def test_the_quick_grid_runs_end_to_end(study, tmp_path: Path, capsys) -> None:
                  "mean": [0.0, 0.0, 0.25], "spread": [0.5, 0.8, 0.6]}
     (workdir / "reference.json").write_text(json.dumps(reference))
     (workdir / WORKDIR_MARKER).write_text("")  # the folder is the study's (reference.json made here)
-    assert study.main(["--quick", "--workdir", str(workdir)]) == 0
+    assert study.script.main(["--quick", "--workdir", str(workdir)]) == 0
     cell_file, matched_file = sorted((workdir / "cells").glob("*.json"))
     cell, matched = json.loads(cell_file.read_text()), json.loads(matched_file.read_text())
     assert cell["scale"] == 10.0 and cell["pairs"] == 10 and cell["size"] == [32, 80]
@@ -171,11 +174,17 @@ def test_the_quick_grid_runs_end_to_end(study, tmp_path: Path, capsys) -> None:
         assert (workdir / name).stat().st_size > 0
     assert np.loadtxt(workdir / "detection_limit.csv", delimiter=",", skiprows=1, usecols=1).size == 2
     mtime = cell_file.stat().st_mtime_ns
-    assert study.main(["--quick", "--workdir", str(workdir)]) == 0
+    assert study.script.main(["--quick", "--workdir", str(workdir)]) == 0
     assert cell_file.stat().st_mtime_ns == mtime
+    # Measured with another correction: measured again, its training kept (not retrained).
+    cell_file.write_text(json.dumps({**cell, "correction": {"rotation_only": True}}))
+    assert study.script.main(["--quick", "--workdir", str(workdir)]) == 0
+    again = json.loads(cell_file.read_text())
+    assert again["correction"] == cell["correction"] and again["train_s"] == cell["train_s"]
+    assert again["tests"] == cell["tests"]
     other = tmp_path / "other"
     other.mkdir()
     (other / "notes.txt").write_text("mine")
     capsys.readouterr()
-    assert study.main(["--quick", "--workdir", str(other)]) == 2
+    assert study.script.main(["--quick", "--workdir", str(other)]) == 2
     assert "is not the work folder of an experiment script" in capsys.readouterr().err

@@ -13,6 +13,7 @@ from dpc_jax.experiments.records import as_json
 from dpc_jax.pipelines.demo_config import DemoConfig
 from dpc_jax.pipelines.protocol import claim_workdir
 from dpc_jax.results.demo import SUMMARY, DemoSummary
+from dpc_jax.runtime.progress import Progress
 
 
 def demo_config(path: Path, seed: int, overrides: Mapping[str, Any] | None = None) -> DemoConfig:
@@ -25,7 +26,8 @@ def demo_config(path: Path, seed: int, overrides: Mapping[str, Any] | None = Non
                                 where=str(path))
 
 
-def finished_demo(config: DemoConfig, out: Path, say: Callable[[str], None], progress: bool) -> DemoSummary:
+def finished_demo(config: DemoConfig, out: Path, say: Callable[[str], None],
+                  progress: Progress) -> DemoSummary:
     """The demo's summary in ``out``: read when a finished demo of this config is there, else the demo is
     run (reusing what it finds of its stages)."""
     from dpc_jax.pipelines.synthetic_demo import run_demo

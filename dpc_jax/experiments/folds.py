@@ -41,6 +41,7 @@ from dpc_jax.pipelines.protocol import (
 )
 from dpc_jax.report.protocol_report import results_csv, results_markdown
 from dpc_jax.results.fold import RESULTS, FoldResult, read_fold_results, write_fold_results
+from dpc_jax.runtime.progress import Progress
 
 # (markdown, CSV) of the results and the notes above the table.
 Tables = Callable[[Sequence[FoldResult], Sequence[str]], tuple[str, str]]
@@ -88,7 +89,7 @@ class Context:
     protocol: ExperimentProtocol
     overrides: dict[str, Any]
     select: str
-    progress: bool
+    progress: Progress
 
     @property
     def workdir(self) -> Path:

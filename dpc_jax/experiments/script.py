@@ -13,6 +13,7 @@ from pathlib import Path
 from dpc_jax.pipelines.protocol import Named, claim_workdir, path_argument
 from dpc_jax.report.pages import check_results_page, read_block, replace_block, write_results
 from dpc_jax.report.tables import row, table
+from dpc_jax.runtime.progress import Progress, progress_mode
 
 # The checkout the scripts run from (the package is installed from it in editable mode), and the real
 # data beside it: KITTI raw drives (``kitti-raw/``) and the libviso2 estimates (``kitti-libviso2/``).
@@ -35,9 +36,10 @@ def add_no_progress(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
-def progress_flag(no_progress: bool) -> bool:
-    """Progress bars when stderr is a terminal and ``--no-progress`` was not given (a log gets none)."""
-    return not no_progress and sys.stderr.isatty()
+def progress_flag(no_progress: bool) -> Progress:
+    """The command line's progress policy (``dpc_jax.runtime.progress.progress_mode``): a bar on a
+    terminal, a line every few seconds in a log, nothing with ``--no-progress``."""
+    return progress_mode(no_progress)
 
 
 def claim(workdir: str | os.PathLike[str] | None, inputs: Sequence[Named] = (), *, page: Path | None = None,

@@ -10,6 +10,8 @@ from typing import Any
 
 import numpy as np
 
+from dpc_jax.runtime.progress import Progress
+
 MAX_DEPTH_M = 40.0  # farther pixels move by well under a pixel per step: they cannot tell poses apart
 MIN_GRADIENT = 0.05  # grey levels per pixel (Sobel / 8): textureless pixels cannot either
 
@@ -43,7 +45,7 @@ def exchange(rotation_from: np.ndarray, translation_from: np.ndarray) -> np.ndar
 
 
 def photometric_errors(sequence: Any, candidates: np.ndarray, offsets_px: Sequence[float],
-                       progress: bool) -> np.ndarray:
+                       progress: Progress) -> np.ndarray:
     """Mean L1 grey error ``[pairs, offsets, C]`` of each candidate step ``T_{t+1,t}`` ``[C, pairs, 4, 4]``
     of ``sequence`` (its grey left images, 0–1): frame t rebuilt from frame t+1 with frame t's SGBM depth
     for each disparity offset (px, added to SGBM's disparities), over the pixels every candidate keeps in

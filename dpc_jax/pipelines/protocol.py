@@ -48,6 +48,7 @@ from dpc_jax._io import (
 )
 from dpc_jax.eval.evaluation import Metrics
 from dpc_jax.results.fold import Final, FoldResult
+from dpc_jax.runtime.progress import Progress
 
 if TYPE_CHECKING:
     from dpc_jax.results.correction import Correction
@@ -206,7 +207,7 @@ def find_prior(directory: Path, name: str, kind: str = "stereo") -> Path:
     raise FileNotFoundError(f"{directory}: no prior for sequence {name} (looked for {', '.join(candidates)})")
 
 
-def vo_prior(sequence: Any, out: Path, progress: bool) -> dict[str, Any]:
+def vo_prior(sequence: Any, out: Path, progress: Progress) -> dict[str, Any]:
     """Our classical stereo VO over ``sequence``, started at its first GT pose, as KITTI text ``out``
     (recomputed when its inputs change; ``dpc_jax.vo.prior``); the run's summary with ``path``."""
     from dpc_jax.vo.prior import write_vo_prior as run
@@ -218,7 +219,7 @@ def vo_prior(sequence: Any, out: Path, progress: bool) -> dict[str, Any]:
 def prepare(
     sequence: Any, prior: Path | np.ndarray, cache_root: Path, config: Any, *, name: str | None = None,
     frames: tuple[int, int] | None = None, ground_truth: Path | None = None, mono_rescale: bool = False,
-    disparity_offset: float = 0.0, progress: bool = False,
+    disparity_offset: float = 0.0, progress: Progress = False,
 ) -> Path:
     """Prepare (or find up to date) a sequence's cache at the config's image size.
 
@@ -241,7 +242,7 @@ def prepare(
 def prepare_judge(
     sequence: Any, prior: Path | np.ndarray, cache_root: Path, config: Any,
     judge_size: tuple[int, int] | None, *, name: str, frames: tuple[int, int] | None = None,
-    disparity_offset: float = 0.0, progress: bool = False,
+    disparity_offset: float = 0.0, progress: Progress = False,
 ) -> Path | None:
     """The judge of cache ``name``: the same frames prepared at ``judge_size`` as ``NAME_judge``
     (:func:`prepare` with the config's image size replaced), where :func:`correct_and_evaluate` measures
@@ -258,7 +259,7 @@ def prepare_judge(
 # --------------------------------------------------------------------------- train and correct
 
 
-def train_fold(config: Any, workdir: Path, progress: bool) -> dict[str, Any]:
+def train_fold(config: Any, workdir: Path, progress: Progress) -> dict[str, Any]:
     """Train (or resume, or find finished) the fold's run in ``workdir``."""
     from dpc_jax.training.loop import train
 
@@ -275,7 +276,7 @@ def _estimates(correction: Correction) -> dict[str, Metrics]:
 def correct_and_evaluate(
     fold: str, run_dir: Path, cache: Path, out_root: Path, protocol: ExperimentProtocol, *,
     select: str | None = None, prior_label: str = "prior", adapt_steps: int | None = None,
-    judge: Path | None = None, progress: bool = False,
+    judge: Path | None = None, progress: Progress = False,
 ) -> FoldResult:
     """Correct the prior of ``cache`` with the run's epoch by ``select`` (None: the protocol's) as the
     ``protocol`` says (its ``acceptance``, ``mean_test``, ``rotation_only``, ``adapt_steps`` unless
@@ -445,7 +446,7 @@ def claim_workdir(
     return folder
 
 
-def prior_source(priors: str, directory_kind: str, sequence: Any, workdir: Path, progress: bool) -> Path:
+def prior_source(priors: str, directory_kind: str, sequence: Any, workdir: Path, progress: Progress) -> Path:
     """The prior file of ``sequence``: ``priors`` = a folder (see :func:`find_prior`) or ``vo`` (ours)."""
     if priors == "vo":
         if directory_kind != "stereo":
