@@ -330,10 +330,18 @@ def decided_again_in(out: str | os.PathLike, config: DemoConfig, **options: Any)
     the earlier decision) and chosen again → ``(final, correction)``; nothing is trained or adapted."""
     from dpc_jax.correction.corrector import choose, correct_cache
     from dpc_jax.correction.inference import load_run
+    from dpc_jax.data.cache import prepare_sequence
+    from dpc_jax.data.kitti import open_odometry
     from dpc_jax.data.sequence_cache import load_cache
 
     out = Path(out)
-    cache = load_cache(out / _CACHE_DIR / "test")
+    # The test sequence prepared as the demo prepared it: the cache it left, rebuilt in place if this
+    # dpc_jax writes caches of another format (the same arrays).
+    record = json.loads((out / "vo" / "test.calibration.json").read_text())["summary"]
+    offset = record["disparity_offset_median_px"] if config.rectify_offset else 0.0
+    size = config.train_config(out / _CACHE_DIR).resolved_image_size
+    cache = load_cache(prepare_sequence(open_odometry(out / "data", "test"), out / "vo" / "test.txt",
+                                        out / _CACHE_DIR, size=size, disparity_offset=offset, progress=False))
     options = {"force": not config.acceptance, **options}
     trained = correct_cache(load_run(out / _RUN_DIR, config.select), cache, **options)
     adapted = None

@@ -70,6 +70,22 @@ def earlier_decision(workdir: Path, config: Any) -> dict[str, Any]:
     return {"final": label, "metrics": metrics}
 
 
+def decided_again(workdir: Path, config: Any) -> DemoSummary:
+    """A finished demo's summary with its final decided again by this dpc_jax from its networks."""
+    import dataclasses
+
+    from dpc_jax.eval.evaluation import evaluate
+    from dpc_jax.pipelines.synthetic_demo import decided_again_in
+
+    summary = DemoSummary.read(workdir)
+    final, correction = decided_again_in(workdir, config)
+    assert correction.ground_truth is not None
+    metrics = evaluate(correction.ground_truth, {"final": correction.corrected}).estimates["final"]
+    test = {**summary.test, "corrected": metrics}
+    change = {k: change_pct(test["prior"][k], metrics[k]) for k in SEG}
+    return dataclasses.replace(summary, test=test, final=final, change_pct=change)
+
+
 def seeds_markdown(rows: list[dict[str, Any]], config_name: str) -> str:
     """The table: one row per seed (segment errors t % / r °/100 m)."""
     lines = [
@@ -103,6 +119,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="demo config (CONFIG = DemoConfig(...) or a dict); its seed is replaced")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a DemoConfig field (JSON value), e.g. --set adapt_steps=0")
+    parser.add_argument("--decide-again", action="store_true",
+                        help="the seeds' folders hold finished demos (of an earlier dpc_jax, say): decide "
+                        "their networks' corrections again with this one, nothing trained or adapted")
     kit.add_no_progress(parser)
     kit.add_results_page(parser)
     args = parser.parse_args(argv)
@@ -121,8 +140,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     for seed, config in configs.items():
         began = time.perf_counter()
         try:
-            summary = run_demo(config, args.workdir / f"seed_{seed}", progress=progress,
-                               log=lambda line, seed=seed: print(f"[seed {seed}] {line}", flush=True))
+            if args.decide_again:
+                summary = decided_again(args.workdir / f"seed_{seed}", config)
+            else:
+                summary = run_demo(config, args.workdir / f"seed_{seed}", progress=progress,
+                                   log=lambda line, seed=seed: print(f"[seed {seed}] {line}", flush=True))
         except (OSError, ValueError, DemoError) as error:
             return kit.refuse("demo_seeds", f"seed {seed}: {error}", 1)
         minutes = (time.perf_counter() - began) / 60
