@@ -30,12 +30,11 @@ from test_kitti import fixture_poses, write_odometry
 from dpc_jax import _io
 from dpc_jax._io import OutputSet, atomic_write, remove_stale
 from dpc_jax.cli import build_parser, main
-from dpc_jax.cli._common import Formatter, progress_mode, restore_problem
+from dpc_jax.cli._common import Formatter, restore_problem
 from dpc_jax.data.cache import prepare_sequence
 from dpc_jax.data.kitti import open_odometry
 from dpc_jax.data.poses_io import read_trajectory, write_kitti_poses, write_tum
 from dpc_jax.data.sequence_cache import CacheError, load_cache
-from dpc_jax.runtime.progress import LineProgress
 
 ROOT = Path(__file__).resolve().parents[1]
 N_POSES = 30
@@ -939,16 +938,3 @@ def test_own_data_config_is_a_train_config_and_states_its_command() -> None:
     assert "dpc-jax prepare" in doc
     assert "dpc-jax train --config experiments/protocols/configs/own_data.py" in doc
     assert config.cache_root and config.validation_sequences
-
-
-def test_progress_lines_off_a_terminal(capsys: pytest.CaptureFixture[str]) -> None:
-    assert progress_mode(True) is False and progress_mode(False) == "lines"  # pytest's stderr is no terminal
-    with LineProgress(total=4, desc="work", unit="frame", interval=0.0) as bar:
-        for _ in range(4):
-            bar.update(1)
-    lines = capsys.readouterr().err.splitlines()
-    assert [line.split(" (")[0] for line in lines] == [f"work: {k}/4 frames" for k in range(1, 5)]
-    with pytest.raises(KeyboardInterrupt), LineProgress(4, "work", "frame", interval=60.0) as bar:
-        bar.update(1)
-        raise KeyboardInterrupt
-    assert capsys.readouterr().err == ""  # an interrupted loop adds no line to the one Ctrl-C prints

@@ -9,6 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from dpc_jax.pipelines import protocol as dpc_protocol
 from dpc_jax.runtime.progress import LineProgress, progress_bar, progress_mode
 
@@ -62,3 +64,16 @@ def test_the_policy() -> None:
             bar.update(3)
             bar.close()
     assert buffer.getvalue() == "render test: 3/3 frames (" + buffer.getvalue().split("(", 1)[1]
+
+
+def test_lines_off_a_terminal(capsys: pytest.CaptureFixture[str]) -> None:
+    assert progress_mode(True) is False and progress_mode(False) == "lines"  # pytest's stderr is no terminal
+    with LineProgress(total=4, desc="work", unit="frame", interval=0.0) as bar:
+        for _ in range(4):
+            bar.update(1)
+    lines = capsys.readouterr().err.splitlines()
+    assert [line.split(" (")[0] for line in lines] == [f"work: {k}/4 frames" for k in range(1, 5)]
+    with pytest.raises(KeyboardInterrupt), LineProgress(4, "work", "frame", interval=60.0) as bar:
+        bar.update(1)
+        raise KeyboardInterrupt
+    assert capsys.readouterr().err == ""  # an interrupted loop adds no line to the one Ctrl-C prints
