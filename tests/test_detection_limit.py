@@ -106,6 +106,11 @@ def test_refused_means_worlds_and_the_goal(study) -> None:
     assert study._goal_text([_cell(size, 1.0, 100, 0.6, matched=True), kept]) == (
         "N = 100 pairs (with the steps of N = 1,000)")
     assert study._goal_text([]) == "not reached at any N of the grid"
+    # A --world-seed work folder answers for its own world (its cells first), not for world 0's.
+    other = [_cell(size, 1.0, 1000, 0.6, world=2), _cell(size, 1.0, 100, 0.7)]
+    assert study.own_world(other) == other[:1]
+    assert "- 64×96: N = 1,000 pairs" in study.markdown(other, {"sequences": {}, "mean": [0.0] * 3,
+                                                                "spread": [0.0] * 3}, 46_000, 1.0, False)
     test = type("T", (), {"mean_delta": -1e-5, "std_delta": 1e-4})()
     expected = ((study.Z_ALPHA + study.Z_POWER) * 10) ** 2 / study.WILCOXON_EFFICIENCY
     assert study.pairs_needed(test) == pytest.approx(expected)

@@ -346,6 +346,13 @@ def cell_mean(cell: dict[str, Any], field: str) -> float:
     return float(np.mean(values)) if values else math.nan
 
 
+def own_world(cells: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The cells of the first world among ``cells`` (the tabulating work folder's, whose cells come
+    first): the answer and the figure are one world's; the others enter the worlds' spread table."""
+    seed = cells[0].get("world_seed", 0) if cells else 0
+    return [c for c in cells if c.get("world_seed", 0) == seed]
+
+
 def smallest_found(cells: Sequence[dict[str, Any]],
                    field: str = "found_axis_final") -> dict[tuple, float | None]:
     """Per (size, pairs): the smallest bias scale removed by at least :data:`FOUND` (None: none)."""
@@ -484,7 +491,7 @@ def markdown(cells: Sequence[dict[str, Any]], reference: dict[str, Any], paper_p
                         default=math.nan)
              for field in ("final_r_change_pct", "final_mate_r_change_pct", "earlier_r_change_pct",
                            "earlier_mate_r_change_pct")}
-    base = [c for c in cells if c.get("world_seed", 0) == 0]
+    base = own_world(cells)
     fixed = [c for c in base if not c.get("matched")]
     smallest = smallest_found(fixed)
     lines = [f"- {s[0]}×{s[1]}, N = {n}: " + ("none of the grid's biases" if v is None else f"×{v:g}")
@@ -573,8 +580,8 @@ def figure(cells: Sequence[dict[str, Any]], reference: dict[str, Any], path: Pat
     import matplotlib.pyplot as plt
 
     fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4.2))
-    matched = [c for c in cells if c.get("matched") and c.get("world_seed", 0) == 0]
-    cells = [c for c in cells if not c.get("matched") and c.get("world_seed", 0) == 0]
+    matched = [c for c in own_world(cells) if c.get("matched")]
+    cells = [c for c in own_world(cells) if not c.get("matched")]
     sizes = sorted({tuple(c["size"]) for c in cells})
     styles = dict(zip(sizes, ("o-", "s--", "^:"), strict=False))
     for size in sizes:
@@ -604,7 +611,8 @@ def figure(cells: Sequence[dict[str, Any]], reference: dict[str, Any], path: Pat
         ax.axhline(FOUND, color="k", lw=0.6, ls="--")
         ax.set_ylabel("bias removed (1 − ‖mean after‖ / ‖mean prior‖)")
         ax.set_xscale("log")
-        ax.legend(fontsize=7)
+        if ax.get_legend_handles_labels()[0]:  # a grid with one N draws no curve on the right
+            ax.legend(fontsize=7)
     left.set_xlabel("training pairs N (line: final, behind the tests; x: the network's proposal; *: final "
                     "with N = 1,000's steps)")
     right.set_xlabel("planted bias (mrad per step); grey: libviso2-s on KITTI 00–10")
