@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_kitti import fixture_poses
+from support import fixture_poses
 
 from dpc_jax.data.poses_io import read_kitti_poses, read_tum, write_kitti_poses, write_tum
 from dpc_jax.eval.evaluation import evaluate

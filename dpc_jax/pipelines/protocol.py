@@ -19,16 +19,11 @@ Every script claims its work folder before any work (:func:`claim_workdir`): the
 commands (``dpc_jax._io``) applied to it and to the script's other outputs. Runs resume: an
 interrupted experiment re-run with the same arguments continues each training from its newest epoch
 and redoes only what is missing.
-
-This module also writes *fake* KITTI odometry trees from ``dpc_jax.synth`` (rendered stereo,
-exact poses, priors = ground truth + noise) so the entry points can be run end to end without
-KITTI (their ``--smoke`` tests).
 """
 
 from __future__ import annotations
 
 import argparse
-import io
 import json
 import os
 from collections.abc import Sequence
@@ -340,52 +335,6 @@ def applied_label(final: str, acceptance: Any) -> str:
     if final == "prior":
         return final
     return f"{final} ({acceptance.part}{', test off: forced' if acceptance.forced else ''})"
-
-
-# --------------------------------------------------------------------------- fake KITTI (smoke tests)
-
-
-def write_fake_odometry(
-    root: Path, names: Sequence[str], *, frames: int = 12, size: tuple[int, int] = (48, 72), seed: int = 0,
-    prior_dir: Path | None = None, prior_noise: tuple[float, float] = (0.02, 0.002),
-) -> Path:
-    """A KITTI odometry tree rendered with ``dpc_jax.synth`` (one world per sequence) → ``root``.
-
-    ``dpc_jax.synth.write_sequence`` writes ``sequences/XX/`` (images, ``calib.txt``,
-    ``times.txt``) and ``poses/XX.txt``. With ``prior_dir``: priors in the libviso2 release's
-    ``.mat`` layout — ``stereo_XX.mat`` (``poses_est`` = ground truth with each step perturbed by
-    Gaussian noise of ``prior_noise`` = (m, rad) per axis; ``poses_gt``) and ``mono_XX.mat`` (the
-    same steps with their translations scaled by 0.3, an arbitrary monocular scale).
-    """
-    import scipy.io
-
-    from dpc_jax.geometry.lie import se3_exp
-    from dpc_jax.geometry.poses import compose, relative_poses
-    from dpc_jax.synth import SynthConfig, sequence_poses, write_sequence
-
-    rng = np.random.default_rng(seed)
-    for k, name in enumerate(names):
-        config = SynthConfig(frames=frames, height=size[0], width=size[1], seed=seed + 101 * k)
-        write_sequence(root, name, config, overwrite=True)
-        if prior_dir is None:
-            continue
-        poses = sequence_poses(config)[0]
-        prior_dir.mkdir(parents=True, exist_ok=True)
-        steps = relative_poses(poses)
-        noise = np.concatenate([rng.normal(0, prior_noise[0], (len(steps), 3)),
-                                rng.normal(0, prior_noise[1], (len(steps), 3))], axis=1)
-        noisy = np.asarray(se3_exp(noise), np.float64) @ steps
-        for kind, scale in (("stereo", 1.0), ("mono", 0.3)):
-            scaled = noisy.copy()
-            scaled[:, :3, 3] *= scale
-            estimate = compose(scaled, poses[0])
-            buffer = io.BytesIO()
-            scipy.io.savemat(buffer, {
-                "poses_est": np.moveaxis(estimate, 0, -1), "poses_gt": np.moveaxis(poses, 0, -1),
-                "convention": "Twv",
-            })
-            atomic_write(prior_dir / f"{kind}_{name}.mat", buffer.getvalue())
-    return root
 
 
 # --------------------------------------------------------------------------- entry-point plumbing

@@ -1,0 +1,44 @@
+"""benchmarks/performance_table.py: one cheap benchmark in quick mode fills both marked blocks.
+
+Checks the file handling, not figures: the block between the markers is replaced in both files
+(the docs' full table with provenance, the README's short one), the text around the markers stays
+byte for byte, the rows of benchmarks not run are kept, and a second run replaces rather than
+appends.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "performance_table.py"
+BEGIN, END = "<!-- performance:begin -->", "<!-- performance:end -->"
+KEPT = ("| kept row | 1×1 | 1 ms | `python benchmarks/bench_core.py` | some CPU | abc1234 | "
+        "2026-01-01 |")
+
+
+def run(docs: Path, readme: Path) -> None:
+    subprocess.run([sys.executable, str(SCRIPT), "--quick", "--only", "bench_data",
+                    "--docs", str(docs), "--readme", str(readme)], check=True, capture_output=True)
+
+
+def between(text: str) -> str:
+    return text[text.index(BEGIN) + len(BEGIN):text.index(END)]
+
+
+def test_quick_run_fills_both_blocks_and_keeps_the_rest(tmp_path: Path) -> None:
+    docs, readme = tmp_path / "performance.md", tmp_path / "README.md"
+    docs.write_text(f"# before\n{BEGIN}\n{KEPT}\n{END}\nafter\n")
+    readme.write_text(f"intro\n{BEGIN}\nold\n{END}\n## next\n")
+    run(docs, readme)
+    run(docs, readme)
+
+    full, short = docs.read_text(), readme.read_text()
+    assert full.startswith(f"# before\n{BEGIN}\n") and full.endswith(f"{END}\nafter\n")
+    assert short.startswith(f"intro\n{BEGIN}\n") and short.endswith(f"{END}\n## next\n")
+    rows = [line for line in between(full).splitlines() if "bench_data.py" in line]
+    assert len(rows) == 1 and rows[0].endswith(", quick |") and "input pipeline" in rows[0]
+    assert KEPT in between(full)
+    assert "quick-mode figures" in between(short) and "old" not in between(short)
+    assert sum("bench_data.py" in line for line in between(short).splitlines()) == 1

@@ -1,0 +1,142 @@
+"""``dpc_jax.correction.live``: the live corrector against ``correct`` on the same frames, and its sequential
+test against the guarantees it states (false acceptances, withdrawal, memory)."""
+
+from __future__ import annotations
+
+import gc
+import math
+import tracemalloc
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from dpc_jax.correction.acceptance import SequentialTest
+from dpc_jax.pipelines import protocol as dpc_protocol
+
+FRAMES = 10
+SIZE = dpc_protocol.SMOKE["image_size"]
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """A fake odometry sequence, its cache at the run's size, and a stored (untrained) Stereo DPC run."""
+    from support import write_fake_odometry, write_stored_run
+
+    from dpc_jax.data.cache import prepare_sequence
+    from dpc_jax.data.kitti import open_odometry
+    from dpc_jax.training.train_config import REFERENCE, TrainConfig
+
+    tmp = tmp_path_factory.mktemp("live")
+    kitti = write_fake_odometry(tmp / "kitti", ["05"], frames=FRAMES, prior_dir=tmp / "priors")
+    sequence = open_odometry(kitti, "05")
+    cache = prepare_sequence(sequence, tmp / "priors" / "stereo_05.mat", tmp / "cache", size=SIZE,
+                             progress=False, workers=1)
+    config = TrainConfig(method="stereo_dpc", **dpc_protocol.SMOKE, **REFERENCE,
+                         cache_root=str(tmp / "cache"), train_sequences=("00",), validation_sequences=("05",))
+    write_stored_run(tmp / "run", config, {1: (7, 0.5, 0, -1e-4)})
+    return {"sequence": sequence, "cache": cache, "run": tmp / "run", "priors": tmp / "priors"}
+
+
+def _frames(sequence):
+    from dpc_jax.data.kitti import load_image
+
+    for left, right in zip(sequence.left_paths, sequence.right_paths, strict=True):
+        yield load_image(left), load_image(right)
+
+
+def test_forced_live_gives_the_poses_of_forced_correct(world: dict) -> None:
+    """The same frames, prior and first pose: frame by frame as they arrive, or the prepared sequence at
+    once: the same corrected poses, and before any test accepts, the prior's."""
+    from dpc_jax.correction.corrector import correct_cache
+    from dpc_jax.correction.inference import load_run
+    from dpc_jax.correction.live import Calibration, LiveCorrector
+    from dpc_jax.data.poses_io import read_mat
+
+    run = load_run(world["run"], "delta")
+    gt, prior = read_mat(world["priors"] / "stereo_05.mat")
+    offline = correct_cache(run, world["cache"], force=True, batch_size=1)  # the live programs, compiled once
+    assert offline.acceptance.forced and np.abs(offline.corrected - offline.prior).max() > 1e-6
+    calibration = Calibration.of(world["sequence"])
+    live = LiveCorrector(run, calibration, force=True, first_pose=gt[0])
+    frames = [live(left, right, prior[k]) for k, (left, right) in enumerate(_frames(world["sequence"]))]
+    poses = np.stack([f.pose for f in frames])
+    np.testing.assert_allclose(poses, offline.corrected, atol=1e-6)
+    np.testing.assert_allclose(np.stack([f.proposal for f in frames[1:]]), offline.xi_corr, atol=1e-6)
+    assert frames[0].state == "start" and {f.state for f in frames[1:]} == {"forced"}
+    # The tests' own decision, on nine pairs: no sequential test can accept so early (2^9 < 1 / α), so
+    # every pose is the prior's, composed from the same first pose.
+    tested = LiveCorrector(run, calibration, first_pose=gt[0])
+    frames = [tested(left, right, prior[k]) for k, (left, right) in enumerate(_frames(world["sequence"]))]
+    np.testing.assert_allclose(np.stack([f.pose for f in frames]), offline.prior, atol=1e-9)
+    assert {f.state for f in frames[1:]} == {"prior"}
+    np.testing.assert_allclose(np.stack([f.prior for f in frames]), offline.prior, atol=1e-9)
+    with pytest.raises(ValueError, match="expected both 48x72"):
+        tested(np.zeros((40, 72), np.uint8), np.zeros((40, 72), np.uint8), prior[0])
+
+
+def test_memory_does_not_grow_with_the_frames(world: dict) -> None:
+    """1,000 frames (the sequence's ten, over and over, the prior's poses continued): the Python memory the
+    corrector holds after 1,000 frames is what it held after 400 (a leak of one float a frame would add
+    about 20 kB), and the objects alive are as many."""
+    from dpc_jax.correction.live import Calibration, LiveCorrector
+
+    live = LiveCorrector(world["run"], Calibration.of(world["sequence"]))
+    frames = list(_frames(world["sequence"]))
+    step = np.eye(4)
+    step[2, 3] = 1.0
+    pose = np.eye(4)
+    held = {}
+    tracemalloc.start()
+    try:
+        for k in range(1, 1001):
+            live(*frames[k % FRAMES], pose)
+            pose = pose @ step
+            if k in (400, 1000):
+                gc.collect()
+                held[k] = (tracemalloc.get_traced_memory()[0], len(gc.get_objects()))
+    finally:
+        tracemalloc.stop()
+    assert held[1000][0] - held[400][0] < 12 * 1024, held
+    assert held[1000][1] - held[400][1] < 50, held
+
+
+def _signs(rng: np.random.Generator, n: int, helps: float) -> np.ndarray:
+    """Paired differences that are below zero (the correction helps) with probability ``helps``."""
+    magnitude = rng.exponential(1e-3, n)
+    return np.where(rng.random(n) < helps, -magnitude, magnitude)
+
+
+def test_the_sequential_test_keeps_its_level_under_continuous_monitoring() -> None:
+    """Corrections that help on half the pairs (no better than none): checked after every one of 500 pairs,
+    the sequential test accepts in at most α of 400 runs; a fixed-sample Wilcoxon test checked as often
+    accepts far more often (the reason a live test must be sequential)."""
+    rng = np.random.default_rng(0)
+    alpha, runs, n = 0.05, 400, 500
+    accepted = repeated = 0
+    for _ in range(runs):
+        d = _signs(rng, n, 0.5)
+        test = SequentialTest("rotation", alpha)
+        accepted += any(test.update(v) == "accepted" for v in d)
+        repeated += any(stats.wilcoxon(d[:k], alternative="less").pvalue < alpha for k in range(20, n, 20))
+    rate = accepted / runs
+    # The binomial's 99.9 % upper bound at the level: the test's own guarantee, with sampling error.
+    assert rate <= alpha + 3.1 * math.sqrt(alpha * (1 - alpha) / runs), rate
+    assert repeated / runs > 2 * alpha
+
+
+def test_a_harmful_correction_is_never_applied_and_a_scene_change_withdraws() -> None:
+    rng = np.random.default_rng(1)
+    harmful = SequentialTest("rotation")
+    assert not any(harmful.update(v) for v in _signs(rng, 1000, 0.2)) and not harmful.accepted
+    helpful = SequentialTest("rotation")
+    events = [helpful.update(v) for v in _signs(rng, 60, 0.9)]
+    first = events.index("accepted")
+    assert first < 40 and helpful.accepted
+    # The scene changes: the same correction now hurts on most pairs; it is withdrawn within a few.
+    after = [helpful.update(v) for v in _signs(rng, 40, 0.2)]
+    assert "withdrawn" in after and after.index("withdrawn") < 10 and not helpful.accepted
+    # Accepted again only on new evidence, at a smaller level (α spent on the first acceptance).
+    assert helpful.level < SequentialTest("x").level
+    with pytest.raises(ValueError, match="not finite"):
+        helpful.update(math.nan)

@@ -1,0 +1,195 @@
+"""experiments/studies/detection_limit.py: the answer's arithmetic on cells of known removal, and the
+``--quick`` grid end to end (render, plant, prepare, train, correct, table, figure)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import load_script
+
+from dpc_jax.pipelines.protocol import WORKDIR_MARKER
+
+SCRIPT = Path(__file__).resolve().parents[2] / "experiments" / "studies" / "detection_limit.py"
+
+
+@pytest.fixture(scope="module")
+def study():
+    """The study's library (what the script runs), and the script as ``study.script``."""
+    from dpc_jax.experiments import detection
+
+    detection.script = load_script(SCRIPT)
+    return detection
+
+
+def _cell(size, scale, pairs, removed, final_change=0.0, mate_change=0.0, earlier=None, world=0,
+          matched=False, p_mean=1e-3, needed=None):
+    earlier = removed if earlier is None else earlier
+    test = {"sequence": "test0", "decision": "rotation", "earlier_decision": "rotation", "p_whole": 1e-3,
+            "p_mean": p_mean, "p_remainder": None, "mean_pairs_needed": needed, "mean_test_pairs": 400,
+            "found_axis_network": removed, "found_axis_final": removed, "found_seg_network": removed,
+            "found_seg_final": removed, "found_axis_earlier": earlier, "found_seg_earlier": earlier,
+            "final_r_change_pct": final_change, "final_mate_r_change_pct": mate_change,
+            "earlier_r_change_pct": final_change, "earlier_mate_r_change_pct": mate_change}
+    return {"size": list(size), "scale": scale, "pairs": pairs, "bias_mrad": 0.26 * scale, "train_s": 60.0,
+            "tests": [test], "machine": "m", "key": f"{size}_{scale}_{pairs}", "world_seed": world,
+            "matched": matched, "steps": 750}
+
+
+def test_the_half_removal_scale_is_interpolated_in_log_s_and_extrapolated_in_log_n(study) -> None:
+    """Cells whose removal is linear in log s, with s50 = 30 · (N / 1000)^-1/2: the fit finds the slope −1/2
+    and N(s50 = 1) = 1000 · 30² = 900,000, beyond the papers' 46,000."""
+    size = (64, 96)
+    cells = []
+    for pairs in (1000, 4000):
+        s50 = 30.0 * (pairs / 1000) ** -0.5
+        for scale in (1.0, 3.0, 10.0, 100.0):
+            removed = 0.5 + 0.25 * (math.log(scale) - math.log(s50))
+            cells.append(_cell(size, scale, pairs, removed))
+    assert study.half_scale(cells, size, 1000) == (pytest.approx(30.0), "=")
+    assert study.half_scale(cells, size, 4000) == (pytest.approx(15.0), "=")
+    fit = study.extrapolate(cells, size)
+    assert fit["found_at"] is None and fit["slope"] == pytest.approx(-0.5)
+    assert fit["pairs_at_x1"] == pytest.approx(900_000, rel=1e-6)
+    assert "beyond the papers' 46,000" in study._extrapolation_text(fit, 46_000)
+    assert study.smallest_found(cells) == {(size, 1000): 100.0, (size, 4000): 100.0}
+    assert study.half_scale(cells, (120, 188), 1000) is None
+
+
+def test_a_bias_found_at_x1_needs_no_extrapolation(study) -> None:
+    size = (64, 96)
+    cells = [_cell(size, 1.0, 1000, 0.3), _cell(size, 3.0, 1000, 0.8),
+             _cell(size, 1.0, 4000, 0.6), _cell(size, 3.0, 4000, 0.9)]
+    assert study.half_scale(cells, size, 4000) == (1.0, "≤")
+    fit = study.extrapolate(cells, size)
+    assert fit["found_at"] == 4000 and fit["slope"] is None
+    assert "at ×1 with N = 4,000" in study._extrapolation_text(fit, 46_000)
+    assert study.smallest_found(cells) == {(size, 1000): 3.0, (size, 4000): 1.0}
+
+
+def test_no_trend_is_claimed_without_two_crossings(study) -> None:
+    cells = [_cell((64, 96), s, n, 0.1) for s in (1.0, 10.0) for n in (1000, 4000)]
+    fit = study.extrapolate(cells, (64, 96))
+    assert fit["slope"] is None and fit["found_at"] is None
+    assert "too few N" in study._extrapolation_text(fit, 46_000)
+    assert study.smallest_found(cells) == {((64, 96), 1000): None, ((64, 96), 4000): None}
+
+
+def test_the_table_says_when_a_final_breaks_the_2_percent_bar(study) -> None:
+    reference = {"sequences": {"00": {"mean": [0, 0, 0.24], "spread": [0.5, 0.8, 0.6]}},
+                 "mean": [0.0, 0.0, 0.24], "spread": [0.5, 0.8, 0.6]}
+    fine = study.markdown([_cell((64, 96), 1.0, 1000, 0.1, final_change=1.9)], reference, 46_000, 3.0, False)
+    assert ("+1.90 % in the rotational segment error (holds) and +0.00 % in the rotational m-ATE (holds)"
+            in fine)
+    for broken in ({"final_change": 2.5}, {"mate_change": 2.1}):
+        text = study.markdown([_cell((64, 96), 1.0, 1000, 0.1, **broken)], reference, 46_000, 3.0, False)
+        assert "**violated**" in text
+
+
+def test_refused_means_worlds_and_the_goal(study) -> None:
+    """A ×1 cell whose earlier decision removed the bias and whose mean the new test refused is listed with
+    the p and the pairs the test needs; cells measured in several worlds get their spread; the goal names
+    the smallest N of pairs and whether only matched steps reached it."""
+    size = (64, 96)
+    lost = _cell(size, 1.0, 1000, 0.1, earlier=0.6, p_mean=0.3, needed=2600.0)
+    kept = _cell(size, 1.0, 4000, 0.6)
+    assert study.refused_means([lost, kept]) == [
+        "- world 0, 64×96, N = 1000, ×1, test0: the earlier decision removed 60 %, now 10 %; the mean's p = "
+        "0.3 on 400 pairs, about 2,600 pairs would pass it (80 % power)"]
+    worlds = study.worlds_table([_cell(size, 3.0, 100, 0.2), _cell(size, 3.0, 100, 0.4, world=1), kept])
+    assert "| 64×96 | 100 | ×3 | 20 % | 40 % | 30 % | 20 % – 40 % |" in worlds
+    assert study.worlds_table([kept]) is None
+    assert study._goal_text([kept]) == "N = 4,000 pairs"
+    assert study._goal_text([_cell(size, 1.0, 100, 0.6, matched=True), kept]) == (
+        "N = 100 pairs (with the steps of N = 1,000)")
+    assert study._goal_text([]) == "not reached at any N of the grid"
+    # A --world-seed work folder answers for its own world (its cells first), not for world 0's.
+    other = [_cell(size, 1.0, 1000, 0.6, world=2), _cell(size, 1.0, 100, 0.7)]
+    assert study.own_world(other) == other[:1]
+    assert "- 64×96: N = 1,000 pairs" in study.markdown(other, {"sequences": {}, "mean": [0.0] * 3,
+                                                                "spread": [0.0] * 3}, 46_000, 1.0, False)
+    test = type("T", (), {"mean_delta": -1e-5, "std_delta": 1e-4})()
+    expected = ((study.Z_ALPHA + study.Z_POWER) * 10) ** 2 / study.WILCOXON_EFFICIENCY
+    assert study.pairs_needed(test) == pytest.approx(expected)
+    test.mean_delta = 1e-5
+    assert study.pairs_needed(test) == math.inf
+
+
+def test_the_grid_names_its_training_sequences(study) -> None:
+    grid, _ = study.load_study(study.script.CONFIG, "cpu", quick=False)
+    assert grid.scales == (1.0, 3.0, 10.0) and grid.pairs == (100, 300, 1000, 4000)
+    assert grid.train_names(4000) == ("train0", "train1", "train2", "train3")
+    assert grid.train_names(100) == ("train0_first100",)
+    assert grid.prefixes() == {"train0_first100": 101, "train0_first300": 301}
+    # Matched cells train as many steps as N = 1,000 (4 epochs): 40 epochs of 100 pairs, the halving and
+    # the warm-up at the same fractions.
+    assert grid.matched == (100, 300) and grid.steps_of == 1000
+    matched = grid.training_for(100, True)
+    assert (matched["epochs"], matched["lr_halving_epochs"], matched["pose_warmup_epochs"]) == (40, 20, 10)
+    assert grid.training_for(100, False) == grid.training
+    cells = grid.cells()
+    assert len(cells) == 2 * 3 * (4 + 2) and cells[0] == ((64, 96), 10.0, 100, False)
+    assert cells[1] == ((64, 96), 10.0, 100, True) and study.cell_key(*cells[1]) == "64x96_s10_n100_steps"
+    other, _ = study.load_study(study.script.CONFIG, "worlds", quick=False, world_seed=2)
+    assert other.seed == grid.seed + 2000 and other.pairs == (100, 1000) and other.matched == ()
+    assert list(grid.sequences()) == ["train0", "train1", "train2", "train3", "val", "test0", "test1"]
+    with pytest.raises(ValueError, match="neither below nor a multiple"):
+        grid.train_names(1500)
+
+
+def test_restricting_the_grid(study) -> None:
+    grid, _ = study.load_study(study.script.CONFIG, "cpu", quick=False)
+    small = grid.restricted([100, 4000], [(64, 96)], None)
+    assert small.pairs == (100, 4000) and small.sizes == ((64, 96),) and small.scales == grid.scales
+    assert grid.restricted(None, None, None) == grid
+    with pytest.raises(ValueError, match=r"--pairs 1500: not in the grid \(100, 300, 1000, 4000\)"):
+        grid.restricted([1500], None, None)
+    with pytest.raises(ValueError, match="--sizes 32x48: not in the grid"):
+        grid.restricted(None, [(32, 48)], None)
+
+
+@pytest.mark.slow
+def test_the_quick_grid_runs_end_to_end(study, tmp_path: Path, capsys) -> None:
+    """The wiring: one cell trained on planted priors, its test corrected, the table, CSV and figure
+    written; a rerun reuses the cell; a folder that is not the study's is refused."""
+    workdir = tmp_path / "dl"
+    workdir.mkdir()
+    reference = {"source": "test", "sequences": {"00": {"mean": [0.0, 0.0, 0.25], "spread": [0.5, 0.8, 0.6]}},
+                 "mean": [0.0, 0.0, 0.25], "spread": [0.5, 0.8, 0.6]}
+    (workdir / "reference.json").write_text(json.dumps(reference))
+    (workdir / WORKDIR_MARKER).write_text("")  # the folder is the study's (reference.json made here)
+    assert study.script.main(["--quick", "--workdir", str(workdir)]) == 0
+    cell_file, matched_file = sorted((workdir / "cells").glob("*.json"))
+    cell, matched = json.loads(cell_file.read_text()), json.loads(matched_file.read_text())
+    assert cell["scale"] == 10.0 and cell["pairs"] == 10 and cell["size"] == [32, 80]
+    assert cell["bias_mrad"] == pytest.approx(2.5)
+    # The matched cell trained as long as 20 pairs would: twice the fixed-epoch cell's steps.
+    assert matched["matched"] and matched["steps"] == 2 * cell["steps"]
+    [test] = cell["tests"]
+    assert test["p_whole"] is not None
+    assert test["earlier_decision"] == "none" or test["earlier_decision"].startswith("rotation")
+    # The planted prior carries the bias: its mean rotation error is ×10 the reference's, up to the
+    # planted noise's sampling error over 8 steps.
+    assert test["prior_axis_mrad"] == pytest.approx(2.5, abs=3 * 10 * 0.8 / math.sqrt(8))
+    assert test["decision"] in ("none", "full", "rotation") or test["decision"].startswith("rotation_")
+    for name in ("detection_limit.md", "detection_limit.csv", "detection_limit.png"):
+        assert (workdir / name).stat().st_size > 0
+    assert np.loadtxt(workdir / "detection_limit.csv", delimiter=",", skiprows=1, usecols=1).size == 2
+    mtime = cell_file.stat().st_mtime_ns
+    assert study.script.main(["--quick", "--workdir", str(workdir)]) == 0
+    assert cell_file.stat().st_mtime_ns == mtime
+    # Measured with another correction: measured again, its training kept (not retrained).
+    cell_file.write_text(json.dumps({**cell, "correction": {"rotation_only": True}}))
+    assert study.script.main(["--quick", "--workdir", str(workdir)]) == 0
+    again = json.loads(cell_file.read_text())
+    assert again["correction"] == cell["correction"] and again["train_s"] == cell["train_s"]
+    assert again["tests"] == cell["tests"]
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    capsys.readouterr()
+    assert study.script.main(["--quick", "--workdir", str(other)]) == 2
+    assert "is not the work folder of an experiment script" in capsys.readouterr().err
