@@ -754,7 +754,7 @@ def test_ctrl_c_in_prepare_is_one_line_and_leaves_no_temporary(
 ) -> None:
     import dpc_jax.data.cache as cache_module
 
-    real = cache_module._resized_frame
+    real = cache_module._decoded  # each image of a frame is decoded through it
     calls: list[Path] = []
 
     def interrupted(path: Path, *args: object) -> np.ndarray:
@@ -763,7 +763,7 @@ def test_ctrl_c_in_prepare_is_one_line_and_leaves_no_temporary(
             raise KeyboardInterrupt
         return real(path, *args)
 
-    monkeypatch.setattr(cache_module, "_resized_frame", interrupted)
+    monkeypatch.setattr(cache_module, "_decoded", interrupted)
     out = tmp_path / "cache"
     assert main(["prepare", "--kitti-odometry", str(data["kitti"]), "--sequence", "00", "--prior",
                  str(data["prior"]), "--out", str(out), "--size", "10x16"]) == 130
