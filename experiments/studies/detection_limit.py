@@ -19,6 +19,7 @@ block.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from collections.abc import Sequence
@@ -64,6 +65,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="run only the cells of these input sizes of the grid")
     parser.add_argument("--scales", type=float, nargs="+", metavar="S",
                         help="run only the cells of these bias scales of the grid")
+    parser.add_argument("--fixed-epochs", action="store_true",
+                        help="run only the fixed-epoch cells (not those trained with N = 1,000's steps)")
     parser.add_argument("--include", type=path_argument, action="append", default=[], metavar="WORKDIR",
                         help="also tabulate the finished cells of this work folder (repeatable)")
     add_results_page(parser)
@@ -78,6 +81,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ValueError(f"--world-seed {args.world_seed}: expected 0 (the study's world) or more")
         study, paper_pairs = D.load_study(CONFIG, args.profile, args.quick, args.world_seed)
         study = study.restricted(args.pairs, args.sizes, args.scales)
+        if args.fixed_epochs:
+            study = dataclasses.replace(study, matched=())
         for other in args.include:
             if not (other / "cells").is_dir():
                 raise ValueError(f"--include {other}: no cells/ folder (not a work folder of this study)")
