@@ -17,10 +17,8 @@ the offline tests refuse there).
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
-import time
 from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
@@ -28,7 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from dpc_jax.pipelines.protocol import claim_workdir, path_argument
+from dpc_jax.experiments.script import Clock, add_results_page, claim, new_parser, publish, refuse
+from dpc_jax.pipelines.protocol import path_argument
 
 HERE = Path(__file__).resolve().parent
 DEFAULT_ROOT = HERE.parents[2] / "shared" / "data" / "kitti-raw"
@@ -127,39 +126,31 @@ def markdown(rows: list[dict[str, Any]], minutes: float) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = new_parser(__doc__)
     parser.add_argument("--demo", type=path_argument, required=True, help="a finished demo folder")
     parser.add_argument("--drives", type=path_argument, required=True,
                         help="a finished kitti_raw_drives folder")
     parser.add_argument("--kitti-raw", type=path_argument, default=DEFAULT_ROOT, metavar="ROOT")
     parser.add_argument("--workdir", type=path_argument, required=True, help="caches and the table go here")
-    parser.add_argument("--results-page", type=path_argument, metavar="FILE")
+    add_results_page(parser)
     args = parser.parse_args(argv)
     from dpc_jax._io import atomic_write
-    from dpc_jax.report.pages import check_results_page, write_results
 
     try:
-        check_results_page(args.results_page)
-        workdir = claim_workdir(args.workdir, [("--demo", args.demo), ("--drives", args.drives),
-                                               ("--kitti-raw", args.kitti_raw)],
-                                files=[("--results-page", args.results_page)])
+        workdir = claim(args.workdir, [("--demo", args.demo), ("--drives", args.drives),
+                                       ("--kitti-raw", args.kitti_raw)], page=args.results_page)
         assert workdir is not None
         todo = cases(args.demo, args.drives, args.kitti_raw)
     except (OSError, ValueError, KeyError) as error:
-        print(f"live_agreement: error: {error}", file=sys.stderr)
-        return 2
-    began = time.perf_counter()
+        return refuse("live_agreement", error)
+    clock = Clock()
     rows = []
     for k, case in enumerate(todo):
         rows.append(run_case(case, workdir / "cache" / f"case{k}"))
-        print(f"[{(time.perf_counter() - began) / 60:.1f} min] {rows[-1]['case']}: offline "
-              f"{rows[-1]['offline']}, live {rows[-1]['states']}", flush=True)
-    text = markdown(rows, (time.perf_counter() - began) / 60)
+        clock.say(f"{rows[-1]['case']}: offline {rows[-1]['offline']}, live {rows[-1]['states']}")
+    text = markdown(rows, clock.minutes)
     atomic_write(workdir / "live_agreement.md", text)
-    print(text)
-    if args.results_page is not None:
-        write_results(args.results_page, text, Path(__file__))
+    publish(text, args.results_page, __file__)
     return 0
 
 

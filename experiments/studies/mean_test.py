@@ -24,18 +24,17 @@ which the mean passed its own test, and in which the whole was applied under the
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import math
 import sys
-import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from dpc_jax.pipelines.protocol import claim_workdir, path_argument
+from dpc_jax.experiments.script import Clock, add_results_page, claim, new_parser, publish, refuse
+from dpc_jax.pipelines.protocol import path_argument
 
 if TYPE_CHECKING:
     from dpc_jax.data.sequence_cache import SequenceCache
@@ -113,24 +112,19 @@ def markdown(rows: list[dict[str, Any]], trials: int, minutes: float) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = new_parser(__doc__)
     parser.add_argument("--workdir", type=path_argument, required=True, help="caches go here")
     parser.add_argument("--kitti-raw", type=path_argument, default=DEFAULT_ROOT, metavar="ROOT",
                         help="raw root holding DATE/ and libviso2/")
     parser.add_argument("--trials", type=int, default=40, metavar="N", help="trials per row")
-    parser.add_argument("--results-page", type=path_argument, metavar="FILE",
-                        help="also write the table into this page's results block")
+    add_results_page(parser)
     args = parser.parse_args(argv)
     from dpc_jax._io import atomic_write
-    from dpc_jax.report.pages import check_results_page, write_results
 
     try:
         if args.trials < 1:
             raise ValueError(f"--trials {args.trials}: expected 1 or more")
-        check_results_page(args.results_page)
-        workdir = claim_workdir(args.workdir, [("--kitti-raw", args.kitti_raw)],
-                                files=[("--results-page", args.results_page)])
+        workdir = claim(args.workdir, [("--kitti-raw", args.kitti_raw)], page=args.results_page)
         assert workdir is not None
         from dpc_jax.data.cache import prepare_sequence
         from dpc_jax.data.kitti import open_raw
@@ -146,9 +140,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                         size=size, progress=False)
                 caches[drive, size] = load_cache(path)
     except (OSError, ValueError) as error:
-        print(f"mean_test: error: {error}", file=sys.stderr)
-        return 2
-    began = time.perf_counter()
+        return refuse("mean_test", error)
+    clock = Clock()
     rows = []
     for (drive, size), cache in caches.items():
         for scale in SCALES:
@@ -161,12 +154,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                            f"{key}_applied": (outcomes[:, 0] & outcomes[:, 1]).mean()}
             rows.append({"drive": drive, "size": f"{size[0]}×{size[1]}", "pairs": len(cache) - 1,
                          "mrad": mrad, **counts})
-            print(f"[{(time.perf_counter() - began) / 60:.1f} min] {rows[-1]}", flush=True)
-    text = markdown(rows, args.trials, (time.perf_counter() - began) / 60)
+            clock.say(str(rows[-1]))
+    text = markdown(rows, args.trials, clock.minutes)
     atomic_write(workdir / "mean_test.md", text)
-    print(text)
-    if args.results_page is not None:
-        write_results(args.results_page, text, Path(__file__))
+    publish(text, args.results_page, __file__)
     return 0
 
 
