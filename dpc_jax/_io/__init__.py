@@ -45,7 +45,7 @@ import tempfile
 from pathlib import Path
 
 from dpc_jax._io._atomic_write import OutputKind, atomic_write, install_folder, output_target, stream_write
-from dpc_jax._io._lock import LockError, lock_path, output_lock
+from dpc_jax._io._lock import LockError, lock_holder, lock_path, output_lock
 from dpc_jax._io._output_set import STAGING_PREFIX, OutputSet, new_folders_removed_on_failure
 from dpc_jax._io._own_files import OWN_FILES, foreign_files_problem, record_own_files
 from dpc_jax._io._temporaries import remove_stale, temp_name
@@ -64,6 +64,7 @@ __all__ = [
     "install_folder",
     "is_stdout",
     "is_stream",
+    "lock_holder",
     "lock_path",
     "new_folders_removed_on_failure",
     "nonempty_path",

@@ -72,6 +72,14 @@ def _refusal(lock: Path, holder: dict, path: Path, label: str) -> str:
             f"{lock} was left by a run that was killed: remove it if no other process writes there")
 
 
+def lock_holder(path: str | os.PathLike[str], label: str) -> str | None:
+    """The one line :func:`output_lock` would refuse ``path`` with when its lock is held now (by a live
+    process, or left by one that is gone), else None: for checks that run before the lock is taken."""
+    lock = lock_path(path)
+    holder = _holder(lock)
+    return None if holder is None else _refusal(lock, holder, Path(path), label)
+
+
 @contextlib.contextmanager
 def output_lock(path: str | os.PathLike[str], label: str) -> Iterator[Path]:
     """Hold the lock of ``path`` for the block (see the module docstring); yields the lock file.

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from dpc_jax import config as config_lib
+from dpc_jax._io import lock_holder
 from dpc_jax.config import ConfigError
 from dpc_jax.training.train_config import TrainConfig
 
@@ -24,6 +25,10 @@ def check_workdir(config: TrainConfig, workdir: str | os.PathLike, resume: bool)
         return False
     stored = config_lib.load_file(stored_path, TrainConfig)
     if not resume:
+        # A run being written now: say by whom, not only that the folder holds a run.
+        busy = lock_holder(workdir, f"--workdir {workdir}")
+        if busy is not None:
+            raise ConfigError(busy)
         raise ConfigError(
             f"{workdir} already holds a training run ({stored_path}); pass --resume to continue it "
             "or choose another --workdir"

@@ -145,6 +145,9 @@ def test_writers_and_readers_refuse_before_jax(
     shutil.copytree(inputs["large"], newer)
     manifest = json.loads((newer / "00" / "manifest.json").read_text())
     (newer / "00" / "manifest.json").write_text(json.dumps({**manifest, "version": 99}))
+    # The held workdir holds a run: a second train without --resume names the writer, not only the run.
+    (workdir / "checkpoints").mkdir(parents=True)
+    shutil.copy(root / "run" / "checkpoints" / "config.json", workdir / "checkpoints" / "config.json")
     before = {folder: _tree(folder) for folder in (root, changed, newer)}
     cache_root = tmp_path / "root"
     prepare = ["prepare", "--kitti-odometry", inputs["kitti"], "--sequence", "00", "--prior",
@@ -183,4 +186,6 @@ def test_writers_and_readers_refuse_before_jax(
         assert needle in line, (needle, line)
     assert status == [code for _, code, _ in cases] and imported == [], (status, imported)
     assert {folder: _tree(folder) for folder in (root, changed, newer)} == before
-    assert not out.exists() and not workdir.exists() and sorted(os.listdir(cache_root)) == []
+    assert not out.exists() and sorted(os.listdir(cache_root)) == []
+    assert sorted(str(p.relative_to(workdir)) for p in workdir.rglob("*")) == ["checkpoints",
+                                                                             "checkpoints/config.json"]
