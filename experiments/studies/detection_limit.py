@@ -119,10 +119,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     found = [c for d in (workdir, *args.include) for c in Records(d / "cells").all()]
     # A cell measured with another correction (outside --pairs/--sizes/--scales here) is not comparable.
     tabulated = [c for c in found if c.get("correction") == study.correction]
-    if len(tabulated) < len(found):
-        clock.say(f"{len(found) - len(tabulated)} cells measured with another correction are not tabulated "
-                  f"({', '.join(c['key'] for c in found if c not in tabulated)}); a run that includes "
-                  "them measures them again")
+    stale = [c["key"] for c in found if c.get("correction") != study.correction]
+    if stale:
+        clock.say(f"{len(stale)} cells measured with another correction are not tabulated "
+                  f"({', '.join(stale)}); a run that includes them measures them again")
     text = D.markdown(tabulated, reference, paper_pairs, clock.minutes, args.quick)
     atomic_write(workdir / "detection_limit.md", text)
     atomic_write(workdir / "detection_limit.csv", csv_text(D.CSV_COLUMNS, D.long_rows(tabulated)))
