@@ -319,10 +319,32 @@ def default_judge_size(
     judge at)."""
     if args.data is not None or args.judge_size is not None or args.no_judge or args.force:
         return None
+    return judge_rule(method, size, source)
+
+
+def judge_rule(method: str, size: tuple[int, int], source: tuple[int, int]) -> tuple[int, int] | None:
+    """The default judge of a ``method`` run of image ``size`` on ``source`` images (``correct`` and the
+    live correction): :data:`JUDGE_SIZE`, no larger than the source, when that is larger than ``size``
+    and the run is ``stereo_dpc``; else None."""
     if method != "stereo_dpc" or not _smaller_than_judge(size):
         return None
     judge = (min(JUDGE_SIZE[0], source[0]), min(JUDGE_SIZE[1], source[1]))
     return judge if _smaller_than(size, judge) else None
+
+
+def judge_size_problem(
+    judge: tuple[int, int], run_size: tuple[int, int], source: tuple[int, int]
+) -> str | None:
+    """Why ``--judge-size`` cannot judge a run of ``run_size`` on ``source`` images (``(H, W)`` px), or
+    None."""
+    (jh, jw), (sh, sw), (rh, rw) = judge, source, run_size
+    if jh > sh or jw > sw:
+        return (f"--judge-size {jh}x{jw}: larger than the source images ({sh}x{sw}); a judge upsampled from "
+                f"smaller images sees nothing they do not: give at most {sh}x{sw}")
+    if jh < rh or jw < rw:
+        return (f"--judge-size {jh}x{jw}: smaller than the run's images ({rh}x{rw}); a judge measures Δ on "
+                "more pixels than the network saw, not fewer")
+    return None
 
 
 def _smaller_than(size: tuple[int, int], other: tuple[int, int]) -> bool:
@@ -356,15 +378,10 @@ def _take_default_judge(args: argparse.Namespace) -> str | None:
     source = (int(height), int(width))
     run_size = (int(config.resolved_image_size[0]), int(config.resolved_image_size[1]))
     if args.judge_size is not None:
-        jh, jw = args.judge_size
-        if jh > source[0] or jw > source[1]:
-            return (f"--judge-size {jh}x{jw}: larger than the source images ({source[0]}x{source[1]}); a "
-                    "judge upsampled from smaller images sees nothing they do not: give at most "
-                    f"{source[0]}x{source[1]}")
-        if jh < run_size[0] or jw < run_size[1]:
-            return (f"--judge-size {jh}x{jw}: smaller than the run's images ({run_size[0]}x{run_size[1]}); "
-                    "a judge measures Δ on more pixels than the network saw, not fewer")
-        return _cache_folders_problem(args) if args.cache is not None else None
+        problem = judge_size_problem(args.judge_size, run_size, source)
+        if problem is None and args.cache is not None:
+            problem = _cache_folders_problem(args)
+        return problem
     size = default_judge_size(args, config.method, run_size, source)
     if size is None:
         if (config.method == "stereo_dpc" and not (args.no_judge or args.force)

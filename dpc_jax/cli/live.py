@@ -64,13 +64,14 @@ HUGE_PAGES = True
 
 # The per-frame CSV of both live commands. inliers, vo_status, disparity_offset_px and vo_ms are our
 # VO's (empty for an external VO, and inliers and status for frame 0, which has no pair); network_ms and
-# measure_ms are empty for frame 0; missed is 1 or 0 with --realtime, else empty.
+# measure_ms are empty for frame 0, judge_ms where the judge did not work; missed is 1 or 0 with
+# --realtime, else empty.
 CSV_COLUMNS = ("frame", "time_s", "state", "events", "inliers", "vo_status", "disparity_offset_px", "read_ms",
-               "vo_ms", "prepare_ms", "network_ms", "measure_ms", "latency_ms", "arrival_s", "written_s",
-               "missed")
+               "vo_ms", "prepare_ms", "network_ms", "measure_ms", "judge_ms", "latency_ms", "arrival_s",
+               "written_s", "missed")
 # The corrector's stages in the CSV (LiveFrame.seconds), and the times per frame the summary gives.
-CORRECTION_STAGES = ("prepare", "network", "measure")
-SUMMARY_STAGES = ("latency", "read", "vo", "network", "measure")
+CORRECTION_STAGES = ("prepare", "network", "measure", "judge")
+SUMMARY_STAGES = ("latency", "read", "vo", "network", "measure", "judge")
 # The fields of one record: LEFT RIGHT and a KITTI pose row, optionally preceded by TIME.
 POSE_FIELDS = 12
 RECORD_SHAPE = "LEFT RIGHT and the 12 numbers of a KITTI pose row (camera-to-world), optionally TIME first"
@@ -124,6 +125,15 @@ def add_correction_arguments(parser: argparse.ArgumentParser, *, requires: str |
                         "correction that does not help is ever accepted, however long the run")
     parser.add_argument("--no-mean-test", action="store_true",
                         help=f"{but}do not test the correction's running mean apart (whole parts only)")
+    judge = parser.add_mutually_exclusive_group()
+    judge.add_argument("--judge-size", type=image_size, metavar="HxW",
+                       help=f"{but}a part of the correction is applied only once its sequential test passes "
+                       "also on the frames prepared at this size (StereoSGBM depth, no network; default for "
+                       "a stereo_dpc run: 240x376, no larger than the camera's images, as `correct`); the "
+                       "judge works only while a part is accepted: about 90 ms a frame at 240x376 and 20 ms "
+                       "at 120x188 on two CPU cores")
+    judge.add_argument("--no-judge", action="store_true",
+                       help=f"{but}decide on the network's image size alone (no judge)")
     parser.add_argument("--realtime", type=float, metavar="HZ",
                         help=f"{but}replay at the camera's rate: frame k is due k/HZ s after the first; "
                         "report the frames whose pose is written after the next one is due")
@@ -135,6 +145,8 @@ def correction_problem(args: argparse.Namespace, run_option: str, run: Path | No
     given = [name for name, value in (("--select", args.select), ("--rotation-only", args.rotation_only),
                                       ("--force", args.force or None), ("--alpha", args.alpha),
                                       ("--no-mean-test", args.no_mean_test or None),
+                                      ("--judge-size", args.judge_size),
+                                      ("--no-judge", args.no_judge or None),
                                       ("--realtime", args.realtime)) if value is not None]
     if run is None:
         if given:
@@ -153,11 +165,15 @@ def correction_problem(args: argparse.Namespace, run_option: str, run: Path | No
     return problem
 
 
-def run_size_problem(run: Path, run_option: str, images: tuple[int, int], where: str) -> str | None:
+def run_size_problem(args: argparse.Namespace, run: Path, run_option: str, images: tuple[int, int],
+                     where: str) -> str | None:
     """Why the run's network cannot take the ``images`` (``(H, W)`` px) of ``where``, or None: its
     stored config unreadable, or its input larger than the images in either dimension (a frame is
-    resized to the network's size as ``prepare`` does, which never upsamples). Read without JAX."""
+    resized to the network's size as ``prepare`` does, which never upsamples), or ``--judge-size`` not
+    between the two. Sets ``args.judge_size`` to the judge used (the default of ``correct``'s rule
+    when none is given; None with ``--no-judge`` or ``--force``). Read without JAX."""
     from dpc_jax import config as config_lib
+    from dpc_jax.cli.correct import judge_rule, judge_size_problem
     from dpc_jax.training.train_config import TrainConfig
 
     try:
@@ -169,6 +185,15 @@ def run_size_problem(run: Path, run_option: str, images: tuple[int, int], where:
         size = f"{images[0]}x{images[1]}"
         return (f"{run_option} {run}: the network takes {h}x{w} images, larger than the {size} images of "
                 f"{where}; a frame is never upsampled: use a run trained at {size} or smaller")
+    if args.no_judge or args.force:
+        args.judge_size = None
+    elif args.judge_size is None:
+        args.judge_size = judge_rule(config.method, (h, w), images)
+    elif config.method != "stereo_dpc":
+        return (f"--judge-size: a judge measures Δ with stereo depth; {run_option} {run} is a "
+                f"{config.method} run")
+    else:
+        return judge_size_problem(args.judge_size, (h, w), images)
     return None
 
 
@@ -185,7 +210,8 @@ def corrector(args: argparse.Namespace, run: Path, calibration: Calibration, *,
     logging.getLogger("absl").setLevel(logging.ERROR)
     return LiveCorrector(run, calibration, select=args.select or "delta", rotation_only=args.rotation_only,
                          alpha=DEFAULT_ALPHA if args.alpha is None else args.alpha,
-                         mean_test=not args.no_mean_test, force=args.force, disparity_offset=disparity_offset)
+                         mean_test=not args.no_mean_test, force=args.force, disparity_offset=disparity_offset,
+                         judge_size=args.judge_size)
 
 
 # ------------------------------------------------------------------------------------ the live loop
@@ -450,9 +476,11 @@ def _row(arrived: Arrived, corrected: Corrected, read_s: float, arrival_s: float
 
 
 def network_words(live: LiveCorrector, run: Path) -> str:
-    """``RUN (stereo_dpc, epoch 3, 64x96)``: the network of a live corrector, in words."""
+    """``RUN (stereo_dpc, epoch 3, 64x96, judged at 240x376)``: the network of a live corrector and its
+    judge, in words."""
     h, w = live.size
-    return f"{run} ({live.run.config.method}, epoch {live.run.epoch}, {h}x{w})"
+    judge = "" if live.judge_size is None else ", judged at {}x{}".format(*live.judge_size)
+    return f"{run} ({live.run.config.method}, epoch {live.run.epoch}, {h}x{w}{judge})"
 
 
 def write_summary(path: Path | None, record: dict[str, Any]) -> None:
@@ -693,7 +721,7 @@ def run(args: argparse.Namespace) -> int:
     except (OSError, ValueError) as content:
         return error(str(content), 1)
     size = calibration.image_size
-    problem = (run_size_problem(args.checkpoint, "--checkpoint", size, f"--calib {args.calib}")
+    problem = (run_size_problem(args, args.checkpoint, "--checkpoint", size, f"--calib {args.calib}")
                or offset_problem(args.disparity_offset, size[1], f"--calib {args.calib}"))
     if problem is not None:
         return error(problem, 2)

@@ -202,7 +202,7 @@ def run(args: argparse.Namespace) -> int:
 
     config = VOConfig(disparity_offset=args.disparity_offset, estimate_offset=not args.fixed_offset)
     if args.correct is not None:
-        problem = run_size_problem(args.correct, "--correct", sequence.image_size, sequence.name)
+        problem = run_size_problem(args, args.correct, "--correct", sequence.image_size, sequence.name)
         if problem is not None:
             print(f"dpc-jax vo: error: {problem}", file=sys.stderr)
             return 2

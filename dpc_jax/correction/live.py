@@ -17,11 +17,16 @@ pose (:class:`LiveFrame`). Per frame:
    acceptance stays below α however long it runs, and an accepted part is withdrawn when the evidence
    turns); the pair gets the largest part accepted, in the order of the offline decision
    (``dpc_jax.correction.decision``), or nothing.
-4. ``T_w_k = T_w_{k-1} · inv(Exp(ξ_applied) · T_vo_{k,k-1})``: a pose once returned is never changed.
+4. With a *judge* (``judge_size``, as ``correct``'s judge: the same frames at a larger size, StereoSGBM
+   depth, no network), the part the tests would apply is also measured there, and it is applied only
+   once its own sequential test at the judge's size has accepted too: at 64×96 the images of a real
+   drive can favour a rotation the ground truth does not (``docs/method.md`` §8). The judge's work is
+   done only while a part is accepted at the network's size.
+5. ``T_w_k = T_w_{k-1} · inv(Exp(ξ_applied) · T_vo_{k,k-1})``: a pose once returned is never changed.
 
 What is kept between frames is what the next frame needs: the previous prepared frame and poses, the
-tests' running statistics and the corrections of the last pairs (for the running mean); memory does not
-grow with the frames.
+tests' running statistics and the corrections of the last pairs (for the running mean), and with a judge
+the previous pair at full size; memory does not grow with the frames.
 """
 
 from __future__ import annotations
@@ -86,8 +91,9 @@ class LiveFrame:
     accepted or withdrawn at this pair; ``seconds``: time per stage: ``vo`` (our VO, or the check of
     the given prior), ``prepare`` (the pair resized and matched; then the two frames made a batch on
     the device, with their optical flow for a network that reads flow), ``network`` (its forward pass),
-    ``measure`` (Δ of the parts for the tests), ``total`` (the call); frame 0 has no ``network`` and no
-    ``measure``.
+    ``measure`` (Δ of the parts for the tests), ``judge`` (with a judge, while a part is accepted: the
+    pair prepared at its size and Δ of that part there), ``total`` (the call); frame 0 has no
+    ``network`` and no ``measure``.
     """
 
     index: int
@@ -111,6 +117,8 @@ class _Previous:
     raw: np.ndarray  # the prior's camera-to-world pose as given (or as our VO composed it)
     prior: np.ndarray  # the prior's pose composed from the first pose
     pose: np.ndarray  # the corrected one
+    full: tuple[np.ndarray, np.ndarray] | None = None  # the pair as given, kept only for a judge
+    judged: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None  # prepared at the judge's size
 
 
 class LiveCorrector:
@@ -123,7 +131,9 @@ class LiveCorrector:
     tests say; ``first_pose``: ``[4, 4]`` the pose of frame 0 (default: the prior's first pose, or
     the identity for our VO); ``disparity_offset``: px, the rig's calibration residual the images
     are rectified by (``dpc_jax.data.cache.prepare_sequence``); ``vo``: the configuration of our VO
-    when no prior is given (``dpc_jax.vo.VOConfig``).
+    when no prior is given (``dpc_jax.vo.VOConfig``); ``judge_size``: ``(H, W)`` px, the size the part to
+    apply is judged at as well (module docstring; a Stereo DPC run, no smaller than the run's images
+    and no larger than the camera's), or None: no judge.
     """
 
     def __init__(
@@ -139,6 +149,7 @@ class LiveCorrector:
         first_pose: np.ndarray | None = None,
         disparity_offset: float = 0.0,
         vo: Any = None,
+        judge_size: tuple[int, int] | None = None,
     ) -> None:
         from dpc_jax.engine.predict import PreparedModel
 
@@ -152,7 +163,12 @@ class LiveCorrector:
         self.K = resized_intrinsics(calibration.K, calibration.image_size, self.size)
         self.disparity_offset = float(disparity_offset)
         self.first_pose = None if first_pose is None else np.asarray(first_pose, np.float64)
+        self.alpha = float(alpha)
         self.tests = {name: SequentialTest(name, alpha) for name in self._test_names()}
+        self._judge_K = self.K
+        self.judge_size = None if judge_size is None or self.force else self._checked_judge(judge_size)
+        # One test per part judged, made when the part is first to be applied.
+        self.judge_tests: dict[str, SequentialTest] = {}
         self._vo_config = vo
         self._vo: Any = None
         self._previous: _Previous | None = None
@@ -164,6 +180,23 @@ class LiveCorrector:
         # Prepared for the backend once; compiled below, before the first frame.
         self._model = PreparedModel(self.run.graphdef, self.run.state)
         self._compile()
+
+    def _checked_judge(self, size: tuple[int, int]) -> tuple[int, int]:
+        from dpc_jax.data.stereo_depth import sgbm_fits
+
+        h, w = (int(x) for x in size)
+        (ch, cw), (nh, nw) = self.calibration.image_size, self.size
+        if self.run.config.method != "stereo_dpc":
+            raise ValueError(f"judge {h}x{w}: a judge measures Δ with stereo depth; the run is "
+                             f"{self.run.config.method}")
+        if not (nh <= h <= ch and nw <= w <= cw):
+            raise ValueError(f"judge {h}x{w}: expected a size between the run's {nh}x{nw} and the camera's "
+                             f"{ch}x{cw}")
+        K = resized_intrinsics(self.calibration.K, self.calibration.image_size, (h, w))
+        if not sgbm_fits(w, float(K[0, 0]), self.calibration.baseline):
+            raise ValueError(f"judge {h}x{w}: too narrow for StereoSGBM to match the camera's disparities")
+        self._judge_K = K
+        return h, w
 
     def _test_names(self) -> list[str]:
         names = []
@@ -191,13 +224,14 @@ class LiveCorrector:
         frame = _Previous(blank, blank, disparity, np.eye(4), np.eye(4), np.eye(4))
         self._correction_of(self._window(frame, frame, np.eye(4)))
         self._compose(frame, np.eye(4), np.zeros(6))
+        if self.judge_size is not None:
+            h, w = self.calibration.image_size
+            full = np.zeros((h, w, 3), np.uint8)
+            judged = _Previous(blank, blank, disparity, np.eye(4), np.eye(4), np.eye(4), (full, full))
+            self._judged_delta(judged, judged, np.eye(4), np.zeros(6))
 
     def _window(self, previous: _Previous, current: _Previous, prior_pose: np.ndarray) -> SequenceCache:
         """The two frames as a cache in memory: what prediction and measurement read."""
-        depth = None
-        if previous.disparity is not None and current.disparity is not None:
-            fixed = np.stack([previous.disparity, current.disparity])
-            depth = stereo_depth_views(fixed, float(self.K[0, 0]) * self.calibration.baseline)
         flows: dict[str, Any] = {}
         if self._flow:
             from dpc_jax.data.cache_products import farneback_flow, grey
@@ -206,11 +240,43 @@ class LiveCorrector:
             pair = np.stack([farneback_flow(grey(a), grey(b)) for a, b in
                              ((previous.left, current.left), (previous.right, current.right))])
             flows["forward"] = decode_flow(encode_flow(pair, step)[None], step)
+        return self._pair_cache(((previous.left, previous.right, previous.disparity),
+                                 (current.left, current.right, current.disparity)),
+                                self.K, np.stack([previous.raw, prior_pose]), flows)
+
+    def _pair_cache(self, frames: tuple[tuple[np.ndarray, np.ndarray, np.ndarray | None], ...],
+                    K: np.ndarray, prior: np.ndarray, flows: dict[str, Any]) -> SequenceCache:
+        """Two prepared frames ``(left, right, disparity)`` at the size of ``K``, with the prior's poses
+        ``[2, 4, 4]``, as a cache in memory."""
+        (left0, right0, disparity0), (left1, right1, disparity1) = frames
+        depth = None
+        if disparity0 is not None and disparity1 is not None:
+            depth = stereo_depth_views(np.stack([disparity0, disparity1]),
+                                       float(K[0, 0]) * self.calibration.baseline)
         return SequenceCache(
-            path=Path("<live>"), name="live", left=np.stack([previous.left, current.left]),
-            right=np.stack([previous.right, current.right]), prior=np.stack([previous.raw, prior_pose]),
-            gt=None, K=self.K, baseline=self.calibration.baseline, indices=np.arange(2), times=np.zeros(2),
-            flows=flows, manifest={}, stereo_depth=depth)
+            path=Path("<live>"), name="live", left=np.stack([left0, left1]), right=np.stack([right0, right1]),
+            prior=prior, gt=None, K=K, baseline=self.calibration.baseline, indices=np.arange(2),
+            times=np.zeros(2), flows=flows, manifest={}, stereo_depth=depth)
+
+    def _judged_delta(self, previous: _Previous, current: _Previous, prior_pose: np.ndarray,
+                      correction: np.ndarray) -> float:
+        """Δ of ``correction`` ``[6]`` on the pair at the judge's size (each frame prepared there once)."""
+        import jax.numpy as jnp
+
+        from dpc_jax.engine.predict import effects_step, pair_batch
+
+        assert self.judge_size is not None
+        for frame in (previous, current):
+            if frame.judged is None:
+                assert frame.full is not None
+                frame.judged = prepared_pair(*frame.full, self.judge_size, self._judge_K,
+                                             self.calibration.baseline, self.disparity_offset)
+        window = self._pair_cache((previous.judged, current.judged), self._judge_K,  # type: ignore[arg-type]
+                                  np.stack([previous.raw, prior_pose]), {})
+        batch = pair_batch(window, False, window.stereo_depth)
+        candidates = jnp.asarray(correction[None, None], jnp.float32)
+        effects = effects_step(None, None, self._loss)(None, batch, candidates, None)
+        return float(np.asarray(effects["delta"], np.float64)[0, 0])
 
     def _correction_of(self, window: SequenceCache,
                        seconds: dict[str, float] | None = None) -> tuple[np.ndarray, dict[str, float]]:
@@ -237,7 +303,7 @@ class LiveCorrector:
         xi = np.asarray(self._model.xi_step(self.run.config.method)(self._model.leaves, batch), np.float64)[0]
         predicted = time.perf_counter()
         seconds["network"] = predicted - assembled
-        mean = np.mean([*self._recent, xi][-MEAN_WINDOW:], axis=0)
+        mean = self._running_mean(xi)
         parts = {}
         for component in self.components:
             parts[component] = part_of(xi[None], component)[0]
@@ -254,6 +320,18 @@ class LiveCorrector:
         delta = np.asarray(effects["delta"], np.float64)[:, 0]
         seconds["measure"] = time.perf_counter() - predicted
         return xi, {name: float(delta[i]) for i, name in enumerate(parts)}
+
+    def _running_mean(self, xi: np.ndarray) -> np.ndarray:
+        """The mean ``[6]`` of the corrections of the last pairs, ``xi`` (this pair's) the last of them."""
+        return np.mean([*self._recent, xi][-MEAN_WINDOW:], axis=0)
+
+    def _vector(self, xi: np.ndarray, part: Part | None) -> np.ndarray:
+        """``part`` of this pair's ``xi`` ``[6]`` (without the running mean for a remainder); zeros: None."""
+        if part is None:
+            return np.zeros(6)
+        if part.remainder:
+            return self._remainder(xi, part.component, self._running_mean(xi))
+        return part_of(xi[None], part.component)[0]
 
     @staticmethod
     def _remainder(xi: np.ndarray, component: str, mean: np.ndarray) -> np.ndarray:
@@ -284,8 +362,15 @@ class LiveCorrector:
         """``forced``, the part now applied, or ``prior``."""
         if self.force:
             return "forced"
-        part = self._part()
+        part = self._judged(self._part())
         return "prior" if part is None else part.name
+
+    def _judged(self, part: Part | None) -> Part | None:
+        """``part`` when there is no judge or its test at the judge's size has accepted it, else None."""
+        if part is None or self.judge_size is None:
+            return part
+        test = self.judge_tests.get(part.name)
+        return part if test is not None and test.accepted else None
 
     def __call__(
         self, left: np.ndarray, right: np.ndarray, prior: np.ndarray | None = None, *,
@@ -313,7 +398,8 @@ class LiveCorrector:
         small_left, small_right, disparity = prepared_pair(
             left, right, self.size, self.K, self.calibration.baseline, self.disparity_offset,
             match=self.depth == "sgbm")
-        current = _Previous(small_left, small_right, disparity, prior_pose, prior_pose, prior_pose)
+        current = _Previous(small_left, small_right, disparity, prior_pose, prior_pose, prior_pose,
+                            (left, right) if self.judge_size is not None else None)
         seconds["prepare"] = time.perf_counter() - t
         previous = self._previous
         if previous is None:
@@ -326,14 +412,22 @@ class LiveCorrector:
         t = time.perf_counter()
         window = self._window(previous, current, prior_pose)  # with its optical flow, for ss-DPC-Net
         seconds["prepare"] += time.perf_counter() - t
+        # What the judge measures is chosen from the tests of the pairs before this one (a choice made
+        # after seeing this pair's Δ would select the pairs that favour it).
+        candidate = None if self.judge_size is None else self._part()
         xi, delta = self._correction_of(window, seconds)
         events = self._update_tests(delta)
-        part = self._part()
+        if candidate is not None:
+            t = time.perf_counter()
+            judged = self._judged_delta(previous, current, prior_pose, self._vector(xi, candidate))
+            test = self.judge_tests.setdefault(candidate.name,
+                                               SequentialTest(f"judge: {candidate.name}", self.alpha))
+            change = test.update(judged)
+            events += () if change is None else (f"{test.name} {change}",)
+            seconds["judge"] = time.perf_counter() - t
+        applied = self._vector(xi, self._judged(self._part()))
         self._recent.append(xi)
         self._pairs += 1
-        mean = np.mean(self._recent, axis=0)
-        applied = (np.zeros(6) if part is None else self._remainder(xi, part.component, mean)
-                   if part.remainder else part_of(xi[None], part.component)[0])
         current.pose, current.prior = self._compose(previous, prior_pose, applied)
         self._previous = current
         seconds["total"] = time.perf_counter() - began

@@ -1,9 +1,11 @@
 """Live and offline on the same frames: does the live corrector end where ``correct`` does?
 
 For each case, the same trained network corrects the same prior twice, from the same prepared frames
-(the case's disparity offset, the network's size; no adaptation, no judge, as the live corrector runs):
-offline (``correct_cache``: the tests decide once, over the whole sequence) and live (``LiveCorrector``:
-frame by frame, each part applied from the pair its sequential test accepts at). The table gives the
+(the case's disparity offset, the network's size; no adaptation, as the live corrector runs; the judge of
+``correct``'s rule, as ``dpc-jax vo --correct`` and ``dpc-jax live`` take it, or none with
+``--no-judge``): offline (``correct_cache``: the tests decide once, over the whole sequence) and live
+(``LiveCorrector``: frame by frame, each part applied from the pair its sequential test, and its
+judge's, accepts at). The table gives the
 prior, the offline final and the live final against the ground truth (segment errors, rotational
 m-ATE), the offline decision, the frames the live corrector spent in each state, and where the two
 differ. Cases: the demo's test sequence with the demo's network; each real drive with the network
@@ -66,8 +68,10 @@ def cases(demo: Path, drives: Path, raw: Path) -> list[dict[str, Any]]:
     return out
 
 
-def run_case(case: dict[str, Any], cache: Path) -> dict[str, Any]:
-    """Offline and live on one case (its frames prepared into ``cache``) → its row."""
+def run_case(case: dict[str, Any], cache: Path, judged: bool) -> dict[str, Any]:
+    """Offline and live on one case (its frames prepared into ``cache``, and at the judge's size beside
+    it when ``judged`` and the rule gives one) → its row."""
+    from dpc_jax.cli.correct import judge_rule
     from dpc_jax.correction.corrector import correct_cache
     from dpc_jax.correction.inference import load_run
     from dpc_jax.correction.live import Calibration, LiveCorrector
@@ -79,9 +83,13 @@ def run_case(case: dict[str, Any], cache: Path) -> dict[str, Any]:
     sequence, prior, gt = case["sequence"], case["prior"], case["gt"]
     prepared = prepare_sequence(sequence, prior, cache.parent, size=run.image_size, ground_truth=gt,
                                 disparity_offset=case["offset"], name=cache.name, progress=False)
-    offline = correct_cache(run, prepared, rotation_only=case["rotation_only"])
+    judge_size = judge_rule(run.config.method, run.image_size, sequence.image_size) if judged else None
+    judge = None if judge_size is None else prepare_sequence(
+        sequence, prior, cache.parent, size=judge_size, ground_truth=gt, disparity_offset=case["offset"],
+        name=f"{cache.name}_judge", progress=False)
+    offline = correct_cache(run, prepared, rotation_only=case["rotation_only"], judge=judge)
     live = LiveCorrector(run, Calibration.of(sequence), rotation_only=case["rotation_only"],
-                         first_pose=gt[0], disparity_offset=case["offset"])
+                         first_pose=gt[0], disparity_offset=case["offset"], judge_size=judge_size)
     frames = [live(load_image(left), load_image(right), prior[k])
               for k, (left, right) in enumerate(zip(sequence.left_paths, sequence.right_paths, strict=True))]
     poses = np.stack([f.pose for f in frames])
@@ -91,7 +99,10 @@ def run_case(case: dict[str, Any], cache: Path) -> dict[str, Any]:
     longest = max((len(r) for r in "".join("1" if a else "0" for a in applied).split("0")), default=0)
     differed = [f.index for f in frames[1:] if (f.state.split(" ")[0] if f.state != "prior" else "none")
                 != (offline.acceptance.decision if offline.acceptance.decision != "none" else "none")]
-    return {"case": case["name"], "frames": len(frames), "offline": offline.acceptance.part,
+    judge_ms = [1e3 * f.seconds["judge"] for f in frames if "judge" in f.seconds]
+    return {"case": case["name"], "frames": len(frames),
+            "judge": "none" if judge_size is None else "{}x{}".format(*judge_size),
+            "judge_ms": float(np.median(judge_ms)) if judge_ms else None, "offline": offline.acceptance.part,
             "states": dict(states), "applied_frames": int(sum(applied)), "longest_run": longest,
             "differed": len(differed), "events": [(f.index, e) for f in frames for e in f.events],
             **{f"{k}_{m}": summary[k][m] for k in ("prior", "offline", "live") for m in METRICS}}
@@ -107,20 +118,21 @@ def markdown(rows: list[dict[str, Any]], minutes: float) -> str:
     def triple(row: dict[str, Any], metric: str) -> str:
         return " / ".join(number(row[f"{k}_{metric}"]) for k in ("prior", "offline", "live"))
 
-    body = table(["case", "frames", "offline applies", "live: frames per state",
+    body = table(["case", "frames", "judge (live p50 ms)", "offline applies", "live: frames per state",
                   "seg. t % (prior / offline / live)", "seg. r °/100 m", "rot. m-ATE °",
                   "live vs offline (t, r, m-ATE r)", "frames deciding otherwise"],
-                 ([r["case"], str(r["frames"]), r["offline"],
+                 ([r["case"], str(r["frames"]), r["judge"] + ("" if r["judge_ms"] is None
+                                                             else f" ({r['judge_ms']:.0f})"), r["offline"],
                    ", ".join(f"{s} {n}" for s, n in r["states"].items()), triple(r, "seg_trans_pct"),
                    triple(r, "seg_rot_deg_per_100m"), triple(r, "m_ate_rot_deg"),
                    ", ".join(change(r, "live", m) for m in METRICS), str(r["differed"])] for r in rows))
     events = [f"- {r['case']}: " + ("; ".join(f"frame {i}: {e}" for i, e in r["events"])
                                     or "no test accepted") for r in rows]
     return "\n".join(["# Live and offline on the same frames", "",
-                      f"{minutes:.1f} min. Offline: `correct_cache` (no adaptation, no judge); live: "
-                      "`LiveCorrector` on the same prepared frames, prior and first pose. A frame decides "
-                      "otherwise when the part live applies to its pair is not the component offline "
-                      "applies.",
+                      f"{minutes:.1f} min. Offline: `correct_cache` (no adaptation; the judge of the "
+                      "column, as `correct` takes it); live: `LiveCorrector` on the same prepared frames, "
+                      "prior and first pose, with the same judge. A frame decides otherwise when the part "
+                      "live applies to its pair is not the component offline applies.",
                       "", body, "",
                       "When the live tests changed state:", *events, ""])
 
@@ -132,6 +144,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="a finished kitti_raw_drives folder")
     parser.add_argument("--kitti-raw", type=path_argument, default=DEFAULT_ROOT, metavar="ROOT")
     parser.add_argument("--workdir", type=path_argument, required=True, help="caches and the table go here")
+    parser.add_argument("--no-judge", action="store_true",
+                        help="decide at the network's size alone, offline and live (no judge)")
     add_results_page(parser)
     args = parser.parse_args(argv)
     from dpc_jax._io import atomic_write
@@ -146,7 +160,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     clock = Clock()
     rows = []
     for k, case in enumerate(todo):
-        rows.append(run_case(case, workdir / "cache" / f"case{k}"))
+        rows.append(run_case(case, workdir / "cache" / f"case{k}", not args.no_judge))
         clock.say(f"{rows[-1]['case']}: offline {rows[-1]['offline']}, live {rows[-1]['states']}")
     text = markdown(rows, clock.minutes)
     atomic_write(workdir / "live_agreement.md", text)

@@ -29,7 +29,7 @@ from dpc_jax.cli import main
 from dpc_jax.pipelines import protocol as dpc_protocol
 
 FRAMES = 6
-COLUMNS = 16
+COLUMNS = 17
 
 
 @pytest.fixture(scope="module")
@@ -316,6 +316,10 @@ BAD = {
         ["does not give the images' size (a calib.txt has none)", "--image-size HxW"]),
     "a level outside (0, 1)": (lambda w: {"--alpha": "1.5"}, 2, ["--alpha 1.5", "a level in (0, 1)"]),
     "a rate of 0": (lambda w: {"--realtime": "0"}, 2, ["--realtime 0.0", "frames per second (> 0)"]),
+    "a judge larger than the images": (lambda w: {"--judge-size": "64x96"}, 2,
+                                       ["--judge-size 64x96", "larger than the source images (48x72)"]),
+    "a judge smaller than the network's images": (lambda w: {"--judge-size": "24x40"}, 2,
+                                                  ["--judge-size 24x40", "smaller than the run's images"]),
 }
 
 

@@ -140,3 +140,52 @@ def test_a_harmful_correction_is_never_applied_and_a_scene_change_withdraws() ->
     assert helpful.level < SequentialTest("x").level
     with pytest.raises(ValueError, match="not finite"):
         helpful.update(math.nan)
+
+
+def test_the_judge_measures_what_corrects_judge_does_and_gates_what_is_applied(world: dict,
+                                                                                 tmp_path) -> None:
+    """With a judge (the camera's 48x72 frames; the network's are 32x48): the part the tests would apply
+    is measured on the pair at the judge's size, the same Δ as ``correct``'s judge on the same frames
+    prepared there; it is applied only once the judge's own test has accepted: never while the judge
+    says it hurts, from the judge's acceptance on while it says it helps."""
+    from dpc_jax.correction.decision import Part, part_of
+    from dpc_jax.correction.inference import load_run
+    from dpc_jax.correction.live import Calibration, LiveCorrector
+    from dpc_jax.correction.measure import judge_measurement
+    from dpc_jax.data.cache import prepare_sequence
+    from dpc_jax.data.poses_io import read_mat
+    from dpc_jax.data.sequence_cache import load_cache
+
+    run = load_run(world["run"], "delta")
+    gt, prior = read_mat(world["priors"] / "stereo_05.mat")
+    calibration = Calibration.of(world["sequence"])
+    with pytest.raises(ValueError, match="between the run's 32x48 and the camera's 48x72"):
+        LiveCorrector(run, calibration, judge_size=(64, 96))
+    live = LiveCorrector(run, calibration, first_pose=gt[0], judge_size=(48, 72))
+    live._part = lambda: Part("rotation")  # the tests at the network's size have accepted the rotation
+    measured: list[float] = []
+    judged = live._judged_delta
+    live._judged_delta = lambda *a: measured.append(judged(*a)) or measured[-1]
+    frames = [live(left, right, prior[k]) for k, (left, right) in enumerate(_frames(world["sequence"]))]
+    judge = prepare_sequence(world["sequence"], world["priors"] / "stereo_05.mat", tmp_path / "judge",
+                             size=(48, 72), progress=False, workers=1)
+    xi = np.stack([f.proposal for f in frames[1:]])
+    offline = judge_measurement(run, load_cache(world["cache"]), judge)({"rotation": part_of(xi, "rotation")})
+    np.testing.assert_allclose(measured, offline["rotation"], atol=1e-6)
+
+    def states(sign: float) -> list[str]:
+        gated = LiveCorrector(run, calibration, judge_size=(48, 72))
+        gated._part = lambda: Part("rotation")
+        gated._judged_delta = lambda *a: sign * 1e-3
+        pose, step, out = np.eye(4), np.eye(4), []
+        step[2, 3] = 1.0
+        for k in range(60):
+            out.append(gated(*_frames_list[k % FRAMES], pose))
+            pose = pose @ step
+        return [f.state for f in out[1:]]
+
+    _frames_list = list(_frames(world["sequence"]))
+    assert set(states(+1.0)) == {"prior"}  # the judge says it hurts on every pair: never applied
+    helped = states(-1.0)
+    first = helped.index("rotation")
+    assert 5 <= first < 20 and set(helped[first:]) == {"rotation"} and set(helped[:first]) == {"prior"}
