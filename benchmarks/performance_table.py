@@ -10,8 +10,9 @@ JSON where the benchmark writes it (``bench_vs_torch.py --ours``, ``bench_train_
 its printed table otherwise. The full table, with the CPU that ``dpc_jax.runtime.machine`` names, the
 commit (``git rev-parse --short HEAD``, ``-dirty`` when tracked files differ from it) and the date of
 each row, goes into ``docs/performance.md`` between ``<!-- performance:begin -->`` and
-``<!-- performance:end -->``; a short table (what, shape, figure, command) into the README's
-Performance section between the same markers. Both files are rewritten atomically, and only
+``<!-- performance:end -->``; a short table (what, shape, figure, command) of the rows measured in full
+into the README's Performance section between the same markers (quick rows say nothing of speed, so the
+README never shows them). Both files are rewritten atomically, and only
 between their markers. Rows of benchmarks not run this time (``--only``) are kept from the
 previous table, so one benchmark can be re-measured alone.
 
@@ -326,6 +327,16 @@ def full_table(rows: Sequence[Row]) -> str:
     return "\n".join(lines)
 
 
+def readme_block(rows: Sequence[Row]) -> str:
+    """The README's block: the rows measured in full, under their heading; none when all are quick."""
+    full = [r for r in rows if not r.quick]
+    if not full:
+        return ("No figures measured in full yet (only `--quick` rows, which show that the benchmarks run, "
+                "not how fast: [docs/performance.md](docs/performance.md)); `python "
+                "benchmarks/performance_table.py` measures them.")
+    return f"{heading(full)}\n\n{short_table(full)}"
+
+
 def short_table(rows: Sequence[Row]) -> str:
     lines = [_line(SHORT_HEADER), "|" + "---|" * len(SHORT_HEADER)]
     lines += [_line((r.what, r.shape, r.figure, _code(r.command))) for r in rows]
@@ -403,7 +414,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     measured = [dataclasses.replace(row, **provenance) for row in measured]
     rows = merge(parse_full_table(previous), measured)
     replace_block(args.docs, BLOCK, f"{heading(rows)}\n\n{full_table(rows)}")
-    replace_block(args.readme, BLOCK, f"{heading(rows)}\n\n{short_table(rows)}")
+    replace_block(args.readme, BLOCK, readme_block(rows))
     print(full_table(rows))
     return 0
 

@@ -1,9 +1,9 @@
 """benchmarks/performance_table.py: one cheap benchmark in quick mode fills both marked blocks.
 
 Checks the file handling, not figures: the block between the markers is replaced in both files
-(the docs' full table with provenance, the README's short one), the text around the markers stays
-byte for byte, the rows of benchmarks not run are kept, and a second run replaces rather than
-appends.
+(the docs' full table with provenance; the README's short one, of the rows measured in full only), the
+text around the markers stays byte for byte, the rows of benchmarks not run are kept, and a second run
+replaces rather than appends.
 """
 
 from __future__ import annotations
@@ -40,5 +40,16 @@ def test_quick_run_fills_both_blocks_and_keeps_the_rest(tmp_path: Path) -> None:
     rows = [line for line in between(full).splitlines() if "bench_data.py" in line]
     assert len(rows) == 1 and rows[0].endswith(", quick |") and "input pipeline" in rows[0]
     assert KEPT in between(full)
-    assert "quick-mode figures" in between(short) and "old" not in between(short)
-    assert sum("bench_data.py" in line for line in between(short).splitlines()) == 1
+    # The README shows the kept row, measured in full, and not the quick one.
+    assert "old" not in between(short) and "bench_data.py" not in between(short)
+    assert "| kept row | 1×1 | 1 ms | `python benchmarks/bench_core.py` |" in between(short)
+    assert "on some CPU, commit abc1234, 2026-01-01" in between(short)
+
+
+def test_the_readme_shows_no_quick_figures(tmp_path: Path) -> None:
+    docs, readme = tmp_path / "performance.md", tmp_path / "README.md"
+    docs.write_text(f"{BEGIN}\n{END}\n")
+    readme.write_text(f"{BEGIN}\nold\n{END}\n")
+    run(docs, readme)
+    assert "bench_data.py" in between(docs.read_text())
+    assert between(readme.read_text()).strip().startswith("No figures measured in full yet")
