@@ -73,6 +73,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--reference-loop", type=Path, metavar="FILE", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if not args.mat.is_file():  # one line before any work, not a traceback from deep inside
+        raise SystemExit(f"bench_cli: error: --mat {args.mat}: no such file (expected libviso2-s's "
+                         "stereo_XX.mat with ground truth, as in ../shared/data/kitti-libviso2/)")
     if args.reference_loop is not None:
         sys.stdout.write(reference_loop(args.reference_loop))
         return

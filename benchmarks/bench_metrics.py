@@ -44,6 +44,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--reference-repeats", type=int, default=1)
     args = parser.parse_args()
+    if not args.mat.is_file():  # one line before any work, not a traceback from deep inside
+        raise SystemExit(f"bench_metrics: error: --mat {args.mat}: no such file (expected libviso2-s's "
+                         "stereo_XX.mat with ground truth, as in ../shared/data/kitti-libviso2/)")
 
     gt, est = read_mat(args.mat)
     n = gt.shape[0]

@@ -34,7 +34,10 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=108)
     args = parser.parse_args()
 
-    sequence = open_raw(args.root, "2011_09_26", "0001")
+    try:
+        sequence = open_raw(args.root, "2011_09_26", "0001")
+    except (OSError, ValueError) as error:  # one line, not a traceback
+        raise SystemExit(f"bench_vo: error: --root {args.root}: {error}") from None
     n = min(args.frames, len(sequence))
     start = time.perf_counter()
     frames = [
