@@ -32,6 +32,13 @@ from dpc_jax.cli._common import (
     path_text,
     restore_problem,
 )
+from dpc_jax.correction.judge import (
+    JUDGE_SIZE,
+    judge_rule,
+    judge_size_problem,
+    smaller_than,
+    smaller_than_judge,
+)
 from dpc_jax.data.holdout import MIN_EVERY, adaptable_pairs, held_out_pairs
 from dpc_jax.report.correction_report import applied_words
 from dpc_jax.report.evaluation_report import REPORT_FILES as EVALUATION_FILES
@@ -50,10 +57,6 @@ HUGE_PAGES = True
 # --holdout-every when not given (AdaptConfig's default): the option has no argparse default, so that
 # giving it without --adapt can be refused.
 HOLDOUT_EVERY = 5
-# The size a stereo_dpc run smaller than it is judged at by default with raw inputs (the papers' input
-# size): the photometric loss at 64x96 resolves rotations too coarsely to tell a helpful correction from
-# a harmful one (docs/method.md §8; experiments/protocols/configs/kitti_raw_excerpt.py).
-JUDGE_SIZE = (240, 376)
 # Every file --report may write (dpc_jax.report.correction_report.write_correction_report): with ground
 # truth the evaluation's report and metrics.json, and always report.md and summary.json.
 REPORT_FILES = (*EVALUATION_FILES, "metrics.json", "summary.json")
@@ -322,41 +325,6 @@ def default_judge_size(
     return judge_rule(method, size, source)
 
 
-def judge_rule(method: str, size: tuple[int, int], source: tuple[int, int]) -> tuple[int, int] | None:
-    """The default judge of a ``method`` run of image ``size`` on ``source`` images (``correct`` and the
-    live correction): :data:`JUDGE_SIZE`, no larger than the source, when that is larger than ``size``
-    and the run is ``stereo_dpc``; else None."""
-    if method != "stereo_dpc" or not _smaller_than_judge(size):
-        return None
-    judge = (min(JUDGE_SIZE[0], source[0]), min(JUDGE_SIZE[1], source[1]))
-    return judge if _smaller_than(size, judge) else None
-
-
-def judge_size_problem(
-    judge: tuple[int, int], run_size: tuple[int, int], source: tuple[int, int]
-) -> str | None:
-    """Why ``--judge-size`` cannot judge a run of ``run_size`` on ``source`` images (``(H, W)`` px), or
-    None."""
-    (jh, jw), (sh, sw), (rh, rw) = judge, source, run_size
-    if jh > sh or jw > sw:
-        return (f"--judge-size {jh}x{jw}: larger than the source images ({sh}x{sw}); a judge upsampled from "
-                f"smaller images sees nothing they do not: give at most {sh}x{sw}")
-    if jh < rh or jw < rw:
-        return (f"--judge-size {jh}x{jw}: smaller than the run's images ({rh}x{rw}); a judge measures Δ on "
-                "more pixels than the network saw, not fewer")
-    return None
-
-
-def _smaller_than(size: tuple[int, int], other: tuple[int, int]) -> bool:
-    """Whether ``size`` is smaller than ``other`` (and no larger in either dimension)."""
-    return tuple(size) != tuple(other) and size[0] <= other[0] and size[1] <= other[1]
-
-
-def _smaller_than_judge(size: tuple[int, int]) -> bool:
-    """Whether an image ``size`` is smaller than :data:`JUDGE_SIZE` (and no larger in either dimension)."""
-    return _smaller_than(size, JUDGE_SIZE)
-
-
 def _take_default_judge(args: argparse.Namespace) -> str | None:
     """With raw inputs, check ``--judge-size`` against the run and the source images (a judge is never
     smaller than the run's images nor larger than the source's); with no judge option, set
@@ -385,7 +353,7 @@ def _take_default_judge(args: argparse.Namespace) -> str | None:
     size = default_judge_size(args, config.method, run_size, source)
     if size is None:
         if (config.method == "stereo_dpc" and not (args.no_judge or args.force)
-                and _smaller_than_judge(run_size) and not _smaller_than(run_size, source)):
+                and smaller_than_judge(run_size) and not smaller_than(run_size, source)):
             args.judge_limited = source
         return None
     args.judge_size, args.default_judge = size, True
@@ -665,7 +633,7 @@ def _print_judge(args: argparse.Namespace, run_: TrainedRun) -> None:
         print(f"note: the acceptance test was measured at the run's {h}x{w} only: the source images "
               f"({sh}x{sw}) are no larger, and a judge is not upsampled")
     elif (args.data is not None and args.judge is None and not args.no_judge and not args.force
-          and run_.config.method == "stereo_dpc" and _smaller_than_judge((h, w))):
+          and run_.config.method == "stereo_dpc" and smaller_than_judge((h, w))):
         print(f"note: the acceptance test was measured at the cache's {h}x{w} only (a cache has no "
               f"full-size images to judge at); to judge at {JUDGE_SIZE[0]}x{JUDGE_SIZE[1]}, prepare the same "
               f"frames with `dpc-jax prepare ... --size {JUDGE_SIZE[0]}x{JUDGE_SIZE[1]}` and pass that cache "

@@ -173,7 +173,7 @@ def run_size_problem(args: argparse.Namespace, run: Path, run_option: str, image
     between the two. Sets ``args.judge_size`` to the judge used (the default of ``correct``'s rule
     when none is given; None with ``--no-judge`` or ``--force``). Read without JAX."""
     from dpc_jax import config as config_lib
-    from dpc_jax.cli.correct import judge_rule, judge_size_problem
+    from dpc_jax.correction.judge import judge_rule, judge_size_problem
     from dpc_jax.training.train_config import TrainConfig
 
     try:

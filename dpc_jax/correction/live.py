@@ -304,14 +304,9 @@ class LiveCorrector:
         predicted = time.perf_counter()
         seconds["network"] = predicted - assembled
         mean = self._running_mean(xi)
-        parts = {}
-        for component in self.components:
-            parts[component] = part_of(xi[None], component)[0]
-            if self.mean_test:
-                parts[f"{component} − mean"] = self._remainder(xi, component, mean)
-        for single in self._singles():
-            parts[single.name] = (self._remainder(xi, single.component, mean) if single.remainder
-                                  else part_of(xi[None], single.component)[0])
+        remainders = (False, True) if self.mean_test else (False,)
+        measured = [Part(c, r) for c in self.components for r in remainders]
+        parts = {part.name: self._vector(xi, part, mean) for part in [*measured, *self._singles()]}
         candidates = jnp.asarray(np.stack(list(parts.values()))[:, None], jnp.float32)
         if stereo is not None and not self.run.config.learn_ssim_weight:
             effects = effects_step(None, None, self._loss)(None, batch, candidates, None)
@@ -325,12 +320,13 @@ class LiveCorrector:
         """The mean ``[6]`` of the corrections of the last pairs, ``xi`` (this pair's) the last of them."""
         return np.mean([*self._recent, xi][-MEAN_WINDOW:], axis=0)
 
-    def _vector(self, xi: np.ndarray, part: Part | None) -> np.ndarray:
-        """``part`` of this pair's ``xi`` ``[6]`` (without the running mean for a remainder); zeros: None."""
+    def _vector(self, xi: np.ndarray, part: Part | None, mean: np.ndarray) -> np.ndarray:
+        """``part`` of this pair's ``xi`` ``[6]`` (without the running ``mean`` for a remainder); zeros:
+        None."""
         if part is None:
             return np.zeros(6)
         if part.remainder:
-            return self._remainder(xi, part.component, self._running_mean(xi))
+            return self._remainder(xi, part.component, mean)
         return part_of(xi[None], part.component)[0]
 
     @staticmethod
@@ -419,13 +415,14 @@ class LiveCorrector:
         events = self._update_tests(delta)
         if candidate is not None:
             t = time.perf_counter()
-            judged = self._judged_delta(previous, current, prior_pose, self._vector(xi, candidate))
+            judged = self._judged_delta(previous, current, prior_pose,
+                                        self._vector(xi, candidate, self._running_mean(xi)))
             test = self.judge_tests.setdefault(candidate.name,
                                                SequentialTest(f"judge: {candidate.name}", self.alpha))
             change = test.update(judged)
             events += () if change is None else (f"{test.name} {change}",)
             seconds["judge"] = time.perf_counter() - t
-        applied = self._vector(xi, self._judged(self._part()))
+        applied = self._vector(xi, self._judged(self._part()), self._running_mean(xi))
         self._recent.append(xi)
         self._pairs += 1
         current.pose, current.prior = self._compose(previous, prior_pose, applied)

@@ -71,9 +71,9 @@ def cases(demo: Path, drives: Path, raw: Path) -> list[dict[str, Any]]:
 def run_case(case: dict[str, Any], cache: Path, judged: bool) -> dict[str, Any]:
     """Offline and live on one case (its frames prepared into ``cache``, and at the judge's size beside
     it when ``judged`` and the rule gives one) → its row."""
-    from dpc_jax.cli.correct import judge_rule
     from dpc_jax.correction.corrector import correct_cache
     from dpc_jax.correction.inference import load_run
+    from dpc_jax.correction.judge import judge_rule
     from dpc_jax.correction.live import Calibration, LiveCorrector
     from dpc_jax.data.cache import prepare_sequence
     from dpc_jax.data.kitti import load_image
