@@ -19,6 +19,11 @@ from collections.abc import Generator
 from pathlib import Path
 from types import ModuleType
 
+from support import XLA_TEST_FLAGS
+
+# Set before JAX starts, and inherited by the processes the tests start (support.XLA_TEST_FLAGS says why).
+os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {XLA_TEST_FLAGS}".strip()
+
 import jax
 import pytest
 

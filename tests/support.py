@@ -30,6 +30,18 @@ if TYPE_CHECKING:
 ROOT = Path(__file__).resolve().parents[1]
 """The repository root (the command lines run there)."""
 
+XLA_TEST_FLAGS = "--xla_backend_optimization_level=0"
+"""XLA flags of every test process (``tests/conftest.py`` sets them; a test that starts a process with its
+own ``XLA_FLAGS`` appends them). The tests' shapes are small, so compiling is most of their time, and
+XLA's CPU code generation without LLVM's optimisation passes compiles the same programs about a third
+faster. What a program computes does not depend on it (the float64 references are met as before);
+users' processes keep XLA's default. A program a test runs many times at a larger size is slower that
+way: a test's own ``jax.jit`` of it takes ``compiler_options=OPTIMISED``."""
+
+OPTIMISED = {"xla_backend_optimization_level": 2}
+"""``jax.jit``'s ``compiler_options`` that give one program back XLA's optimisation passes (see
+:data:`XLA_TEST_FLAGS`)."""
+
 
 # --------------------------------------------------------------------------- KITTI odometry fixtures
 

@@ -7,11 +7,13 @@ test-time adaptation (``dpc_jax.correction.adapt``) both drive the step returned
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from flax import nnx
 from jax.sharding import Mesh
@@ -24,20 +26,50 @@ from dpc_jax.nn.losses import dpc_loss
 BoundStep = Callable[[list[jax.Array], Batch, jax.Array], tuple[list[jax.Array], dict[str, jax.Array]]]
 
 
-class TrainStep:
-    """The jitted train step of one loss: ``step(graphdef, state, batch, key) -> (state, metrics)``
-    (``state`` donated), and :meth:`bind` for the drivers of many steps."""
+class _CompiledStep:
+    """The jitted step of one loss on one mesh, shared by every :class:`TrainStep` of them: ``jitted(graphdef,
+    state, batch, key, warmup_steps)`` and, per ``(graphdef, treedef)``, the flat form of :meth:`flat`."""
 
     def __init__(self, function: Callable[..., tuple[nnx.State, dict[str, jax.Array]]],
                  jit_kwargs: dict[str, Any]) -> None:
         self._function = function
         self._jit_kwargs = jit_kwargs
-        self._jitted = jax.jit(function, static_argnums=0, donate_argnums=1, **jit_kwargs)
+        self.jitted = jax.jit(function, static_argnums=0, donate_argnums=1, **jit_kwargs)
+        self._flat: dict[tuple[nnx.GraphDef, Any], Callable[..., Any]] = {}
+
+    def flat(self, graphdef: nnx.GraphDef, treedef: Any) -> Callable[..., Any]:
+        """``step(leaves, batch, key, warmup_steps) -> (leaves, metrics)`` (``leaves`` donated)."""
+        key = (graphdef, treedef)
+        if key not in self._flat:
+            function = self._function
+
+            def flat(leaves: list[jax.Array], batch: Batch, key: jax.Array,
+                     warmup_steps: jax.Array) -> tuple[list[jax.Array], dict[str, jax.Array]]:
+                state = jax.tree.unflatten(treedef, leaves)
+                state, metrics = function(graphdef, state, batch, key, warmup_steps)
+                out, out_treedef = jax.tree.flatten(state)
+                if out_treedef != treedef:
+                    raise ValueError(f"the step changed the state's structure: {out_treedef} != {treedef}")
+                return out, metrics
+
+            self._flat[key] = jax.jit(flat, donate_argnums=0, **self._jit_kwargs)
+        return self._flat[key]
+
+
+class TrainStep:
+    """The jitted train step of one loss: ``step(graphdef, state, batch, key) -> (state, metrics)``
+    (``state`` donated), and :meth:`bind` for the drivers of many steps."""
+
+    def __init__(self, compiled: _CompiledStep, warmup_steps: int) -> None:
+        self._compiled = compiled
+        # An argument of the compiled program, not a constant in it: runs that differ only in their
+        # warm-up (a study's cells of other sizes) share one compilation.
+        self._warmup = np.int32(warmup_steps)
         self._bound: dict[tuple[nnx.GraphDef, Any], BoundStep] = {}
 
     def __call__(self, graphdef: nnx.GraphDef, state: nnx.State, batch: Batch,
                  key: jax.Array) -> tuple[nnx.State, dict[str, jax.Array]]:
-        return self._jitted(graphdef, state, batch, key)
+        return self._compiled.jitted(graphdef, state, batch, key, self._warmup)
 
     def bind(self, graphdef: nnx.GraphDef, treedef: Any) -> BoundStep:
         """``step(leaves, batch, key) -> (leaves, metrics)``: this step of the model ``graphdef``
@@ -48,20 +80,15 @@ class TrainStep:
         graph definition (a static argument) nor walks the NNX state's Python tree in and out: host
         time an accelerator waits for when its step is shorter than the dispatch.
         """
-        key = (graphdef, treedef)
-        if key not in self._bound:
-            function = self._function
+        if (graphdef, treedef) not in self._bound:
+            flat, warmup = self._compiled.flat(graphdef, treedef), self._warmup
 
-            def flat(leaves: list[jax.Array], batch: Batch,
-                     key: jax.Array) -> tuple[list[jax.Array], dict[str, jax.Array]]:
-                state, metrics = function(graphdef, jax.tree.unflatten(treedef, leaves), batch, key)
-                out, out_treedef = jax.tree.flatten(state)
-                if out_treedef != treedef:
-                    raise ValueError(f"the step changed the state's structure: {out_treedef} != {treedef}")
-                return out, metrics
+            def bound(leaves: list[jax.Array], batch: Batch,
+                      key: jax.Array) -> tuple[list[jax.Array], dict[str, jax.Array]]:
+                return flat(leaves, batch, key, warmup)
 
-            self._bound[key] = jax.jit(flat, donate_argnums=0, **self._jit_kwargs)
-        return self._bound[key]
+            self._bound[graphdef, treedef] = bound
+        return self._bound[graphdef, treedef]
 
 
 def make_train_step(loss_config: Any, warmup_steps: int = 0, mesh: Mesh | None = None) -> TrainStep:
@@ -74,10 +101,18 @@ def make_train_step(loss_config: Any, warmup_steps: int = 0, mesh: Mesh | None =
     before weight decay) — scalars. ``key`` drives dropout. With ``mesh``, the outputs are
     replicated on it; put the state with ``parallel.replicate`` and the batch with
     ``parallel.shard_batch``.
-    """
 
+    The program is compiled once per ``(loss_config, mesh)`` and model in a process, whatever the
+    warm-up: a second run of the same network and optimizer (a study's next cell, a repeated run,
+    the tests) reuses it.
+    """
+    return TrainStep(_compiled_step(loss_config, mesh), warmup_steps)
+
+
+@functools.cache
+def _compiled_step(loss_config: Any, mesh: Mesh | None) -> _CompiledStep:
     def step(
-        graphdef: nnx.GraphDef, state: nnx.State, batch: Batch, key: jax.Array
+        graphdef: nnx.GraphDef, state: nnx.State, batch: Batch, key: jax.Array, warmup_steps: jax.Array
     ) -> tuple[nnx.State, dict[str, jax.Array]]:
         model, optimizer = nnx.merge(graphdef, state)
         model.train()
@@ -96,4 +131,4 @@ def make_train_step(loss_config: Any, warmup_steps: int = 0, mesh: Mesh | None =
     kwargs: dict[str, Any] = {"compiler_options": backend.compiler_options(loss_config.method, training=True)}
     if mesh is not None:
         kwargs["out_shardings"] = parallel.replicated(mesh)
-    return TrainStep(step, kwargs)
+    return _CompiledStep(step, kwargs)

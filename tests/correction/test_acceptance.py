@@ -8,6 +8,7 @@ import math
 import jax
 import numpy as np
 import pytest
+from support import OPTIMISED
 
 from dpc_jax.correction.acceptance import paired_test
 from dpc_jax.correction.decision import decide
@@ -43,7 +44,7 @@ def test_wilcoxon_exact_p_values_in_closed_form() -> None:
         paired_test("full", -np.arange(1.0, 9.0), alpha=1.5)
 
 
-_candidate_deltas = jax.jit(candidate_deltas, static_argnames="config")
+_candidate_deltas = jax.jit(candidate_deltas, static_argnames="config", compiler_options=OPTIMISED)
 
 
 def batch_measure(outputs: DPCOutputs, batch: Batch, config, valid):

@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 from flax import nnx
 from jax.sharding import PartitionSpec
+from support import XLA_TEST_FLAGS
 
 from dpc_jax.engine import parallel
 
@@ -104,7 +105,7 @@ def test_mesh_and_shardings_on_one_device() -> None:
 def test_step_on_four_devices_equals_one_device(tmp_path: Path) -> None:
     """Same global batch (with a padding sample): loss, gradients' effect and BatchNorm statistics agree."""
     env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_", "XLA_"))}
-    env["XLA_FLAGS"] = "--xla_force_host_platform_device_count=4"
+    env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count=4 {XLA_TEST_FLAGS}"
     script = tmp_path / "four_devices.py"
     script.write_text(SCRIPT)
     result = subprocess.run(
@@ -143,6 +144,7 @@ def test_two_processes_train_like_one_process_with_two_devices(tmp_path: Path) -
                   validation_sequences=("01",), log_every=1, pose_warmup_epochs=0)
     env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_", "XLA_"))}
     env["JAX_PLATFORMS"] = "cpu"
+    env["XLA_FLAGS"] = XLA_TEST_FLAGS
     runs = {}
     for name, distributed in (("two_processes", True), ("one_process", False)):
         config = config_lib.from_dict(TrainConfig, {**fields, "distributed": distributed})
@@ -158,8 +160,9 @@ def test_two_processes_train_like_one_process_with_two_devices(tmp_path: Path) -
         for i in range(2)
     ]
     try:
+        two_devices = f"--xla_force_host_platform_device_count=2 {XLA_TEST_FLAGS}"
         single = subprocess.run(runs["one_process"], capture_output=True, text=True, timeout=900,
-                                env={**env, "XLA_FLAGS": "--xla_force_host_platform_device_count=2"})
+                                env={**env, "XLA_FLAGS": two_devices})
         outputs = [w.communicate(timeout=900)[0] for w in workers]
     finally:
         for w in workers:

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from support import TINY_MODEL
 
 from dpc_jax import config as config_lib
 from dpc_jax.cli import main as cli_main
@@ -20,7 +21,8 @@ TINY = {
     "train_sequences": 1, "train_frames": 6, "validation_frames": 5, "test_frames": 7,
     "render_size": (48, 80), "moving_objects": 1, "max_fallback_share": 1.0, "adapt_steps": 2,
     "holdout_every": 4,
-    "training": {"image_size": (32, 48), "batch_size": 2, "epochs": 1, "steps_per_epoch": 2},
+    "training": {"image_size": (32, 48), "batch_size": 2, "epochs": 1, "steps_per_epoch": 2,
+                 "model": TINY_MODEL},
 }
 
 
