@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from support import XLA_TEST_FLAGS
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -19,7 +20,8 @@ def test_every_row_runs_and_reports_a_time() -> None:
                "--height", "32", "--width", "48", "--methods", "ss_dpc", "--infer-batches", "1",
                "--train-batches", "2", "--repeats", "1", "--breakdown"]
     result = subprocess.run(command, capture_output=True, text=True, timeout=300,
-                            env={"PATH": "/usr/bin:/bin", "DPC_JAX_HUGE_PAGES": "0"})
+                            env={"PATH": "/usr/bin:/bin", "DPC_JAX_HUGE_PAGES": "0",
+                                 "XLA_FLAGS": XLA_TEST_FLAGS})
     assert result.returncode == 0, result.stderr[-2000:]
     rows = [line.split("|") for line in result.stdout.splitlines() if line.startswith("| ss_dpc")]
     assert [cells[2].strip() for cells in rows] == [

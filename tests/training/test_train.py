@@ -19,7 +19,7 @@ import numpy as np
 import optax
 import orbax.checkpoint as ocp
 import pytest
-from support import cheap_loss, make_caches, se3_logs, tiny_config
+from support import XLA_TEST_FLAGS, cheap_loss, make_caches, se3_logs, tiny_config
 
 from dpc_jax import config as config_lib
 from dpc_jax.config import ConfigError
@@ -319,6 +319,7 @@ def test_bad_input_fails_before_any_compute(
 
 def _subprocess_env(tmp_path: Path) -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_", "XLA_"))}
+    env["XLA_FLAGS"] = XLA_TEST_FLAGS
     # The resumed process finds the first one's programs in the persistent compilation cache.
     env["JAX_COMPILATION_CACHE_DIR"] = str(tmp_path / "jax-cache")
     env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
