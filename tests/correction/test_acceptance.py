@@ -88,6 +88,7 @@ def _yaw(n: int) -> np.ndarray:
     return xi
 
 
+@pytest.mark.slow
 def test_true_depth_rejects_a_spurious_yaw_and_accepts_the_true_correction(rendered) -> None:
     batch, outputs, valid, steps = rendered
     n = len(steps)

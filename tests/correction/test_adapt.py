@@ -76,6 +76,7 @@ def test_held_out_pairs() -> None:
         AdaptConfig(steps=0)
 
 
+@pytest.mark.slow
 def test_adaptation_learns_a_known_rotation_bias_without_the_ground_truth(biased, tmp_path: Path) -> None:
     cache_dir, run = biased
     cache = load_cache(cache_dir)

@@ -347,6 +347,7 @@ def test_the_decision_follows_the_test_on_the_sequence(setup: dict, run) -> None
     assert correct_cache(run, cache, alpha=1e-9).applied == "none"  # 9 pairs cannot reach p < 1e-9
 
 
+@pytest.mark.slow
 def test_cli_adapt_writes_the_adapted_network_that_made_the_trajectory(setup: dict, tmp_path: Path) -> None:
     from dpc_jax.cli import main
     from dpc_jax.correction.corrector import correct_cache

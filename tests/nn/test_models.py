@@ -182,6 +182,7 @@ def test_input_errors() -> None:
         create_model("mono", SMALL, 0)
 
 
+@pytest.mark.slow
 def test_pose_head_options_prior_statistics_scales_and_prior_only() -> None:
     """The prior enters as (ξ_vo − μ)/σ; each output component has its scale (0 switches it off); a
     prior-only head's correction does not depend on the images."""
@@ -369,6 +370,7 @@ def test_split_merge_updates_batch_statistics(stereo_split) -> None:
             np.testing.assert_allclose(s2, 1.9 * s1 - 0.9, rtol=2e-5, atol=1e-6, err_msg=name)
 
 
+@pytest.mark.slow
 def test_stereo_loss_gradient_reaches_every_parameter(stereo_split) -> None:
     model = nnx.merge(*stereo_split)
     model.train()

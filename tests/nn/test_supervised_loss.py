@@ -138,6 +138,7 @@ def test_supervised_loss_needs_ground_truth_and_dpc_loss_dispatches() -> None:
     assert np.all(rotation[:3] == 0.0) and np.all(rotation[:, :3] == 0.0)
 
 
+@pytest.mark.slow
 def test_only_supervised_training_reads_ground_truth(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Self-supervised training: no training batch carries ground truth; ``supervision: supervised``:
     every batch does (the ground truth of its pairs) and the step minimises DPC-Net's loss."""
