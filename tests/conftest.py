@@ -82,14 +82,6 @@ def pytest_runtest_call(item: pytest.Item) -> Generator[None, object, object]:
     return (yield from _skip_for_missing_data())
 
 
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """The files with slow tests first, each file's tests in their order: the test command hands whole
-    files to its processes in this order (``--dist loadfile``), so the long files start at once and the
-    processes finish together instead of one of them running the last long file alone."""
-    slow_files = {item.path for item in items if item.get_closest_marker("slow")}
-    items.sort(key=lambda item: item.path not in slow_files)
-
-
 def pytest_sessionstart(session: pytest.Session) -> None:
     if _IN_CI and not _data_present():
         raise pytest.UsageError(f"CI is set, but {MISSING_DATA.split(': ', 1)[0]}; CI must run every test")
