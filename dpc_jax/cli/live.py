@@ -457,8 +457,9 @@ def correct_frames(
             raise RecordError(f"{arrived.where}: {error}") from None
         due = started + (k + 1) / summary.hz if summary.hz else math.inf
         row = functools.partial(_row, arrived, corrected, read_s, arrival - started, started, due, summary.hz)
-        written = outputs.write(corrected.frame.pose, corrected.frame.prior, row)
-        summary.add(arrived.number, corrected, read_s, written - arrival, written > due)
+        with whole_lines():  # written and counted together: a Ctrl-C reports the frames in the files
+            written = outputs.write(corrected.frame.pose, corrected.frame.prior, row)
+            summary.add(arrived.number, corrected, read_s, written - arrival, written > due)
 
 
 def _row(arrived: Arrived, corrected: Corrected, read_s: float, arrival_s: float, started: float, due: float,
