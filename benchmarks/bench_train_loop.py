@@ -86,6 +86,7 @@ def bench_method(
     from dpc_jax.engine import parallel
     from dpc_jax.engine.backend import prepare_for_backend
     from dpc_jax.engine.predict import predict_step, stereo_depth_of
+    from dpc_jax.pipelines.protocol import SMOKE
     from dpc_jax.training import loop
     from dpc_jax.training.steps import make_train_step
     from dpc_jax.training.train_config import TrainConfig
@@ -94,6 +95,7 @@ def bench_method(
         method=method, preset=args.preset, image_size=args.size, batch_size=args.batch,
         cache_root=str(root), train_sequences=(train,), validation_sequences=(validation,),
         steps_per_epoch=args.steps, epochs=args.rounds + 1,
+        model=SMOKE["model"] if args.smoke_network else {},
     )
     data = loop.open_data(config, workers=args.workers)
     mesh = parallel.make_mesh()
@@ -243,6 +245,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--method", nargs="+", default=list(METHODS), choices=METHODS)
     parser.add_argument("--preset", default="reference", choices=("reference", "small"))
+    parser.add_argument("--smoke-network", action="store_true",
+                        help="the protocols' two-block --smoke network on the preset: checks that every step "
+                             "runs (gpu_check.sh's quick mode); its figures mean nothing")
     parser.add_argument("--size", type=parse_size, default=(240, 376), metavar="HxW")
     parser.add_argument("--batch", type=int, default=8)
     parser.add_argument("--steps", type=int, default=12, help="steps per measured epoch (default 12)")
@@ -261,7 +266,8 @@ def main() -> None:
         "device": f"{len(devices)} x {devices[0].device_kind} ({jax.default_backend()})",
         "cpu": this_cpu(),
         "jax": jax.__version__,
-        "preset": args.preset, "size": list(args.size), "batch": args.batch,
+        "preset": args.preset, "smoke_network": args.smoke_network, "size": list(args.size),
+        "batch": args.batch,
         "load_start": os.getloadavg()[0],
     }
     print(f"device: {header['device']}, {header['cpu']}, jax {jax.__version__}, "
@@ -284,7 +290,9 @@ def main() -> None:
         if temporary is not None:
             shutil.rmtree(temporary, ignore_errors=True)
     h, w = args.size
-    print(f"\npreset {args.preset}, {h}x{w}, batch {args.batch}; medians of {args.rounds} alternating rounds")
+    network = " (the --smoke network: figures that mean nothing)" if args.smoke_network else ""
+    print(f"\npreset {args.preset}{network}, {h}x{w}, batch {args.batch}; "
+          f"medians of {args.rounds} alternating rounds")
     print("| method | what | real loop | isolated step | efficiency |")
     print("|---|---|---|---|---|")
     for r in records:
