@@ -22,7 +22,8 @@ BUDGET="${BUDGET:-540}"
 QUICK="${QUICK:-0}"
 mkdir -p "$OUT"
 if [ "$QUICK" = 1 ]; then
-    LOOP_ARGS=(--preset small --smoke-network --size 64x96 --batch 2 --steps 2 --rounds 1 --correct-frames 8 --workers 1)
+    LOOP_ARGS=(--preset small --smoke-network --size 64x96 --batch 2 --steps 2 --rounds 1 --correct-frames 8
+               --workers 1)
     TORCH_ARGS=(--size 64 96 --torch-device cpu --torch-variants eager --torch-timeout 60 --pairs 1 --reps 2
                 --warmup 1 --only mono-infer-1 stereo-infer-1)
 else

@@ -244,9 +244,8 @@ def right_of(T_w_left: np.ndarray) -> np.ndarray:
 
 # --------------------------------------------------------------------------- tiny training
 
-# A two-block network: compiles in seconds, enough to exercise every part of the loop.
-TINY_MODEL = {"encoder_planes": [4, 8], "encoder_kernels": [3, 3], "decoder_planes": [8, 4],
-              "mask_source_block": 1, "depth_scales": 1, "fc_planes": [8, 8]}
+# The tiny network is the protocols' --smoke one (``dpc_jax.pipelines.protocol.SMOKE["model"]``, two
+# blocks: compiles in seconds, enough to exercise every part of the loop), at its image size.
 TINY_SIZE = (32, 48)
 
 
@@ -281,10 +280,11 @@ def make_caches(root: Path, names: list[str], n_frames: int = 12) -> Path:
 def tiny_config(cache_root: Path, **overrides: object) -> TrainConfig:
     """A training config of the tiny network on :func:`make_caches`' sequences (``02`` validates)."""
     from dpc_jax import config as config_lib
+    from dpc_jax.pipelines.protocol import SMOKE
     from dpc_jax.training.train_config import TrainConfig
 
-    fields = dict(method="stereo_dpc", preset="small", model=TINY_MODEL, image_size=TINY_SIZE, batch_size=4,
-                  epochs=2, learning_rate=1e-3, steps_per_epoch=3, cache_root=str(cache_root),
+    fields = dict(method="stereo_dpc", preset="small", model=SMOKE["model"], image_size=TINY_SIZE,
+                  batch_size=4, epochs=2, learning_rate=1e-3, steps_per_epoch=3, cache_root=str(cache_root),
                   validation_sequences=("02",), log_every=1)
     fields.update(overrides)
     return config_lib.from_dict(TrainConfig, fields)

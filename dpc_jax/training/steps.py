@@ -39,8 +39,7 @@ class _CompiledStep:
 
     def flat(self, graphdef: nnx.GraphDef, treedef: Any) -> Callable[..., Any]:
         """``step(leaves, batch, key, warmup_steps) -> (leaves, metrics)`` (``leaves`` donated)."""
-        key = (graphdef, treedef)
-        if key not in self._flat:
+        if (graphdef, treedef) not in self._flat:
             function = self._function
 
             def flat(leaves: list[jax.Array], batch: Batch, key: jax.Array,
@@ -52,8 +51,8 @@ class _CompiledStep:
                     raise ValueError(f"the step changed the state's structure: {out_treedef} != {treedef}")
                 return out, metrics
 
-            self._flat[key] = jax.jit(flat, donate_argnums=0, **self._jit_kwargs)
-        return self._flat[key]
+            self._flat[graphdef, treedef] = jax.jit(flat, donate_argnums=0, **self._jit_kwargs)
+        return self._flat[graphdef, treedef]
 
 
 class TrainStep:

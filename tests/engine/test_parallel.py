@@ -131,16 +131,17 @@ def test_two_processes_train_like_one_process_with_two_devices(tmp_path: Path) -
     """``dpc-jax train`` as two processes of one device each (``--coordinator-address localhost:PORT
     --num-processes 2 --process-id I``, what the README tells several hosts to run) and as one
     process with two forced devices: the same global batches, so the same losses and parameters."""
-    from support import TINY_MODEL, TINY_SIZE, make_caches
+    from support import TINY_SIZE, make_caches
 
     from dpc_jax import config as config_lib
     from dpc_jax.correction.inference import load_run
     from dpc_jax.nn.models import create_model
+    from dpc_jax.pipelines.protocol import SMOKE
     from dpc_jax.training.train_config import TrainConfig
 
     cache = make_caches(tmp_path / "data", ["00", "01"], n_frames=10)
-    fields = dict(method="stereo_dpc", preset="small", model=TINY_MODEL, image_size=TINY_SIZE, batch_size=4,
-                  epochs=1, learning_rate=1e-3, steps_per_epoch=3, cache_root=str(cache),
+    fields = dict(method="stereo_dpc", preset="small", model=SMOKE["model"], image_size=TINY_SIZE,
+                  batch_size=4, epochs=1, learning_rate=1e-3, steps_per_epoch=3, cache_root=str(cache),
                   validation_sequences=("01",), log_every=1, pose_warmup_epochs=0)
     env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_", "XLA_"))}
     env["JAX_PLATFORMS"] = "cpu"

@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from support import TINY_MODEL
 
 from dpc_jax import config as config_lib
 from dpc_jax.cli import main as cli_main
 from dpc_jax.data.poses_io import read_trajectory
+from dpc_jax.pipelines.protocol import SMOKE
 from dpc_jax.pipelines.synthetic_demo import DemoConfig, DemoError, run_demo
 from dpc_jax.results.demo import DemoSummary
 
@@ -22,7 +22,7 @@ TINY = {
     "render_size": (48, 80), "moving_objects": 1, "max_fallback_share": 1.0, "adapt_steps": 2,
     "holdout_every": 4,
     "training": {"image_size": (32, 48), "batch_size": 2, "epochs": 1, "steps_per_epoch": 2,
-                 "model": TINY_MODEL},
+                 "model": SMOKE["model"]},
 }
 
 
