@@ -323,6 +323,7 @@ def iterate_sequence(
     depth: int = 4,
     put: Callable[[Batch], Any] | None = None,
     stereo_depth: StereoDepth | None = None,
+    ground_truth: bool | None = None,
 ) -> Generator[Any, None, None]:
     """The forward pairs ``(k, k+1)``, k = 0 … N-2, of one sequence in order, in fixed-size batches.
 
@@ -330,12 +331,12 @@ def iterate_sequence(
     has ``batch_size`` samples; ``ceil((N-1) / batch_size)`` batches in all. ``put``: as in
     :meth:`TrainLoader.epoch`. ``stereo_depth``: ``(inverse depth, valid)`` ``[N, camera, H, W]``
     of every frame, gathered into each batch's ``stereo_depth`` by the data threads (so ``put``
-    moves it to the device with the images).
+    moves it to the device with the images). ``ground_truth``: as in :class:`TrainLoader`.
     """
     finish = put or _identity
     [loaded] = _as_caches([cache])
     use_flow = bool(loaded.flows) if flow is None else flow
-    table = _build_table([loaded], ["forward"], use_flow)
+    table = _build_table([loaded], ["forward"], use_flow, ground_truth=ground_truth)
     n = len(table)
     if stereo_depth is not None and any(a.shape[:1] != (len(loaded),) for a in stereo_depth):
         raise ValueError(f"{loaded.path}: the stereo depth must hold its {len(loaded)} frames, got "

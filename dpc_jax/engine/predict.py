@@ -196,7 +196,10 @@ def predict_sequence(
         totals["samples"] += float(real.sum())
         return int(real.sum())
 
-    batches = iterate_sequence(cache, size, flow=use_flow, put=put, stereo_depth=stereo_depth)
+    # No ground truth in the batches (the self-supervised losses never read it): a sequence with it and
+    # one without run the same compiled program.
+    batches = iterate_sequence(cache, size, flow=use_flow, put=put, stereo_depth=stereo_depth,
+                               ground_truth=False)
     drive(run, None, batches, total=pairs, desc=f"predict {cache.name}", unit="pair", progress=progress,
           consume=consume)
     merged = {k: np.concatenate(v) for k, v in results.items()}
@@ -299,7 +302,7 @@ def measure_effects(
 
     # Batch k+1 is dispatched before the effects of batch k are fetched.
     batches = iterate_sequence(cache, size, flow=use_flow and model is not None, put=put,
-                               stereo_depth=stereo_depth)
+                               stereo_depth=stereo_depth, ground_truth=False)
     drive(run, None, batches, total=pairs, desc=f"measure {cache.name}", unit="pair", progress=progress,
           consume=consume)
     return {"none": np.concatenate(out["none"]), "delta": np.concatenate(out["delta"], axis=1)}
@@ -311,7 +314,8 @@ def pair_batch(cache: SequenceCache, use_flow: bool, stereo_depth: StereoDepth |
     ``stereo_depth``), on the device: assembled and moved once for both steps of a live frame."""
     if len(cache) != 2:
         raise ValueError(f"{cache.path}: pair_batch takes a cache of two frames, got {len(cache)}")
-    [batch] = iterate_sequence(cache, 1, flow=use_flow, put=jax.device_put, stereo_depth=stereo_depth)
+    [batch] = iterate_sequence(cache, 1, flow=use_flow, put=jax.device_put, stereo_depth=stereo_depth,
+                               ground_truth=False)
     return batch
 
 

@@ -14,6 +14,7 @@ assumes hundreds of past steps (which would be up to 10× larger).
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import jax
@@ -45,20 +46,30 @@ def pose_head_labels(params: Any) -> Any:
 
 
 def make_optimizer(config: Any, steps_per_epoch: int) -> optax.GradientTransformation:
-    """Adam with coupled L2 weight decay and the halving schedule for ``config`` (a TrainConfig)."""
-    schedule = learning_rate_schedule(config.learning_rate, config.lr_halving_epochs, steps_per_epoch)
-    warmup = config.warmup_steps(steps_per_epoch)
+    """Adam with coupled L2 weight decay and the halving schedule for ``config`` (a TrainConfig).
+
+    Equal settings give the same transformation object: the train state's graph definition holds
+    it, so later runs of the same settings in a process (a second demo, a resumed run) find their
+    train step compiled."""
+    return _optimizer(float(config.learning_rate), int(config.lr_halving_epochs), int(steps_per_epoch),
+                      int(config.warmup_steps(steps_per_epoch)), float(config.weight_decay),
+                      float(config.pose_lr_multiplier))
+
+
+@functools.cache
+def _optimizer(learning_rate: float, halving_epochs: int, steps_per_epoch: int, warmup: int,
+               weight_decay: float, multiplier: float) -> optax.GradientTransformation:
+    schedule = learning_rate_schedule(learning_rate, halving_epochs, steps_per_epoch)
 
     def adam(rate: optax.Schedule) -> optax.GradientTransformation:
         return optax.chain(
-            optax.add_decayed_weights(config.weight_decay),
+            optax.add_decayed_weights(weight_decay),
             optax.scale_by_adam(),
             optax.scale_by_learning_rate(rate),
         )
 
-    if config.pose_lr_multiplier == 1.0 and warmup == 0:
+    if multiplier == 1.0 and warmup == 0:
         return adam(schedule)
-    multiplier = config.pose_lr_multiplier
     # The masked chain counts only its active steps: shift its schedule back onto the global step.
     pose = adam(lambda count: multiplier * schedule(count + warmup))
     if warmup:

@@ -111,8 +111,10 @@ def test_corrected_trajectory_equals_float64_reference(setup: dict, run, rotatio
     from dpc_jax.data.sequence_cache import load_cache
 
     cache = load_cache(setup["cache"] / "05")
-    # 9 pairs in batches of 4: the last batch is padded; the padding must be dropped.
-    result = correct_cache(run, cache, rotation_only=rotation_only, batch_size=4, force=True)
+    # 9 pairs in batches of 2 (the run's, so the module's other tests share the compiled program): the
+    # last batch is padded; the padding must be dropped.
+    assert run.config.batch_size == 2
+    result = correct_cache(run, cache, rotation_only=rotation_only, force=True)
     xi = _reference_corrections(setup["models"][run.epoch], cache)
     np.testing.assert_allclose(result.xi_corr, xi, atol=2e-6)
     assert np.abs(xi).max() > 1e-5  # a network's output, not zeros
@@ -283,8 +285,9 @@ def test_an_untrained_network_leaves_the_prior_unchanged(setup: dict) -> None:
     for seed in (0, 1, 2):
         model = create_model("stereo_dpc", config.model_config(), seed)
         set_prior_statistics(model, np.full(6, 0.1), np.full(6, 0.01))
+        model.eval()  # as a restored run is: the module's network-depth predictions share one program
         graphdef, state = nnx.split(model)
-        prediction = predict_sequence((graphdef, state), cache, config.loss_config(), batch_size=4,
+        prediction = predict_sequence((graphdef, state), cache, config.loss_config(), batch_size=2,
                                       use_flow=False)
         np.testing.assert_array_equal(prediction.xi_corr, 0.0)
         np.testing.assert_array_equal(prediction.delta["full"], 0.0)
@@ -493,17 +496,17 @@ def test_the_measurement_without_the_network_is_the_prediction_with_stereo_depth
     for depth in ("network", "sgbm"):
         prediction = run_prediction(run, cache, acceptance_depth=depth)
         candidates = {"full": prediction.xi_corr, "rotation": prediction.xi_corr * rotation}
-        measured = measurement(run, cache, depth=depth, batch_size=4)(candidates)
+        measured = measurement(run, cache, depth=depth, batch_size=2)(candidates)
         for name in candidates:
             np.testing.assert_allclose(measured[name], prediction.delta[name], rtol=1e-4, atol=1e-7)
     # The last prediction is the StereoSGBM one: a judge of the very same frames measures its Δ.
-    judged = judge_measurement(run, cache, cache, batch_size=4)(candidates)
+    judged = judge_measurement(run, cache, cache, batch_size=2)(candidates)
     np.testing.assert_allclose(judged["rotation"], prediction.delta["rotation"], rtol=1e-4, atol=1e-7)
     # With the prediction's L(0) given, the same Δ without measuring L(0) again.
     stereo, config = cache.stereo_depth, run.config.loss_config()
     both = np.stack([prediction.xi_corr, 0.5 * prediction.xi_corr])
     known = prediction.photometric
-    reused = measure_effects(cache, both, config, batch_size=4, stereo_depth=stereo, none=known)
+    reused = measure_effects(cache, both, config, batch_size=2, stereo_depth=stereo, none=known)
     fresh = measure_effects(cache, both, config, batch_size=3, stereo_depth=stereo)
     np.testing.assert_allclose(reused["delta"], fresh["delta"], rtol=1e-4, atol=1e-7)
     np.testing.assert_allclose(fresh["none"], known, rtol=1e-4, atol=1e-7)
