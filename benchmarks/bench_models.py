@@ -4,7 +4,7 @@ Usage::
 
     python benchmarks/bench_models.py [--preset reference] [--height 240 --width 376]
         [--methods ss_dpc stereo_dpc] [--infer-batches 1 8] [--train-batches 4 8]
-        [--repeats 10] [--breakdown] [--profile DIR]
+        [--repeats 10] [--breakdown] [--profile DIR] [--smoke-network]
 
 * ``inference``: jitted eval-mode forward of a batch by the model prepared once
   (``dpc_jax.engine.backend.prepare_for_backend``), as ``dpc_jax.engine.predict.predict_sequence`` runs one.
@@ -28,12 +28,12 @@ on a busy machine.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import functools
 import os
 import statistics
 import time
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import jax
 import numpy as np
@@ -45,8 +45,10 @@ from dpc_jax.nn.batch import Batch
 from dpc_jax.nn.losses import ss_dpc_loss, stereo_dpc_loss
 from dpc_jax.nn.model_config import PRESETS, SSDPCLossConfig, StereoDPCLossConfig
 from dpc_jax.nn.models import create_model
+from dpc_jax.pipelines.protocol import SMOKE
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 from dpc_jax.runtime.machine import this_cpu
+from dpc_jax.training.train_config import TrainConfig
 
 
 def timeit(fn: Callable[..., object], args: tuple, repeats: int) -> tuple[float, float, float, float]:
@@ -91,9 +93,16 @@ def loss_fn(method: str) -> Callable:
     return lambda outputs, batch: stereo_dpc_loss(outputs, batch, config)
 
 
-def build(method: str, preset: str, hw: tuple[int, int]) -> dict[str, Callable]:
-    """Jitted inference and the breakdown functions of the training step for one model."""
-    config = dataclasses.replace(PRESETS[preset], image_size=hw)
+SMOKE_LABEL = " (the --smoke network: figures that mean nothing)"
+
+
+def build(
+    method: str, preset: str, hw: tuple[int, int], model_overrides: dict[str, Any] | None = None
+) -> dict[str, Callable]:
+    """Jitted inference and the breakdown functions of the training step for one model (the preset's
+    network with ``model_overrides``, as a TrainConfig's ``model``)."""
+    config = TrainConfig(method=method, preset=preset, image_size=hw, model=model_overrides or {},
+                         validation_sequences=("v",)).model_config()
     model = create_model(method, config, seed=0)
     graphdef, params, stats = nnx.split(model, nnx.Param, ...)
     loss = loss_fn(method)
@@ -151,6 +160,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--train-batches", nargs="*", type=int, default=[4, 8])
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--breakdown", action="store_true", help="also time parts of the training step")
+    parser.add_argument("--smoke-network", action="store_true",
+                        help="the protocols' two-block --smoke network on the preset: checks that every row "
+                             "runs; its figures mean nothing")
     parser.add_argument("--profile", help="write a jax.profiler trace of training steps to this folder")
     args = parser.parse_args(argv)
 
@@ -158,8 +170,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     device = jax.devices()[0]
     print(
         f"device: {device.platform} ({device.device_kind}), {this_cpu()}, jax {jax.__version__}, "
-        f"float32, preset {args.preset}, {hw[0]}x{hw[1]}, {args.repeats} repeats"
+        f"float32, preset {args.preset}{SMOKE_LABEL if args.smoke_network else ''}, {hw[0]}x{hw[1]}, "
+        f"{args.repeats} repeats"
     )
+    model = SMOKE["model"] if args.smoke_network else {}
     env = {name: os.environ.get(name, "") for name in ("XLA_FLAGS", "GLIBC_TUNABLES")}
     print(", ".join(f"{name}={value!r}" for name, value in env.items()))
     print("load average before: {:.2f} {:.2f} {:.2f}".format(*os.getloadavg()))
@@ -175,7 +189,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     key = jax.random.key(0)
     for method in args.methods:
-        fns = build(method, args.preset, hw)
+        fns = build(method, args.preset, hw, model)
         params, stats = fns["state"]
         for b in args.infer_batches:
             batch = jax.device_put(make_batch(b, *hw))
@@ -188,7 +202,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 row(method, "loss fwd (fixed outputs)", b, fns["loss_only"], outputs, batch)
                 row(method, "loss fwd+bwd (fixed outputs)", b, fns["loss_grad"], outputs, batch)
                 row(method, "forward+loss+backward", b, fns["grad_only"], params, stats, batch, key)
-            step, _ = train_step_runner(method, args.preset, b, hw)
+            step, _ = train_step_runner(method, args.preset, b, hw, model)
             row(method, "train step (fwd+loss+bwd+Adam)", b, step)
             if args.profile:
                 with jax.profiler.trace(os.path.join(args.profile, f"{method}_b{b}")):

@@ -17,6 +17,7 @@ import os
 import statistics
 import time
 from collections.abc import Callable
+from typing import Any
 
 import jax
 import numpy as np
@@ -48,13 +49,15 @@ def random_batch(batch: int, size: tuple[int, int], flow: bool, seed: int = 0) -
 
 
 def train_step_runner(
-    method: str, preset: str, batch_size: int, image_size: tuple[int, int] | None = None
+    method: str, preset: str, batch_size: int, image_size: tuple[int, int] | None = None,
+    model: dict[str, Any] | None = None,
 ) -> tuple[Callable[[], object], tuple[int, int]]:
     """``(run, (H, W))``: ``run()`` performs one training step of the published architecture
-    (the papers' pose head, comparable with the PyTorch reference) on a fixed random batch and
-    returns its metrics (not blocked on). The state is donated and kept between calls."""
+    (the papers' pose head, comparable with the PyTorch reference; ``model``: overrides of the
+    preset's network) on a fixed random batch and returns its metrics (not blocked on). The state
+    is donated and kept between calls."""
     config = TrainConfig(method=method, preset=preset, batch_size=batch_size, validation_sequences=("v",),
-                         image_size=image_size, **REFERENCE)
+                         image_size=image_size, model=model or {}, **REFERENCE)
     mesh = parallel.make_mesh()
     model_config = config.model_config()
     graphdef, state = create_train_state(

@@ -249,8 +249,9 @@ def right_of(T_w_left: np.ndarray) -> np.ndarray:
 TINY_SIZE = (32, 48)
 
 
-def make_caches(root: Path, names: list[str], n_frames: int = 12) -> Path:
-    """Prepared caches of tiny textured sequences moving 1 m/frame forward, with ground truth."""
+def make_caches(root: Path, names: list[str], n_frames: int = 12, flow: bool = False) -> Path:
+    """Prepared caches of tiny textured sequences moving 1 m/frame forward, with ground truth (and with
+    ``flow``, the optical flow ss-DPC-Net reads)."""
     from dpc_jax.data.cache import prepare_sequence
     from dpc_jax.data.kitti import StereoSequence
 
@@ -273,7 +274,8 @@ def make_caches(root: Path, names: list[str], n_frames: int = 12) -> Path:
         prior[:, 0, 3] += rng.normal(0, 0.01, n_frames)
         sequence = StereoSequence(name, tuple(paths["l"]), tuple(paths["r"]), K, 0.5, TINY_SIZE,
                                   np.arange(n_frames) * 0.1, gt)
-        prepare_sequence(sequence, prior, root / "cache", size=TINY_SIZE, progress=False, workers=1)
+        prepare_sequence(sequence, prior, root / "cache", size=TINY_SIZE, flow=flow, progress=False,
+                         workers=1)
     return root / "cache"
 
 

@@ -1,5 +1,5 @@
 """benchmarks/bench_models.py: every row of its table runs (inference, the training breakdown and the
-library's own train step) at a tiny size; no timing is asserted."""
+library's own train step) at a tiny size, with the --smoke network; no timing is asserted."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[2]
 def test_every_row_runs_and_reports_a_time() -> None:
     command = [sys.executable, str(ROOT / "benchmarks" / "bench_models.py"), "--preset", "small",
                "--height", "32", "--width", "48", "--methods", "ss_dpc", "--infer-batches", "1",
-               "--train-batches", "2", "--repeats", "1", "--breakdown"]
+               "--train-batches", "2", "--repeats", "1", "--breakdown", "--smoke-network"]
     result = subprocess.run(command, capture_output=True, text=True, timeout=300,
                             env={"PATH": "/usr/bin:/bin", "DPC_JAX_HUGE_PAGES": "0",
                                  "XLA_FLAGS": XLA_TEST_FLAGS})

@@ -151,6 +151,11 @@ def test_evaluation_iterates_in_order_and_pads_with_weight_zero(caches: tuple[Pa
     assert sources == [0, 1, 2, 3, 4, 5, 6, 6, 6]
     np.testing.assert_array_equal(batches[0].flow[1], cache.flows["forward"][1])
     assert all(b.left.shape == (3, 2, *SIZE, 3) for b in batches)
+    # Ground truth as a TrainLoader's: carried when the sequence has it, never with ground_truth=False
+    # (what predictions take: one batch structure, so one compiled program, with or without it).
+    rel_gt = np.linalg.inv(cache.gt[1]) @ cache.gt[0]
+    np.testing.assert_allclose(batches[0].xi_gt[0], xi_reference(rel_gt), atol=2e-6)
+    assert all(b.xi_gt is None for b in iterate_sequence(excerpt, batch_size=3, ground_truth=False))
 
 
 def test_evaluation_batches_carry_the_stereo_depth_of_both_frames(caches: tuple[Path, Path]) -> None:

@@ -16,9 +16,12 @@ from dpc_jax.nn.branch import Branch, UpConv
 from dpc_jax.nn.losses import stereo_dpc_loss
 from dpc_jax.nn.model_config import PRESETS, ModelConfig, StereoDPCLossConfig
 from dpc_jax.nn.models import create_model, prepare_inference
+from dpc_jax.pipelines.protocol import SMOKE
 
 TINY = (24, 40)
 SMALL = dataclasses.replace(PRESETS["small"], image_size=TINY)
+SMOKE_NETWORK = {k: tuple(v) if isinstance(v, list) else v for k, v in SMOKE["model"].items()}
+"""The protocols' two-block ``--smoke`` network, as ``ModelConfig`` fields."""
 
 
 def make_batch(b: int, hw: tuple[int, int], seed: int = 0, flow: bool = True) -> Batch:
@@ -188,7 +191,9 @@ def test_pose_head_options_prior_statistics_scales_and_prior_only() -> None:
     prior-only head's correction does not depend on the images."""
     from dpc_jax.nn.models import set_prior_statistics
 
-    config = dataclasses.replace(SMALL, pose_init="pytorch", dropout=0.0)
+    # The pose head reads the encoder's last block: a two-block encoder (--smoke's) runs its eager calls
+    # in a fraction of the small preset's time.
+    config = dataclasses.replace(SMALL, pose_init="pytorch", dropout=0.0, **SMOKE_NETWORK)
     batch = make_batch(3, TINY, flow=False)
     mean, scale = np.linspace(-0.2, 0.3, 6), np.linspace(0.05, 0.5, 6)
     model = create_model("stereo_dpc", config, 0)

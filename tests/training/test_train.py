@@ -82,6 +82,24 @@ def test_optimizer_is_adam_with_coupled_weight_decay_and_the_schedule() -> None:
     assert not np.allclose(_torch_adam_reference(theta, grad_fn, lrs, 0.0), expected, atol=1e-6)
 
 
+def test_equal_settings_give_one_optimizer_so_runs_share_their_compiled_step() -> None:
+    """The train state's graph definition holds the optimizer: equal settings give the same object, so
+    two runs' definitions compare equal (the jitted step finds its program); other settings do not."""
+    from dpc_jax.pipelines.protocol import SMOKE
+
+    config = TrainConfig(method="stereo_dpc", preset="small", model=SMOKE["model"],
+                         validation_sequences=("v",))
+    tx = make_optimizer(config, 3)
+    assert make_optimizer(config_lib.from_dict(TrainConfig, config_lib.to_dict(config)), 3) is tx
+    assert make_optimizer(config, 4) is not tx
+    assert make_optimizer(dataclasses.replace(config, learning_rate=2e-4), 3) is not tx
+    definitions = [create_train_state(create_model("stereo_dpc", config.model_config(), seed), tx)[0]
+                   for seed in (0, 1)]
+    assert definitions[0] == definitions[1]
+    assert create_train_state(create_model("stereo_dpc", config.model_config(), 0), make_optimizer(
+        config, 4))[0] != definitions[0]
+
+
 def _adam_tree_run(config: TrainConfig, steps_per_epoch: int, n_steps: int) -> tuple[dict, dict]:
     """``n_steps`` of ``make_optimizer`` on a pose-head leaf and another leaf (same quadratic)."""
     tx = make_optimizer(config, steps_per_epoch)
