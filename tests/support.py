@@ -8,11 +8,12 @@ on ``sys.path`` and a test in any subfolder imports these with ``from support im
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import subprocess
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -290,6 +291,26 @@ def tiny_config(cache_root: Path, **overrides: object) -> TrainConfig:
                   validation_sequences=("02",), log_every=1)
     fields.update(overrides)
     return config_lib.from_dict(TrainConfig, fields)
+
+
+@contextlib.contextmanager
+def train_loss(function: Callable[..., Any]) -> Iterator[None]:
+    """The train step with ``function(outputs, batch, config)`` in place of ``dpc_loss`` while this holds.
+
+    A process keeps its compiled train steps (one per loss config, shared by runs of equal settings:
+    ``dpc_jax.training.steps``), so they are dropped on entry, for the step to be traced with
+    ``function``, and on exit, for no later run to get a program traced with it."""
+    import pytest
+
+    from dpc_jax.training import steps
+
+    steps._compiled_step.cache_clear()
+    try:
+        with pytest.MonkeyPatch.context() as monkeypatch:
+            monkeypatch.setattr(steps, "dpc_loss", function)
+            yield
+    finally:
+        steps._compiled_step.cache_clear()
 
 
 def cheap_loss(outputs: DPCOutputs, batch: Batch, config: object) -> tuple[jax.Array, dict[str, jax.Array]]:

@@ -139,10 +139,10 @@ def test_supervised_loss_needs_ground_truth_and_dpc_loss_dispatches() -> None:
 
 
 @pytest.mark.slow
-def test_only_supervised_training_reads_ground_truth(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_only_supervised_training_reads_ground_truth(tmp_path) -> None:
     """Self-supervised training: no training batch carries ground truth; ``supervision: supervised``:
     every batch does (the ground truth of its pairs) and the step minimises DPC-Net's loss."""
-    from support import cheap_loss, make_caches, se3_logs, tiny_config
+    from support import cheap_loss, make_caches, se3_logs, tiny_config, train_loss
 
     from dpc_jax.config import ConfigError
     from dpc_jax.data.sequence_cache import load_cache
@@ -161,36 +161,36 @@ def test_only_supervised_training_reads_ground_truth(tmp_path, monkeypatch: pyte
             return supervised(outputs, batch, config)
         return cheap_loss(outputs, batch, config)
 
-    monkeypatch.setattr(steps_lib, "dpc_loss", recording)
-    self_data = open_data(tiny_config(root), workers=0)
-    assert self_data.loader.table.xi_gt is None
-    assert all(b.xi_gt is None for b in self_data.loader.epoch(0))
-    train(tiny_config(root, epochs=1), tmp_path / "self", progress=False, workers=0)
-    assert seen and all(name == "StereoDPCLossConfig" and not has_gt for name, has_gt in seen)
+    with train_loss(recording):
+        self_data = open_data(tiny_config(root), workers=0)
+        assert self_data.loader.table.xi_gt is None
+        assert all(b.xi_gt is None for b in self_data.loader.epoch(0))
+        train(tiny_config(root, epochs=1), tmp_path / "self", progress=False, workers=0)
+        assert seen and all(name == "StereoDPCLossConfig" and not has_gt for name, has_gt in seen)
 
-    seen.clear()
-    config = tiny_config(root, epochs=1, supervision="supervised", precision=[1, 1, 1, 100, 100, 100])
-    assert config.train_loss_config() == SupervisedLossConfig(
-        precision=(1.0, 1.0, 1.0, 100.0, 100.0, 100.0), method="stereo_dpc"
-    )
-    data = open_data(config, workers=0)
-    table = data.loader.table
-    assert table.xi_gt is not None
-    forward = (table.cache == 0) & (table.kind == 0)
-    gt = load_cache(root / "00").gt
-    pairs = table.xi_gt[forward][np.argsort(table.source[forward])]
-    np.testing.assert_allclose(pairs, se3_logs(gt, 1), atol=1e-6)
-    summary = train(config, tmp_path / "supervised", progress=False, workers=0)
-    assert seen and all(name == "SupervisedLossConfig" and has_gt for name, has_gt in seen)
-    assert summary["epochs"] == 1
-    # Without a precision the loop takes DPC-Net's from the training pairs; these tiny sequences'
-    # priors err in one direction only, so it does not exist, and training says so before a step.
-    with pytest.raises(ValueError, match="no spread"):
-        train(tiny_config(root, epochs=1, supervision="supervised"), tmp_path / "default", progress=False,
-              workers=0)
+        seen.clear()
+        config = tiny_config(root, epochs=1, supervision="supervised", precision=[1, 1, 1, 100, 100, 100])
+        assert config.train_loss_config() == SupervisedLossConfig(
+            precision=(1.0, 1.0, 1.0, 100.0, 100.0, 100.0), method="stereo_dpc"
+        )
+        data = open_data(config, workers=0)
+        table = data.loader.table
+        assert table.xi_gt is not None
+        forward = (table.cache == 0) & (table.kind == 0)
+        gt = load_cache(root / "00").gt
+        pairs = table.xi_gt[forward][np.argsort(table.source[forward])]
+        np.testing.assert_allclose(pairs, se3_logs(gt, 1), atol=1e-6)
+        summary = train(config, tmp_path / "supervised", progress=False, workers=0)
+        assert seen and all(name == "SupervisedLossConfig" and has_gt for name, has_gt in seen)
+        assert summary["epochs"] == 1
+        # Without a precision the loop takes DPC-Net's from the training pairs; these tiny sequences'
+        # priors err in one direction only, so it does not exist, and training says so before a step.
+        with pytest.raises(ValueError, match="no spread"):
+            train(tiny_config(root, epochs=1, supervision="supervised"), tmp_path / "default", progress=False,
+                  workers=0)
 
-    with pytest.raises(ConfigError, match="precision is used only"):
-        tiny_config(root, precision=[1, 1, 1, 1, 1, 1])
+        with pytest.raises(ConfigError, match="precision is used only"):
+            tiny_config(root, precision=[1, 1, 1, 1, 1, 1])
 
 
 def test_training_precision_is_the_inverse_covariance_of_the_targets() -> None:

@@ -11,6 +11,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import jax
@@ -19,14 +20,13 @@ import numpy as np
 import optax
 import orbax.checkpoint as ocp
 import pytest
-from support import XLA_TEST_FLAGS, cheap_loss, make_caches, se3_logs, tiny_config
+from support import XLA_TEST_FLAGS, cheap_loss, make_caches, se3_logs, tiny_config, train_loss
 
 from dpc_jax import config as config_lib
 from dpc_jax.config import ConfigError
 from dpc_jax.nn import models as models_lib
 from dpc_jax.nn.models import create_model
 from dpc_jax.training import loop as train_lib
-from dpc_jax.training import steps as steps_lib
 from dpc_jax.training.checkpoints import Checkpoints
 from dpc_jax.training.loop import train
 from dpc_jax.training.optim import create_train_state, learning_rate_schedule, make_optimizer
@@ -155,9 +155,10 @@ def cache_root(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.fixture
-def cheap_losses(monkeypatch: pytest.MonkeyPatch) -> None:
+def cheap_losses() -> Iterator[None]:
     """The train step with a loss that compiles fast (validation keeps the real losses)."""
-    monkeypatch.setattr(steps_lib, "dpc_loss", cheap_loss)
+    with train_loss(cheap_loss):
+        yield
 
 
 def test_train_step_warmup_holds_the_correction_at_zero(cache_root: Path, cheap_losses: None) -> None:
