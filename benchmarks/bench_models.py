@@ -37,7 +37,7 @@ from typing import Any
 
 import jax
 import numpy as np
-from bench_train import train_step_runner
+from bench_train import SMOKE_LABEL, published_config, train_step_runner
 from flax import nnx
 
 from dpc_jax.engine.backend import compiler_options, prepare_for_backend
@@ -48,7 +48,6 @@ from dpc_jax.nn.models import create_model
 from dpc_jax.pipelines.protocol import SMOKE
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 from dpc_jax.runtime.machine import this_cpu
-from dpc_jax.training.train_config import TrainConfig
 
 
 def timeit(fn: Callable[..., object], args: tuple, repeats: int) -> tuple[float, float, float, float]:
@@ -93,16 +92,12 @@ def loss_fn(method: str) -> Callable:
     return lambda outputs, batch: stereo_dpc_loss(outputs, batch, config)
 
 
-SMOKE_LABEL = " (the --smoke network: figures that mean nothing)"
-
-
 def build(
     method: str, preset: str, hw: tuple[int, int], model_overrides: dict[str, Any] | None = None
 ) -> dict[str, Callable]:
     """Jitted inference and the breakdown functions of the training step for one model (the preset's
-    network with ``model_overrides``, as a TrainConfig's ``model``)."""
-    config = TrainConfig(method=method, preset=preset, image_size=hw, model=model_overrides or {},
-                         validation_sequences=("v",)).model_config()
+    network with ``model_overrides``, as a TrainConfig's ``model``), the one the train step rows run."""
+    config = published_config(method, preset, image_size=hw, model=model_overrides).model_config()
     model = create_model(method, config, seed=0)
     graphdef, params, stats = nnx.split(model, nnx.Param, ...)
     loss = loss_fn(method)

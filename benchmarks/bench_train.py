@@ -48,6 +48,20 @@ def random_batch(batch: int, size: tuple[int, int], flow: bool, seed: int = 0) -
     )
 
 
+SMOKE_LABEL = " (the --smoke network: figures that mean nothing)"
+"""What a benchmark's table says of rows measured with ``--smoke-network``."""
+
+
+def published_config(
+    method: str, preset: str, batch_size: int = 8, image_size: tuple[int, int] | None = None,
+    model: dict[str, Any] | None = None,
+) -> TrainConfig:
+    """The run config of the published architecture (the ``REFERENCE`` settings: the papers' pose head,
+    comparable with the PyTorch reference) on ``preset``'s network, with ``model`` overrides of it."""
+    return TrainConfig(method=method, preset=preset, batch_size=batch_size, validation_sequences=("v",),
+                       image_size=image_size, model=model or {}, **REFERENCE)
+
+
 def train_step_runner(
     method: str, preset: str, batch_size: int, image_size: tuple[int, int] | None = None,
     model: dict[str, Any] | None = None,
@@ -56,8 +70,7 @@ def train_step_runner(
     (the papers' pose head, comparable with the PyTorch reference; ``model``: overrides of the
     preset's network) on a fixed random batch and returns its metrics (not blocked on). The state
     is donated and kept between calls."""
-    config = TrainConfig(method=method, preset=preset, batch_size=batch_size, validation_sequences=("v",),
-                         image_size=image_size, model=model or {}, **REFERENCE)
+    config = published_config(method, preset, batch_size, image_size, model)
     mesh = parallel.make_mesh()
     model_config = config.model_config()
     graphdef, state = create_train_state(

@@ -49,6 +49,7 @@ from typing import Any
 
 import jax
 from bench_data import write_random_cache
+from bench_train import SMOKE_LABEL
 
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 from dpc_jax.runtime.machine import this_cpu
@@ -290,7 +291,7 @@ def main() -> None:
         if temporary is not None:
             shutil.rmtree(temporary, ignore_errors=True)
     h, w = args.size
-    network = " (the --smoke network: figures that mean nothing)" if args.smoke_network else ""
+    network = SMOKE_LABEL if args.smoke_network else ""
     print(f"\npreset {args.preset}{network}, {h}x{w}, batch {args.batch}; "
           f"medians of {args.rounds} alternating rounds")
     print("| method | what | real loop | isolated step | efficiency |")

@@ -49,8 +49,8 @@ def make_optimizer(config: Any, steps_per_epoch: int) -> optax.GradientTransform
     """Adam with coupled L2 weight decay and the halving schedule for ``config`` (a TrainConfig).
 
     Equal settings give the same transformation object: the train state's graph definition holds
-    it, so later runs of the same settings in a process (a second demo, a resumed run) find their
-    train step compiled."""
+    it, so later runs of the same settings in a process (a second demo, a study's cells of equal
+    settings) find their train step compiled."""
     return _optimizer(float(config.learning_rate), int(config.lr_halving_epochs), int(steps_per_epoch),
                       int(config.warmup_steps(steps_per_epoch)), float(config.weight_decay),
                       float(config.pose_lr_multiplier))
