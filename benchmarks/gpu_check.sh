@@ -13,7 +13,7 @@
 # $OUT (default ./gpu_out). BUDGET (seconds, default 540) bounds the whole run.
 #
 # QUICK=1 runs the same steps on any machine, a CPU included, in a minute or two: the --smoke network at
-# 64×96, batch 2, two steps; the side-by-side only where PyTorch imports (CI runs it so, so that a moved
+# 32×48, batch 2, two steps; the side-by-side only where PyTorch imports (CI runs it so, so that a moved
 # module breaks CI and not a GPU hour).
 set -uo pipefail
 export PYTHONUNBUFFERED=1
@@ -22,7 +22,7 @@ BUDGET="${BUDGET:-540}"
 QUICK="${QUICK:-0}"
 mkdir -p "$OUT"
 if [ "$QUICK" = 1 ]; then
-    LOOP_ARGS=(--preset small --smoke-network --size 64x96 --batch 2 --steps 2 --rounds 1 --correct-frames 8
+    LOOP_ARGS=(--preset small --smoke-network --size 32x48 --batch 2 --steps 2 --rounds 1 --correct-frames 8
                --workers 1)
     TORCH_ARGS=(--size 64 96 --torch-device cpu --torch-variants eager --torch-timeout 60 --pairs 1 --reps 2
                 --warmup 1 --only mono-infer-1 stereo-infer-1)

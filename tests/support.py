@@ -44,6 +44,27 @@ OPTIMISED = {"xla_backend_optimization_level": 2}
 :data:`XLA_TEST_FLAGS`)."""
 
 
+@contextlib.contextmanager
+def optimised_programs() -> Iterator[None]:
+    """The library's programs compiled while this holds get XLA's optimisation passes back (see
+    :data:`XLA_TEST_FLAGS`): for a test that runs them many times (a live corrector over hundreds of
+    frames), where they run several times faster than they compile slower. A program the process compiled
+    before keeps its code; what a program computes does not depend on it."""
+    import pytest
+    from jax._src import compiler  # the options every jit compiles with: no public hook sets them
+
+    unoptimised = compiler.get_compile_options
+
+    def get_compile_options(*args: Any, **kwargs: Any) -> Any:
+        options = unoptimised(*args, **kwargs)
+        options.executable_build_options.debug_options.xla_backend_optimization_level = 2
+        return options
+
+    with pytest.MonkeyPatch.context() as monkeypatch:
+        monkeypatch.setattr(compiler, "get_compile_options", get_compile_options)
+        yield
+
+
 # --------------------------------------------------------------------------- KITTI odometry fixtures
 
 FU, CU, FV, CV = 50.0, 15.5, 48.0, 9.5

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import ast
 import importlib
+import json
 import subprocess
 import sys
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -82,16 +82,34 @@ def test_what_a_script_takes_of_dpc_jax_exists(script: Path) -> None:
     assert not missing, f"{script.relative_to(ROOT)} uses what dpc_jax no longer has: {missing}"
 
 
+# Each script as ``python SCRIPT --help`` runs it (its folder first on sys.path, run as ``__main__``), one
+# after another in one interpreter, which imports JAX and the library once for all of them.
+HELP_ALL = """
+import contextlib, io, json, runpy, sys, traceback
+failed = []
+for script in sys.argv[1:]:
+    sys.argv = [script, "--help"]
+    sys.path[0] = script.rsplit("/", 1)[0]
+    code, err = 0, ""
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()) as stderr:
+        try:
+            runpy.run_path(script, run_name="__main__")
+        except SystemExit as done:
+            code = 0 if done.code is None else done.code
+        except BaseException:
+            code, err = 1, traceback.format_exc()
+    if code != 0:
+        failed.append([script, code, (err or stderr.getvalue())[-400:]])
+print(json.dumps(failed))
+"""
+
+
 @pytest.mark.slow
 def test_every_script_answers_help() -> None:
     """``python SCRIPT --help`` exits 0 for every script (argument parsing and top-level imports)."""
-
-    def run(script: Path) -> tuple[Path, int, str]:
-        done = subprocess.run([sys.executable, str(script), "--help"], capture_output=True, text=True,
-                              cwd=ROOT, timeout=300)
-        return script, done.returncode, done.stderr[-400:]
-
-    scripts = [s for s in SCRIPTS if s.name != "machine.py"]  # a module the benchmarks import, no command
-    with ThreadPoolExecutor(max_workers=4) as pool:
-        failed = [(str(s.relative_to(ROOT)), err) for s, code, err in pool.map(run, scripts) if code != 0]
+    scripts = [str(s) for s in SCRIPTS if s.name != "machine.py"]  # a module the benchmarks import
+    done = subprocess.run([sys.executable, "-c", HELP_ALL, *scripts], capture_output=True, text=True,
+                          cwd=ROOT, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    failed = json.loads(done.stdout.strip().splitlines()[-1])
     assert not failed, failed

@@ -39,6 +39,14 @@ def world(tmp_path_factory: pytest.TempPathFactory) -> dict:
     return {"sequence": sequence, "cache": cache, "run": tmp / "run", "priors": tmp / "priors"}
 
 
+@pytest.fixture(autouse=True)
+def _optimised() -> object:
+    from support import optimised_programs
+
+    with optimised_programs():
+        yield
+
+
 def _frames(sequence):
     from dpc_jax.data.kitti import load_image
 

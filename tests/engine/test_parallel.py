@@ -37,8 +37,8 @@ SCRIPT = textwrap.dedent(
     from dpc_jax.training.train_config import TrainConfig
 
     assert len(jax.devices()) == 4, jax.devices()
-    TINY = dict(encoder_planes=(8, 16, 32), encoder_kernels=(3, 3, 3), decoder_planes=(32, 16, 8),
-                mask_source_block=2, depth_scales=2, fc_planes=(16, 16))
+    from dpc_jax.pipelines.protocol import SMOKE
+    TINY = SMOKE["model"]
     config = TrainConfig(method="ss_dpc", preset="small", model=TINY, image_size=(32, 48), batch_size=8,
                          learning_rate=1e-3, validation_sequences=("v",), pose_warmup_epochs=0)
     rng = np.random.default_rng(0)
