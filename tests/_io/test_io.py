@@ -18,6 +18,7 @@ import pytest
 from dpc_jax import _io
 from dpc_jax._io import STAGING_PREFIX, OutputSet, atomic_write, install_folder, output_problem, output_target
 from dpc_jax.data.poses_io import write_kitti_poses
+from dpc_jax.runtime.compilation_cache import OPT_OUT
 
 
 def _folder(path: Path, name: str) -> Path:
@@ -119,7 +120,8 @@ def test_a_character_device_output_is_written_not_replaced() -> None:
 
 
 @pytest.mark.slow
-def test_evaluate_json_to_a_fifo_a_link_and_redirected_stdout(tmp_path: Path) -> None:
+def test_evaluate_json_to_a_fifo_a_link_and_redirected_stdout(tmp_path: Path,
+                                                            tmp_path_factory: pytest.TempPathFactory) -> None:
     """The command line end to end: the same JSON reaches a regular file, a FIFO's reader, a symlink's
     target and a file the shell redirected standard output to (and there nothing else: no table after
     the JSON, which would make it unreadable as JSON)."""
@@ -134,7 +136,9 @@ def test_evaluate_json_to_a_fifo_a_link_and_redirected_stdout(tmp_path: Path) ->
     real.write_text("old")
     link.symlink_to(real.name)
     base = [sys.executable, "-m", "dpc_jax", "evaluate", "--gt", "gt.txt", "--est", "est.txt", "--json"]
-    env = {**os.environ, "DPC_JAX_HUGE_PAGES": "0"}
+    # One compilation cache for the four runs (outside tmp_path, whose files are checked below): the later
+    # three load the metrics' program the first compiled.
+    env = {**os.environ, "DPC_JAX_HUGE_PAGES": "0", OPT_OUT: str(tmp_path_factory.mktemp("compiled"))}
     subprocess.run([*base, "plain.json"], cwd=tmp_path, check=True, capture_output=True, env=env)
     expected = (tmp_path / "plain.json").read_bytes()
     received: list[bytes] = []
