@@ -45,6 +45,9 @@ def test_wilcoxon_exact_p_values_in_closed_form() -> None:
 
 
 _candidate_deltas = jax.jit(candidate_deltas, static_argnames="config", compiler_options=OPTIMISED)
+# One program each, not JAX's operation-by-operation compilation of the same functions called eagerly.
+_correction_deltas = jax.jit(correction_deltas, static_argnames="config")
+_temporal_pair_errors = jax.jit(temporal_pair_errors, static_argnames="config")
 
 
 def batch_measure(outputs: DPCOutputs, batch: Batch, config, valid):
@@ -95,21 +98,21 @@ def test_true_depth_rejects_a_spurious_yaw_and_accepts_the_true_correction(rende
     config = StereoDPCLossConfig()
     # Exact prior: a constant 2 mrad yaw "correction" makes every pair worse.
     deltas = {k: np.asarray(v) for k, v in
-              correction_deltas(outputs._replace(xi_corr=_yaw(n)), batch, config, valid).items()}
+              _correction_deltas(outputs._replace(xi_corr=_yaw(n)), batch, config, valid).items()}
     assert np.all(deltas["full"] > 0)
     assert decide(_yaw(n), batch_measure(outputs, batch, config, valid)).decision == "none"
     # A prior with a known −2 mrad yaw error per step: the true correction (+2 mrad) is accepted, in full.
     biased = np.asarray(se3_exp(-_yaw(n))) @ steps
     batch = batch._replace(xi_vo=np.asarray(log_poses(biased)))
     deltas = {k: np.asarray(v) for k, v in
-              correction_deltas(outputs._replace(xi_corr=_yaw(n)), batch, config, valid).items()}
+              _correction_deltas(outputs._replace(xi_corr=_yaw(n)), batch, config, valid).items()}
     result = decide(_yaw(n), batch_measure(outputs, batch, config, valid))
     assert np.all(deltas["full"] < 0) and result.decision == "full" and not result.remainder
     assert result.tests["full"].p_value == pytest.approx(2.0**-8)
     # Its Δ is the measurement's, the per-sample Δ of correction_deltas.
     np.testing.assert_allclose(result.delta, deltas["full"], rtol=1e-4, atol=1e-7)  # float32
     # Δ is a paired difference: L(0) of the biased prior is what "none" reports.
-    baseline = temporal_pair_errors(outputs, batch, config, valid)
+    baseline = _temporal_pair_errors(outputs, batch, config, valid)
     np.testing.assert_allclose(deltas["none"], np.asarray(baseline), rtol=1e-12)
 
 
@@ -118,12 +121,12 @@ def test_deltas_per_component_and_rotation_only(rendered) -> None:
     n = len(steps)
     xi = np.zeros((n, 6))
     xi[:, 2] = 0.05  # a translation-only correction: its rotation part is zero
-    deltas = correction_deltas(outputs._replace(xi_corr=xi), batch, StereoDPCLossConfig(), valid)
+    deltas = _correction_deltas(outputs._replace(xi_corr=xi), batch, StereoDPCLossConfig(), valid)
     np.testing.assert_array_equal(np.asarray(deltas["rotation"]), 0.0)
     assert np.all(np.asarray(deltas["full"]) > 0)
     # A rotation-only loss config applies only φ in "full" too.
     rotation_config = StereoDPCLossConfig(rotation_only=True)
-    only = correction_deltas(outputs._replace(xi_corr=xi), batch, rotation_config, valid)
+    only = _correction_deltas(outputs._replace(xi_corr=xi), batch, rotation_config, valid)
     np.testing.assert_array_equal(np.asarray(only["full"]), 0.0)
     with pytest.raises(TypeError, match="SSDPCLossConfig or StereoDPCLossConfig"):
         temporal_pair_errors(outputs, batch, object())
@@ -132,7 +135,7 @@ def test_deltas_per_component_and_rotation_only(rendered) -> None:
     # offsets), so the spurious yaw here is 1 cm-rad ≈ 0.9 px.
     mono = outputs._replace(left=BranchOutputs(outputs.left.inv_depth[:, 1:], outputs.left.mask[:, 1:]),
                             right=None, xi_corr=5 * _yaw(n))
-    mono_deltas = correction_deltas(mono, batch, SSDPCLossConfig(), (valid[0][:, 1:], None))
+    mono_deltas = _correction_deltas(mono, batch, SSDPCLossConfig(), (valid[0][:, 1:], None))
     assert np.all(np.asarray(mono_deltas["full"]) > 0)
 
 
