@@ -15,6 +15,7 @@ from __future__ import annotations
 import importlib.util
 import os
 import sys
+from collections import Counter
 from collections.abc import Generator
 from pathlib import Path
 from types import ModuleType
@@ -85,6 +86,22 @@ def pytest_runtest_call(item: pytest.Item) -> Generator[None, object, object]:
 def pytest_sessionstart(session: pytest.Session) -> None:
     if _IN_CI and not _data_present():
         raise pytest.UsageError(f"CI is set, but {MISSING_DATA.split(': ', 1)[0]}; CI must run every test")
+
+
+SLOW_WEIGHT = 20.0
+"""What one ``slow`` test weighs in the files' order, against 0.5 for any other test (about their seconds)."""
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The heaviest files first: ``-n auto`` gives each worker a file at a time in this order (pyproject's
+    ``--no-loadscope-reorder`` keeps it; xdist would order by the number of tests, which sent the long
+    end-to-end files, of one or two tests each, last, and one worker waited for the other). A file's weight:
+    its ``slow`` tests at :data:`SLOW_WEIGHT`, the others at 0.5; the sort is stable, so a file's tests
+    keep their order."""
+    weight: Counter[Path] = Counter()
+    for item in items:
+        weight[item.path] += SLOW_WEIGHT if item.get_closest_marker("slow") else 0.5
+    items.sort(key=lambda item: -weight[item.path])
 
 
 def load_script(path: Path) -> ModuleType:

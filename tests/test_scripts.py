@@ -104,7 +104,6 @@ print(json.dumps(failed))
 """
 
 
-@pytest.mark.slow
 def test_every_script_answers_help() -> None:
     """``python SCRIPT --help`` exits 0 for every script (argument parsing and top-level imports)."""
     scripts = [str(s) for s in SCRIPTS if s.name != "machine.py"]  # a module the benchmarks import
