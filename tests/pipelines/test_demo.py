@@ -18,7 +18,7 @@ from dpc_jax.results.demo import DemoSummary
 ROOT = Path(__file__).resolve().parents[2]
 # At 48×80 the VO falls back on most pairs; the tiny demo accepts that (the refusal is tested below).
 TINY = {
-    "train_sequences": 1, "train_frames": 6, "validation_frames": 5, "test_frames": 7,
+    "train_sequences": 1, "train_frames": 7, "validation_frames": 7, "test_frames": 7,
     "render_size": (48, 80), "moving_objects": 1, "max_fallback_share": 1.0, "adapt_steps": 2,
     "holdout_every": 4,
     "training": {"image_size": (32, 48), "batch_size": 2, "epochs": 1, "steps_per_epoch": 2,
