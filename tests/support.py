@@ -57,7 +57,8 @@ def optimised_programs() -> Iterator[None]:
 
     def get_compile_options(*args: Any, **kwargs: Any) -> Any:
         options = unoptimised(*args, **kwargs)
-        options.executable_build_options.debug_options.xla_backend_optimization_level = 2
+        options.executable_build_options.debug_options.xla_backend_optimization_level = OPTIMISED[
+            "xla_backend_optimization_level"]
         return options
 
     with pytest.MonkeyPatch.context() as monkeypatch:

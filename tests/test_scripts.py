@@ -85,11 +85,11 @@ def test_what_a_script_takes_of_dpc_jax_exists(script: Path) -> None:
 # Each script as ``python SCRIPT --help`` runs it (its folder first on sys.path, run as ``__main__``), one
 # after another in one interpreter, which imports JAX and the library once for all of them.
 HELP_ALL = """
-import contextlib, io, json, runpy, sys, traceback
+import contextlib, io, json, os, runpy, sys, traceback
 failed = []
 for script in sys.argv[1:]:
     sys.argv = [script, "--help"]
-    sys.path[0] = script.rsplit("/", 1)[0]
+    sys.path[0] = os.path.dirname(script)
     code, err = 0, ""
     with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()) as stderr:
         try:

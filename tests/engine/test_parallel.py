@@ -32,15 +32,14 @@ SCRIPT = textwrap.dedent(
     from dpc_jax.engine import parallel
     from dpc_jax.nn.batch import Batch
     from dpc_jax.nn.models import create_model
+    from dpc_jax.pipelines.protocol import SMOKE
     from dpc_jax.training.optim import create_train_state, make_optimizer
     from dpc_jax.training.steps import make_train_step
     from dpc_jax.training.train_config import TrainConfig
 
     assert len(jax.devices()) == 4, jax.devices()
-    from dpc_jax.pipelines.protocol import SMOKE
-    TINY = SMOKE["model"]
-    config = TrainConfig(method="ss_dpc", preset="small", model=TINY, image_size=(32, 48), batch_size=8,
-                         learning_rate=1e-3, validation_sequences=("v",), pose_warmup_epochs=0)
+    config = TrainConfig(method="ss_dpc", preset="small", model=SMOKE["model"], image_size=(32, 48),
+                         batch_size=8, learning_rate=1e-3, validation_sequences=("v",), pose_warmup_epochs=0)
     rng = np.random.default_rng(0)
     B, H, W = 8, 32, 48
     K = np.array([[30.0, 0, 24], [0, 30, 16], [0, 0, 1]], np.float32)
