@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import os
 import subprocess
 import sys
 from collections.abc import Callable, Iterator, Sequence
@@ -31,39 +32,68 @@ if TYPE_CHECKING:
 ROOT = Path(__file__).resolve().parents[1]
 """The repository root (the command lines run there)."""
 
-XLA_TEST_FLAGS = "--xla_backend_optimization_level=0"
-"""XLA flags of every test process (``tests/conftest.py`` sets them; a test that starts a process with its
-own ``XLA_FLAGS`` appends them). The tests' shapes are small, so compiling is most of their time, and
-XLA's CPU code generation without LLVM's optimisation passes compiles the same programs about a third
-faster. What a program computes does not depend on it (the float64 references are met as before);
-users' processes keep XLA's default. A program a test runs many times at a larger size is slower that
-way: a test's own ``jax.jit`` of it takes ``compiler_options=OPTIMISED``."""
+_FAST_CODE_GENERATION = ("--xla_backend_optimization_level=0", "--xla_cpu_use_fusion_emitters=false")
+_CHOSEN_FLAGS = "DPC_JAX_TEST_XLA_FLAGS"
 
-OPTIMISED = {"xla_backend_optimization_level": 2}
-"""``jax.jit``'s ``compiler_options`` that give one program back XLA's optimisation passes (see
+
+def _test_xla_flags() -> str:
+    """Those of :data:`_FAST_CODE_GENERATION` this XLA knows: it aborts a process on a flag it does not (a
+    newer one may drop its older code generator), so one short process tries them first. The answer goes
+    into the environment, where the test workers and the processes they start find it."""
+    chosen = os.environ.get(_CHOSEN_FLAGS)
+    if chosen is None:
+        known = [_FAST_CODE_GENERATION[0]]
+        for flag in _FAST_CODE_GENERATION[1:]:
+            env = {**os.environ, "XLA_FLAGS": " ".join([*known, flag]), "JAX_PLATFORMS": "cpu"}
+            probe = subprocess.run([sys.executable, "-c", "import jax; jax.devices()"], env=env,
+                                   capture_output=True, check=False)
+            known += [flag] if probe.returncode == 0 else []
+        chosen = os.environ[_CHOSEN_FLAGS] = " ".join(known)
+    return chosen
+
+
+XLA_TEST_FLAGS = _test_xla_flags()
+"""XLA flags of every test process (``tests/conftest.py`` sets them; a test that starts a process with its
+own ``XLA_FLAGS`` appends them). The tests' shapes are small, so compiling is most of their time: without
+LLVM's optimisation passes, and with XLA's older CPU code generator (an emitter per operation instead of
+the MLIR fusion emitters), the same programs compile in about half the time XLA's defaults take. What a
+program computes does not depend on them beyond float rounding (the float64 references are met as before;
+two programs computing the same float32 value may differ in its last bits, so no test asks two programs
+for the same bits); users' processes keep XLA's default. A program a test runs many times at a larger size
+is slower that way: a test's own ``jax.jit`` of it takes ``compiler_options=OPTIMISED``."""
+
+OPTIMISED: dict[str, Any] = {
+    "xla_backend_optimization_level": 2,
+    **({"xla_cpu_use_fusion_emitters": True} if _FAST_CODE_GENERATION[1] in XLA_TEST_FLAGS else {}),
+}
+"""``jax.jit``'s ``compiler_options`` that give one program back XLA's default code generation (see
 :data:`XLA_TEST_FLAGS`)."""
 
 
 @contextlib.contextmanager
 def optimised_programs() -> Iterator[None]:
-    """The library's programs compiled while this holds get XLA's optimisation passes back (see
+    """The library's programs compiled while this holds get XLA's default code generation back (see
     :data:`XLA_TEST_FLAGS`): for a test that runs them many times (a live corrector over hundreds of
     frames), where they run several times faster than they compile slower. A program the process compiled
-    before keeps its code; what a program computes does not depend on it."""
+    before keeps its code; what a program computes does not depend on it beyond float rounding. The programs
+    compiled here are forgotten when it ends, so that a later test that asks two programs for the same bits
+    gets both from one code generator."""
+    import jax
     import pytest
     from jax._src import compiler  # the options every jit compiles with: no public hook sets them
 
-    unoptimised = compiler.get_compile_options
+    test_options = compiler.get_compile_options
 
     def get_compile_options(*args: Any, **kwargs: Any) -> Any:
-        options = unoptimised(*args, **kwargs)
-        options.executable_build_options.debug_options.xla_backend_optimization_level = OPTIMISED[
-            "xla_backend_optimization_level"]
-        return options
+        kwargs["env_options_overrides"] = {**(kwargs.get("env_options_overrides") or {}), **OPTIMISED}
+        return test_options(*args, **kwargs)
 
     with pytest.MonkeyPatch.context() as monkeypatch:
         monkeypatch.setattr(compiler, "get_compile_options", get_compile_options)
-        yield
+        try:
+            yield
+        finally:
+            jax.clear_caches()
 
 
 # --------------------------------------------------------------------------- KITTI odometry fixtures

@@ -350,13 +350,19 @@ def candidate_deltas(
     ``candidates``: ``[C, B, 6]`` corrections ``[ρ (m), φ (rad)]`` put in place of
     ``outputs.xi_corr`` one at a time, with the outputs' depth (or the independent one whose
     validity is ``depth_valid``, :func:`with_stereo_depth`); ``Δ_c = L(ξ_c) − L(0)`` with
-    :func:`temporal_pair_errors`. ``none``: ``L(0)`` ``[B]`` when already measured with this depth,
-    which spares its evaluation.
+    :func:`temporal_pair_errors`, exactly 0 where the candidate moves no pose. ``none``: ``L(0)``
+    ``[B]`` when already measured with this depth, which spares its evaluation.
     """
     candidates = jnp.asarray(candidates)
     if none is None:
         none = temporal_pair_errors(outputs._replace(xi_corr=jnp.zeros_like(candidates[0])), batch, config,
                                     depth_valid)
-    deltas = [temporal_pair_errors(outputs._replace(xi_corr=candidates[c]), batch, config, depth_valid) - none
-              for c in range(candidates.shape[0])]
+    deltas = []
+    for c in range(candidates.shape[0]):
+        applied = candidates[c][:, 3:] if config.rotation_only else candidates[c]
+        moved = temporal_pair_errors(outputs._replace(xi_corr=candidates[c]), batch, config, depth_valid)
+        delta = moved - none
+        # A candidate that moves no pose has Δ = 0 exactly, not the rounding by which two evaluations of L(0)
+        # in one program can differ: XLA's CPU code generators other than the default one differ there.
+        deltas.append(jnp.where(jnp.all(applied == 0, axis=-1), jnp.zeros_like(delta), delta))
     return {"none": none, "delta": jnp.stack(deltas)}

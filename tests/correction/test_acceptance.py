@@ -111,9 +111,10 @@ def test_true_depth_rejects_a_spurious_yaw_and_accepts_the_true_correction(rende
     assert result.tests["full"].p_value == pytest.approx(2.0**-8)
     # Its Δ is the measurement's, the per-sample Δ of correction_deltas.
     np.testing.assert_allclose(result.delta, deltas["full"], rtol=1e-4, atol=1e-7)  # float32
-    # Δ is a paired difference: L(0) of the biased prior is what "none" reports.
+    # Δ is a paired difference: L(0) of the biased prior is what "none" reports (to float32 rounding: two
+    # programs, whose code XLA generates its own way).
     baseline = _temporal_pair_errors(outputs, batch, config, valid)
-    np.testing.assert_allclose(deltas["none"], np.asarray(baseline), rtol=1e-12)
+    np.testing.assert_allclose(deltas["none"], np.asarray(baseline), rtol=2e-6)
 
 
 def test_deltas_per_component_and_rotation_only(rendered) -> None:

@@ -39,7 +39,7 @@ def world(tmp_path_factory: pytest.TempPathFactory) -> dict:
     return {"sequence": sequence, "cache": cache, "run": tmp / "run", "priors": tmp / "priors"}
 
 
-@pytest.fixture(autouse=True)
+@pytest.fixture(autouse=True, scope="module")
 def _optimised() -> object:
     from support import optimised_programs
 
