@@ -58,9 +58,10 @@ own ``XLA_FLAGS`` appends them). The tests' shapes are small, so compiling is mo
 LLVM's optimisation passes, and with XLA's older CPU code generator (an emitter per operation instead of
 the MLIR fusion emitters), the same programs compile in about half the time XLA's defaults take. What a
 program computes does not depend on them beyond float rounding (the float64 references are met as before;
-two programs computing the same float32 value may differ in its last bits, so no test asks two programs
-for the same bits); users' processes keep XLA's default. A program a test runs many times at a larger size
-is slower that way: a test's own ``jax.jit`` of it takes ``compiler_options=OPTIMISED``."""
+two programs computing the same float32 value may differ in its last bits, so a test comparing two
+programs allows for float32 rounding); users' processes keep XLA's default. A program a test runs many
+times at a larger size is slower that way: a test's own ``jax.jit`` of it takes
+``compiler_options=OPTIMISED``."""
 
 OPTIMISED: dict[str, Any] = {
     "xla_backend_optimization_level": 2,
@@ -76,8 +77,8 @@ def optimised_programs() -> Iterator[None]:
     :data:`XLA_TEST_FLAGS`): for a test that runs them many times (a live corrector over hundreds of
     frames), where they run several times faster than they compile slower. A program the process compiled
     before keeps its code; what a program computes does not depend on it beyond float rounding. The programs
-    compiled here are forgotten when it ends, so that a later test that asks two programs for the same bits
-    gets both from one code generator."""
+    compiled here are forgotten when it ends, so that a later test comparing two programs gets both from one
+    code generator."""
     import jax
     import pytest
     from jax._src import compiler  # the options every jit compiles with: no public hook sets them
