@@ -32,7 +32,8 @@ if TYPE_CHECKING:
 ROOT = Path(__file__).resolve().parents[1]
 """The repository root (the command lines run there)."""
 
-_FAST_CODE_GENERATION = ("--xla_backend_optimization_level=0", "--xla_cpu_use_fusion_emitters=false")
+_OLDER_CODE_GENERATOR = "--xla_cpu_use_fusion_emitters=false"
+_FAST_CODE_GENERATION = ("--xla_backend_optimization_level=0", _OLDER_CODE_GENERATOR)
 _CHOSEN_FLAGS = "DPC_JAX_TEST_XLA_FLAGS"
 
 
@@ -65,7 +66,7 @@ times at a larger size is slower that way: a test's own ``jax.jit`` of it takes
 
 OPTIMISED: dict[str, Any] = {
     "xla_backend_optimization_level": 2,
-    **({"xla_cpu_use_fusion_emitters": True} if _FAST_CODE_GENERATION[1] in XLA_TEST_FLAGS else {}),
+    **({"xla_cpu_use_fusion_emitters": True} if _OLDER_CODE_GENERATOR in XLA_TEST_FLAGS.split() else {}),
 }
 """``jax.jit``'s ``compiler_options`` that give one program back XLA's default code generation (see
 :data:`XLA_TEST_FLAGS`)."""

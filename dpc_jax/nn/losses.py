@@ -360,8 +360,8 @@ def candidate_deltas(
     deltas = []
     for c in range(candidates.shape[0]):
         applied = candidates[c][:, 3:] if config.rotation_only else candidates[c]
-        moved = temporal_pair_errors(outputs._replace(xi_corr=candidates[c]), batch, config, depth_valid)
-        delta = moved - none
+        delta = temporal_pair_errors(outputs._replace(xi_corr=candidates[c]), batch, config, depth_valid)
+        delta -= none
         # A candidate that moves no pose has Δ = 0 exactly, not the rounding by which two evaluations of L(0)
         # in one program can differ: XLA's CPU code generators other than the default one differ there.
         deltas.append(jnp.where(jnp.all(applied == 0, axis=-1), jnp.zeros_like(delta), delta))
