@@ -32,6 +32,7 @@ from dpc_jax.cli._common import (
     path_text,
     restore_problem,
 )
+from dpc_jax.correction.decision import DEFAULT_MEAN_TEST, MEAN_TESTS
 from dpc_jax.correction.judge import (
     JUDGE_SIZE,
     judge_rule,
@@ -132,6 +133,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-mean-test", action="store_true",
                         help="do not test the correction's mean over the sequence on its own (the earlier "
                         "decision: a correction that passes as a whole is applied whole)")
+    parser.add_argument("--decision", choices=tuple(MEAN_TESTS), default=DEFAULT_MEAN_TEST,
+                        help="where and how the correction's mean is tested (docs/method.md §8): "
+                        "mean-at-network (at both sizes, the default), mean-at-judge (with a judge, at its "
+                        "size only), mean-at-judge-a05 (the same at level 0.05), mean-noninferior (the same, "
+                        "passing unless it costs 5 %% of the whole's gain or more)")
     parser.add_argument("--acceptance-depth", choices=("network", "sgbm"),
                         help="depth Δ is measured with: sgbm, StereoSGBM on the cached pair (default for a "
                         "stereo run), or network, the network's own depth")
@@ -541,7 +547,7 @@ def _correct(
     show = progress_mode(args.no_progress)
     options = {"rotation_only": args.rotation_only, "batch_size": args.batch_size,
                "acceptance_depth": args.acceptance_depth, "alpha": args.alpha, "force": args.force,
-               "mean_test": not args.no_mean_test, "judge": judge}
+               "mean_test": not args.no_mean_test, "mean": MEAN_TESTS[args.decision], "judge": judge}
     how = None
     if args.adapt:
         from dpc_jax.correction.adapt import AdaptConfig

@@ -37,9 +37,17 @@ import numpy as np
 
 from dpc_jax._io import atomic_write
 from dpc_jax.correction.acceptance import DEFAULT_ALPHA, paired_test
-from dpc_jax.correction.decision import MEAN_WINDOW, applied_correction, decide, refused
+from dpc_jax.correction.decision import (
+    DEFAULT_MEAN_TEST,
+    MEAN_TESTS,
+    MEAN_WINDOW,
+    MeanTest,
+    applied_correction,
+    decide,
+    refused,
+)
 from dpc_jax.correction.inference import TrainedRun, run_prediction
-from dpc_jax.correction.measure import judge_measurement, measurement
+from dpc_jax.correction.measure import judge_measurement, measurement, remembered
 from dpc_jax.data.poses_io import WRITE_FORMATS, write_kitti_poses, write_tum
 from dpc_jax.data.priors import prior_for_cache
 from dpc_jax.data.sequence_cache import SequenceCache, load_cache
@@ -77,9 +85,11 @@ def correct_cache(
     force: bool = False,
     mean_test: bool = True,
     window: int = MEAN_WINDOW,
+    mean: MeanTest = MEAN_TESTS[DEFAULT_MEAN_TEST],
     held_out: np.ndarray | None = None,
     judge: SequenceCache | str | os.PathLike | None = None,
     proposal: np.ndarray | None = None,
+    store: dict[str, dict[bytes, np.ndarray]] | None = None,
     progress: Progress = False,
 ) -> Correction:
     """Correct the prior of a cached sequence with ``run`` where the acceptance test allows it.
@@ -89,13 +99,17 @@ def correct_cache(
     ``network`` or ``sgbm`` (None = :func:`default_acceptance_depth`); ``alpha``: the tests' level;
     ``force``: apply the correction whatever the tests say; ``mean_test``: test the correction's
     mean (its moving mean over ``window`` pairs) on its own (``dpc_jax.correction.decision``; False:
-    the earlier decision); ``held_out``: the pairs ``k`` the tests use (default all; after adaptation,
-    the pairs it never saw). ``judge``: the same frames prepared at a larger size (a stereo run): what passes
-    at the network's size must pass there too, with its StereoSGBM depth, and is applied at the
+    the earlier decision); ``mean``: where and how the mean is tested (``MEAN_TESTS``); ``held_out``:
+    the pairs ``k`` the tests use (default all; after adaptation, the pairs it never saw). ``judge``: the
+    same frames prepared at a larger size (a stereo run): what passes at the network's size must pass
+    there too, with its StereoSGBM depth, and is applied at the
     scale its images support best. A run whose selection ``delta`` found no epoch better than "no
     correction" is never applied unless ``force``. ``proposal``: ``[N-1, 6]`` the run's corrections of
     this cache when already predicted (decided again, e.g. with other options; then the network does
-    not run for them, and ``delta`` is empty). The trajectories start at the first ground-truth pose
+    not run for them, and ``delta`` is empty). ``store``: Δ measured before on this cache with the
+    same depth and judge, by size (``network``, ``judge``) and candidate, read and filled
+    (``dpc_jax.correction.measure.remembered``): a proposal decided with several options measures each
+    candidate once. The trajectories start at the first ground-truth pose
     when the cache has ground truth, else at the first prior pose (docs/method.md §1).
     """
     cache = cache if isinstance(cache, SequenceCache) else load_cache(cache)
@@ -111,9 +125,12 @@ def correct_cache(
     else:
         xi, none, delta = np.asarray(proposal, np.float64), None, {}
     measure = measurement(run, cache, depth=depth, batch_size=batch_size, none=none, progress=progress)
+    if store is not None:
+        measure = remembered(measure, store.setdefault("network", {}))
+        judged = None if judged is None else remembered(judged, store.setdefault("judge", {}))
     acceptance = decide(xi, measure, components=("rotation",) if rotation_only else ("full", "rotation"),
                         alpha=alpha, tested=held_out, judge=judged, mean_test=mean_test, window=window,
-                        force=force)
+                        mean=mean, force=force)
     if not (force or run.improves_on_prior):
         acceptance = refused(acceptance, "the run holds no epoch that lowered the validation Δ (selection "
                                          "delta, best_delta/)")

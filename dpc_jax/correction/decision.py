@@ -35,6 +35,12 @@ one axis and wrong about another.
 part chosen at the network's size must pass the same tests there too; failing, the next part is
 tried. Then of :data:`JUDGE_SCALES` times that part, the one with the lowest mean Δ at the judge is
 applied when it passes there.
+
+**Where and how the mean is tested** (:class:`MeanTest`, the options of :data:`MEAN_TESTS`,
+``docs/method.md`` §8): at both sizes (today's default), or with a judge at the judge's size only (a
+whole part then passes the network's size on its own Δ), at the whole's level or a level of its own,
+as help (the differences below zero) or as bounded harm (below a margin of the whole's gain: a
+non-inferiority test).
 """
 
 from __future__ import annotations
@@ -56,6 +62,40 @@ MEAN_WINDOW = 50
 JUDGE_SCALES = (0.25, 0.5, 0.75, 1.0)
 
 Measure = Callable[[Mapping[str, np.ndarray]], Mapping[str, np.ndarray]]
+
+
+@dataclass(frozen=True)
+class MeanTest:
+    """How a whole part's mean is tested (``docs/method.md`` §8, the options of issue 59).
+
+    ``at_judge``: with a judge, test the mean at the judge's size only (at the network's size a whole
+    part passes on its own Δ); without one, at the network's size as always. ``alpha``: the mean's own
+    level (None: the decision's). ``margin``: 0 tests help (the differences ``D_i = Δ_i(whole) −
+    Δ_i(remainder)`` significantly below zero); above 0, bounded harm: ``D_i − margin · G`` significantly
+    below zero, ``G = −mean Δ(whole)`` on the tested pairs (the whole's gain, positive once it passed):
+    adding the mean costs less than that fraction of what the whole gains.
+    """
+
+    at_judge: bool = False
+    alpha: float | None = None
+    margin: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.alpha is not None and not 0.0 < self.alpha < 1.0:
+            raise ValueError(f"the mean's alpha must be in (0, 1), got {self.alpha}")
+        if not 0.0 <= self.margin < 1.0:
+            raise ValueError(f"the mean's margin must be in [0, 1), got {self.margin}")
+
+
+# The options compared by the rule of docs/method.md §8 (stated before their results), by the name
+# ``dpc-jax correct --decision`` takes. The first is the default until that rule has chosen.
+MEAN_TESTS = {
+    "mean-at-network": MeanTest(),
+    "mean-at-judge": MeanTest(at_judge=True),
+    "mean-at-judge-a05": MeanTest(at_judge=True, alpha=0.05),
+    "mean-noninferior": MeanTest(at_judge=True, margin=0.05),
+}
+DEFAULT_MEAN_TEST = "mean-at-network"
 
 
 def rotation_component(axes: str) -> str:
@@ -143,12 +183,13 @@ def applied_correction(xi: np.ndarray, acceptance: Acceptance) -> np.ndarray:
 
 
 class _Sized:
-    """The measurements at one size, each candidate measured once, and the tests made there."""
+    """The measurements at one size, each candidate measured once, and the tests made there; ``mean``:
+    how a whole part's mean is tested here (None: not here)."""
 
     def __init__(self, measure: Measure, xi: np.ndarray, suffix: str, tested: slice | np.ndarray,
-                 alpha: float, tests: dict[str, PairedTest]) -> None:
+                 alpha: float, tests: dict[str, PairedTest], mean: MeanTest | None) -> None:
         self.measure, self.xi, self.suffix, self.tested, self.alpha = measure, xi, suffix, tested, alpha
-        self.tests = tests
+        self.tests, self.mean = tests, mean
         self.delta: dict[str, np.ndarray] = {}
 
     def ensure(self, parts: list[Part]) -> None:
@@ -157,22 +198,29 @@ class _Sized:
             measured = self.measure(todo)
             self.delta.update({name: np.asarray(measured[name], np.float64) for name in todo})
 
-    def test(self, name: str, delta: np.ndarray) -> PairedTest:
-        result = paired_test(name + self.suffix, delta[self.tested], self.alpha)
+    def test(self, name: str, delta: np.ndarray, alpha: float | None = None) -> PairedTest:
+        result = paired_test(name + self.suffix, delta[self.tested],
+                             self.alpha if alpha is None else alpha)
         self.tests[result.component] = result
         return result
 
     def passes(self, part: Part, mean_test: bool, said: list[str]) -> bool:
-        """Whether ``part`` passes here: its Δ, and for a whole part with ``mean_test`` its mean."""
+        """Whether ``part`` passes here: its Δ, and for a whole part with ``mean_test`` its mean where
+        :attr:`mean` says it is tested here."""
         rest = Part(part.component, True, part.scale, part.window)
-        whole = not part.remainder and mean_test
+        whole = not part.remainder and mean_test and self.mean is not None
         self.ensure([part, rest] if whole else [part])
         test = self.test(part.name, self.delta[part.name])
         said.append(f"{test.component}: p = {test.p_value:.3g}" + ("" if test.passed else " (failed)"))
         if not test.passed or not whole:
             return test.passed
-        mean = self.test(f"mean of {part.name}", self.delta[part.name] - self.delta[rest.name])
-        said.append(f"{mean.component}: p = {mean.p_value:.3g}" + ("" if mean.passed else " (failed)"))
+        assert self.mean is not None
+        differences = self.delta[part.name] - self.delta[rest.name]
+        gain = -float(self.delta[part.name][self.tested].mean())  # > 0: the whole passed
+        mean = self.test(f"mean of {part.name}", differences - self.mean.margin * gain, self.mean.alpha)
+        margin = f" (margin {self.mean.margin:g} of the gain)" if self.mean.margin else ""
+        said.append(f"{mean.component}{margin}: p = {mean.p_value:.3g}"
+                    + ("" if mean.passed else " (failed)"))
         return mean.passed
 
 
@@ -186,6 +234,7 @@ def decide(
     judge: Measure | None = None,
     mean_test: bool = True,
     window: int = MEAN_WINDOW,
+    mean: MeanTest = MEAN_TESTS[DEFAULT_MEAN_TEST],
     force: bool = False,
 ) -> Acceptance:
     """What to apply of ``xi`` ``[M, 6]`` (module docstring) → :class:`Acceptance`.
@@ -195,7 +244,8 @@ def decide(
     rotation-only run: ``("rotation",)``); ``tested``: the pairs the tests use (default all; after
     adaptation, the pairs it never saw; the mean is over all M pairs, as applied); ``judge``: the
     measurement at a larger size; ``mean_test``: test the mean apart (False: the earlier decision);
-    ``window``: the pairs the moving mean is taken over;
+    ``window``: the pairs the moving mean is taken over; ``mean``: where and how the mean is tested
+    (:class:`MeanTest`; with ``mean_test``);
     ``force``: apply the first component whole whatever the tests say (they are still made and
     recorded).
     """
@@ -207,8 +257,9 @@ def decide(
         raise ValueError(f"alpha must be in (0, 1), got {alpha}")
     chosen = slice(None) if tested is None else np.asarray(tested)
     tests: dict[str, PairedTest] = {}
-    network = _Sized(measure, xi, "", chosen, alpha, tests)
-    judged = None if judge is None else _Sized(judge, xi, " (judge)", chosen, alpha, tests)
+    network = _Sized(measure, xi, "", chosen, alpha, tests,
+                     None if mean.at_judge and judge is not None else mean)
+    judged = None if judge is None else _Sized(judge, xi, " (judge)", chosen, alpha, tests, mean)
     said: list[str] = []
     if force:
         part = Part(components[0], window=window)

@@ -9,11 +9,14 @@
 * :func:`judge_measurement`: on a *judge*, the same frames prepared at a larger size, with its
   StereoSGBM depth and no network. ξ is a pose, the same at every image size, and the photometric
   loss resolves rotations better with more pixels (``docs/method.md`` §8).
+* :func:`remembered`: a measurement that measures each candidate once into a store kept by the caller,
+  so one proposal decided with several options (``docs/method.md`` §8) measures nothing twice.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import os
 from collections.abc import Mapping
 
@@ -89,3 +92,24 @@ def _bound(cache: SequenceCache, config: object, batch_size: int, stereo: object
         return dict(zip(names, effects["delta"], strict=True))
 
     return measure
+
+
+def remembered(measure: Measure, store: dict[bytes, np.ndarray]) -> Measure:
+    """``measure``, with each candidate's Δ kept in ``store`` by the candidate's values (``[M, 6]``) and
+    read from there when asked again. The store belongs to one measurement (one cache, depth and
+    size): the caller keeps one per size."""
+
+    def measured(candidates: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        keys = {name: _key(xi) for name, xi in candidates.items()}
+        todo = {name: xi for name, xi in candidates.items() if keys[name] not in store}
+        if todo:
+            got = measure(todo)
+            store.update({keys[name]: np.asarray(got[name], np.float64) for name in todo})
+        return {name: store[keys[name]] for name in candidates}
+
+    return measured
+
+
+def _key(xi: np.ndarray) -> bytes:
+    values = np.ascontiguousarray(xi, np.float64)
+    return hashlib.sha256(repr(values.shape).encode() + values.tobytes()).digest()

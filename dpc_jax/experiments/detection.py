@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from dpc_jax.correction.decision import DEFAULT_MEAN_TEST, MEAN_TESTS
 from dpc_jax.experiments.world import World, planted
 from dpc_jax.report.tables import table
 
@@ -43,6 +44,15 @@ CSV_COLUMNS = ("size", "scale", "pairs", "steps", "world_seed", "sequence", "bia
                "found_axis_final", "found_axis_earlier", "found_seg_network", "found_seg_final",
                "found_seg_earlier", "final_r_change_pct", "final_mate_r_change_pct", "earlier_r_change_pct",
                "earlier_mate_r_change_pct", "train_s", "epoch", "machine", "commit")
+# Per option of where the mean is tested (``options`` of a test's record), ``OPTION:FIELD`` columns.
+OPTION_FIELDS = ("decision", "p_whole", "p_mean", "p_remainder", "p_whole_judge", "p_mean_judge",
+                 "p_remainder_judge", "found_axis", "found_seg", "r_change_pct", "mate_r_change_pct")
+OPTION_COLUMNS = tuple(f"{option}:{field}" for option in MEAN_TESTS for field in OPTION_FIELDS)
+# The rule of docs/method.md §8 (stated before the options' results): the worlds it chooses on, the one
+# that checks the choice, the cells whose median removal it compares, and a tie.
+CHOOSING_WORLDS, CHECKING_WORLD = (0, 1, 2), 3
+RULE_CELLS = {"size": (64, 96), "scale": 1.0, "pairs": 1000}
+TIE_POINTS = 1.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,6 +98,12 @@ class Study:
     @property
     def tests(self) -> tuple[str, ...]:
         return tuple(f"test{i}" for i in range(self.world["test_sequences"]))
+
+    @property
+    def judge(self) -> tuple[int, int] | None:
+        """The size the test sequences are rendered and prepared at again to judge the options, or None."""
+        size = self.correction.get("judge")
+        return None if size is None else (int(size[0]), int(size[1]))
 
     @property
     def seed(self) -> int:
@@ -141,8 +157,13 @@ def load_study(config_file: Path, profile: str, quick: bool, world_seed: int = 0
     training = {**config["TRAINING"], **(config["QUICK"]["training"] if quick else {})}
     matched = config["QUICK"]["matched"] if quick else config["MATCHED"]
     pairs = tuple(int(n) for n in grid["pairs"])
+    correction = {**config["CORRECTION"], "judge": None if grid.get("judge") is None else list(grid["judge"])}
+    unknown = [d for d in correction.get("decisions", ()) if d not in MEAN_TESTS]
+    if unknown:
+        raise ValueError(f"{config_file}: CORRECTION decisions: {unknown[0]!r} is not one of "
+                         f"{list(MEAN_TESTS)}")
     study = Study(tuple(float(s) for s in grid["scales"]), pairs, tuple(tuple(s) for s in grid["sizes"]),
-                  tuple(grid["render"]), world, training, dict(config["CORRECTION"]),
+                  tuple(grid["render"]), world, training, correction,
                   tuple(n for n in matched["pairs"] if n in pairs and grid.get("matched", True)),
                   int(matched["steps_of"]), world_seed)
     for n in study.pairs:
@@ -184,6 +205,22 @@ def render(study: Study, data: Path) -> None:
     nuisances = {k: w[k] for k in ("moving_objects", "illumination_drift", "noise")}
     world = World(study.render, study.seed, nuisances)
     world.render(data, study.sequences(), lambda line: print(line, flush=True))
+    if study.judge is not None:  # the same sequences (same seeds, same poses) at the judge's size
+        tests = {name: v for name, v in study.sequences().items() if name in study.tests}
+        World(study.judge, study.seed, nuisances).render(judge_data(data), tests,
+                                                         lambda line: print(line, flush=True))
+
+
+def judge_data(data: Path) -> Path:
+    """Where the test sequences are rendered at the judge's size, beside ``data``."""
+    return data.with_name(data.name + "_judge")
+
+
+def judge_root(workdir: Path, study: Study, scale: float) -> Path | None:
+    """The root of the judge caches of bias scale ``scale`` (None without a judge)."""
+    if study.judge is None:
+        return None
+    return workdir / "cache" / f"{study.judge[0]}x{study.judge[1]}" / f"s{scale:g}"
 
 
 def prepare(study: Study, workdir: Path, reference: dict[str, Any], scale: float,
@@ -207,6 +244,11 @@ def prepare(study: Study, workdir: Path, reference: dict[str, Any], scale: float
             for prefix, frames in prefixes.items():
                 prepare_sequence(sequence, prior, root, size=size, frames=(0, frames), name=prefix,
                                  progress=False)
+        judged = judge_root(workdir, study, scale)
+        if judged is not None and study.judge is not None and name in study.tests:
+            # The judge replaces this prior by the network's cache's (the same planted one) when it measures.
+            prepare_sequence(open_odometry(judge_data(workdir / "data"), name), prior, judged,
+                             size=study.judge, progress=False)
     return root
 
 
@@ -263,9 +305,11 @@ def pairs_needed(test: Any) -> float:
     return ratio**2 / WILCOXON_EFFICIENCY
 
 
-def measure_cell(study: Study, run_dir: Path, cache_root: Path) -> tuple[int, list[dict[str, Any]]]:
+def measure_cell(study: Study, run_dir: Path, cache_root: Path,
+                 judges: Path | None = None) -> tuple[int, list[dict[str, Any]]]:
     """Correct each test sequence with the run's epoch of most negative validation Δ behind the acceptance
-    test (the study's decision, and the earlier one from the same proposal) and measure the removal against
+    test (the study's decision at the network's size, the earlier one, and with the judge caches under
+    ``judges`` every option of ``decisions``, all from the same proposal) and measure the removal against
     the ground truth (read here only): the epoch and one record per test sequence."""
     from dpc_jax.correction.corrector import correct_cache
     from dpc_jax.correction.inference import load_run
@@ -273,37 +317,57 @@ def measure_cell(study: Study, run_dir: Path, cache_root: Path) -> tuple[int, li
 
     run = load_run(run_dir, "delta")
     rotation_only = bool(study.correction["rotation_only"])
+    first = "rotation" if rotation_only else "full"
+    names = {"whole": first, "mean": f"mean of {first}", "remainder": f"{first} − mean"}
     tests = []
     for name in study.tests:
-        final = correct_cache(run, cache_root / name, rotation_only=rotation_only,
-                              mean_test=study.correction["mean_test"], window=study.correction["mean_window"])
-        earlier = correct_cache(run, cache_root / name, rotation_only=rotation_only, mean_test=False,
-                                proposal=final.xi_corr)
+        # One store of Δ per sequence: each candidate is measured once, whichever decision asks for it.
+        common = {"rotation_only": rotation_only, "window": study.correction["mean_window"], "store": {}}
+        final = correct_cache(run, cache_root / name, mean_test=study.correction["mean_test"], **common)
+        earlier = correct_cache(run, cache_root / name, mean_test=False, proposal=final.xi_corr, **common)
+        decided = {} if judges is None else {
+            option: correct_cache(run, cache_root / name, mean=MEAN_TESTS[option], judge=judges / name,
+                                  proposal=final.xi_corr, **common)
+            for option in study.correction.get("decisions", ())}
         gt = np.asarray(final.ground_truth, np.float64)
         estimates = {"prior": final.prior, "network": final.proposed, "final": final.corrected,
-                     "earlier": earlier.corrected}
+                     "earlier": earlier.corrected, **{o: c.corrected for o, c in decided.items()}}
         summary = evaluate(gt, estimates).estimates
         axis = {k: float(np.linalg.norm(rotation_mean_mrad(gt, v))) for k, v in estimates.items()}
         seg = {k: _number(summary[k]["seg_rot_deg_per_100m"]) for k in estimates}
         mate = {k: _number(summary[k]["m_ate_rot_deg"]) for k in estimates}
         acceptance = final.acceptance
-        first = "rotation" if rotation_only else "full"
-        names = {"whole": first, "mean": f"mean of {first}", "remainder": f"{first} − mean"}
         p = {part: acceptance.tests[name].p_value if name in acceptance.tests else None
              for part, name in names.items()}
         mean_test = acceptance.tests.get(f"mean of {first}")
+        options = {}
+        for option, correction in decided.items():
+            made = correction.acceptance.tests
+            options[option] = {
+                "decision": correction.acceptance.part,
+                # p of each part at the network's size and at the judge's (None: not tested there)
+                **{f"p_{part}{where}": made[n + suffix].p_value if n + suffix in made else None
+                   for part, n in names.items() for where, suffix in (("", ""), ("_judge", " (judge)"))},
+                "p": {n: test.p_value for n, test in made.items()},
+                "found_axis": _found(axis["prior"], axis[option]),
+                "found_seg": _found(seg["prior"], seg[option]),
+                "axis_mrad": axis[option], "r": seg[option], "mate_r": mate[option],
+                "r_change_pct": _change_pct(seg["prior"], seg[option]),
+                "mate_r_change_pct": _change_pct(mate["prior"], mate[option])}
         tests.append({
             "sequence": name, "decision": acceptance.part, "earlier_decision": earlier.acceptance.part,
             "p_whole": p["whole"], "p_mean": p["mean"], "p_remainder": p["remainder"],
             "mean_pairs_needed": None if mean_test is None else pairs_needed(mean_test),
             "mean_test_pairs": None if mean_test is None else mean_test.pairs,
             "scale_applied": acceptance.scale,
-            **{f"{k}_axis_mrad": v for k, v in axis.items()}, **{f"{k}_r": v for k, v in seg.items()},
-            **{f"{k}_mate_r": v for k, v in mate.items()},
+            **{f"{k}_axis_mrad": axis[k] for k in ("prior", "network", "final", "earlier")},
+            **{f"{k}_r": seg[k] for k in ("prior", "network", "final", "earlier")},
+            **{f"{k}_mate_r": mate[k] for k in ("prior", "network", "final", "earlier")},
             **{f"found_axis_{k}": _found(axis["prior"], axis[k]) for k in ("network", "final", "earlier")},
             **{f"found_seg_{k}": _found(seg["prior"], seg[k]) for k in ("network", "final", "earlier")},
             **{f"{k}_r_change_pct": _change_pct(seg["prior"], seg[k]) for k in ("final", "earlier")},
             **{f"{k}_mate_r_change_pct": _change_pct(mate["prior"], mate[k]) for k in ("final", "earlier")},
+            "options": options,
         })
     return run.epoch, tests
 
@@ -318,7 +382,7 @@ def run_cell(study: Study, workdir: Path, cache_root: Path, cell: tuple[tuple[in
         train_s, steps = done["train_s"], done.get("steps") or _steps_made(workdir / "runs" / key)
     else:
         train_s, steps = train_cell(study, workdir, cache_root, size, pairs, matched, key)
-    epoch, tests = measure_cell(study, workdir / "runs" / key, cache_root)
+    epoch, tests = measure_cell(study, workdir / "runs" / key, cache_root, judge_root(workdir, study, scale))
     bias = scale * float(np.linalg.norm(study_reference_mean(workdir)))
     trained = {k: done[k] for k in ("machine", "commit", "python")} if done else stamp
     return {"key": key, "size": list(size), "scale": scale, "pairs": pairs, "matched": matched,
@@ -402,13 +466,98 @@ def extrapolate(cells: Sequence[dict[str, Any]], size: tuple[int, int]) -> dict[
 
 
 def long_rows(cells: Sequence[dict[str, Any]]) -> list[list[object]]:
+    """One row per cell and test sequence: :data:`CSV_COLUMNS`, then :data:`OPTION_COLUMNS`."""
     rows = []
     for c in cells:
         for t in c["tests"]:
             values = {**c, **t, "size": f"{c['size'][0]}x{c['size'][1]}",
                       "world_seed": c.get("world_seed", 0)}
-            rows.append([values.get(k) for k in CSV_COLUMNS])
+            options = {f"{o}:{k}": v for o, fields in t.get("options", {}).items() for k, v in fields.items()}
+            rows.append([values.get(k) for k in CSV_COLUMNS] + [options.get(k) for k in OPTION_COLUMNS])
     return rows
+
+
+def _worst(records: Sequence[dict[str, Any]], field: str) -> float:
+    """The largest finite ``field`` of ``records`` (−inf when none has one: a sequence shorter than 100 m
+    has no segment error, and raises nothing)."""
+    return max((r[field] for r in records if r[field] is not None and math.isfinite(r[field])),
+               default=-math.inf)
+
+
+def _finite_mean(values: Sequence[float]) -> float:
+    finite = [v for v in values if v is not None and math.isfinite(v)]
+    return float(np.mean(finite)) if finite else math.nan
+
+
+def _decided(cells: Sequence[dict[str, Any]], option: str) -> list[tuple[dict[str, Any], dict[str, Any]]]:
+    """(cell, the option's record of one test sequence) for every test sequence ``option`` decided."""
+    return [(c, t["options"][option]) for c in cells for t in c["tests"] if option in t.get("options", {})]
+
+
+def options_table(cells: Sequence[dict[str, Any]], options: Sequence[str]) -> str:
+    """One row per cell decided by the options: per option the removal (axis, mean over the test
+    sequences), the largest change of the rotational segment error and m-ATE against the prior, and per
+    test sequence what was applied with the p of the mean at the judge's size (and at the network's)."""
+    def entry(c: dict[str, Any], option: str) -> str:
+        decided = [t["options"][option] for t in c["tests"] if option in t.get("options", {})]
+        if not decided:
+            return "–"
+        axis = _finite_mean([d["found_axis"] for d in decided])
+        worst = _worst(decided, "r_change_pct"), _worst(decided, "mate_r_change_pct")
+        parts = "; ".join(f"{d['decision']} (mean p {_p(d['p_mean_judge'])} / {_p(d['p_mean'])})"
+                          for d in decided)
+        return f"{_pct(axis)}, worst {worst[0]:+.1f} / {worst[1]:+.1f} %: {parts}"
+
+    rows = [c for c in sorted(cells, key=_order) if any(t.get("options") for t in c["tests"])]
+    return table(["world", "size", "N pairs", "steps", "bias ×", *options],
+                 ([str(c.get("world_seed", 0)), f"{c['size'][0]}×{c['size'][1]}", str(c["pairs"]),
+                   f"{c.get('steps', '?')}" + (" (matched)" if c.get("matched") else ""), f"×{c['scale']:g}",
+                   *(entry(c, o) for o in options)] for c in rows))
+
+
+def apply_rule(cells: Sequence[dict[str, Any]], options: Sequence[str],
+         expected: dict[int, set[str]]) -> tuple[list[list[str]], str]:
+    """The rule of ``docs/method.md`` §8 on ``cells``: per option its worst final change (rotational
+    segment error, rotational m-ATE) over the choosing worlds, whether that is within
+    :data:`TOLERANCE_PCT`, the median removal of its :data:`RULE_CELLS`, the worst change on the checking
+    world; and the verdict: the chosen option, or why none is chosen yet (``expected``: per world the keys
+    of its grid's cells, every one of which the choosing worlds need decided by every option)."""
+    choosing = [c for c in cells if c.get("world_seed", 0) in CHOOSING_WORLDS]
+    checking = [c for c in cells if c.get("world_seed", 0) == CHECKING_WORLD]
+    rows, measured = [], {}
+    for option in options:
+        decided = _decided(choosing, option)
+        records = [d for _, d in decided]
+        worst = max(_worst(records, "r_change_pct"), _worst(records, "mate_r_change_pct"))
+        removal = [d["found_axis"] for c, d in decided
+                   if tuple(c["size"]) == RULE_CELLS["size"] and c["scale"] == RULE_CELLS["scale"]
+                   and c["pairs"] == RULE_CELLS["pairs"] and not c.get("matched")]
+        median = float(np.median(removal)) if removal else math.nan
+        checked = [d for _, d in _decided(checking, option)]
+        check = max(_worst(checked, "r_change_pct"), _worst(checked, "mate_r_change_pct"))
+        measured[option] = (worst, median)
+        rows.append([option, str(len(decided)), _change(worst), "yes" if worst <= TOLERANCE_PCT else "no",
+                     f"{_pct(median)} (of {len(removal)})", _change(check)])
+    have = {(c.get("world_seed", 0), c["key"]) for c in choosing
+            if all(o in t.get("options", {}) for t in c["tests"] for o in options)}
+    missing = [(w, k) for w in CHOOSING_WORLDS for k in sorted(expected.get(w, ())) if (w, k) not in have]
+    if missing:
+        total = sum(len(expected.get(w, ())) for w in CHOOSING_WORLDS)
+        return rows, (f"The rule is not applied: {total - len(missing)} of the {total} cells of worlds "
+                      f"{', '.join(map(str, CHOOSING_WORLDS))} are decided by every option (missing: "
+                      + ", ".join(f"world {w} {k}" for w, k in missing[:8])
+                      + (", …" if len(missing) > 8 else "") + "); the default stays "
+                      f"{DEFAULT_MEAN_TEST}.")
+    safe = {o: v for o, v in measured.items() if v[0] <= TOLERANCE_PCT and math.isfinite(v[1])}
+    if not safe:
+        return rows, f"No option is safe on worlds 0–2; the default stays {DEFAULT_MEAN_TEST}."
+    best = max(v[1] for v in safe.values())
+    tied = [o for o, v in safe.items() if 100 * (best - v[1]) <= TIE_POINTS]
+    chosen = min(tied, key=lambda o: safe[o][0])
+    if DEFAULT_MEAN_TEST in safe and 100 * (safe[chosen][1] - safe[DEFAULT_MEAN_TEST][1]) <= TIE_POINTS:
+        chosen = DEFAULT_MEAN_TEST
+    return rows, (f"Chosen by the rule on worlds 0–2: {chosen} (median removal {_pct(safe[chosen][1])}); "
+                  f"its check on world {CHECKING_WORLD} is in the table above.")
 
 
 def _pct(value: float) -> str:
@@ -482,7 +631,7 @@ def refused_means(cells: Sequence[dict[str, Any]]) -> list[str]:
 
 
 def markdown(cells: Sequence[dict[str, Any]], reference: dict[str, Any], paper_pairs: int, minutes: float,
-             quick: bool) -> str:
+             quick: bool, expected: dict[int, set[str]] | None = None) -> str:
     per_machine: dict[str, float] = {}
     for c in cells:
         per_machine[c["machine"]] = per_machine.get(c["machine"], 0.0) + c["train_s"] / 60
@@ -538,7 +687,34 @@ def markdown(cells: Sequence[dict[str, Any]], reference: dict[str, Any], paper_p
         f"Smallest bias removed by ≥ {100 * FOUND:.0f} % (axis, final; fixed epochs) at each (N, "
         "resolution):", *lines, "",
         "The N at which libviso2-s's bias (×1) is removed by half (final, fixed epochs; else a fit of log "
-        "s50 against log N over the grid's N, s50 interpolated in log s):", *answer, ""])
+        "s50 against log N over the grid's N, s50 interpolated in log s):", *answer, "",
+        *_options_section(cells, expected or {})])
+
+
+def _change(value: float) -> str:
+    return f"{value:+.2f} %" if math.isfinite(value) else "–"
+
+
+def _options_section(cells: Sequence[dict[str, Any]], expected: dict[int, set[str]]) -> list[str]:
+    """The options of where the mean is tested side by side, and the rule's verdict (none decided: [])."""
+    options = [o for o in MEAN_TESTS if _decided(cells, o)]
+    if not options:
+        return []
+    rows, verdict = apply_rule(cells, options, expected)
+    judges = ", ".join(sorted({"×".join(map(str, c["correction"]["judge"])) for c in cells
+                               if (c.get("correction") or {}).get("judge")})) or "–"
+    return [
+        "### Where the mean is tested: the options side by side (docs/method.md §8)", "",
+        "Every option decides the same proposal with the judge at the test sequences rendered again at "
+        f"{judges} (the same poses). Per option: the removal (axis, mean over the test "
+        "sequences), the largest change of the rotational segment error / rotational m-ATE against the "
+        "prior, and per test sequence what was applied with the p of the mean's test at the judge's size "
+        "/ at the network's (– where not tested).", "",
+        options_table(cells, options),
+        table(["option", "test sequences decided (worlds 0–2)", "worst final change (r or m-ATE)",
+               f"safe (≤ +{TOLERANCE_PCT:g} %)", "median removal, ×1, N = 1,000, 64×96",
+               f"worst on world {CHECKING_WORLD} (check)"], rows),
+        verdict, ""]
 
 
 def _goal_text(found: Sequence[dict[str, Any]]) -> str:

@@ -123,9 +123,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     if stale:
         clock.say(f"{len(stale)} cells measured with another correction are not tabulated "
                   f"({', '.join(stale)}); a run that includes them measures them again")
-    text = D.markdown(tabulated, reference, paper_pairs, clock.minutes, args.quick)
+    # The cells the rule of docs/method.md §8 needs decided: world 0's cpu grid, the other worlds' grid.
+    expected = {} if args.quick else {
+        world: {D.cell_key(*cell) for cell in D.load_study(CONFIG, "cpu" if world == 0 else "worlds", False,
+                                                           world)[0].cells()}
+        for world in (*D.CHOOSING_WORLDS, D.CHECKING_WORLD)}
+    text = D.markdown(tabulated, reference, paper_pairs, clock.minutes, args.quick, expected)
     atomic_write(workdir / "detection_limit.md", text)
-    atomic_write(workdir / "detection_limit.csv", csv_text(D.CSV_COLUMNS, D.long_rows(tabulated)))
+    atomic_write(workdir / "detection_limit.csv",
+                 csv_text((*D.CSV_COLUMNS, *D.OPTION_COLUMNS), D.long_rows(tabulated)))
     D.figure(tabulated, reference, workdir / "detection_limit.png")
     if args.results_page is not None:
         # The page links the figure by the same name, beside it.

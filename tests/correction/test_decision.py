@@ -12,10 +12,13 @@ import math
 
 import numpy as np
 import pytest
+from scipy import stats
 
 from dpc_jax.correction.acceptance import paired_test
 from dpc_jax.correction.decision import (
+    MEAN_TESTS,
     MEAN_WINDOW,
+    MeanTest,
     applied_correction,
     component_mask,
     decide,
@@ -197,3 +200,101 @@ def test_parts_and_records() -> None:
     assert Acceptance(0.01).part == "none" and math.isnan(Acceptance(0.01).mean_delta)
     with pytest.raises(ValueError, match="xi must be"):
         part_of(np.zeros(6), "full")
+
+
+# -- where and how the mean is tested (the options of docs/method.md §8) --------------------------------
+
+def tabled(whole: np.ndarray, mean_differences: np.ndarray):
+    """A measurement that returns given Δ: the whole rotation's (and each axis's alone, so no axis is
+    dropped) and its remainder's, ``Δ(whole) − D`` for the mean's differences ``D``."""
+    deltas = {"rotation": whole, "rotation − mean": whole - mean_differences}
+
+    def measure(candidates):
+        return {name: deltas.get(name, whole) for name in candidates}
+
+    return measure
+
+
+def _centred(seed: int, m: int = 200) -> np.ndarray:
+    z = np.random.default_rng(seed).normal(size=m)
+    return z - z.mean()
+
+
+WHOLE = -10.0 + 0.1 * _centred(1)  # a whole rotation that helps every pair: its gain G = 10
+
+
+def test_the_means_own_level() -> None:
+    """D with a one-sided Wilcoxon p between 0.01 and 0.05 (scipy's, the reference): refused at the
+    whole's level, passed at the mean's own 0.05."""
+    differences = _centred(7) - 0.12
+    p = stats.wilcoxon(differences, alternative="less").pvalue
+    assert 0.01 < p < 0.05
+    xi = BIAS + rotations(200, 1.0, 0)
+    today = decide(xi, tabled(WHOLE, differences), components=("rotation",))
+    assert today.remainder and today.tests["mean of rotation"].p_value == pytest.approx(p, rel=1e-12)
+    apart = decide(xi, tabled(WHOLE, differences), components=("rotation",),
+                   mean=MEAN_TESTS["mean-at-judge-a05"])  # no judge: at the network's size, at 0.05
+    assert apart.decision == "rotation" and not apart.remainder, apart.reason
+    assert apart.tests["mean of rotation"].p_value == pytest.approx(p, rel=1e-12)
+
+
+def test_the_means_harm_within_a_margin() -> None:
+    """Non-inferiority: a mean that costs less than 5 % of the whole's gain passes, one that costs more
+    does not; its p is scipy's of D − 0.05·G."""
+    xi = BIAS + rotations(200, 1.0, 0)
+    gain = -WHOLE.mean()
+    for harm, passes in ((0.3, True), (0.7, False)):  # the margin: 0.05 · 10 = 0.5
+        differences = _centred(7) + harm
+        today = decide(xi, tabled(WHOLE, differences), components=("rotation",))
+        assert today.remainder  # a mean that hurts never passes a test of its help
+        bounded = decide(xi, tabled(WHOLE, differences), components=("rotation",),
+                         mean=MEAN_TESTS["mean-noninferior"])
+        p = stats.wilcoxon(differences - 0.05 * gain, alternative="less").pvalue
+        assert bounded.tests["mean of rotation"].p_value == pytest.approx(p, rel=1e-12)
+        assert bounded.remainder != passes, (harm, bounded.reason)
+    with pytest.raises(ValueError, match="margin"):
+        MeanTest(margin=1.0)
+    with pytest.raises(ValueError, match="alpha"):
+        MeanTest(alpha=0.0)
+
+
+def test_the_mean_at_the_judges_size() -> None:
+    """The network's images do not see the bias (its mean looks harmful there), the judge's do: today's
+    decision refuses the mean at the network's size and never asks the judge; tested at the judge's size
+    only, the whole is applied. The judge's p is scipy's on the closed-form model's differences."""
+    truth = BIAS + rotations(200, 1.0, 0)
+    proposal = truth + rotations(200, 0.1, 1)
+    network, judge = bowl(truth - BIAS), bowl(truth)
+    today = decide(proposal, network, components=("rotation",), judge=judge)
+    assert today.remainder and not today.tests["mean of rotation"].passed, today.reason
+    assert "mean of rotation (judge)" not in today.tests
+    at_judge = decide(proposal, network, components=("rotation",), judge=judge,
+                      mean=MEAN_TESTS["mean-at-judge"])
+    assert at_judge.decision == "rotation" and not at_judge.remainder, at_judge.reason
+    assert "mean of rotation" not in at_judge.tests
+    rotation = part_of(proposal, "rotation")
+    rest = part_of(proposal, "rotation", remainder=True)
+    measured = judge({"whole": rotation, "rest": rest})
+    p = stats.wilcoxon(measured["whole"] - measured["rest"], alternative="less").pvalue
+    assert at_judge.tests["mean of rotation (judge)"].p_value == pytest.approx(p, rel=1e-9)
+    # Without a judge the option is today's decision.
+    alone = decide(proposal, network, components=("rotation",), mean=MEAN_TESTS["mean-at-judge"])
+    assert alone.remainder and "mean of rotation" in alone.tests
+
+
+def test_one_proposal_decided_by_every_option_measures_each_candidate_once() -> None:
+    """The detection study's way (``remembered`` stores): four options, each candidate measured once per
+    size, and each decision the same as with a fresh measurement."""
+    from dpc_jax.correction.measure import remembered
+
+    truth = BIAS + rotations(120, 1.0, 0)
+    proposal = truth + rotations(120, 0.1, 1)
+    network, judge = bowl(truth - BIAS), bowl(truth)
+    stores: dict[str, dict] = {"network": {}, "judge": {}}
+    for option in MEAN_TESTS.values():
+        shared = decide(proposal, remembered(network, stores["network"]), components=("rotation",),
+                        judge=remembered(judge, stores["judge"]), mean=option)
+        fresh = decide(proposal, bowl(truth - BIAS), components=("rotation",), judge=bowl(truth), mean=option)
+        assert shared.part == fresh.part and shared.tests == fresh.tests
+    for measure in (network, judge):
+        assert len(measure.asked) == len(set(measure.asked))  # type: ignore[attr-defined]

@@ -118,6 +118,47 @@ def test_refused_means_worlds_and_the_goal(study) -> None:
     assert study.pairs_needed(test) == math.inf
 
 
+def _decided(cell, **options):
+    """``cell`` with each test sequence decided by ``options``: name → (removal, worst change %)."""
+    for test in cell["tests"]:
+        test["options"] = {name: {"decision": "rotation", "p_whole": 1e-3, "p_mean": None,
+                                  "p_remainder": None, "p_whole_judge": 1e-3, "p_mean_judge": 0.02,
+                                  "p_remainder_judge": None, "found_axis": removal, "found_seg": removal,
+                                  "r_change_pct": change, "mate_r_change_pct": change - 1.0}
+                           for name, (removal, change) in options.items()}
+    return cell
+
+
+def test_the_rule_picks_the_safe_option_that_removes_most(study) -> None:
+    """docs/method.md §8: an unsafe option is out however much it removes; of two within a point of
+    each other the one with the smaller worst change; world 3 only checks; incomplete data choose
+    nothing."""
+    size = (64, 96)
+    options = {"mean-at-network": (0.30, 0.5), "mean-at-judge": (0.600, 1.0),
+               "mean-at-judge-a05": (0.80, 3.0), "mean-noninferior": (0.605, 0.2)}
+    cells = [_decided(_cell(size, 1.0, 1000, 0.3, world=w), **options) for w in (0, 1, 2)]
+    checked = _decided(_cell(size, 1.0, 1000, 0.3, world=3), **{**options, "mean-noninferior": (0.6, 2.5)})
+    expected = {w: {cells[0]["key"]} for w in (0, 1, 2)}
+    rows, verdict = study.apply_rule([*cells, checked], list(options), expected)
+    assert verdict.startswith("Chosen by the rule on worlds 0–2: mean-noninferior (median removal 60 %)")
+    by_option = {row[0]: row for row in rows}
+    assert by_option["mean-at-judge-a05"][3] == "no" and by_option["mean-at-judge"][3] == "yes"
+    assert by_option["mean-noninferior"][2] == "+0.20 %" and by_option["mean-noninferior"][5] == "+2.50 %"
+    assert by_option["mean-at-network"][4] == "30 % (of 3)"
+    # No option more than a point above today's: today's stays.
+    close = {"mean-at-network": (0.60, 0.5), "mean-at-judge": (0.605, 0.1)}
+    same = [_decided(_cell(size, 1.0, 1000, 0.3, world=w), **close) for w in (0, 1, 2)]
+    assert "mean-at-network" in study.apply_rule(same, list(close), expected)[1]
+    # A cell of a choosing world's grid not decided: the rule waits.
+    wider = {**expected, 2: {cells[0]["key"], "64x96_s3_n100"}}
+    rows, verdict = study.apply_rule(cells, list(options), wider)
+    assert verdict.startswith("The rule is not applied: 3 of the 4 cells")
+    assert "world 2 64x96_s3_n100" in verdict
+    text = study.markdown(cells, {"sequences": {}, "mean": [0.0] * 3, "spread": [0.0] * 3}, 46_000, 1.0,
+                          False, expected)
+    assert "options side by side" in text and "60 %, worst +1.0 / +0.0 %: rotation (mean p 0.02 / –)" in text
+
+
 def test_the_grid_names_its_training_sequences(study) -> None:
     grid, _ = study.load_study(study.script.CONFIG, "cpu", quick=False)
     assert grid.scales == (1.0, 3.0, 10.0) and grid.pairs == (100, 300, 1000, 4000)
@@ -175,6 +216,13 @@ def test_the_quick_grid_runs_end_to_end(study, tmp_path: Path, capsys) -> None:
     # planted noise's sampling error over 8 steps.
     assert test["prior_axis_mrad"] == pytest.approx(2.5, abs=3 * 10 * 0.8 / math.sqrt(8))
     assert test["decision"] in ("none", "full", "rotation") or test["decision"].startswith("rotation_")
+    # Every option decided the same proposal with the judge rendered and prepared at 48×120.
+    assert list(test["options"]) == cell["correction"]["decisions"]
+    assert cell["correction"]["judge"] == [48, 120]
+    assert all(o["decision"] == "none" or any(n.endswith("(judge)") for n in o["p"])
+               for o in test["options"].values())
+    assert (workdir / "cache" / "48x120" / "s10" / "test0" / "manifest.json").is_file()
+    assert "options side by side" in (workdir / "detection_limit.md").read_text()
     for name in ("detection_limit.md", "detection_limit.csv", "detection_limit.png"):
         assert (workdir / name).stat().st_size > 0
     assert np.loadtxt(workdir / "detection_limit.csv", delimiter=",", skiprows=1, usecols=1).size == 2

@@ -66,7 +66,11 @@ TRAINING = {
 # raised the drift.
 # Every cell is also decided the earlier way (the mean not tested apart) from the same network, and both
 # finals are tabulated.
-CORRECTION = {"rotation_only": True, "mean_test": True, "mean_window": 50}
+# And by every option of where and how the mean is tested (``decisions``, dpc_jax.correction.decision's
+# MEAN_TESTS; docs/method.md §8, issue 59), from the same proposal and with the judge of the profile (the
+# test sequences rendered again at that size), the rule stated there choosing among them.
+CORRECTION = {"rotation_only": True, "mean_test": True, "mean_window": 50,
+              "decisions": ["mean-at-network", "mean-at-judge", "mean-at-judge-a05", "mean-noninferior"]}
 
 # Data apart from compute: the cells with fewer pairs than ``steps_of`` also train for as many optimizer
 # steps as a cell of ``steps_of`` pairs (the epochs scaled by steps_of / N, the learning-rate halving and
@@ -75,25 +79,27 @@ CORRECTION = {"rotation_only": True, "mean_test": True, "mean_window": 50}
 MATCHED = {"pairs": (100, 300), "steps_of": 1000}
 
 # The grids. ``scales``: multiples of libviso2-s's median bias (and spread); ``pairs``: N; ``sizes``:
-# the network's input; ``render``: the rendered size (the largest of ``sizes``).
+# the network's input; ``render``: the rendered size (the largest of ``sizes``); ``judge``: the size the test
+# sequences are rendered and prepared at again to judge the options (None: no judge).
 PROFILES = {
     # Every bias scale at two N and the two resolutions a 2-core CPU trains in hours.
     # N = 100 as well: about the pairs of the real drives (kitti_raw_drives.py), where libviso2-s's
     # networks are refused.
     # N = 300 between them.
     "cpu": {"scales": (1.0, 3.0, 10.0), "pairs": (100, 300, 1000, 4000), "sizes": ((64, 96), (120, 188)),
-            "render": (120, 188)},
+            "render": (120, 188), "judge": (240, 376)},
     # Another world (--world-seed): the cells the spread over worlds is given for (fixed epochs only).
     "worlds": {"scales": (1.0, 3.0), "pairs": (100, 1000), "sizes": ((64, 96),), "render": (120, 188),
-               "matched": False},
+               "judge": (240, 376), "matched": False},
     # The papers' resolution, on a GPU machine.
     "gpu": {"scales": (1.0, 3.0, 10.0), "pairs": (1000, 4000), "sizes": ((240, 376),),
-            "render": (240, 376)},
+            "render": (240, 376), "judge": None},
 }
 
 # ``--quick``: the wiring in minutes (tiny images and network, short sequences, one scale).
 QUICK = {
-    "profile": {"scales": (10.0,), "pairs": (10,), "sizes": ((32, 80),), "render": (32, 80)},
+    "profile": {"scales": (10.0,), "pairs": (10,), "sizes": ((32, 80),), "render": (32, 80),
+                "judge": (48, 120)},
     "matched": {"pairs": (10,), "steps_of": 20},
     "world": {"train_frames": 21, "validation_frames": 9, "test_sequences": 1, "test_frames": 9},
     "training": {"epochs": 1, "batch_size": 4,
