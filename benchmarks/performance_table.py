@@ -8,12 +8,12 @@ Each benchmark of :data:`BENCHMARKS` runs as its own process (the way a reader r
 the table's command column is that exact command line); the figures are read from its output,
 JSON where the benchmark writes it (``bench_vs_torch.py --ours``, ``bench_train_loop.py --json``),
 its printed table otherwise. The full table, with the CPU that ``dpc_jax.runtime.machine`` names, the
-commit (``git rev-parse --short HEAD``, ``-dirty`` when tracked files differ from it) and the date of
-each row, goes into ``docs/performance.md`` between ``<!-- performance:begin -->`` and
-``<!-- performance:end -->``; a short table (what, shape, figure, command) of the rows measured in full
-into the README's Performance section between the same markers (quick rows say nothing of speed, so the
-README never shows them). Both files are rewritten atomically, and only
-between their markers. Rows of benchmarks not run this time (``--only``) are kept from the
+library versions (``dpc_jax.runtime.versions``), the commit (``git rev-parse --short HEAD``, ``-dirty``
+when tracked files differ from it) and the date of each row, goes into ``docs/performance.md`` between
+``<!-- performance:begin -->`` and ``<!-- performance:end -->``; a short table (what, shape, figure,
+command) of the rows measured in full into the README's Performance section between the same markers
+(quick rows say nothing of speed, so the README never shows them). Both files are rewritten atomically,
+and only between their markers. Rows of benchmarks not run this time (``--only``) are kept from the
 previous table, so one benchmark can be re-measured alone.
 
 ``--quick`` runs every benchmark with few repeats and, where it takes them, small shapes and short
@@ -39,6 +39,7 @@ from typing import Any
 
 from dpc_jax.report.pages import commit, read_block, replace_block
 from dpc_jax.runtime.machine import this_cpu
+from dpc_jax.runtime.versions import versions_line
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs" / "performance.md"
@@ -56,6 +57,7 @@ class Row:
     figure: str
     command: str = ""
     machine: str = ""
+    libraries: str = ""
     commit: str = ""
     date: str = ""
     quick: bool = False
@@ -307,7 +309,9 @@ def measure(names: Sequence[str], quick: bool) -> list[Row]:
 
 # ------------------------------------------------------------------------------------------ tables
 
-FULL_HEADER = ("what", "shape", "figure", "command", "machine", "commit", "date")
+FULL_HEADER = ("what", "shape", "figure", "command", "machine", "libraries", "commit", "date")
+# The libraries column came on 2026-12-07: a row of an older table says so.
+UNRECORDED = "not recorded"
 SHORT_HEADER = ("what", "shape", "figure", "command")
 
 
@@ -323,7 +327,8 @@ def full_table(rows: Sequence[Row]) -> str:
     lines = [_line(FULL_HEADER), "|" + "---|" * len(FULL_HEADER)]
     for r in rows:
         date = r.date + QUICK if r.quick else r.date
-        lines.append(_line((r.what, r.shape, r.figure, _code(r.command), r.machine, r.commit, date)))
+        lines.append(_line((r.what, r.shape, r.figure, _code(r.command), r.machine, r.libraries or UNRECORDED,
+                            r.commit, date)))
     return "\n".join(lines)
 
 
@@ -366,11 +371,14 @@ def parse_full_table(block: str) -> list[Row]:
     rows = []
     for line in block.splitlines():
         cells = _cells(line) if line.startswith("|") else []
+        if len(cells) == len(FULL_HEADER) - 1:  # a table from before the libraries column
+            cells = [*cells[:5], UNRECORDED, *cells[5:]]
         if len(cells) != len(FULL_HEADER) or cells[0] == FULL_HEADER[0] or set(cells[0]) <= {"-"}:
             continue
-        what, shape, figure, command, machine, commit, date = (c.replace("\\|", "|") for c in cells)
+        what, shape, figure, command, machine, libraries, commit, date = (
+            c.replace("\\|", "|") for c in cells)
         plain = " ; ".join(part.strip("`") for part in command.split(" ; "))
-        rows.append(Row(what, shape, figure, plain, machine, commit, date.removesuffix(QUICK),
+        rows.append(Row(what, shape, figure, plain, machine, libraries, commit, date.removesuffix(QUICK),
                         quick=date.endswith(QUICK)))
     return rows
 
@@ -410,7 +418,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OutputError as error:
         print(f"performance_table: {error}", file=sys.stderr)
         return 1
-    provenance = {"commit": commit(ROOT), "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d")}
+    provenance = {"commit": commit(ROOT), "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d"),
+                  "libraries": versions_line()}
     measured = [dataclasses.replace(row, **provenance) for row in measured]
     rows = merge(parse_full_table(previous), measured)
     replace_block(args.docs, BLOCK, f"{heading(rows)}\n\n{full_table(rows)}")

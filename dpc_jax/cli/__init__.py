@@ -43,6 +43,8 @@ from dpc_jax._io import InputWarning
 from dpc_jax.cli._common import Formatter
 from dpc_jax.runtime.compilation_cache import use_compilation_cache
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
+from dpc_jax.runtime.machine import this_cpu
+from dpc_jax.runtime.versions import versions_line
 
 
 def _subcommands() -> list[str]:
@@ -53,8 +55,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="dpc-jax",
         description="Self-supervised deep pose correction of stereo visual odometry.",
+        formatter_class=Formatter,
     )
-    parser.add_argument("--version", action="version", version=f"dpc-jax {dpc_jax.__version__}")
+    # What a user who reports a figure ran: the libraries that move figures and the CPU's vector unit.
+    parser.add_argument("--version", action="version",
+                        version=f"dpc-jax {dpc_jax.__version__}\n{versions_line()}\n{this_cpu()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in _subcommands():
         module = importlib.import_module(f"{__name__}.{name}")

@@ -52,11 +52,10 @@ def farneback_flow(source_grey: np.ndarray, target_grey: np.ndarray) -> np.ndarr
 
     ``target(y + Δy, x + Δx) ≈ source(y, x)``.
     """
-    # OpenCV's stubs require an output array ``flow``; None (allocate one) is what OpenCV accepts.
-    flow = cv2.calcOpticalFlowFarneback(  # type: ignore[call-overload]
-        source_grey, target_grey, None, flags=0, **FARNEBACK
-    )
-    return flow.astype(np.float32, copy=False)
+    # The output array is passed rather than None: OpenCV 5.0's stubs refuse None where 5.1's accept it.
+    # Without OPTFLOW_USE_INITIAL_FLOW in ``flags`` its contents are not read.
+    flow = np.empty((*source_grey.shape[:2], 2), np.float32)
+    return cv2.calcOpticalFlowFarneback(source_grey, target_grey, flow, flags=0, **FARNEBACK)
 
 
 def ordered_map(fn: Callable, items: Iterable, workers: int) -> Iterator:

@@ -1,6 +1,6 @@
 """What a figure was measured with: the machine (the CPU and the accelerator JAX sees), the commit of the
-checkout, the date and the Python version, recorded beside every finished stage or cell so that a rerun
-may reuse figures of another machine or commit and still say which."""
+checkout, the date, the Python version and the library versions, recorded beside every finished stage
+or cell so that a rerun may reuse figures of another machine or commit and still say which."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ import sys
 from dpc_jax.experiments.script import CHECKOUT
 from dpc_jax.report.pages import commit
 from dpc_jax.runtime.machine import this_cpu
+from dpc_jax.runtime.versions import versions_line
 
 # Asked in a process of its own: a process that starts JAX's GPU backend keeps most of the GPU's memory,
 # which the measured processes (or the script's own training) would then lack.
@@ -27,8 +28,8 @@ def machine() -> str:
 
 
 def stamp() -> dict[str, str]:
-    """``{"machine", "commit", "date", "python"}`` of this process and checkout (``git describe --dirty``,
-    the date in UTC)."""
+    """``{"machine", "commit", "date", "python", "libraries"}`` of this process and checkout (``git
+    describe --dirty``, the date in UTC, ``dpc_jax.runtime.versions.versions_line``)."""
     return {"machine": machine(), "commit": commit(CHECKOUT),
             "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d"),
-            "python": platform.python_version()}
+            "python": platform.python_version(), "libraries": versions_line()}

@@ -14,6 +14,7 @@ import subprocess
 from pathlib import Path
 
 from dpc_jax._io import atomic_write
+from dpc_jax.runtime.versions import versions_line
 
 RESULTS = "results"
 
@@ -61,10 +62,11 @@ def check_results_page(page: Path | None) -> None:
 
 def write_results(page: Path, markdown: str, script: Path) -> None:
     """Put an experiment's Markdown into the ``results`` block of ``page``, under a line naming the
-    script, the commit and the date; its ``# title`` line is dropped (the page has its own)."""
+    script, the commit, the date and the library versions (``dpc_jax.runtime.versions``); its ``# title``
+    line is dropped (the page has its own)."""
     text = markdown.strip("\n")
     if text.startswith("# "):
         text = text.partition("\n")[2].strip("\n")
     stamp = (f"Written by `{script.name}` at commit {commit(script.parent)}, "
-             f"{datetime.datetime.now(datetime.UTC):%Y-%m-%d}.")
+             f"{datetime.datetime.now(datetime.UTC):%Y-%m-%d}, with {versions_line()}.")
     replace_block(page, RESULTS, f"{stamp}\n\n{text}")
