@@ -494,6 +494,14 @@ def _decided(cells: Sequence[dict[str, Any]], option: str) -> list[tuple[dict[st
     return [(c, t["options"][option]) for c in cells for t in c["tests"] if option in t.get("options", {})]
 
 
+def _applied_mean_p(decided: dict[str, Any], suffix: str) -> str:
+    """The p of the mean's test of the applied component (the whole rotation's when nothing is applied)
+    at one size (``suffix``: " (judge)" or ""), – where it was not tested there."""
+    component = decided["decision"].split(" ")[0]
+    name = "mean of " + ("rotation" if component == "none" else component) + suffix
+    return _p(decided["p"].get(name))
+
+
 def options_table(cells: Sequence[dict[str, Any]], options: Sequence[str]) -> str:
     """One row per cell decided by the options: per option the removal (axis, mean over the test
     sequences), the largest change of the rotational segment error and m-ATE against the prior, and per
@@ -504,8 +512,8 @@ def options_table(cells: Sequence[dict[str, Any]], options: Sequence[str]) -> st
             return "–"
         axis = _finite_mean([d["found_axis"] for d in decided])
         worst = _worst(decided, "r_change_pct"), _worst(decided, "mate_r_change_pct")
-        parts = "; ".join(f"{d['decision']} (mean p {_p(d['p_mean_judge'])} / {_p(d['p_mean'])})"
-                          for d in decided)
+        parts = "; ".join(f"{d['decision']} (mean p {_applied_mean_p(d, ' (judge)')} / "
+                          f"{_applied_mean_p(d, '')})" for d in decided)
         return f"{_pct(axis)}, worst {worst[0]:+.1f} / {worst[1]:+.1f} %: {parts}"
 
     rows = [c for c in sorted(cells, key=_order) if any(t.get("options") for t in c["tests"])]

@@ -124,7 +124,8 @@ def _decided(cell, **options):
         test["options"] = {name: {"decision": "rotation", "p_whole": 1e-3, "p_mean": None,
                                   "p_remainder": None, "p_whole_judge": 1e-3, "p_mean_judge": 0.02,
                                   "p_remainder_judge": None, "found_axis": removal, "found_seg": removal,
-                                  "r_change_pct": change, "mate_r_change_pct": change - 1.0}
+                                  "r_change_pct": change, "mate_r_change_pct": change - 1.0,
+                                  "p": {"rotation (judge)": 1e-3, "mean of rotation (judge)": 0.02}}
                            for name, (removal, change) in options.items()}
     return cell
 
