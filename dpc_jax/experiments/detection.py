@@ -217,10 +217,11 @@ def judge_data(data: Path) -> Path:
 
 
 def judge_root(workdir: Path, study: Study, scale: float) -> Path | None:
-    """The root of the judge caches of bias scale ``scale`` (None without a judge)."""
+    """The root of the judge caches of bias scale ``scale`` (None without a judge): a folder of their own,
+    apart from the network's caches even at the network's size (the quick grid's judge)."""
     if study.judge is None:
         return None
-    return workdir / "cache" / f"{study.judge[0]}x{study.judge[1]}" / f"s{scale:g}"
+    return workdir / "cache" / f"judge_{study.judge[0]}x{study.judge[1]}" / f"s{scale:g}"
 
 
 def prepare(study: Study, workdir: Path, reference: dict[str, Any], scale: float,

@@ -217,12 +217,12 @@ def test_the_quick_grid_runs_end_to_end(study, tmp_path: Path, capsys) -> None:
     # planted noise's sampling error over 8 steps.
     assert test["prior_axis_mrad"] == pytest.approx(2.5, abs=3 * 10 * 0.8 / math.sqrt(8))
     assert test["decision"] in ("none", "full", "rotation") or test["decision"].startswith("rotation_")
-    # Every option decided the same proposal with the judge rendered and prepared at 48×120.
+    # Every option decided the same proposal with the judge rendered and prepared again (at 32×80).
     assert list(test["options"]) == cell["correction"]["decisions"]
-    assert cell["correction"]["judge"] == [48, 120]
+    assert cell["correction"]["judge"] == [32, 80]
     assert all(o["decision"] == "none" or any(n.endswith("(judge)") for n in o["p"])
                for o in test["options"].values())
-    assert (workdir / "cache" / "48x120" / "s10" / "test0" / "manifest.json").is_file()
+    assert (workdir / "cache" / "judge_32x80" / "s10" / "test0" / "manifest.json").is_file()
     assert "options side by side" in (workdir / "detection_limit.md").read_text()
     for name in ("detection_limit.md", "detection_limit.csv", "detection_limit.png"):
         assert (workdir / name).stat().st_size > 0

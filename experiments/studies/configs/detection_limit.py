@@ -99,7 +99,7 @@ PROFILES = {
 # ``--quick``: the wiring in minutes (tiny images and network, short sequences, one scale).
 QUICK = {
     "profile": {"scales": (10.0,), "pairs": (10,), "sizes": ((32, 80),), "render": (32, 80),
-                "judge": (48, 120)},
+                "judge": (32, 80)},  # the network's size: the programs it compiled serve it
     "matched": {"pairs": (10,), "steps_of": 20},
     "world": {"train_frames": 21, "validation_frames": 9, "test_sequences": 1, "test_frames": 9},
     "training": {"epochs": 1, "batch_size": 4,
