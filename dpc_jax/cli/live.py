@@ -41,7 +41,14 @@ from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 
-from dpc_jax._io import is_stdout, is_stream, output_problem, overlap_problem, stdout_problem
+from dpc_jax._io import (
+    beside_problem,
+    is_stdout,
+    is_stream,
+    output_problem,
+    overlap_problem,
+    stdout_problem,
+)
 from dpc_jax.cli._common import (
     Formatter,
     file_path_option,
@@ -74,6 +81,8 @@ CORRECTION_STAGES = ("prepare", "network", "measure", "judge")
 SUMMARY_STAGES = ("latency", "read", "vo", "network", "measure", "judge")
 # The fields of one record: LEFT RIGHT and a KITTI pose row, optionally preceded by TIME.
 POSE_FIELDS = 12
+# The slowest --realtime: one frame an hour. A lower rate is a typo, and its waits overflow the clock.
+MIN_RATE_HZ = 1 / 3600
 RECORD_SHAPE = "LEFT RIGHT and the 12 numbers of a KITTI pose row (camera-to-world), optionally TIME first"
 
 EPILOG = f"""Records (--records FILE, default standard input), one frame per line, as the VO makes them:
@@ -155,9 +164,9 @@ def correction_problem(args: argparse.Namespace, run_option: str, run: Path | No
         return None
     if args.alpha is not None and not 0.0 < args.alpha < 1.0:
         return f"--alpha {args.alpha}: expected a level in (0, 1), such as 0.01"
-    if args.realtime is not None and not (math.isfinite(args.realtime) and args.realtime > 0):
-        return (f"--realtime {args.realtime}: expected the camera's rate in frames per second (> 0), such "
-                "as 10")
+    if args.realtime is not None and not (math.isfinite(args.realtime) and args.realtime >= MIN_RATE_HZ):
+        return (f"--realtime {args.realtime}: expected the camera's rate in frames per second (> 0, at least "
+                f"one frame an hour: {MIN_RATE_HZ:.3g}), such as 10")
     problem = input_problem(run, run_option, folder=True)
     if problem is None and not (run / "checkpoints" / "config.json").is_file():
         problem = (f"{run_option} {run}: not a training run (expected "
@@ -308,20 +317,34 @@ class _Line:
 
 class LiveOutputs:
     """The live outputs of one run: ``out`` (corrected poses), ``prior`` (the prior's poses, or None)
-    and ``csv`` (the per-frame rows, or None), opened together; ``stale``: the summaries of an earlier
-    run beside them, removed when they are opened (this run's are written at the end)."""
+    and ``csv`` (the per-frame rows, or None), opened together with the first frame, so that a run that
+    corrects none (no records, a bad first record, Ctrl-C before it) leaves every file as it was;
+    ``stale``: the summaries of an earlier run beside them, removed when they are opened (this run's are
+    written at the end); ``beside``: the files named after an output rather than by the user, recorded
+    as the command's own when they are opened (``dpc_jax._io.record_beside``)."""
 
     def __init__(self, out: Path, prior: Path | None, csv: Path | None,
-                 stale: tuple[Path | None, ...]) -> None:
+                 stale: tuple[Path | None, ...], beside: tuple[Path | None, ...] = ()) -> None:
         self.lines = [_Line(path) for path in (out, prior, csv) if path is not None]
         self.has_prior, self.has_csv = prior is not None, csv is not None
         self.stale = [path for path in stale if path is not None]
+        self.beside = [path for path in beside if path is not None]
+        self.opened = False
 
     def __enter__(self) -> LiveOutputs:
-        for path in self.stale:
-            if path.is_file():
-                path.unlink()
+        return self
+
+    def _open(self) -> None:
+        from dpc_jax._io import record_beside
+
+        self.opened = True
         try:
+            for path in self.stale:
+                if path.is_file():
+                    path.unlink()
+            for path in self.beside:
+                path.parent.mkdir(parents=True, exist_ok=True)
+            record_beside(self.beside)
             for line in self.lines:
                 line.open()
             if self.has_csv:
@@ -329,7 +352,6 @@ class LiveOutputs:
         except BaseException:
             self.close()
             raise
-        return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
@@ -342,6 +364,8 @@ class LiveOutputs:
         """Write one frame: its pose, its prior and its CSV row ``row(written)``, ``written`` the clock
         (``time.perf_counter``) when the poses were out; returns ``written``."""
         with whole_lines():
+            if not self.opened:
+                self._open()
             self.lines[0].write(pose_line(pose))
             if self.has_prior:
                 self.lines[1].write(pose_line(prior))
@@ -524,6 +548,10 @@ def parse_record(text: str, line: int, source: str) -> Record | None:
     where = f"{source} line {line}"
     if len(fields) not in (POSE_FIELDS + 2, POSE_FIELDS + 3):
         raise RecordError(f"{where}: {len(fields)} fields; expected {RECORD_SHAPE}")
+    if len(fields) == POSE_FIELDS + 2 and _is_number(fields[0]) and not _is_number(fields[2]):
+        # TIME LEFT RIGHT and a pose short of a number: not LEFT RIGHT and a pose whose first value is RIGHT.
+        raise RecordError(f"{where}: {len(fields)} fields, TIME LEFT RIGHT and {len(fields) - 3} numbers; "
+                          f"expected {RECORD_SHAPE}")
     time_s = None
     if len(fields) == POSE_FIELDS + 3:
         try:
@@ -704,7 +732,16 @@ def _check(args: argparse.Namespace) -> str | None:
     inputs = [("--checkpoint", args.checkpoint), ("--calib", args.calib), ("--records", records)]
     return (overlap_problem(inputs, [("--out", args.out), ("--csv", args.csv_path),
                                      ("--out (its .json summary)", args.json_path)])
-            or stdout_problem(inputs))
+            or stdout_problem(inputs) or beside_problem(beside_files(args.out, args.csv, args.csv_path,
+                                                                     args.json_path)))
+
+
+def beside_files(out: Path, csv: Path | None, csv_path: Path | None,
+                 *summaries: Path | None) -> list[tuple[str, Path | None]]:
+    """The live outputs named after ``out`` rather than by the user (the CSV when ``--csv`` is not given,
+    the ``.json`` summaries), as ``(label, path)`` for ``dpc_jax._io.beside_problem``."""
+    named = [(f"--out {out} (its .json summary)", path) for path in summaries]
+    return [*([(f"--out {out} (its CSV; --csv names another)", csv_path)] if csv is None else []), *named]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -746,7 +783,9 @@ def run(args: argparse.Namespace) -> int:
             return error(restore_problem(failed.folder, failed.__cause__ or failed), 1)
         summary = LiveSummary(args.realtime, time.perf_counter() - began)
         report = report_stream(args.out, args.csv_path)
-        outputs = LiveOutputs(args.out, None, args.csv_path, (args.json_path,))
+        outputs = LiveOutputs(args.out, None, args.csv_path, (args.json_path,),
+                              tuple(path for _, path in beside_files(args.out, args.csv, args.csv_path,
+                                                                     args.json_path)))
 
         def arrivals() -> Iterator[Arrived]:
             for k, record in enumerate(records):
