@@ -31,6 +31,8 @@ output-path checks, and the removal of temporary folders that killed runs left b
   named ``OUT``, not them, so an existing one is replaced only where a command recorded it.
 * Temporary names carry the writing process's id (:func:`temp_name`); :func:`remove_stale` removes
   the ones whose process is gone (``kill -9``, a power cut), never those of a live run.
+* :func:`claim_problem`, :func:`claim_folder`: a work folder belongs to the scripts its marker names;
+  another script writes into it only where it is documented to share it with one of them.
 * :func:`output_lock`: one writer per output; a lock file beside a cache being built, a training
   run or a work folder holds the writer's process id, and a stale one is reported, never taken.
 
@@ -48,6 +50,7 @@ import tempfile
 from pathlib import Path
 
 from dpc_jax._io._atomic_write import OutputKind, atomic_write, install_folder, output_target, stream_write
+from dpc_jax._io._claim import claim_folder, claim_problem
 from dpc_jax._io._lock import LockError, lock_holder, lock_path, output_lock
 from dpc_jax._io._output_set import STAGING_PREFIX, OutputSet, new_folders_removed_on_failure
 from dpc_jax._io._own_files import (
@@ -71,6 +74,8 @@ __all__ = [
     "OutputSet",
     "atomic_write",
     "beside_problem",
+    "claim_folder",
+    "claim_problem",
     "foreign_files_problem",
     "foreign_folder_problem",
     "install_folder",

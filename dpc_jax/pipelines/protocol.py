@@ -35,7 +35,8 @@ import numpy as np
 
 from dpc_jax._io import (
     EMPTY_PATH,
-    atomic_write,
+    claim_folder,
+    claim_problem,
     foreign_folder_problem,
     nonempty_path,
     output_problem,
@@ -360,7 +361,7 @@ def path_argument(text: str) -> Path:
 
 def claim_workdir(
     workdir: str | os.PathLike[str] | None, inputs: Sequence[Named] = (), *, option: str = "--workdir",
-    files: Sequence[Named] = (),
+    files: Sequence[Named] = (), owner: str | None = None, shares: Sequence[str] = (),
 ) -> Path | None:
     """Check an experiment script's outputs by the commands' rule (``dpc_jax._io``), then make its work
     folder and mark it as one: call it once the inputs are checked, before any work.
@@ -372,8 +373,10 @@ def claim_workdir(
     an empty path, an output that cannot be written, an output that is, contains or lies inside an input
     or another output (after links, ``..`` and hard links), and a work folder that holds files but was not
     made by an experiment script (no :data:`WORKDIR_MARKER` in it; a work folder of an earlier version is
-    taken by creating that empty file). Then creates the work folder with its marker, so that a rerun,
-    or another script sharing the folder, is allowed. Returns ``workdir`` as a ``Path`` (None without one).
+    taken by creating that empty file), and a work folder whose marker names other scripts than ``owner``
+    (the script claiming it) and the scripts it ``shares`` a folder with (``dpc_jax._io.claim_problem``).
+    Then creates the work folder with its marker, ``owner`` named in it, so that a rerun, or another
+    script sharing the folder, is allowed. Returns ``workdir`` as a ``Path`` (None without one).
     """
     outputs = [(option, workdir), *files]
     for name, path in outputs:
@@ -387,16 +390,17 @@ def claim_workdir(
                                          made_by="the work folder of an experiment script")
         if problem is not None:
             problem += f" (a work folder of an earlier version: create the empty file {WORKDIR_MARKER} in it)"
+        elif owner is not None:
+            problem = claim_problem(workdir, f"{option} {workdir}", marker=WORKDIR_MARKER, owner=owner,
+                                    shares=shares)
     if problem is not None:
         raise ValueError(problem)
     if workdir is None:
         return None
-    folder = Path(workdir)
-    folder.mkdir(parents=True, exist_ok=True)
-    if not (folder / WORKDIR_MARKER).is_file():
-        atomic_write(folder / WORKDIR_MARKER, "a work folder of dpc_jax's experiment scripts (experiments/); "
-                     "they write into it and resume from it\n")
-    return folder
+    claim_folder(workdir, marker=WORKDIR_MARKER, owner=owner,
+                 about="a work folder of dpc_jax's experiment scripts (experiments/), those below; they "
+                 "write into it and resume from it")
+    return Path(workdir)
 
 
 def prior_source(priors: str, directory_kind: str, sequence: Any, workdir: Path, progress: Progress) -> Path:

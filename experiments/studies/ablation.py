@@ -92,7 +92,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     kit.add_results_page(parser)
     args = parser.parse_args(argv)
     try:
-        kit.claim(args.workdir, page=args.results_page)
+        kit.claim(args.workdir, script=__file__, page=args.results_page)
     except (OSError, ValueError) as error:
         return kit.refuse("ablation", error)
 

@@ -112,7 +112,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if missing:
             raise ValueError(f"{missing[0]}: not a finished `dpc-jax demo --out` folder (no {SUMMARY})")
         kit.claim(args.out, [("DEMO_OUT", folder) for folder in args.folders], option="--out",
-                  page=args.results_page)
+                  page=args.results_page, script=__file__)
     except (OSError, ValueError) as error:
         return kit.refuse("acceptance_depth", error)
     from dpc_jax._io import atomic_write

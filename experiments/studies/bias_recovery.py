@@ -123,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
         if cache_root != (args.out / "cache").resolve():
             raise ValueError(f"--config {args.config}: its cache_root {cache_root} is not OUT/cache "
                              f"({args.out / 'cache'})")
-        kit.claim(args.out, [("--config", args.config)], option="--out")
+        kit.claim(args.out, [("--config", args.config)], option="--out", script=__file__)
     except (OSError, ValueError) as error:  # a ConfigError is a ValueError
         return kit.refuse("bias_recovery", error)
     config = config_lib.from_dict(TrainConfig, {**config_lib.to_dict(config), "cache_root": str(cache_root)})

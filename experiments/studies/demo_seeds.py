@@ -128,7 +128,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         overrides = parse_overrides(args.set)
         configs = {seed: demo_config(args.config, seed, overrides) for seed in args.seeds}
-        kit.claim(args.workdir, [("--config", args.config)], page=args.results_page)
+        kit.claim(args.workdir, [("--config", args.config)], script=__file__, page=args.results_page)
     except (OSError, ValueError) as error:  # a ConfigError is a ValueError
         return kit.refuse("demo_seeds", error)
 

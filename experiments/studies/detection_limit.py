@@ -91,7 +91,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ValueError(f"--workdir {args.workdir}: holds the cells of world {recorded[0]}, not of "
                              f"--world-seed {args.world_seed}; each world needs a work folder of its own")
         inputs = [("--libviso2", args.libviso2), *(("--include", other) for other in args.include)]
-        workdir = claim(args.workdir, inputs, page=args.results_page)
+        workdir = claim(args.workdir, inputs, script=__file__, page=args.results_page)
         assert workdir is not None
         reference_path = workdir / "reference.json"
         if not reference_path.is_file():

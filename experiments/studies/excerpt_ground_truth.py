@@ -81,7 +81,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         sequence = open_raw(args.kitti_raw, DATE, DRIVE, poses=args.kitti_raw / LIBVISO2)
         gt, libviso2 = read_mat(args.kitti_raw / LIBVISO2)
-        kit.claim(args.workdir, [("--kitti-raw", args.kitti_raw)], page=args.results_page)
+        kit.claim(args.workdir, [("--kitti-raw", args.kitti_raw)], script=__file__, page=args.results_page)
         record = vo_prior(sequence, args.workdir / "priors" / "vo.txt", progress)
         vo = read_trajectory(record["path"])
     except (OSError, ValueError, KeyError) as error:

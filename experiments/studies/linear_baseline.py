@@ -151,7 +151,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         # No work folder: the figures go to --json and the results page only.
         kit.claim(None, [("--data", args.data), ("--demo", args.demo)], page=args.results_page,
-                  files=[("--json", args.json)])
+                  files=[("--json", args.json)], script=__file__)
     except (OSError, ValueError) as error:
         return kit.refuse("linear_baseline", error)
     import jax

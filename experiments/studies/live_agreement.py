@@ -152,7 +152,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     try:
         workdir = claim(args.workdir, [("--demo", args.demo), ("--drives", args.drives),
-                                       ("--kitti-raw", args.kitti_raw)], page=args.results_page)
+                                       ("--kitti-raw", args.kitti_raw)], script=__file__,
+                        page=args.results_page)
         assert workdir is not None
         todo = cases(args.demo, args.drives, args.kitti_raw)
     except (OSError, ValueError, KeyError) as error:

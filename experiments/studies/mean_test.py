@@ -124,7 +124,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.trials < 1:
             raise ValueError(f"--trials {args.trials}: expected 1 or more")
-        workdir = claim(args.workdir, [("--kitti-raw", args.kitti_raw)], page=args.results_page)
+        workdir = claim(args.workdir, [("--kitti-raw", args.kitti_raw)], script=__file__,
+                        page=args.results_page)
         assert workdir is not None
         from dpc_jax.data.cache import prepare_sequence
         from dpc_jax.data.kitti import open_raw

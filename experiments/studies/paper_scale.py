@@ -65,7 +65,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             read_block(DOCS, "scale")
         workdir = kit.claim(args.workdir, [("--config", args.config)],
-                            files=[("--docs", DOCS if args.docs else None)])
+                            files=[("--docs", DOCS if args.docs else None)], script=__file__)
         assert workdir is not None  # a work folder was given
     except (ValueError, KeyError, OSError) as error:
         return kit.refuse("paper_scale", error)

@@ -126,7 +126,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not args.skip_drives and not (args.kitti_raw / "libviso2").is_dir():
             raise ValueError(f"--kitti-raw {args.kitti_raw}: no libviso2/ folder (or give --skip-drives)")
         kit.claim(args.workdir, [("--config", args.config), ("--kitti-raw", None if args.skip_drives
-                                                              else args.kitti_raw)], page=args.results_page)
+                                                              else args.kitti_raw)], script=__file__,
+                  page=args.results_page)
     except (OSError, ValueError) as error:
         return kit.refuse("supervised_comparison", error)
     logging.getLogger("absl").setLevel(logging.ERROR)

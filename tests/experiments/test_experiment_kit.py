@@ -97,10 +97,17 @@ def test_a_script_claims_its_outputs_says_one_line_and_publishes(tmp_path: Path,
     blank = tmp_path / "blank.md"
     blank.write_text("no block\n")
     with pytest.raises(ValueError, match="no <!-- results:begin -->"):  # checked before the folder is made
-        script.claim(tmp_path / "w", page=blank)
+        script.claim(tmp_path / "w", script="ablation.py", page=blank)
     assert not (tmp_path / "w").exists()
-    assert script.claim(tmp_path / "w", page=page) == tmp_path / "w"
-    assert (tmp_path / "w" / WORKDIR_MARKER).is_file()
+    assert script.claim(tmp_path / "w", script="ablation.py", page=page) == tmp_path / "w"
+    assert (tmp_path / "w" / WORKDIR_MARKER).read_text().splitlines()[1:] == ["ablation"]
+    # One script's work folder is another's only where the two are documented to share one.
+    excerpt = tmp_path / "excerpt"
+    for name in ("experiments/protocols/kitti_raw_excerpt.py", "excerpt_ground_truth", "kitti_raw_excerpt"):
+        assert script.claim(excerpt, script=name) == excerpt
+    with pytest.raises(ValueError, match=f"--workdir {excerpt}: {excerpt} is the work folder of "
+                       "kitti_raw_excerpt, excerpt_ground_truth, and kitti_raw_drives would write"):
+        script.claim(excerpt, script="kitti_raw_drives.py")
     assert script.refuse("study", ValueError("bad"), 1) == 1
     script.publish("# Title\n\nthe table", page, ROOT / "experiments" / "studies" / "ablation.py")
     out, err = capsys.readouterr()

@@ -123,6 +123,9 @@ def test_real_data_scripts_refuse_a_workdir_over_their_inputs(
     user = tmp_path / "user"
     user.mkdir()
     (user / "notes.txt").write_text("mine")
+    other = tmp_path / "other"  # the work folder of a script none of them shares with
+    claim_workdir(other, owner="ablation")
+    (other / "results.md").write_text("ablation's")
     monkeypatch.chdir(tmp_path)
     before = {root: _snapshot(root) for root in (raw, tmp_path)}
     cases = {
@@ -131,6 +134,7 @@ def test_real_data_scripts_refuse_a_workdir_over_their_inputs(
         str(raw / "libviso2"): f"--workdir {raw / 'libviso2'}: lies inside the input --kitti-raw",
         f"{raw}/sub/../runs": "lies inside the input --kitti-raw",
         str(user): f"--workdir {user}: {user} holds files but is not the work folder of an experiment script",
+        str(other): f"--workdir {other}: {other} is the work folder of ablation, and {name} would write",
     }
     for workdir, needle in cases.items():
         argv = ["--kitti-raw", str(raw), "--workdir", workdir, "--no-progress", *extra]
