@@ -59,9 +59,11 @@ ODOMETRY_DRIVES = {
 }
 
 # --smoke: one epoch of two steps of a two-block network on tiny images, to check an experiment runs end
-# to end (every part of the method runs; the network's depth only changes how long it compiles). Lists,
-# as a config read back from its JSON has them, so that a run's stored config equals the one it was given.
+# to end (every part of the method runs; the network's depth only changes how long it compiles), the pose
+# head trained from the first step (a warm-up as long as the run would leave it untrained). Lists, as a
+# config read back from its JSON has them, so that a run's stored config equals the one it was given.
 SMOKE = {"preset": "small", "image_size": (32, 48), "batch_size": 2, "epochs": 1, "steps_per_epoch": 2,
+         "pose_warmup_epochs": 0,
          "model": {"encoder_planes": [4, 8], "encoder_kernels": [3, 3], "decoder_planes": [8, 4],
                    "mask_source_block": 1, "depth_scales": 1, "fc_planes": [8, 8]}}
 

@@ -567,7 +567,7 @@ def test_train_on_a_truncated_cache_is_one_line(
     config = tmp_path / "config.py"
     config.write_text(
         f"CONFIG = {{'method': 'stereo_dpc', 'preset': 'small', 'image_size': (32, 48), 'batch_size': 2, "
-        f"'epochs': 1, 'cache_root': {str(root)!r}, 'train_sequences': ('00',), "
+        f"'epochs': 1, 'pose_warmup_epochs': 0, 'cache_root': {str(root)!r}, 'train_sequences': ('00',), "
         f"'validation_sequences': ('05',)}}\n"
     )
     assert main(["train", "--config", str(config), "--workdir", str(tmp_path / "run"), "--no-progress"]) == 2

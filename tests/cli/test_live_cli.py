@@ -45,7 +45,7 @@ def world(tmp_path_factory: pytest.TempPathFactory) -> dict:
     written = write_odometry(tmp / "kitti", "00", n=FRAMES, size=(48, 72))
     sequence = open_odometry(tmp / "kitti", "00")
     # The published initialisation (REFERENCE) gives an untrained network a correction that is not zero.
-    config = TrainConfig(method="stereo_dpc", **dpc_protocol.SMOKE, **REFERENCE,
+    config = TrainConfig(method="stereo_dpc", **{**dpc_protocol.SMOKE, **REFERENCE},
                          cache_root=str(tmp / "cache"), train_sequences=("00",), validation_sequences=("05",))
     write_stored_run(tmp / "run", config, {1: (7, 0.5, 0, -1e-4)})
     shutil.copytree(tmp / "run", tmp / "big_run")

@@ -33,7 +33,7 @@ def world(tmp_path_factory: pytest.TempPathFactory) -> dict:
     sequence = open_odometry(kitti, "05")
     cache = prepare_sequence(sequence, tmp / "priors" / "stereo_05.mat", tmp / "cache", size=SIZE,
                              progress=False, workers=1)
-    config = TrainConfig(method="stereo_dpc", **dpc_protocol.SMOKE, **REFERENCE,
+    config = TrainConfig(method="stereo_dpc", **{**dpc_protocol.SMOKE, **REFERENCE},
                          cache_root=str(tmp / "cache"), train_sequences=("00",), validation_sequences=("05",))
     write_stored_run(tmp / "run", config, {1: (7, 0.5, 0, -1e-4)})
     return {"sequence": sequence, "cache": cache, "run": tmp / "run", "priors": tmp / "priors"}
