@@ -7,7 +7,7 @@ import argparse
 import os
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from dpc_jax.pipelines.protocol import Named, claim_workdir, path_argument
@@ -66,6 +66,17 @@ def refuse(script: str, error: BaseException | str, status: int = 2) -> int:
     failed)."""
     print(f"{script}: error: {error}", file=sys.stderr)
     return status
+
+
+def interruptible(main: Callable[[], int], script: str | os.PathLike[str]) -> int:
+    """``main()``'s exit status, Ctrl-C as the commands end on it: one line on stderr and 130, not a
+    traceback (what the script finished is kept: its runs and caches resume when it is run again)."""
+    try:
+        return main()
+    except KeyboardInterrupt:
+        print(f"{Path(script).name}: interrupted; what it finished is kept, and the same command resumes",
+              file=sys.stderr)
+        return 130
 
 
 def publish(text: str, page: Path | None, script: str | os.PathLike[str]) -> None:

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from dpc_jax.data.splits import training_names
 from dpc_jax.experiments.folds import Context, FoldRun, Plan, Test, add_protocol_arguments, run_protocol
-from dpc_jax.experiments.script import new_parser
+from dpc_jax.experiments.script import interruptible, new_parser
 from dpc_jax.pipelines import protocol as P
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
@@ -86,4 +86,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":
     reexec_with_huge_pages()
-    sys.exit(main())
+    sys.exit(interruptible(main, __file__))

@@ -30,6 +30,7 @@ from scipy.spatial.transform import Rotation
 
 from dpc_jax import config as config_lib
 from dpc_jax.experiments import script as kit
+from dpc_jax.experiments.script import interruptible
 from dpc_jax.experiments.world import World
 from dpc_jax.geometry.poses import compose, relative_poses
 from dpc_jax.pipelines.protocol import path_argument
@@ -154,4 +155,4 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     reexec_with_huge_pages()
-    sys.exit(main())
+    sys.exit(interruptible(main, __file__))

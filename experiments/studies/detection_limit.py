@@ -28,7 +28,16 @@ from pathlib import Path
 from dpc_jax._io import atomic_write
 from dpc_jax.experiments import detection as D
 from dpc_jax.experiments.records import Records
-from dpc_jax.experiments.script import DATA, Clock, add_results_page, claim, new_parser, publish, refuse
+from dpc_jax.experiments.script import (
+    DATA,
+    Clock,
+    add_results_page,
+    claim,
+    interruptible,
+    new_parser,
+    publish,
+    refuse,
+)
 from dpc_jax.experiments.stamp import stamp
 from dpc_jax.pipelines.protocol import path_argument
 from dpc_jax.report.tables import csv_text
@@ -136,4 +145,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":
     reexec_with_huge_pages()
-    sys.exit(main())
+    sys.exit(interruptible(main, __file__))

@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from dpc_jax.experiments import script as kit
+from dpc_jax.experiments.script import interruptible
 from dpc_jax.experiments.steps import exchange, photometric_errors, step_geometry, with_travel
 from dpc_jax.pipelines.protocol import path_argument
 
@@ -151,4 +152,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(interruptible(main, __file__))

@@ -38,6 +38,7 @@ import numpy as np
 from dpc_jax._io import atomic_write
 from dpc_jax.experiments import script as kit
 from dpc_jax.experiments.baselines import linear_baselines
+from dpc_jax.experiments.script import interruptible
 from dpc_jax.pipelines.protocol import path_argument
 from dpc_jax.report.pages import write_results
 from dpc_jax.report.tables import number, table
@@ -195,4 +196,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(interruptible(main, __file__))

@@ -33,7 +33,15 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from dpc_jax.experiments.script import Clock, add_results_page, claim, new_parser, publish, refuse
+from dpc_jax.experiments.script import (
+    Clock,
+    add_results_page,
+    claim,
+    interruptible,
+    new_parser,
+    publish,
+    refuse,
+)
 from dpc_jax.pipelines.protocol import path_argument
 
 if TYPE_CHECKING:
@@ -163,4 +171,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(interruptible(main, __file__))

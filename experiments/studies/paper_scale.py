@@ -25,6 +25,7 @@ from pathlib import Path
 
 from dpc_jax.experiments import scale
 from dpc_jax.experiments import script as kit
+from dpc_jax.experiments.script import interruptible
 from dpc_jax.pipelines.protocol import path_argument
 
 CONFIG = Path(__file__).resolve().parent / "configs" / "paper_scale.py"
@@ -106,4 +107,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(interruptible(main, __file__))

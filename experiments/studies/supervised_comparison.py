@@ -34,6 +34,7 @@ from dpc_jax.experiments import script as kit
 from dpc_jax.experiments.baselines import linear_baselines
 from dpc_jax.experiments.demos import demo_config, finished_demo, share
 from dpc_jax.experiments.folds import finished_protocol
+from dpc_jax.experiments.script import interruptible
 from dpc_jax.pipelines.protocol import path_argument
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
@@ -156,4 +157,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":
     reexec_with_huge_pages()
-    sys.exit(main())
+    sys.exit(interruptible(main, __file__))

@@ -115,6 +115,23 @@ def test_a_script_claims_its_outputs_says_one_line_and_publishes(tmp_path: Path,
     assert "the table" in page.read_text() and "Written by `ablation.py`" in page.read_text()
 
 
+def test_every_script_ends_on_ctrl_c_in_one_line_with_130(capsys) -> None:
+    """``interruptible``: a KeyboardInterrupt is one line and exit status 130 (as the commands), not a
+    traceback; every script's ``__main__`` goes through it."""
+
+    def stopped() -> int:
+        raise KeyboardInterrupt
+
+    assert script.interruptible(stopped, "/x/kitti_raw_excerpt.py") == 130
+    assert capsys.readouterr().err == ("kitti_raw_excerpt.py: interrupted; what it finished is kept, and the "
+                                       "same command resumes\n")
+    assert script.interruptible(lambda: 3, "s.py") == 3
+    scripts = sorted((ROOT / "experiments").glob("*/*.py"))
+    mains = {path.name: path.read_text().split('if __name__ == "__main__":')[-1] for path in scripts}
+    assert len(mains) >= 15 and all("sys.exit(interruptible(main, __file__))" in text
+                                    for text in mains.values()), mains
+
+
 def test_a_demo_config_at_a_seed_merges_its_training(tmp_path: Path) -> None:
     from dpc_jax.experiments.demos import demo_config, share
 

@@ -193,12 +193,15 @@ def test_every_other_script_claims_its_outputs(tmp_path: Path, capsys: pytest.Ca
          f"--workdir {user}: {user} holds files but is not"),
         (STUDIES, "supervised_comparison", ["--workdir", str(user), "--skip-drives"],
          f"--workdir {user}: {user} holds files but is not"),
+        (STUDIES, "live_agreement",
+         ["--demo", str(user), "--drives", str(user), "--workdir", str(tmp_path / "w")],
+         f"--demo {user}: not a finished `dpc-jax demo --out` folder (no summary.json)"),
     ]
     before = _snapshot(tmp_path)
     for folder, name, argv, needle in cases:
         assert load_script(folder / f"{name}.py").main(argv) == 2, name
         _one_error(capsys.readouterr().err, needle)
-    assert _snapshot(tmp_path) == before
+    assert _snapshot(tmp_path) == before and not (tmp_path / "w").exists()
 
 
 def test_the_results_table_says_when_the_test_was_off() -> None:
