@@ -204,6 +204,28 @@ def test_every_other_script_claims_its_outputs(tmp_path: Path, capsys: pytest.Ca
     assert _snapshot(tmp_path) == before and not (tmp_path / "w").exists()
 
 
+def test_bias_recovery_writes_where_out_says_with_the_config_as_shipped(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--out DIR`` needs no edit of the config (its caches go to DIR/cache, which the script makes), and
+    the default is ``runs/bias_recovery`` in the current folder, not in the checkout."""
+    study = load_script(STUDIES / "bias_recovery.py")
+    made: list[tuple[Path, str]] = []
+
+    def make_data(out: Path, config: object, args: object) -> None:
+        made.append((out, config.cache_root))
+        raise KeyboardInterrupt  # stop before the work: what it would write is known
+
+    monkeypatch.setattr(study, "make_data", make_data)
+    monkeypatch.chdir(tmp_path)
+    for argv, out in (([], Path("runs/bias_recovery")), (["--out", str(tmp_path / "elsewhere")],
+                                                          tmp_path / "elsewhere")):
+        with pytest.raises(KeyboardInterrupt):
+            study.main(argv)
+        assert made[-1] == (out, str((out / "cache").resolve()))
+    assert (tmp_path / "runs" / "bias_recovery").is_dir()
+
+
 def test_the_results_table_says_when_the_test_was_off() -> None:
     """kitti_stereo_dpc.py's table said "trained (full)" under "what its acceptance test let through"
     when the protocol had the test off (acceptance False): what was forced now says so."""
