@@ -617,28 +617,34 @@ def _source(args: argparse.Namespace) -> tuple[IO[bytes], str, bool]:
     return stream, name, regular
 
 
-def _checked_records(lines: list[bytes], name: str, size: tuple[int, int]) -> list[Record]:
-    """Every record of a recording, parsed and its files found; the first pair decoded for its size."""
+def _checked_records(lines: list[bytes], name: str, size: tuple[int, int],
+                     args: argparse.Namespace) -> list[Record]:
+    """Every record of a recording, parsed and its files found, its times increasing; the first pair
+    decoded for its size and its kind (:func:`_pair_problem`)."""
     records: list[Record] = []
     for number, raw in enumerate(lines, start=1):
         record = parse_record(raw.decode("utf-8", "replace"), number, name)
         if record is None:
             continue
         where = f"{name} line {number}"
+        _check_time(record, records[-1] if records else None, name)
         for side, path in (("left", record.left), ("right", record.right)):
             if not path.is_file():
                 raise RecordError(f"{where}: {side} image {path}: no such file")
             if not records:
                 _image(path, size, where, side)
+        if not records:
+            _pair_problem(record, args, where)
         records.append(record)
     if not records:
         raise RecordError(f"{name}: no records; expected one line per frame: {RECORD_SHAPE}")
     return records
 
 
-def _streamed_records(stream: IO[bytes], name: str) -> Iterator[Record]:
-    """The records of a stream, each as soon as its line is complete."""
-    number = 0
+def _streamed_records(stream: IO[bytes], name: str, args: argparse.Namespace) -> Iterator[Record]:
+    """The records of a stream, each as soon as its line is complete (times increasing; the first one's
+    images of the calibration's pair)."""
+    number, previous = 0, None
     while True:
         raw = stream.readline()
         if not raw:
@@ -646,7 +652,36 @@ def _streamed_records(stream: IO[bytes], name: str) -> Iterator[Record]:
         number += 1
         record = parse_record(raw.decode("utf-8", "replace"), number, name)
         if record is not None:
+            _check_time(record, previous, name)
+            if previous is None:
+                _pair_problem(record, args, f"{name} line {number}")
+            previous = record
             yield record
+
+
+def _check_time(record: Record, previous: Record | None, name: str) -> None:
+    """A record's TIME must come after the previous record's (a duplicated or reordered line otherwise)."""
+    if record.time_s is not None and previous is not None and previous.time_s is not None \
+            and record.time_s <= previous.time_s:
+        raise RecordError(f"{name} line {record.line}: TIME {record.time_s:g} is not after line "
+                          f"{previous.line}'s {previous.time_s:g}; expected increasing times, one record "
+                          "per frame")
+
+
+def _pair_problem(record: Record, args: argparse.Namespace, where: str) -> None:
+    """With a KITTI calibration holding both pairs (grey P_rect_00/01, colour P_rect_02/03, with other
+    baselines), the first record's left image must be of the pair chosen (``--grey`` or not)."""
+    import cv2
+
+    if not getattr(args, "both_pairs", False):
+        return
+    image = cv2.imread(str(record.left), cv2.IMREAD_UNCHANGED)
+    grey = image is not None and (image.ndim == 2 or image.shape[2] == 1)
+    if grey != bool(args.grey):
+        fix = ("give --grey (the calibration's grey pair)" if grey
+               else "leave --grey out (the calibration's colour pair)")
+        raise RecordError(f"{where}: left image {record.left} is {'grey' if grey else 'colour'}, and --calib "
+                          f"{args.calib} holds both pairs, with other baselines: {fix}")
 
 
 def _calibration(args: argparse.Namespace) -> Calibration:
@@ -656,8 +691,12 @@ def _calibration(args: argparse.Namespace) -> Calibration:
     from dpc_jax.data.kitti import read_calibration, stereo_calibration
 
     entries = read_calibration(args.calib)
-    pairs = ([("P_rect_00", "P_rect_01"), ("P0", "P1")] if args.grey
-             else [("P_rect_02", "P_rect_03"), ("P2", "P3")])
+    kinds = {True: [("P_rect_00", "P_rect_01"), ("P0", "P1")],
+             False: [("P_rect_02", "P_rect_03"), ("P2", "P3")]}
+    # A KITTI file with both pairs: the records' images say which pair they are (_pair_problem).
+    args.both_pairs = all(any(all(key in entries for key in pair) for pair in kind)
+                          for kind in kinds.values())
+    pairs = kinds[bool(args.grey)]
     keys = next((pair for pair in pairs if all(key in entries for key in pair)), None)
     if keys is None:
         wanted = " or ".join(f"{a}/{b}" for a, b in pairs)
@@ -768,11 +807,11 @@ def run(args: argparse.Namespace) -> int:
         records: Iterator[Record]
         if regular:  # a recording: checked whole before JAX starts
             try:
-                records = iter(_checked_records(stream.readlines(), name, size))
+                records = iter(_checked_records(stream.readlines(), name, size, args))
             except RecordError as content:
                 return error(str(content), 1)
         else:
-            records = _streamed_records(stream, name)
+            records = _streamed_records(stream, name, args)
         import_jax()
         from dpc_jax.training.checkpoints import CheckpointError
 

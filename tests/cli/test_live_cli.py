@@ -318,6 +318,13 @@ BAD = {
     "a rate of 0": (lambda w: {"--realtime": "0"}, 2, ["--realtime 0.0", "frames per second (> 0"]),
     "a rate whose waits overflow the clock": (lambda w: {"--realtime": "1e-300"}, 2,
                                               ["--realtime 1e-300", "at least one frame an hour"]),
+    "a TIME not after the previous record's": (
+        lambda w: {"--records": _records_with(w, "again", 3, lambda f: ["0.1", *f[1:]])}, 1,
+        ["line 3: TIME 0.1 is not after line 2's 0.1", "expected increasing times"]),
+    "the grey pair's images with the colour pair's calibration": (
+        lambda w: {"--records": _records_with(w, "grey", 1, lambda f: [
+            f[0], f[1].replace("image_2", "image_0"), f[2].replace("image_3", "image_1"), *f[3:]])}, 1,
+        ["line 1: left image", "image_0/000000.png is grey", "holds both pairs", "give --grey"]),
     "a record of TIME LEFT RIGHT and 11 numbers": (
         lambda w: {"--records": _records_with(w, "eleven", 2, lambda f: f[:-1])}, 1,
         ["line 2: 14 fields, TIME LEFT RIGHT and 11 numbers", "expected LEFT RIGHT and the 12 numbers"]),
