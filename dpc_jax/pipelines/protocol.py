@@ -405,6 +405,19 @@ def claim_workdir(
     return Path(workdir)
 
 
+def priors_argument(text: str) -> str:
+    """argparse type of the protocols' ``--priors DIR|vo``: ``vo`` (our stereo VO) or a folder, never both
+    at once: with a folder ``vo`` in the current folder (the README's chain makes one) the word is
+    ambiguous, and taking either meaning silently would run the experiment on priors the user did not
+    mean."""
+    path = path_argument(text)
+    if text == "vo" and path.exists():
+        raise argparse.ArgumentTypeError(
+            "'vo' means our stereo VO, and there is a folder ./vo here: give ./vo for the folder of priors, "
+            "or run from another folder for our VO")
+    return text
+
+
 def prior_source(priors: str, directory_kind: str, sequence: Any, workdir: Path, progress: Progress) -> Path:
     """The prior file of ``sequence``: ``priors`` = a folder (see :func:`find_prior`) or ``vo`` (ours)."""
     if priors == "vo":

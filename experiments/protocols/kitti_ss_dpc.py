@@ -24,7 +24,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = new_parser(__doc__)
     parser.add_argument("--kitti-odometry", required=True, type=P.path_argument, metavar="ROOT",
                         help="odometry root (sequences/XX/, poses/XX.txt)")
-    parser.add_argument("--priors", required=True, metavar="DIR|vo",
+    parser.add_argument("--priors", required=True, type=P.priors_argument, metavar="DIR|vo",
                         help="folder with stereo_XX.mat and mono_XX.mat (libviso2 release); 'vo' = our "
                         "stereo VO for the stereo folds")
     parser.add_argument("--fold", default="all", metavar="NAME|all",

@@ -24,7 +24,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = new_parser(__doc__)
     parser.add_argument("--kitti-odometry", required=True, type=P.path_argument, metavar="ROOT",
                         help="odometry root (sequences/XX/, poses/XX.txt)")
-    parser.add_argument("--priors", required=True, metavar="DIR|vo",
+    parser.add_argument("--priors", required=True, type=P.priors_argument, metavar="DIR|vo",
                         help="folder of priors (stereo_XX.mat, XX.mat or XX.txt) or 'vo' for our stereo VO")
     parser.add_argument("--test", default="all", metavar="XX|all", help="the fold's test sequence, or all")
     parser.add_argument("--sequences", nargs="+", metavar="XX",

@@ -204,6 +204,27 @@ def test_every_other_script_claims_its_outputs(tmp_path: Path, capsys: pytest.Ca
     assert _snapshot(tmp_path) == before and not (tmp_path / "w").exists()
 
 
+def test_priors_vo_beside_a_folder_vo_is_refused_as_ambiguous(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--priors vo`` (our VO) where a folder ``vo`` of priors exists (the README's chain makes one): one
+    line saying how to name either, before any work; ``./vo`` is the folder."""
+    from dpc_jax.pipelines.protocol import priors_argument
+
+    (tmp_path / "vo").mkdir()
+    monkeypatch.chdir(tmp_path)
+    for name in ("kitti_stereo_dpc", "kitti_ss_dpc"):
+        with pytest.raises(SystemExit) as exited:
+            load_script(PROTOCOLS / f"{name}.py").main(["--kitti-odometry", "k", "--priors", "vo",
+                                                        "--workdir", "w"])
+        assert exited.value.code == 2
+        assert "argument --priors: 'vo' means our stereo VO, and there is a folder ./vo here: give ./vo" in (
+            capsys.readouterr().err)
+    assert priors_argument("./vo") == "./vo" and sorted(p.name for p in tmp_path.iterdir()) == ["vo"]
+    monkeypatch.chdir(tmp_path / "vo")
+    assert priors_argument("vo") == "vo"
+
+
 def test_bias_recovery_writes_where_out_says_with_the_config_as_shipped(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
