@@ -271,6 +271,7 @@ def _correct_live(
     """``--correct``: the VO and the run's correction frame by frame, each pose written as it is made
     (``dpc_jax.cli.live``); then, as without it, the VO's summary, the evaluation against ground truth
     and the ``.json`` records. ``frames``: the source frames ``(START, STOP)`` of ``sequence``."""
+    import dataclasses
     from concurrent.futures import ThreadPoolExecutor
 
     import numpy as np
@@ -345,8 +346,10 @@ def _correct_live(
                                ("status", int(estimate.status)), ("offset", vo.disparity_offset),
                                ("times", vo_s + (0.0 if kept["times"] else first_s[0]))):
                 kept[key].append(value)
-        frame = live(images[0], images[1], pose)
-        kept["prior"].append(frame.prior)
+        # The prior written is the VO's own chain of poses, as `dpc-jax vo` composes it: the corrector's
+        # prior, recomposed from its first pose, differs from it in the last digits (1e-13).
+        frame = dataclasses.replace(live(images[0], images[1], pose), prior=pose)
+        kept["prior"].append(pose)
         kept["corrected"].append(frame.pose)
         return Corrected(frame, columns, vo_s)
 

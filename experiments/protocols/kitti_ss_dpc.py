@@ -1,4 +1,4 @@
-"""ss-DPC-Net on KITTI odometry, libviso2 priors (Wagstaff et al.); see configs/kitti_ss_dpc.py.
+r"""ss-DPC-Net on KITTI odometry, libviso2 priors (Wagstaff et al.); see configs/kitti_ss_dpc.py.
 
     python experiments/protocols/kitti_ss_dpc.py --kitti-odometry ROOT --priors DIR --fold NAME|all \
         --workdir DIR

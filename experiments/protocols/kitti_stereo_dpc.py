@@ -1,4 +1,4 @@
-"""Stereo DPC on KITTI odometry, leave-one-out (Zhang et al.); see configs/kitti_stereo_dpc.py.
+r"""Stereo DPC on KITTI odometry, leave-one-out (Zhang et al.); see configs/kitti_stereo_dpc.py.
 
     python experiments/protocols/kitti_stereo_dpc.py --kitti-odometry ROOT --priors DIR|vo --test XX|all \
         --workdir DIR

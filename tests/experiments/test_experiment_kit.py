@@ -132,6 +132,20 @@ def test_every_script_ends_on_ctrl_c_in_one_line_with_130(capsys) -> None:
                                     for text in mains.values()), mains
 
 
+def test_every_scripts_help_keeps_its_line_continuations() -> None:
+    """A script's docstring is its ``--help``, verbatim: a command continued with ``\\`` keeps the
+    backslash and its line break (in a plain string literal they vanish, and the two lines run together)."""
+    import ast
+
+    for path in sorted((ROOT / "experiments").glob("**/*.py")):
+        tree = ast.parse(path.read_text())
+        if not (tree.body and isinstance(tree.body[0], ast.Expr)):
+            continue
+        source = ast.get_source_segment(path.read_text(), tree.body[0]) or ""
+        continued = sum(line.endswith("\\") for line in source.splitlines())
+        assert (ast.get_docstring(tree, clean=False) or "").count("\\\n") == continued, path
+
+
 def test_a_demo_config_at_a_seed_merges_its_training(tmp_path: Path) -> None:
     from dpc_jax.experiments.demos import demo_config, share
 
