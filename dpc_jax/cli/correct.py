@@ -245,7 +245,11 @@ def _check_arguments(args: argparse.Namespace) -> str | None:
                or (foreign_files_problem(args.report, REPORT_FILES, f"--report {args.report}",
                                          writer="correct --report") if args.report is not None else None)
                or (beside_problem([(f"--out {args.out} (its frame list)", frames_path(args.out))])
-                   if not is_stream(args.out) else None))
+                   if not is_stream(args.out) else None)
+               or (foreign_folder_problem(adapted_path(args.out), f"--adapt (beside --out {args.out})",
+                                          marker="checkpoints/config.json",
+                                          made_by="an adapted network (`correct --adapt`)")
+                   if args.adapt else None))
     if problem is not None:
         return problem
     if args.cache is not None:

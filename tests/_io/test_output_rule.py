@@ -199,7 +199,7 @@ def test_folders_a_command_did_not_make_are_refused(
     prior = tmp_path / "prior.txt"
     prior.write_bytes((kitti / "poses" / "00.txt").read_bytes())
     mine = tmp_path / "mine"
-    for folder in ("00", "sequences/00", "data/sequences/test"):
+    for folder in ("00", "sequences/00", "data/sequences/test", "c.adapted"):
         (mine / folder).mkdir(parents=True)
         (mine / folder / "important.txt").write_text("keep")
     config = tmp_path / "c.py"
@@ -215,6 +215,9 @@ def test_folders_a_command_did_not_make_are_refused(
         "--workdir {m}: {m} holds files but is not a training run (no checkpoints/config.json)": [
             "train", "--config", config, "--workdir", mine],
         "--out {m}: {m}/data/sequences/test holds files but is not a sequence": ["demo", "--out", mine],
+        "--adapt (beside --out {m}/c.txt): {m}/c.adapted holds files but is not an adapted network": [
+            "correct", "--checkpoint", tmp_path / "run", "--kitti-odometry", kitti, "--sequence", "00",
+            "--prior", prior, "--out", mine / "c.txt", "--adapt", "5"],
     }
     before = _snapshot(tmp_path)
     for needle, argv in cases.items():

@@ -201,7 +201,7 @@ def test_missing_parent_folders_are_created_only_when_writing(
     assert (tmp_path / "new" / "export" / "gt.kitti.txt").is_file()
     assert main(["vo", "--kitti-odometry", str(data["kitti"]), "--sequence", "00", "--no-progress",
                  "--out", str(tmp_path / "vo" / "a" / "t.txt")]) == 0
-    assert _files(tmp_path / "vo") == ["a", "a/t.csv", "a/t.json", "a/t.txt"]
+    assert _files(tmp_path / "vo") == ["a", "a/.dpc-jax-files", "a/t.csv", "a/t.json", "a/t.txt"]
 
 
 def test_vo_writes_trajectory_and_csv_all_or_nothing(

@@ -290,7 +290,7 @@ def test_resume_from_a_damaged_checkpoint_names_it(
     from dpc_jax.cli import main
     from dpc_jax.training.checkpoints import CheckpointError
 
-    config = tiny_config(cache_root, epochs=1)
+    config = tiny_config(cache_root, epochs=1, pose_warmup_epochs=0)
     train(config, tmp_path / "run", progress=False, workers=0)
     # Truncate every array file of the stored state: what a full disk or a copy cut short leaves.
     for path in (tmp_path / "run" / "checkpoints" / "epochs" / "1" / "state").rglob("*"):
