@@ -235,7 +235,8 @@ def in_one_process(argvs: list[list[object]]) -> tuple[list[int], list[str], sub
 def train_config(path: Path, cache_root: Path, **fields: object) -> None:
     """Write a valid training config file (a dict CONFIG) reading the caches under ``cache_root``."""
     config = {"method": "stereo_dpc", "preset": "small", "image_size": CACHE_SIZE, "batch_size": 2,
-              "epochs": 1, "cache_root": str(cache_root), "validation_sequences": ("05",), **fields}
+              "epochs": 1, "pose_warmup_epochs": 0, "cache_root": str(cache_root),
+              "validation_sequences": ("05",), **fields}
     path.write_text(f"CONFIG = {config!r}\n")
 
 

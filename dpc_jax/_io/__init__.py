@@ -25,9 +25,14 @@ output-path checks, and the removal of temporary folders that killed runs left b
   stream (:func:`is_stream`). A command whose standard output is a file it reads is refused
   (:func:`stdout_problem`).
 * :func:`foreign_files_problem`, :func:`record_own_files`: files written into a folder that may hold
-  other files (a report, an export) replace only the files a command recorded there as its own.
+  other files (a report, an export) replace only the files a command recorded there as its own, and a
+  report folder holds one command's results. :func:`beside_problem`, :func:`record_beside`: the same for
+  the files a command names after an output (``OUT.csv``, ``OUT.json``, ``OUT.prior.txt``): the user
+  named ``OUT``, not them, so an existing one is replaced only where a command recorded it.
 * Temporary names carry the writing process's id (:func:`temp_name`); :func:`remove_stale` removes
   the ones whose process is gone (``kill -9``, a power cut), never those of a live run.
+* :func:`claim_problem`, :func:`claim_folder`: a work folder belongs to the scripts its marker names;
+  another script writes into it only where it is documented to share it with one of them.
 * :func:`output_lock`: one writer per output; a lock file beside a cache being built, a training
   run or a work folder holds the writer's process id, and a stale one is reported, never taken.
 
@@ -45,9 +50,17 @@ import tempfile
 from pathlib import Path
 
 from dpc_jax._io._atomic_write import OutputKind, atomic_write, install_folder, output_target, stream_write
+from dpc_jax._io._claim import claim_folder, claim_problem
 from dpc_jax._io._lock import LockError, lock_holder, lock_path, output_lock
 from dpc_jax._io._output_set import STAGING_PREFIX, OutputSet, new_folders_removed_on_failure
-from dpc_jax._io._own_files import OWN_FILES, foreign_files_problem, record_own_files
+from dpc_jax._io._own_files import (
+    OWN_FILES,
+    Named,
+    beside_problem,
+    foreign_files_problem,
+    record_beside,
+    record_own_files,
+)
 from dpc_jax._io._temporaries import remove_stale, temp_name
 
 __all__ = [
@@ -56,9 +69,13 @@ __all__ = [
     "STAGING_PREFIX",
     "InputWarning",
     "LockError",
+    "Named",
     "OutputKind",
     "OutputSet",
     "atomic_write",
+    "beside_problem",
+    "claim_folder",
+    "claim_problem",
     "foreign_files_problem",
     "foreign_folder_problem",
     "install_folder",
@@ -72,6 +89,7 @@ __all__ = [
     "output_problem",
     "output_target",
     "overlap_problem",
+    "record_beside",
     "record_own_files",
     "remove_stale",
     "stdout_problem",
@@ -211,9 +229,6 @@ def is_stdout(path: str | os.PathLike[str]) -> bool:
         return os.path.samestat(os.stat(path), os.fstat(1))
     except OSError:
         return False
-
-
-Named = tuple[str, str | os.PathLike[str] | None]  # (option, path); a None path was not given
 
 
 def overlap_problem(inputs: list[Named], outputs: list[Named]) -> str | None:

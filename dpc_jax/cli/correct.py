@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from dpc_jax._io import (
+    beside_problem,
     foreign_files_problem,
     foreign_folder_problem,
     is_stdout,
@@ -41,6 +42,7 @@ from dpc_jax.correction.judge import (
     smaller_than_judge,
 )
 from dpc_jax.data.holdout import MIN_EVERY, adaptable_pairs, held_out_pairs
+from dpc_jax.data.poses_io import frames_path
 from dpc_jax.report.correction_report import applied_words
 from dpc_jax.report.evaluation_report import REPORT_FILES as EVALUATION_FILES
 from dpc_jax.runtime.progress import progress_mode
@@ -246,8 +248,14 @@ def _check_arguments(args: argparse.Namespace) -> str | None:
                ("--adapt", adapted_path(args.out) if args.adapt else None)]
     problem = (overlap_problem(inputs, outputs)
                or stdout_problem(inputs)
-               or (foreign_files_problem(args.report, REPORT_FILES, f"--report {args.report}")
-                   if args.report is not None else None))
+               or (foreign_files_problem(args.report, REPORT_FILES, f"--report {args.report}",
+                                         writer="correct --report") if args.report is not None else None)
+               or (beside_problem([(f"--out {args.out} (its frame list)", frames_path(args.out))])
+                   if not is_stream(args.out) else None)
+               or (foreign_folder_problem(adapted_path(args.out), f"--adapt (beside --out {args.out})",
+                                          marker="checkpoints/config.json",
+                                          made_by="an adapted network (`correct --adapt`)")
+                   if args.adapt else None))
     if problem is not None:
         return problem
     if args.cache is not None:
@@ -563,18 +571,20 @@ def _write_outputs(
     adapted: Correction | None,
 ) -> list[Path]:
     """Write ``--out`` (and its frame list), ``--report`` and the adapted network; the trajectory files."""
-    from dpc_jax._io import OutputSet, record_own_files
+    from dpc_jax._io import OutputSet, record_beside, record_own_files
     from dpc_jax.correction.corrector import write_trajectory
     from dpc_jax.report.correction_report import write_correction_report
 
     # The corrected trajectory (with its frame list) and the report are written all or nothing.
     with OutputSet() as outputs:
         staged = write_trajectory(outputs.file(args.out), correction, args.format)
+        if not is_stream(args.out):
+            record_beside([args.out.parent / path.name for path in staged[1:]], outputs)
         if args.report is not None:
             title = f"DPC correction: {correction.name}"
             folder = outputs.folder(args.report)
             reported = write_correction_report(folder, correction, title)
-            record_own_files(folder, args.report, [path.name for path in reported])
+            record_own_files(folder, args.report, [path.name for path in reported], writer="correct --report")
         if adaptation is not None and adapted is not None:
             from dpc_jax.correction.adapt import save_adapted
 

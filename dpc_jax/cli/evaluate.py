@@ -183,10 +183,10 @@ def _own_files_problem(args: argparse.Namespace, labels: list[str]) -> str | Non
     """Why ``--report`` or ``--export`` would replace a file that no dpc-jax command wrote there, or None."""
     from dpc_jax.report.evaluation_report import REPORT_FILES, export_files
 
-    return ((foreign_files_problem(args.report, REPORT_FILES, f"--report {args.report}")
-             if args.report is not None else None)
-            or (foreign_files_problem(args.export, export_files(labels), f"--export {args.export}")
-                if args.export is not None else None))
+    return ((foreign_files_problem(args.report, REPORT_FILES, f"--report {args.report}",
+                                   writer="evaluate --report") if args.report is not None else None)
+            or (foreign_files_problem(args.export, export_files(labels), f"--export {args.export}",
+                                      writer="evaluate --export") if args.export is not None else None))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -248,10 +248,11 @@ def run(args: argparse.Namespace) -> int:
             source = args.mat if args.mat is not None else args.gt
             staged = outputs.folder(args.report)
             written = write_report(staged, result, title=f"Trajectory evaluation: {source.name}")
-            record_own_files(staged, args.report, [path.name for path in written])
+            record_own_files(staged, args.report, [path.name for path in written], writer="evaluate --report")
         if args.export is not None:
             staged = outputs.folder(args.export)
-            record_own_files(staged, args.export, [path.name for path in export_trajectories(staged, result)])
+            record_own_files(staged, args.export, [path.name for path in export_trajectories(staged, result)],
+                             writer="evaluate --export")
         outputs.commit()
     if args.json == "-":
         sys.stdout.write(result.to_json())

@@ -41,7 +41,14 @@ from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 
-from dpc_jax._io import is_stdout, is_stream, output_problem, overlap_problem, stdout_problem
+from dpc_jax._io import (
+    beside_problem,
+    is_stdout,
+    is_stream,
+    output_problem,
+    overlap_problem,
+    stdout_problem,
+)
 from dpc_jax.cli._common import (
     Formatter,
     file_path_option,
@@ -74,6 +81,8 @@ CORRECTION_STAGES = ("prepare", "network", "measure", "judge")
 SUMMARY_STAGES = ("latency", "read", "vo", "network", "measure", "judge")
 # The fields of one record: LEFT RIGHT and a KITTI pose row, optionally preceded by TIME.
 POSE_FIELDS = 12
+# The slowest --realtime: one frame an hour. A lower rate is a typo, and its waits overflow the clock.
+MIN_RATE_HZ = 1 / 3600
 RECORD_SHAPE = "LEFT RIGHT and the 12 numbers of a KITTI pose row (camera-to-world), optionally TIME first"
 
 EPILOG = f"""Records (--records FILE, default standard input), one frame per line, as the VO makes them:
@@ -155,9 +164,9 @@ def correction_problem(args: argparse.Namespace, run_option: str, run: Path | No
         return None
     if args.alpha is not None and not 0.0 < args.alpha < 1.0:
         return f"--alpha {args.alpha}: expected a level in (0, 1), such as 0.01"
-    if args.realtime is not None and not (math.isfinite(args.realtime) and args.realtime > 0):
-        return (f"--realtime {args.realtime}: expected the camera's rate in frames per second (> 0), such "
-                "as 10")
+    if args.realtime is not None and not (math.isfinite(args.realtime) and args.realtime >= MIN_RATE_HZ):
+        return (f"--realtime {args.realtime}: expected the camera's rate in frames per second (> 0, at least "
+                f"one frame an hour: {MIN_RATE_HZ:.3g}), such as 10")
     problem = input_problem(run, run_option, folder=True)
     if problem is None and not (run / "checkpoints" / "config.json").is_file():
         problem = (f"{run_option} {run}: not a training run (expected "
@@ -308,20 +317,34 @@ class _Line:
 
 class LiveOutputs:
     """The live outputs of one run: ``out`` (corrected poses), ``prior`` (the prior's poses, or None)
-    and ``csv`` (the per-frame rows, or None), opened together; ``stale``: the summaries of an earlier
-    run beside them, removed when they are opened (this run's are written at the end)."""
+    and ``csv`` (the per-frame rows, or None), opened together with the first frame, so that a run that
+    corrects none (no records, a bad first record, Ctrl-C before it) leaves every file as it was;
+    ``stale``: the summaries of an earlier run beside them, removed when they are opened (this run's are
+    written at the end); ``beside``: the files named after an output rather than by the user, recorded
+    as the command's own when they are opened (``dpc_jax._io.record_beside``)."""
 
     def __init__(self, out: Path, prior: Path | None, csv: Path | None,
-                 stale: tuple[Path | None, ...]) -> None:
+                 stale: tuple[Path | None, ...], beside: tuple[Path | None, ...] = ()) -> None:
         self.lines = [_Line(path) for path in (out, prior, csv) if path is not None]
         self.has_prior, self.has_csv = prior is not None, csv is not None
         self.stale = [path for path in stale if path is not None]
+        self.beside = [path for path in beside if path is not None]
+        self.opened = False
 
     def __enter__(self) -> LiveOutputs:
-        for path in self.stale:
-            if path.is_file():
-                path.unlink()
+        return self
+
+    def _open(self) -> None:
+        from dpc_jax._io import record_beside
+
+        self.opened = True
         try:
+            for path in self.stale:
+                if path.is_file():
+                    path.unlink()
+            for path in self.beside:
+                path.parent.mkdir(parents=True, exist_ok=True)
+            record_beside(self.beside)
             for line in self.lines:
                 line.open()
             if self.has_csv:
@@ -329,7 +352,6 @@ class LiveOutputs:
         except BaseException:
             self.close()
             raise
-        return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
@@ -342,6 +364,8 @@ class LiveOutputs:
         """Write one frame: its pose, its prior and its CSV row ``row(written)``, ``written`` the clock
         (``time.perf_counter``) when the poses were out; returns ``written``."""
         with whole_lines():
+            if not self.opened:
+                self._open()
             self.lines[0].write(pose_line(pose))
             if self.has_prior:
                 self.lines[1].write(pose_line(prior))
@@ -524,6 +548,10 @@ def parse_record(text: str, line: int, source: str) -> Record | None:
     where = f"{source} line {line}"
     if len(fields) not in (POSE_FIELDS + 2, POSE_FIELDS + 3):
         raise RecordError(f"{where}: {len(fields)} fields; expected {RECORD_SHAPE}")
+    if len(fields) == POSE_FIELDS + 2 and _is_number(fields[0]) and not _is_number(fields[2]):
+        # TIME LEFT RIGHT and a pose short of a number: not LEFT RIGHT and a pose whose first value is RIGHT.
+        raise RecordError(f"{where}: {len(fields)} fields, TIME LEFT RIGHT and {len(fields) - 3} numbers; "
+                          f"expected {RECORD_SHAPE}")
     time_s = None
     if len(fields) == POSE_FIELDS + 3:
         try:
@@ -589,28 +617,34 @@ def _source(args: argparse.Namespace) -> tuple[IO[bytes], str, bool]:
     return stream, name, regular
 
 
-def _checked_records(lines: list[bytes], name: str, size: tuple[int, int]) -> list[Record]:
-    """Every record of a recording, parsed and its files found; the first pair decoded for its size."""
+def _checked_records(lines: list[bytes], name: str, size: tuple[int, int],
+                     args: argparse.Namespace) -> list[Record]:
+    """Every record of a recording, parsed and its files found, its times increasing; the first pair
+    decoded for its size and its kind (:func:`_pair_problem`)."""
     records: list[Record] = []
     for number, raw in enumerate(lines, start=1):
         record = parse_record(raw.decode("utf-8", "replace"), number, name)
         if record is None:
             continue
         where = f"{name} line {number}"
+        _check_time(record, records[-1] if records else None, name)
         for side, path in (("left", record.left), ("right", record.right)):
             if not path.is_file():
                 raise RecordError(f"{where}: {side} image {path}: no such file")
             if not records:
                 _image(path, size, where, side)
+        if not records:
+            _pair_problem(record, args, where)
         records.append(record)
     if not records:
         raise RecordError(f"{name}: no records; expected one line per frame: {RECORD_SHAPE}")
     return records
 
 
-def _streamed_records(stream: IO[bytes], name: str) -> Iterator[Record]:
-    """The records of a stream, each as soon as its line is complete."""
-    number = 0
+def _streamed_records(stream: IO[bytes], name: str, args: argparse.Namespace) -> Iterator[Record]:
+    """The records of a stream, each as soon as its line is complete (times increasing; the first one's
+    images of the calibration's pair)."""
+    number, previous = 0, None
     while True:
         raw = stream.readline()
         if not raw:
@@ -618,7 +652,36 @@ def _streamed_records(stream: IO[bytes], name: str) -> Iterator[Record]:
         number += 1
         record = parse_record(raw.decode("utf-8", "replace"), number, name)
         if record is not None:
+            _check_time(record, previous, name)
+            if previous is None:
+                _pair_problem(record, args, f"{name} line {number}")
+            previous = record
             yield record
+
+
+def _check_time(record: Record, previous: Record | None, name: str) -> None:
+    """A record's TIME must come after the previous record's (a duplicated or reordered line otherwise)."""
+    if record.time_s is not None and previous is not None and previous.time_s is not None \
+            and record.time_s <= previous.time_s:
+        raise RecordError(f"{name} line {record.line}: TIME {record.time_s:g} is not after line "
+                          f"{previous.line}'s {previous.time_s:g}; expected increasing times, one record "
+                          "per frame")
+
+
+def _pair_problem(record: Record, args: argparse.Namespace, where: str) -> None:
+    """With a KITTI calibration holding both pairs (grey P_rect_00/01, colour P_rect_02/03, with other
+    baselines), the first record's left image must be of the pair chosen (``--grey`` or not)."""
+    import cv2
+
+    if not getattr(args, "both_pairs", False):
+        return
+    image = cv2.imread(str(record.left), cv2.IMREAD_UNCHANGED)
+    grey = image is not None and (image.ndim == 2 or image.shape[2] == 1)
+    if grey != bool(args.grey):
+        fix = ("give --grey (the calibration's grey pair)" if grey
+               else "leave --grey out (the calibration's colour pair)")
+        raise RecordError(f"{where}: left image {record.left} is {'grey' if grey else 'colour'}, and --calib "
+                          f"{args.calib} holds both pairs, with other baselines: {fix}")
 
 
 def _calibration(args: argparse.Namespace) -> Calibration:
@@ -628,8 +691,12 @@ def _calibration(args: argparse.Namespace) -> Calibration:
     from dpc_jax.data.kitti import read_calibration, stereo_calibration
 
     entries = read_calibration(args.calib)
-    pairs = ([("P_rect_00", "P_rect_01"), ("P0", "P1")] if args.grey
-             else [("P_rect_02", "P_rect_03"), ("P2", "P3")])
+    kinds = {True: [("P_rect_00", "P_rect_01"), ("P0", "P1")],
+             False: [("P_rect_02", "P_rect_03"), ("P2", "P3")]}
+    # A KITTI file with both pairs: the records' images say which pair they are (_pair_problem).
+    args.both_pairs = all(any(all(key in entries for key in pair) for pair in kind)
+                          for kind in kinds.values())
+    pairs = kinds[bool(args.grey)]
     keys = next((pair for pair in pairs if all(key in entries for key in pair)), None)
     if keys is None:
         wanted = " or ".join(f"{a}/{b}" for a, b in pairs)
@@ -704,7 +771,16 @@ def _check(args: argparse.Namespace) -> str | None:
     inputs = [("--checkpoint", args.checkpoint), ("--calib", args.calib), ("--records", records)]
     return (overlap_problem(inputs, [("--out", args.out), ("--csv", args.csv_path),
                                      ("--out (its .json summary)", args.json_path)])
-            or stdout_problem(inputs))
+            or stdout_problem(inputs) or beside_problem(beside_files(args.out, args.csv, args.csv_path,
+                                                                     args.json_path)))
+
+
+def beside_files(out: Path, csv: Path | None, csv_path: Path | None,
+                 *summaries: Path | None) -> list[tuple[str, Path | None]]:
+    """The live outputs named after ``out`` rather than by the user (the CSV when ``--csv`` is not given,
+    the ``.json`` summaries), as ``(label, path)`` for ``dpc_jax._io.beside_problem``."""
+    named = [(f"--out {out} (its .json summary)", path) for path in summaries]
+    return [*([(f"--out {out} (its CSV; --csv names another)", csv_path)] if csv is None else []), *named]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -731,11 +807,11 @@ def run(args: argparse.Namespace) -> int:
         records: Iterator[Record]
         if regular:  # a recording: checked whole before JAX starts
             try:
-                records = iter(_checked_records(stream.readlines(), name, size))
+                records = iter(_checked_records(stream.readlines(), name, size, args))
             except RecordError as content:
                 return error(str(content), 1)
         else:
-            records = _streamed_records(stream, name)
+            records = _streamed_records(stream, name, args)
         import_jax()
         from dpc_jax.training.checkpoints import CheckpointError
 
@@ -746,7 +822,9 @@ def run(args: argparse.Namespace) -> int:
             return error(restore_problem(failed.folder, failed.__cause__ or failed), 1)
         summary = LiveSummary(args.realtime, time.perf_counter() - began)
         report = report_stream(args.out, args.csv_path)
-        outputs = LiveOutputs(args.out, None, args.csv_path, (args.json_path,))
+        outputs = LiveOutputs(args.out, None, args.csv_path, (args.json_path,),
+                              tuple(path for _, path in beside_files(args.out, args.csv, args.csv_path,
+                                                                     args.json_path)))
 
         def arrivals() -> Iterator[Arrived]:
             for k, record in enumerate(records):

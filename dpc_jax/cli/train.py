@@ -65,6 +65,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--process-id", type=int, help="multi-host: this process's index")
 
 
+def _labelled(config: Path, problem: str | None) -> str | None:
+    return None if problem is None else f"--config {config}: {problem}"
+
+
 def run(args: argparse.Namespace) -> int:
     from dpc_jax import config as config_lib
     from dpc_jax.config import ConfigError
@@ -92,7 +96,8 @@ def run(args: argparse.Namespace) -> int:
         return 2
     problem = (overlap_problem([("--config's cache_root", config.cache_root or None)],
                                [("--workdir", args.workdir)])
-               or _options_problem(args, config) or _cache_problem(config, args.config, args.verify))
+               or _options_problem(args, config) or _labelled(args.config, config.pose_training_problem())
+               or _cache_problem(config, args.config, args.verify))
     if problem is not None:
         print(f"dpc-jax train: error: {problem}", file=sys.stderr)
         return 2

@@ -145,7 +145,8 @@ def prior_path(out: Path) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    from dpc_jax._io import is_stdout, is_stream, overlap_problem
+    from dpc_jax._io import beside_problem, is_stdout, is_stream, overlap_problem
+    from dpc_jax.cli.live import beside_files
 
     # Nothing is made beside a stream (/dev/stdout, /dev/null, a FIFO): only what was asked is
     # written, the trajectory and a --csv given, never /dev/stdout.csv.
@@ -170,12 +171,18 @@ def run(args: argparse.Namespace) -> int:
         problem = _same_file_problem(args.out, csv_path, json_path) or overlap_problem(
             inputs, [("--out", args.out), ("--csv", csv_path), ("--out (its .json summary)", json_path),
                      ("--prior-out", prior_out), ("--prior-out (its .json record)", prior_json)])
+    # The files named after --out (or --prior-out), not by the user: only a command's own are replaced.
+    beside = [*beside_files(args.out, args.csv, csv_path, json_path),
+              *([(f"--out {args.out} (the prior's default path; --prior-out names another)", prior_out)]
+                if args.prior_out is None else []),
+              (f"--prior-out {prior_out} (its .json record)", prior_json)]
+    problem = problem or beside_problem(beside)
     if problem is not None:
         print(f"dpc-jax vo: error: {problem}", file=sys.stderr)
         return 2
     import numpy as np
 
-    from dpc_jax._io import OutputSet, atomic_write
+    from dpc_jax._io import OutputSet, atomic_write, record_beside
     from dpc_jax.data.poses_io import write_kitti_poses
     from dpc_jax.data.priors import FRAMES_KEY
     from dpc_jax.vo import VOConfig, run_vo
@@ -207,7 +214,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"dpc-jax vo: error: {problem}", file=sys.stderr)
             return 2
         return _correct_live(args, sequence, config, (first, stop), csv_path, json_path, prior_out,
-                             prior_json)
+                             prior_json, tuple(path for _, path in beside))
     first_pose = sequence.poses[0] if args.start == "gt" else None
     try:
         result = run_vo(sequence, config, first_pose=first_pose, progress=progress_mode(args.no_progress))
@@ -223,6 +230,7 @@ def run(args: argparse.Namespace) -> int:
         if json_path is not None:
             record = {"sequence": sequence.name, FRAMES_KEY: [first, stop], **counts}
             atomic_write(outputs.file(json_path), json.dumps(record, indent=2) + "\n")
+        record_beside((path for _, path in beside), outputs)
         outputs.commit()
 
     # With the trajectory (or the CSV) on standard output, the summary goes to stderr, so that what
@@ -258,11 +266,12 @@ def run(args: argparse.Namespace) -> int:
 
 def _correct_live(
     args: argparse.Namespace, sequence: Any, config: Any, frames: tuple[int, int], csv_path: Path | None,
-    json_path: Path | None, prior_out: Path | None, prior_json: Path | None,
+    json_path: Path | None, prior_out: Path | None, prior_json: Path | None, beside: tuple[Path | None, ...],
 ) -> int:
     """``--correct``: the VO and the run's correction frame by frame, each pose written as it is made
     (``dpc_jax.cli.live``); then, as without it, the VO's summary, the evaluation against ground truth
     and the ``.json`` records. ``frames``: the source frames ``(START, STOP)`` of ``sequence``."""
+    import dataclasses
     from concurrent.futures import ThreadPoolExecutor
 
     import numpy as np
@@ -337,14 +346,17 @@ def _correct_live(
                                ("status", int(estimate.status)), ("offset", vo.disparity_offset),
                                ("times", vo_s + (0.0 if kept["times"] else first_s[0]))):
                 kept[key].append(value)
-        frame = live(images[0], images[1], pose)
-        kept["prior"].append(frame.prior)
+        # The prior written is the VO's own chain of poses, as `dpc-jax vo` composes it: the corrector's
+        # prior, recomposed from its first pose, differs from it in the last digits (1e-13).
+        frame = dataclasses.replace(live(images[0], images[1], pose), prior=pose)
+        kept["prior"].append(pose)
         kept["corrected"].append(frame.pose)
         return Corrected(frame, columns, vo_s)
 
     report = report_stream(args.out, csv_path, prior_out)
     try:
-        with decoder, LiveOutputs(args.out, prior_out, csv_path, (json_path, prior_json)) as outputs:
+        with decoder, LiveOutputs(args.out, prior_out, csv_path, (json_path, prior_json),
+                                  beside) as outputs:
             correct_frames(arrivals(), step, outputs, live_summary)
     except KeyboardInterrupt:
         print(f"dpc-jax vo: interrupted after {live_summary.frames} frames; their poses in {args.out} are "

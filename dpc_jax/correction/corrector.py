@@ -48,7 +48,7 @@ from dpc_jax.correction.decision import (
 )
 from dpc_jax.correction.inference import TrainedRun, run_prediction
 from dpc_jax.correction.measure import judge_measurement, measurement, remembered
-from dpc_jax.data.poses_io import WRITE_FORMATS, write_kitti_poses, write_tum
+from dpc_jax.data.poses_io import WRITE_FORMATS, frames_path, write_kitti_poses, write_tum
 from dpc_jax.data.priors import prior_for_cache
 from dpc_jax.data.sequence_cache import SequenceCache, load_cache
 from dpc_jax.results.acceptance import Acceptance
@@ -273,12 +273,6 @@ def decided_again(
         adapted = dataclasses.replace(adapted, adaptation=done.adaptation.summary())
     final, result = choose(trained, adapted)
     return CorrectedSequence(trained, adapted, done.adaptation, final, result)
-
-
-def frames_path(path: str | os.PathLike) -> Path:
-    """Where :func:`write_trajectory` lists frame numbers: ``corrected.txt`` → ``corrected.frames.txt``."""
-    path = Path(path)
-    return path.with_name(f"{path.stem}.frames.txt")
 
 
 def write_trajectory(path: str | os.PathLike, correction: Correction, format: str = "kitti") -> list[Path]:

@@ -36,7 +36,7 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -52,6 +52,7 @@ from dpc_jax.correction.decision import (
     rotation_component,
 )
 from dpc_jax.correction.inference import TrainedRun, load_run
+from dpc_jax.correction.judge import judge_rule
 from dpc_jax.data.preparation import as_rgb, prepared_pair, resized_intrinsics
 from dpc_jax.data.sequence_cache import (
     SequenceCache,
@@ -61,6 +62,14 @@ from dpc_jax.data.sequence_cache import (
     stereo_depth_views,
 )
 from dpc_jax.geometry.poses import validate_poses
+
+
+def _rigid(pose: Any, source: str) -> np.ndarray:
+    """``pose`` (``[4, 4]``, or ``[3, 4]``: a KITTI row) as ``[4, 4]`` float64, checked rigid (its values
+    as given); ``ValueError`` naming ``source`` otherwise. The same rule for every pose, from frame 0."""
+    pose = np.asarray(pose, np.float64)
+    validate_poses(pose[None], source)
+    return np.vstack([pose, [0.0, 0.0, 0.0, 1.0]]) if pose.shape == (3, 4) else pose
 
 
 @dataclass(frozen=True)
@@ -133,7 +142,11 @@ class LiveCorrector:
     are rectified by (``dpc_jax.data.cache.prepare_sequence``); ``vo``: the configuration of our VO
     when no prior is given (``dpc_jax.vo.VOConfig``); ``judge_size``: ``(H, W)`` px, the size the part to
     apply is judged at as well (module docstring; a Stereo DPC run, no smaller than the run's images
-    and no larger than the camera's), or None: no judge.
+    and no larger than the camera's), None: no judge, or ``"rule"`` (the default): the judge
+    ``dpc-jax live`` and ``correct`` use by default (``dpc_jax.correction.judge.judge_rule``: a Stereo
+    DPC run smaller than 240×376 is judged at 240×376, no larger than the camera's images), so that the
+    API and the command line decide alike. Poses (``first_pose``, each prior) are ``[4, 4]`` or
+    ``[3, 4]`` (a KITTI row), rigid; a returned pose is ``[4, 4]``.
     """
 
     def __init__(
@@ -149,7 +162,7 @@ class LiveCorrector:
         first_pose: np.ndarray | None = None,
         disparity_offset: float = 0.0,
         vo: Any = None,
-        judge_size: tuple[int, int] | None = None,
+        judge_size: tuple[int, int] | Literal["rule"] | None = "rule",
     ) -> None:
         from dpc_jax.engine.predict import PreparedModel
 
@@ -160,12 +173,18 @@ class LiveCorrector:
         self.mean_test, self.force = bool(mean_test), bool(force)
         self.depth = default_acceptance_depth(self.run)
         self.size = self.run.image_size
+        (h, w), (ch, cw) = self.size, calibration.image_size
+        if h > ch or w > cw:
+            raise ValueError(f"calibration: the network takes {h}x{w} images, larger than the camera's "
+                             f"{ch}x{cw}; a frame is not upsampled: use a run trained at {ch}x{cw} or less")
         self.K = resized_intrinsics(calibration.K, calibration.image_size, self.size)
         self.disparity_offset = float(disparity_offset)
-        self.first_pose = None if first_pose is None else np.asarray(first_pose, np.float64)
+        self.first_pose = None if first_pose is None else _rigid(first_pose, "first_pose")
         self.alpha = float(alpha)
         self.tests = {name: SequentialTest(name, alpha) for name in self._test_names()}
         self._judge_K = self.K
+        if judge_size == "rule":
+            judge_size = judge_rule(self.run.config.method, self.size, calibration.image_size)
         self.judge_size = None if judge_size is None or self.force else self._checked_judge(judge_size)
         # One test per part judged, made when the part is first to be applied.
         self.judge_tests: dict[str, SequentialTest] = {}
@@ -436,9 +455,7 @@ class LiveCorrector:
         """The prior's pose of this frame: given (checked rigid), or our VO's from the previous one."""
         index = self._pairs + (self._previous is not None)
         if prior is not None:
-            pose = np.asarray(prior, np.float64)
-            validate_poses(pose[None], f"prior pose of frame {index}")
-            return pose
+            return _rigid(prior, f"prior pose of frame {index}")
         import cv2
 
         from dpc_jax.vo import StereoVO

@@ -417,3 +417,10 @@ def write_tum(
     q = _rotation_to_quaternion(validate_poses(arr, source="poses to write")[:, :3, :3])
     rows = np.concatenate([stamps[:, None], arr[:, :3, 3], q], axis=1)
     atomic_write(path, "".join(" ".join(f"{v:.17g}" for v in row) + "\n" for row in rows))
+
+
+def frames_path(path: str | os.PathLike[str]) -> Path:
+    """Where ``dpc_jax.correction.corrector.write_trajectory`` lists a trajectory's source frame numbers:
+    ``corrected.txt`` → ``corrected.frames.txt``."""
+    path = Path(path)
+    return path.with_name(f"{path.stem}.frames.txt")

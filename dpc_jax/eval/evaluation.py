@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
@@ -130,6 +131,13 @@ class Evaluation(Mapping[str, object]):
         """The summary as JSON text (strict: no NaN literals)."""
         return json.dumps(self._summary, indent=2, allow_nan=False) + "\n"
 
+    def __repr__(self) -> str:
+        """One line: the poses, the estimates and their main figures (the arrays are in the attributes;
+        printed whole they run to tens of kilobytes)."""
+        figures = ", ".join(f"{label}: m-ATE {m['m_ate_trans_m']:.4g} m, segments {m['seg_trans_pct']:.4g} %"
+                            for label, m in self.estimates.items())
+        return f"Evaluation({self.gt.shape[0]} poses, align={self.align!r}; {figures})"
+
 
 @dataclass(frozen=True)
 class Association:
@@ -219,7 +227,8 @@ def evaluate(
     focal_px: float | None = None,
     precision: str = "float64",
 ) -> Evaluation:
-    """Evaluate estimates ``{label: [N, 4, 4]}`` (or one array, labelled ``est``) against ``gt``.
+    """Evaluate estimates ``{label: [N, 4, 4]}`` (or one array, labelled ``est``) against ``gt``
+    (poses ``[N, 4, 4]``, or ``[N, 3, 4]`` KITTI rows, on either side).
 
     ``align`` (``none | se3 | sim3``) applies to ATE only; ``rpe_delta`` is the RPE frame offset;
     ``remove_static`` and ``static_prior`` are described in the module docstring. ``diagnose`` adds
@@ -252,17 +261,24 @@ def _checked_arguments(
                          "error composition); pass diagnose=True or leave focal_px out")
     if not isinstance(estimates, Mapping):
         estimates = {"est": estimates}
-    validate_poses(gt, "gt")
-    for label, est in estimates.items():
-        validate_poses(est, f"estimates[{label!r}]")
-    # validate_poses takes [N, 3, 4] too (KITTI rows); evaluate needs the same [N, 4, 4] on both sides.
-    for name, poses in (("gt", gt), *((f"estimates[{label!r}]", est) for label, est in estimates.items())):
-        shape = np.shape(poses)
-        if shape[1:] != (4, 4):
-            raise ValueError(f"{name}: poses of shape {shape}; expected [N, 4, 4] (homogeneous poses, the "
-                             "bottom row [0, 0, 0, 1] included)")
-    arrays = {label: np.asarray(est, np.float64) for label, est in estimates.items()}
-    return np.asarray(gt, np.float64), arrays
+    # The rule of every pose argument (validate_poses): [N, 4, 4], or [N, 3, 4] KITTI rows, made
+    # homogeneous here, so that both sides are [N, 4, 4].
+    named = {"gt": gt, **{f"estimates[{label!r}]": est for label, est in estimates.items()}}
+    arrays = {}
+    for name, poses in named.items():
+        if isinstance(poses, (str, os.PathLike)):
+            raise ValueError(f"{name}: the path {os.fspath(poses)!r}; expected an array of poses [N, 4, 4] "
+                             "or [N, 3, 4] (read a file with dpc_jax.data.poses_io.read_trajectory)")
+        try:
+            array = np.asarray(poses, np.float64)
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"{name}: not an array of numbers ({error}); expected poses [N, 4, 4] or "
+                             "[N, 3, 4]") from None
+        validate_poses(array, name)
+        if array.shape[1:] == (3, 4):
+            array = np.concatenate([array, np.broadcast_to([[[0.0, 0.0, 0.0, 1.0]]], (len(array), 1, 4))], 1)
+        arrays[name] = array
+    return arrays.pop("gt"), {label: arrays[f"estimates[{label!r}]"] for label in estimates}
 
 
 def segment_summary(gt: np.ndarray, est: np.ndarray, precision: str = "float64") -> tuple[float, float]:

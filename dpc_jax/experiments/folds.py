@@ -82,7 +82,8 @@ class Plan:
 @dataclass(frozen=True)
 class Context:
     """What a plan starts from: the parsed options, the training config and protocol of ``--config``, the
-    training overrides (``--smoke``, ``--set``), the epoch selection and the progress flag."""
+    training overrides (``--smoke``, ``--set``), the epoch selection, the progress flag and the script's
+    name (which claims the work folder)."""
 
     args: argparse.Namespace
     base: Any
@@ -90,6 +91,7 @@ class Context:
     overrides: dict[str, Any]
     select: str
     progress: Progress
+    script: str
 
     @property
     def workdir(self) -> Path:
@@ -102,7 +104,8 @@ class Context:
     def claim(self, inputs: Sequence[Named]) -> None:
         """Claim the work folder and the results page against the inputs (and the config) once they are
         checked, before any work."""
-        claim(self.workdir, [*inputs, ("--config", self.args.config)], page=self.args.results_page)
+        claim(self.workdir, [*inputs, ("--config", self.args.config)], script=self.script,
+              page=self.args.results_page)
 
 
 def add_protocol_arguments(parser: argparse.ArgumentParser, config: Path) -> None:
@@ -135,11 +138,11 @@ def run_protocol(script: str | Path, parser: argparse.ArgumentParser, plan: Call
     logging.getLogger("absl").setLevel(logging.ERROR)
     try:
         base, protocol = load_protocol(args.config)
-        claim(None, page=args.results_page)
+        claim(None, script=name, page=args.results_page)
         # --smoke's settings, then the --set overrides on top.
         overrides = {**(SMOKE if args.smoke else {}), **parse_overrides(args.set)}
         context = Context(args, base, protocol, overrides, args.select or protocol.select,
-                          progress_flag(args.no_progress))
+                          progress_flag(args.no_progress), name)
         planned = plan(context)
         results = []
         for run in planned.runs:

@@ -7,7 +7,7 @@ import argparse
 import os
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from dpc_jax.pipelines.protocol import Named, claim_workdir, path_argument
@@ -42,13 +42,23 @@ def progress_flag(no_progress: bool) -> Progress:
     return progress_mode(no_progress)
 
 
-def claim(workdir: str | os.PathLike[str] | None, inputs: Sequence[Named] = (), *, page: Path | None = None,
-          option: str = "--workdir", files: Sequence[Named] = ()) -> Path | None:
+# The scripts documented to share a work folder (each one's docstring says so): one of a group may write
+# into a work folder another of it made. Any other script's work folder is refused (``claim``).
+SHARED_WORKDIRS = (frozenset({"kitti_raw_excerpt", "excerpt_ground_truth"}),)
+
+
+def claim(workdir: str | os.PathLike[str] | None, inputs: Sequence[Named] = (), *,
+          script: str | os.PathLike[str], page: Path | None = None, option: str = "--workdir",
+          files: Sequence[Named] = ()) -> Path | None:
     """Check the results page (it must have a results block) and claim the work folder and file outputs
-    (``dpc_jax.pipelines.protocol.claim_workdir``, the page among them): before any work. Raises
-    ``OSError`` or ``ValueError`` with one line."""
+    for ``script`` (its path or name; ``dpc_jax.pipelines.protocol.claim_workdir``, the page among them):
+    before any work. A work folder another script made is refused unless the two share it
+    (:data:`SHARED_WORKDIRS`). Raises ``OSError`` or ``ValueError`` with one line."""
     check_results_page(page)
-    return claim_workdir(workdir, inputs, option=option, files=[*files, ("--results-page", page)])
+    owner = Path(script).stem
+    shares = sorted({name for group in SHARED_WORKDIRS if owner in group for name in group} - {owner})
+    return claim_workdir(workdir, inputs, option=option, files=[*files, ("--results-page", page)],
+                         owner=owner, shares=shares)
 
 
 def refuse(script: str, error: BaseException | str, status: int = 2) -> int:
@@ -56,6 +66,17 @@ def refuse(script: str, error: BaseException | str, status: int = 2) -> int:
     failed)."""
     print(f"{script}: error: {error}", file=sys.stderr)
     return status
+
+
+def interruptible(main: Callable[[], int], script: str | os.PathLike[str]) -> int:
+    """``main()``'s exit status, Ctrl-C as the commands end on it: one line on stderr and 130, not a
+    traceback (what the script finished is kept: its runs and caches resume when it is run again)."""
+    try:
+        return main()
+    except KeyboardInterrupt:
+        print(f"{Path(script).name}: interrupted; what it finished is kept, and the same command resumes",
+              file=sys.stderr)
+        return 130
 
 
 def publish(text: str, page: Path | None, script: str | os.PathLike[str]) -> None:

@@ -35,7 +35,8 @@ import numpy as np
 
 from dpc_jax._io import (
     EMPTY_PATH,
-    atomic_write,
+    claim_folder,
+    claim_problem,
     foreign_folder_problem,
     nonempty_path,
     output_problem,
@@ -58,9 +59,11 @@ ODOMETRY_DRIVES = {
 }
 
 # --smoke: one epoch of two steps of a two-block network on tiny images, to check an experiment runs end
-# to end (every part of the method runs; the network's depth only changes how long it compiles). Lists,
-# as a config read back from its JSON has them, so that a run's stored config equals the one it was given.
+# to end (every part of the method runs; the network's depth only changes how long it compiles), the pose
+# head trained from the first step (a warm-up as long as the run would leave it untrained). Lists, as a
+# config read back from its JSON has them, so that a run's stored config equals the one it was given.
 SMOKE = {"preset": "small", "image_size": (32, 48), "batch_size": 2, "epochs": 1, "steps_per_epoch": 2,
+         "pose_warmup_epochs": 0,
          "model": {"encoder_planes": [4, 8], "encoder_kernels": [3, 3], "decoder_planes": [8, 4],
                    "mask_source_block": 1, "depth_scales": 1, "fc_planes": [8, 8]}}
 
@@ -360,7 +363,7 @@ def path_argument(text: str) -> Path:
 
 def claim_workdir(
     workdir: str | os.PathLike[str] | None, inputs: Sequence[Named] = (), *, option: str = "--workdir",
-    files: Sequence[Named] = (),
+    files: Sequence[Named] = (), owner: str | None = None, shares: Sequence[str] = (),
 ) -> Path | None:
     """Check an experiment script's outputs by the commands' rule (``dpc_jax._io``), then make its work
     folder and mark it as one: call it once the inputs are checked, before any work.
@@ -372,8 +375,10 @@ def claim_workdir(
     an empty path, an output that cannot be written, an output that is, contains or lies inside an input
     or another output (after links, ``..`` and hard links), and a work folder that holds files but was not
     made by an experiment script (no :data:`WORKDIR_MARKER` in it; a work folder of an earlier version is
-    taken by creating that empty file). Then creates the work folder with its marker, so that a rerun,
-    or another script sharing the folder, is allowed. Returns ``workdir`` as a ``Path`` (None without one).
+    taken by creating that empty file), and a work folder whose marker names other scripts than ``owner``
+    (the script claiming it) and the scripts it ``shares`` a folder with (``dpc_jax._io.claim_problem``).
+    Then creates the work folder with its marker, ``owner`` named in it, so that a rerun, or another
+    script sharing the folder, is allowed. Returns ``workdir`` as a ``Path`` (None without one).
     """
     outputs = [(option, workdir), *files]
     for name, path in outputs:
@@ -387,16 +392,30 @@ def claim_workdir(
                                          made_by="the work folder of an experiment script")
         if problem is not None:
             problem += f" (a work folder of an earlier version: create the empty file {WORKDIR_MARKER} in it)"
+        elif owner is not None:
+            problem = claim_problem(workdir, f"{option} {workdir}", marker=WORKDIR_MARKER, owner=owner,
+                                    shares=shares)
     if problem is not None:
         raise ValueError(problem)
     if workdir is None:
         return None
-    folder = Path(workdir)
-    folder.mkdir(parents=True, exist_ok=True)
-    if not (folder / WORKDIR_MARKER).is_file():
-        atomic_write(folder / WORKDIR_MARKER, "a work folder of dpc_jax's experiment scripts (experiments/); "
-                     "they write into it and resume from it\n")
-    return folder
+    claim_folder(workdir, marker=WORKDIR_MARKER, owner=owner,
+                 about="a work folder of dpc_jax's experiment scripts (experiments/), those below; they "
+                 "write into it and resume from it")
+    return Path(workdir)
+
+
+def priors_argument(text: str) -> str:
+    """argparse type of the protocols' ``--priors DIR|vo``: ``vo`` (our stereo VO) or a folder, never both
+    at once: with a folder ``vo`` in the current folder (the README's chain makes one) the word is
+    ambiguous, and taking either meaning silently would run the experiment on priors the user did not
+    mean."""
+    path = path_argument(text)
+    if text == "vo" and path.exists():
+        raise argparse.ArgumentTypeError(
+            "'vo' means our stereo VO, and there is a folder ./vo here: give ./vo for the folder of priors, "
+            "or run from another folder for our VO")
+    return text
 
 
 def prior_source(priors: str, directory_kind: str, sequence: Any, workdir: Path, progress: Progress) -> Path:

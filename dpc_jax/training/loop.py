@@ -32,6 +32,7 @@ import math
 import os
 import sys
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -42,6 +43,7 @@ from flax import nnx
 from jax.sharding import Mesh
 
 from dpc_jax import config as config_lib
+from dpc_jax._io import InputWarning
 from dpc_jax.config import ConfigError
 from dpc_jax.engine import parallel
 from dpc_jax.engine.driver import drive, step_key
@@ -291,9 +293,14 @@ def train(
     arguments of ``jax.distributed.initialize`` when ``config.distributed``.
 
     Errors before any compute: ``ConfigError`` for a bad split, missing cache, wrong image size,
-    or a workdir holding another run. ``NonFiniteLossError`` when a loss becomes NaN/inf.
+    or a workdir holding another run. ``NonFiniteLossError`` when a loss becomes NaN/inf. A config
+    whose pose warm-up lasts every epoch (``TrainConfig.pose_training_problem``) trains a network that
+    corrects nothing: an ``InputWarning`` says so, with the epochs it needs.
     """
     workdir = Path(workdir).absolute()
+    problem = config.pose_training_problem()
+    if problem is not None:
+        warnings.warn(InputWarning(problem), stacklevel=2)
     has_run, data, mesh = _open_run(config, workdir, resume, distributed, workers)
     progress = sys.stderr.isatty() if progress is None else progress
     run, state, meta = _start_run(config, workdir, data, mesh, has_run, progress)

@@ -283,6 +283,17 @@ class TrainConfig:
         """Whether the network reads optical flow (the method's default unless ``model`` says)."""
         return uses_flow(self.method, self.model_config())
 
+    def pose_training_problem(self) -> str | None:
+        """Why this config's training can never move the pose head, or None: the pose warm-up
+        (``pose_warmup_epochs``) lasting every epoch, so the loss sees ξ_corr = 0 throughout and the
+        trained network corrects nothing (with ``pose_init="zero"`` its correction is exactly 0).
+        ``dpc-jax train`` refuses such a config; ``dpc_jax.training.loop.train`` warns."""
+        if self.supervision == "supervised" or self.epochs > self.pose_warmup_epochs:
+            return None
+        return (f"epochs {self.epochs} <= pose_warmup_epochs {self.pose_warmup_epochs}: the loss sees "
+                "ξ_corr = 0 in every epoch, so the pose layer is never trained and the network corrects "
+                f"nothing; give epochs >= {self.pose_warmup_epochs + 1} (or a shorter pose_warmup_epochs)")
+
     def warmup_steps(self, steps_per_epoch: int) -> int:
         """Optimizer steps during which the loss sees ξ_corr = 0: none with the supervised loss,
         which sees nothing but ξ_corr (held at 0 it would give every weight a zero gradient)."""

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from dpc_jax.experiments import drives
 from dpc_jax.experiments.folds import run_protocol
+from dpc_jax.experiments.script import interruptible
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
 CONFIG = Path(__file__).resolve().parent / "configs" / "kitti_raw_drives.py"
@@ -28,4 +29,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":
     reexec_with_huge_pages()
-    sys.exit(main())
+    sys.exit(interruptible(main, __file__))

@@ -1,4 +1,4 @@
-"""ss-DPC-Net on KITTI odometry, libviso2 priors (Wagstaff et al.); see configs/kitti_ss_dpc.py.
+r"""ss-DPC-Net on KITTI odometry, libviso2 priors (Wagstaff et al.); see configs/kitti_ss_dpc.py.
 
     python experiments/protocols/kitti_ss_dpc.py --kitti-odometry ROOT --priors DIR --fold NAME|all \
         --workdir DIR
@@ -13,7 +13,7 @@ from pathlib import Path
 
 from dpc_jax.data.splits import training_names
 from dpc_jax.experiments.folds import Context, FoldRun, Plan, Test, add_protocol_arguments, run_protocol
-from dpc_jax.experiments.script import new_parser
+from dpc_jax.experiments.script import interruptible, new_parser
 from dpc_jax.pipelines import protocol as P
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
@@ -24,7 +24,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = new_parser(__doc__)
     parser.add_argument("--kitti-odometry", required=True, type=P.path_argument, metavar="ROOT",
                         help="odometry root (sequences/XX/, poses/XX.txt)")
-    parser.add_argument("--priors", required=True, metavar="DIR|vo",
+    parser.add_argument("--priors", required=True, type=P.priors_argument, metavar="DIR|vo",
                         help="folder with stereo_XX.mat and mono_XX.mat (libviso2 release); 'vo' = our "
                         "stereo VO for the stereo folds")
     parser.add_argument("--fold", default="all", metavar="NAME|all",
@@ -90,4 +90,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":
     reexec_with_huge_pages()
-    sys.exit(main())
+    sys.exit(interruptible(main, __file__))

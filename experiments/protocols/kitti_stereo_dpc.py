@@ -1,4 +1,4 @@
-"""Stereo DPC on KITTI odometry, leave-one-out (Zhang et al.); see configs/kitti_stereo_dpc.py.
+r"""Stereo DPC on KITTI odometry, leave-one-out (Zhang et al.); see configs/kitti_stereo_dpc.py.
 
     python experiments/protocols/kitti_stereo_dpc.py --kitti-odometry ROOT --priors DIR|vo --test XX|all \
         --workdir DIR
@@ -13,7 +13,7 @@ from pathlib import Path
 
 from dpc_jax.data.splits import training_names
 from dpc_jax.experiments.folds import Context, FoldRun, Plan, Test, add_protocol_arguments, run_protocol
-from dpc_jax.experiments.script import new_parser
+from dpc_jax.experiments.script import interruptible, new_parser
 from dpc_jax.pipelines import protocol as P
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
@@ -24,7 +24,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = new_parser(__doc__)
     parser.add_argument("--kitti-odometry", required=True, type=P.path_argument, metavar="ROOT",
                         help="odometry root (sequences/XX/, poses/XX.txt)")
-    parser.add_argument("--priors", required=True, metavar="DIR|vo",
+    parser.add_argument("--priors", required=True, type=P.priors_argument, metavar="DIR|vo",
                         help="folder of priors (stereo_XX.mat, XX.mat or XX.txt) or 'vo' for our stereo VO")
     parser.add_argument("--test", default="all", metavar="XX|all", help="the fold's test sequence, or all")
     parser.add_argument("--sequences", nargs="+", metavar="XX",
@@ -86,4 +86,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":
     reexec_with_huge_pages()
-    sys.exit(main())
+    sys.exit(interruptible(main, __file__))

@@ -24,6 +24,7 @@ from typing import Any
 
 from dpc_jax.experiments import script as kit
 from dpc_jax.experiments.demos import share
+from dpc_jax.experiments.script import interruptible
 from dpc_jax.pipelines.protocol import path_argument
 from dpc_jax.report.tables import number, records_csv, table
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
@@ -92,7 +93,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     kit.add_results_page(parser)
     args = parser.parse_args(argv)
     try:
-        kit.claim(args.workdir, page=args.results_page)
+        kit.claim(args.workdir, script=__file__, page=args.results_page)
     except (OSError, ValueError) as error:
         return kit.refuse("ablation", error)
 
@@ -140,4 +141,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":
     reexec_with_huge_pages()
-    sys.exit(main())
+    sys.exit(interruptible(main, __file__))

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from dpc_jax.experiments import script as kit
+from dpc_jax.experiments.script import interruptible
 from dpc_jax.pipelines.protocol import path_argument
 from dpc_jax.report.tables import change_pct, table
 from dpc_jax.results.demo import SUMMARY
@@ -112,7 +113,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if missing:
             raise ValueError(f"{missing[0]}: not a finished `dpc-jax demo --out` folder (no {SUMMARY})")
         kit.claim(args.out, [("DEMO_OUT", folder) for folder in args.folders], option="--out",
-                  page=args.results_page)
+                  page=args.results_page, script=__file__)
     except (OSError, ValueError) as error:
         return kit.refuse("acceptance_depth", error)
     from dpc_jax._io import atomic_write
@@ -127,4 +128,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":
     reexec_with_huge_pages()
-    sys.exit(main())
+    sys.exit(interruptible(main, __file__))

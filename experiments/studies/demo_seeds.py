@@ -22,6 +22,7 @@ from typing import Any
 
 from dpc_jax.experiments import script as kit
 from dpc_jax.experiments.demos import demo_config
+from dpc_jax.experiments.script import interruptible
 from dpc_jax.pipelines.protocol import parse_overrides, path_argument
 from dpc_jax.report.tables import EMPTY, change_pct, records_csv, table
 from dpc_jax.results.demo import DemoSummary
@@ -128,7 +129,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         overrides = parse_overrides(args.set)
         configs = {seed: demo_config(args.config, seed, overrides) for seed in args.seeds}
-        kit.claim(args.workdir, [("--config", args.config)], page=args.results_page)
+        kit.claim(args.workdir, [("--config", args.config)], script=__file__, page=args.results_page)
     except (OSError, ValueError) as error:  # a ConfigError is a ValueError
         return kit.refuse("demo_seeds", error)
 
@@ -158,4 +159,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":
     reexec_with_huge_pages()
-    sys.exit(main())
+    sys.exit(interruptible(main, __file__))

@@ -28,7 +28,16 @@ from pathlib import Path
 from dpc_jax._io import atomic_write
 from dpc_jax.experiments import detection as D
 from dpc_jax.experiments.records import Records
-from dpc_jax.experiments.script import DATA, Clock, add_results_page, claim, new_parser, publish, refuse
+from dpc_jax.experiments.script import (
+    DATA,
+    Clock,
+    add_results_page,
+    claim,
+    interruptible,
+    new_parser,
+    publish,
+    refuse,
+)
 from dpc_jax.experiments.stamp import stamp
 from dpc_jax.pipelines.protocol import path_argument
 from dpc_jax.report.tables import csv_text
@@ -91,7 +100,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ValueError(f"--workdir {args.workdir}: holds the cells of world {recorded[0]}, not of "
                              f"--world-seed {args.world_seed}; each world needs a work folder of its own")
         inputs = [("--libviso2", args.libviso2), *(("--include", other) for other in args.include)]
-        workdir = claim(args.workdir, inputs, page=args.results_page)
+        workdir = claim(args.workdir, inputs, script=__file__, page=args.results_page)
         assert workdir is not None
         reference_path = workdir / "reference.json"
         if not reference_path.is_file():
@@ -142,4 +151,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":
     reexec_with_huge_pages()
-    sys.exit(main())
+    sys.exit(interruptible(main, __file__))

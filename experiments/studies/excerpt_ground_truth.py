@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from dpc_jax.experiments import script as kit
+from dpc_jax.experiments.script import interruptible
 from dpc_jax.experiments.steps import exchange, photometric_errors, step_geometry, with_travel
 from dpc_jax.pipelines.protocol import path_argument
 
@@ -81,7 +82,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         sequence = open_raw(args.kitti_raw, DATE, DRIVE, poses=args.kitti_raw / LIBVISO2)
         gt, libviso2 = read_mat(args.kitti_raw / LIBVISO2)
-        kit.claim(args.workdir, [("--kitti-raw", args.kitti_raw)], page=args.results_page)
+        kit.claim(args.workdir, [("--kitti-raw", args.kitti_raw)], script=__file__, page=args.results_page)
         record = vo_prior(sequence, args.workdir / "priors" / "vo.txt", progress)
         vo = read_trajectory(record["path"])
     except (OSError, ValueError, KeyError) as error:
@@ -151,4 +152,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(interruptible(main, __file__))

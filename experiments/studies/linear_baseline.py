@@ -38,6 +38,7 @@ import numpy as np
 from dpc_jax._io import atomic_write
 from dpc_jax.experiments import script as kit
 from dpc_jax.experiments.baselines import linear_baselines
+from dpc_jax.experiments.script import interruptible
 from dpc_jax.pipelines.protocol import path_argument
 from dpc_jax.report.pages import write_results
 from dpc_jax.report.tables import number, table
@@ -151,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         # No work folder: the figures go to --json and the results page only.
         kit.claim(None, [("--data", args.data), ("--demo", args.demo)], page=args.results_page,
-                  files=[("--json", args.json)])
+                  files=[("--json", args.json)], script=__file__)
     except (OSError, ValueError) as error:
         return kit.refuse("linear_baseline", error)
     import jax
@@ -195,4 +196,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(interruptible(main, __file__))

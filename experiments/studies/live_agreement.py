@@ -28,8 +28,17 @@ from typing import Any
 
 import numpy as np
 
-from dpc_jax.experiments.script import Clock, add_results_page, claim, new_parser, publish, refuse
+from dpc_jax.experiments.script import (
+    Clock,
+    add_results_page,
+    claim,
+    interruptible,
+    new_parser,
+    publish,
+    refuse,
+)
 from dpc_jax.pipelines.protocol import path_argument
+from dpc_jax.results.demo import SUMMARY
 
 HERE = Path(__file__).resolve().parent
 DEFAULT_ROOT = HERE.parents[2] / "shared" / "data" / "kitti-raw"
@@ -151,10 +160,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     from dpc_jax._io import atomic_write
 
     try:
-        workdir = claim(args.workdir, [("--demo", args.demo), ("--drives", args.drives),
-                                       ("--kitti-raw", args.kitti_raw)], page=args.results_page)
-        assert workdir is not None
+        # The inputs are read (and named as the options give them) before the work folder is made.
+        for option, folder, marker, what in (
+                ("--demo", args.demo, SUMMARY, "a finished `dpc-jax demo --out` folder"),
+                ("--drives", args.drives, "results.json", "a finished kitti_raw_drives.py work folder")):
+            if not (folder / marker).is_file():
+                raise ValueError(f"{option} {folder}: not {what} (no {marker})")
         todo = cases(args.demo, args.drives, args.kitti_raw)
+        workdir = claim(args.workdir, [("--demo", args.demo), ("--drives", args.drives),
+                                       ("--kitti-raw", args.kitti_raw)], script=__file__,
+                        page=args.results_page)
+        assert workdir is not None
     except (OSError, ValueError, KeyError) as error:
         return refuse("live_agreement", error)
     clock = Clock()
@@ -169,4 +185,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(interruptible(main, __file__))

@@ -33,7 +33,15 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from dpc_jax.experiments.script import Clock, add_results_page, claim, new_parser, publish, refuse
+from dpc_jax.experiments.script import (
+    Clock,
+    add_results_page,
+    claim,
+    interruptible,
+    new_parser,
+    publish,
+    refuse,
+)
 from dpc_jax.pipelines.protocol import path_argument
 
 if TYPE_CHECKING:
@@ -124,7 +132,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.trials < 1:
             raise ValueError(f"--trials {args.trials}: expected 1 or more")
-        workdir = claim(args.workdir, [("--kitti-raw", args.kitti_raw)], page=args.results_page)
+        workdir = claim(args.workdir, [("--kitti-raw", args.kitti_raw)], script=__file__,
+                        page=args.results_page)
         assert workdir is not None
         from dpc_jax.data.cache import prepare_sequence
         from dpc_jax.data.kitti import open_raw
@@ -162,4 +171,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(interruptible(main, __file__))

@@ -25,6 +25,7 @@ from pathlib import Path
 
 from dpc_jax.experiments import scale
 from dpc_jax.experiments import script as kit
+from dpc_jax.experiments.script import interruptible
 from dpc_jax.pipelines.protocol import path_argument
 
 CONFIG = Path(__file__).resolve().parent / "configs" / "paper_scale.py"
@@ -65,7 +66,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             read_block(DOCS, "scale")
         workdir = kit.claim(args.workdir, [("--config", args.config)],
-                            files=[("--docs", DOCS if args.docs else None)])
+                            files=[("--docs", DOCS if args.docs else None)], script=__file__)
         assert workdir is not None  # a work folder was given
     except (ValueError, KeyError, OSError) as error:
         return kit.refuse("paper_scale", error)
@@ -106,4 +107,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(interruptible(main, __file__))

@@ -34,6 +34,7 @@ from dpc_jax.experiments import script as kit
 from dpc_jax.experiments.baselines import linear_baselines
 from dpc_jax.experiments.demos import demo_config, finished_demo, share
 from dpc_jax.experiments.folds import finished_protocol
+from dpc_jax.experiments.script import interruptible
 from dpc_jax.pipelines.protocol import path_argument
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
@@ -126,7 +127,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not args.skip_drives and not (args.kitti_raw / "libviso2").is_dir():
             raise ValueError(f"--kitti-raw {args.kitti_raw}: no libviso2/ folder (or give --skip-drives)")
         kit.claim(args.workdir, [("--config", args.config), ("--kitti-raw", None if args.skip_drives
-                                                              else args.kitti_raw)], page=args.results_page)
+                                                              else args.kitti_raw)], script=__file__,
+                  page=args.results_page)
     except (OSError, ValueError) as error:
         return kit.refuse("supervised_comparison", error)
     logging.getLogger("absl").setLevel(logging.ERROR)
@@ -155,4 +157,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":
     reexec_with_huge_pages()
-    sys.exit(main())
+    sys.exit(interruptible(main, __file__))

@@ -199,7 +199,7 @@ def test_folders_a_command_did_not_make_are_refused(
     prior = tmp_path / "prior.txt"
     prior.write_bytes((kitti / "poses" / "00.txt").read_bytes())
     mine = tmp_path / "mine"
-    for folder in ("00", "sequences/00", "data/sequences/test"):
+    for folder in ("00", "sequences/00", "data/sequences/test", "c.adapted"):
         (mine / folder).mkdir(parents=True)
         (mine / folder / "important.txt").write_text("keep")
     config = tmp_path / "c.py"
@@ -215,6 +215,9 @@ def test_folders_a_command_did_not_make_are_refused(
         "--workdir {m}: {m} holds files but is not a training run (no checkpoints/config.json)": [
             "train", "--config", config, "--workdir", mine],
         "--out {m}: {m}/data/sequences/test holds files but is not a sequence": ["demo", "--out", mine],
+        "--adapt (beside --out {m}/c.txt): {m}/c.adapted holds files but is not an adapted network": [
+            "correct", "--checkpoint", tmp_path / "run", "--kitti-odometry", kitti, "--sequence", "00",
+            "--prior", prior, "--out", mine / "c.txt", "--adapt", "5"],
     }
     before = _snapshot(tmp_path)
     for needle, argv in cases.items():
@@ -296,7 +299,7 @@ def test_files_a_command_did_not_write_are_never_replaced(
     """``evaluate --report/--export`` and ``correct --report`` into a folder holding a user's file of a name
     they write are refused before any work; into a folder of other files they write theirs beside them and
     record them (``.dpc-jax-files``), so that a rerun replaces its own files and nothing else."""
-    from dpc_jax._io import OWN_FILES, foreign_files_problem
+    from dpc_jax._io import OWN_FILES, foreign_files_problem, record_own_files
     from dpc_jax.report.evaluation_report import REPORT_FILES
 
     gt = kitti / "poses" / "00.txt"
@@ -323,10 +326,51 @@ def test_files_a_command_did_not_write_are_never_replaced(
     assert _snapshot(tmp_path) == before
     assert foreign_files_problem(tmp_path / "missing", REPORT_FILES, "--report x") is None
     for _ in range(2):  # the second round replaces the files the first recorded as its own
-        for option in ("--report", "--export"):
-            assert main([str(a) for a in [*evaluate, option, shared]]) == 0
-            capsys.readouterr()
-    written = {*REPORT_FILES, "gt.kitti.txt", "gt.tum.txt", "est.kitti.txt", "est.tum.txt"}
-    assert sorted(p.name for p in shared.iterdir()) == sorted({*written, "notes.txt", OWN_FILES})
-    assert (shared / OWN_FILES).read_text().split() == sorted(written)
+        assert main([str(a) for a in [*evaluate, "--report", shared]]) == 0
+        capsys.readouterr()
+    assert sorted(p.name for p in shared.iterdir()) == sorted({*REPORT_FILES, "notes.txt", OWN_FILES})
+    recorded = "".join(f"{name}\tevaluate --report\n" for name in sorted(REPORT_FILES))
+    assert (shared / OWN_FILES).read_text() == recorded
+    # One folder, one command's results: another command's (or option's) files are never mixed in.
+    correct_report = tmp_path / "correct_report"
+    correct_report.mkdir()
+    for name in ("report.md", "metrics.json", "summary.json"):
+        (correct_report / name).write_text("correct's")
+    record_own_files(correct_report, correct_report, ["report.md", "metrics.json", "summary.json"],
+                     writer="correct --report")
+    before = _snapshot(tmp_path)
+    for option, folder, other in (("--export", shared, "evaluate --report"),
+                                  ("--report", correct_report, "correct --report")):
+        assert main([str(a) for a in [*evaluate, option, folder]]) == 2
+        _one_error(capsys.readouterr().err, f"{option} {folder}: {folder} holds the results of `dpc-jax "
+                   f"{other}`")
+    assert _snapshot(tmp_path) == before
     assert (shared / "notes.txt").read_text() == "the user's"
+
+
+def test_files_named_after_an_output_are_replaced_only_where_a_command_recorded_them(tmp_path: Path) -> None:
+    """``beside_problem``/``record_beside``: a file the user did not name (``OUT.csv``) that exists is
+    refused until a command recorded it as its own, in place or staged with an output set (where the record
+    lands with the files, all or nothing: nothing without a commit)."""
+    from dpc_jax._io import OWN_FILES, OutputSet, atomic_write, beside_problem, record_beside
+
+    csv, summary = tmp_path / "o" / "a.csv", tmp_path / "o" / "a.json"
+    csv.parent.mkdir()
+    csv.write_text("the user's")
+    assert beside_problem([("--out a.txt (its CSV)", csv), ("--out a.txt (its .json summary)", None)]) == (
+        f"--out a.txt (its CSV): {csv} exists and was not written by dpc-jax (it is not listed in "
+        f"{csv.parent / OWN_FILES}), and this command would replace it; move it away or give the output "
+        "another name")
+    csv.unlink()
+    with OutputSet() as outputs:  # not committed: neither the file nor the record is made
+        atomic_write(outputs.file(summary), "{}")
+        record_beside([summary], outputs)
+    assert sorted(p.name for p in csv.parent.iterdir()) == []
+    with OutputSet() as outputs:
+        atomic_write(outputs.file(summary), "{}")
+        record_beside([summary], outputs)
+        outputs.commit()
+    record_beside([csv])
+    csv.write_text("a run's")
+    assert beside_problem([("x", csv), ("y", summary)]) is None
+    assert (csv.parent / OWN_FILES).read_text() == "a.csv\na.json\n"

@@ -16,7 +16,8 @@ ROOT = Path(__file__).resolve().parents[2]
 
 @pytest.mark.slow
 def test_quick_mode_runs_every_step_on_the_cpu(tmp_path: Path) -> None:
-    env = {**os.environ, "QUICK": "1", "OUT": str(tmp_path / "out"),
+    # LOOP_TIMEOUT: each step's own limit (170 s on a GPU) would cut a quick step short on a loaded CPU.
+    env = {**os.environ, "QUICK": "1", "OUT": str(tmp_path / "out"), "LOOP_TIMEOUT": "500",
            "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "jc"),
            "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
     done = subprocess.run(["bash", str(ROOT / "benchmarks" / "gpu_check.sh")], cwd=ROOT, env=env,

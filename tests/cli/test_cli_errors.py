@@ -201,7 +201,7 @@ def test_missing_parent_folders_are_created_only_when_writing(
     assert (tmp_path / "new" / "export" / "gt.kitti.txt").is_file()
     assert main(["vo", "--kitti-odometry", str(data["kitti"]), "--sequence", "00", "--no-progress",
                  "--out", str(tmp_path / "vo" / "a" / "t.txt")]) == 0
-    assert _files(tmp_path / "vo") == ["a", "a/t.csv", "a/t.json", "a/t.txt"]
+    assert _files(tmp_path / "vo") == ["a", "a/.dpc-jax-files", "a/t.csv", "a/t.json", "a/t.txt"]
 
 
 def test_vo_writes_trajectory_and_csv_all_or_nothing(
@@ -567,7 +567,7 @@ def test_train_on_a_truncated_cache_is_one_line(
     config = tmp_path / "config.py"
     config.write_text(
         f"CONFIG = {{'method': 'stereo_dpc', 'preset': 'small', 'image_size': (32, 48), 'batch_size': 2, "
-        f"'epochs': 1, 'cache_root': {str(root)!r}, 'train_sequences': ('00',), "
+        f"'epochs': 1, 'pose_warmup_epochs': 0, 'cache_root': {str(root)!r}, 'train_sequences': ('00',), "
         f"'validation_sequences': ('05',)}}\n"
     )
     assert main(["train", "--config", str(config), "--workdir", str(tmp_path / "run"), "--no-progress"]) == 2

@@ -45,7 +45,7 @@ def world(tmp_path_factory: pytest.TempPathFactory) -> dict:
     written = write_odometry(tmp / "kitti", "00", n=FRAMES, size=(48, 72))
     sequence = open_odometry(tmp / "kitti", "00")
     # The published initialisation (REFERENCE) gives an untrained network a correction that is not zero.
-    config = TrainConfig(method="stereo_dpc", **dpc_protocol.SMOKE, **REFERENCE,
+    config = TrainConfig(method="stereo_dpc", **{**dpc_protocol.SMOKE, **REFERENCE},
                          cache_root=str(tmp / "cache"), train_sequences=("00",), validation_sequences=("05",))
     write_stored_run(tmp / "run", config, {1: (7, 0.5, 0, -1e-4)})
     shutil.copytree(tmp / "run", tmp / "big_run")
@@ -315,7 +315,19 @@ BAD = {
         lambda w: {"--records": w["tmp"] / "records.txt", "--image-size": None}, 2,
         ["does not give the images' size (a calib.txt has none)", "--image-size HxW"]),
     "a level outside (0, 1)": (lambda w: {"--alpha": "1.5"}, 2, ["--alpha 1.5", "a level in (0, 1)"]),
-    "a rate of 0": (lambda w: {"--realtime": "0"}, 2, ["--realtime 0.0", "frames per second (> 0)"]),
+    "a rate of 0": (lambda w: {"--realtime": "0"}, 2, ["--realtime 0.0", "frames per second (> 0"]),
+    "a rate whose waits overflow the clock": (lambda w: {"--realtime": "1e-300"}, 2,
+                                              ["--realtime 1e-300", "at least one frame an hour"]),
+    "a TIME not after the previous record's": (
+        lambda w: {"--records": _records_with(w, "again", 3, lambda f: ["0.1", *f[1:]])}, 1,
+        ["line 3: TIME 0.1 is not after line 2's 0.1", "expected increasing times"]),
+    "the grey pair's images with the colour pair's calibration": (
+        lambda w: {"--records": _records_with(w, "grey", 1, lambda f: [
+            f[0], f[1].replace("image_2", "image_0"), f[2].replace("image_3", "image_1"), *f[3:]])}, 1,
+        ["line 1: left image", "image_0/000000.png is grey", "holds both pairs", "give --grey"]),
+    "a record of TIME LEFT RIGHT and 11 numbers": (
+        lambda w: {"--records": _records_with(w, "eleven", 2, lambda f: f[:-1])}, 1,
+        ["line 2: 14 fields, TIME LEFT RIGHT and 11 numbers", "expected LEFT RIGHT and the 12 numbers"]),
     "a judge larger than the images": (lambda w: {"--judge-size": "64x96"}, 2,
                                        ["--judge-size 64x96", "larger than the source images (48x72)"]),
     "a judge smaller than the network's images": (lambda w: {"--judge-size": "24x40"}, 2,
@@ -362,3 +374,57 @@ def test_vo_correct_refuses_a_larger_run_and_options_without_it(
     assert main([*common, "--prior-out", str(tmp_path / "p.txt")]) == 2
     assert "--prior-out" in _one_line(capsys.readouterr().err)
     assert os.listdir(tmp_path) == []
+
+
+def test_files_beside_the_outputs_that_dpc_jax_did_not_write_are_refused_before_any_work(
+    world: dict, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The files named after ``--out`` (its CSV and summary, ``vo --correct``'s prior and its record) are
+    the command's, not the user's: one of the user's there is refused in one line before JAX, and every
+    file is left as it was."""
+    import dpc_jax.cli.live as live_cli
+    import dpc_jax.cli.vo as vo_cli
+
+    for module in (live_cli, vo_cli):
+        monkeypatch.setattr(module, "import_jax", lambda: pytest.fail("JAX started before the check"))
+    records = ["--records", world["tmp"] / "records.txt"]
+    vo = ["vo", "--kitti-odometry", str(world["kitti"]), "--sequence", "00", "--correct", str(world["run"])]
+    cases = {  # the user's file: the command, what the line says
+        "a.json": (_live_args(world, tmp_path / "a.txt", *records), "(its .json summary)"),
+        "b.csv": (_live_args(world, tmp_path / "b.txt", *records), "(its CSV; --csv names another)"),
+        "y.prior.txt": ([*vo, "--out", str(tmp_path / "y.txt")], "the prior's default path"),
+        "z.prior.json": ([*vo, "--out", str(tmp_path / "z.txt")], "(its .json record)"),
+    }
+    for name in cases:
+        (tmp_path / name).write_text("the user's\n")
+    before = {path.name: path.read_bytes() for path in tmp_path.iterdir()}
+    for name, (argv, words) in cases.items():
+        assert main(argv) == 2, name
+        line = _one_line(capsys.readouterr().err)
+        assert f"{tmp_path / name} exists and was not written by dpc-jax" in line and words in line, line
+    assert {path.name: path.read_bytes() for path in tmp_path.iterdir()} == before
+
+
+def test_live_that_corrects_no_frame_leaves_every_file_as_it_was(
+    world: dict, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """No records (``< /dev/null``), or a first record that cannot be used in a stream: one line, exit
+    status 1, and the outputs are never opened: no empty poses file, no header-only CSV, and the files of
+    an earlier run (recorded as its own) untouched."""
+    out = tmp_path / "live.txt"
+    assert main(_live_args(world, out, "--records", "/dev/null")) == 1
+    assert "/dev/null: no records" in _one_line(capsys.readouterr().err)
+    assert os.listdir(tmp_path) == []
+    assert main(_live_args(world, out, "--records", world["tmp"] / "records.txt", "--force")) == 0
+    capsys.readouterr()
+    before = {path.name: path.read_bytes() for path in tmp_path.iterdir()}
+    assert sorted(before) == [".dpc-jax-files", "live.csv", "live.json", "live.txt"]
+    fifo = tmp_path / "records"
+    os.mkfifo(fifo)
+    feeder = threading.Thread(target=lambda: fifo.write_text("0 gone.png gone.png 1 0 0 0 0 1 0 0 0 0 1 0\n"))
+    feeder.start()
+    status = main(_live_args(world, out, "--records", fifo))
+    feeder.join(timeout=60)
+    assert status == 1 and "line 1: left image gone.png: no such file" in _one_line(capsys.readouterr().err)
+    fifo.unlink()
+    assert {path.name: path.read_bytes() for path in tmp_path.iterdir()} == before

@@ -45,7 +45,8 @@ def inputs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
 def _config(path: Path, cache_root: Path, **fields: object) -> Path:
     config = {"method": "stereo_dpc", "preset": "small", "image_size": SIZE, "batch_size": 2, "epochs": 1,
-              "cache_root": str(cache_root), "validation_sequences": ("05",), **fields}
+              "pose_warmup_epochs": 0, "cache_root": str(cache_root), "validation_sequences": ("05",),
+              **fields}
     path.write_text(f"CONFIG = {config!r}\n")
     return path
 

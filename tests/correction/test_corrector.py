@@ -47,7 +47,7 @@ def setup(tmp_path_factory: pytest.TempPathFactory) -> dict:
     for name in ("00", "05"):
         prepare_sequence(open_odometry(kitti, name), tmp / "priors" / f"stereo_{name}.mat", cache,
                          size=SIZE, progress=False, workers=1)
-    config = TrainConfig(method="stereo_dpc", **dpc_protocol.SMOKE, **REFERENCE, cache_root=str(cache),
+    config = TrainConfig(method="stereo_dpc", **{**dpc_protocol.SMOKE, **REFERENCE}, cache_root=str(cache),
                          train_sequences=("00",), validation_sequences=("05",))
     models = write_stored_run(tmp / "run", config, {e: (SEEDS[e], *FIGURES[e]) for e in FIGURES})
     write_stored_run(tmp / "flat", config, {1: (SEEDS[1], 0.5, 0, 0.0)})

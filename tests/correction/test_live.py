@@ -33,7 +33,7 @@ def world(tmp_path_factory: pytest.TempPathFactory) -> dict:
     sequence = open_odometry(kitti, "05")
     cache = prepare_sequence(sequence, tmp / "priors" / "stereo_05.mat", tmp / "cache", size=SIZE,
                              progress=False, workers=1)
-    config = TrainConfig(method="stereo_dpc", **dpc_protocol.SMOKE, **REFERENCE,
+    config = TrainConfig(method="stereo_dpc", **{**dpc_protocol.SMOKE, **REFERENCE},
                          cache_root=str(tmp / "cache"), train_sequences=("00",), validation_sequences=("05",))
     write_stored_run(tmp / "run", config, {1: (7, 0.5, 0, -1e-4)})
     return {"sequence": sequence, "cache": cache, "run": tmp / "run", "priors": tmp / "priors"}
@@ -82,6 +82,34 @@ def test_forced_live_gives_the_poses_of_forced_correct(world: dict) -> None:
     np.testing.assert_allclose(np.stack([f.prior for f in frames]), offline.prior, atol=1e-9)
     with pytest.raises(ValueError, match="expected both 48x72"):
         tested(np.zeros((40, 72), np.uint8), np.zeros((40, 72), np.uint8), prior[0])
+
+
+def test_the_api_decides_as_the_command_line_and_takes_one_pose_shape_from_frame_0(world: dict) -> None:
+    """``LiveCorrector`` judges by default as ``dpc-jax live`` does (``judge_rule``: the camera's 48x72 for
+    a 32x48 Stereo DPC run; ``judge_size=None`` turns it off); a ``[3, 4]`` prior is one rule from frame 0
+    (the poses equal those of ``[4, 4]`` priors, each ``[4, 4]``); a pose of another shape and a camera
+    smaller than the network are one ``ValueError`` each."""
+    from dpc_jax.correction.inference import load_run
+    from dpc_jax.correction.judge import judge_rule
+    from dpc_jax.correction.live import Calibration, LiveCorrector
+    from dpc_jax.data.poses_io import read_mat
+
+    run = load_run(world["run"], "delta")
+    _, prior = read_mat(world["priors"] / "stereo_05.mat")
+    calibration = Calibration.of(world["sequence"])
+    assert LiveCorrector(run, calibration).judge_size == judge_rule("stereo_dpc", SIZE, (48, 72)) == (48, 72)
+    pairs = list(_frames(world["sequence"]))[:3]
+    rows, full = (LiveCorrector(run, calibration, force=True) for _ in range(2))
+    by_rows = [rows(left, right, prior[k][:3]) for k, (left, right) in enumerate(pairs)]
+    by_full = [full(left, right, prior[k]) for k, (left, right) in enumerate(pairs)]
+    assert all(f.pose.shape == f.prior.shape == (4, 4) for f in by_rows)
+    np.testing.assert_array_equal(np.stack([f.pose for f in by_rows]), np.stack([f.pose for f in by_full]))
+    tested = LiveCorrector(run, calibration, judge_size=None)
+    assert tested.judge_size is None
+    with pytest.raises(ValueError, match=r"prior pose of frame 0: expected poses of shape \[N, 4, 4\] or"):
+        tested(*pairs[0], prior[0][:2])
+    with pytest.raises(ValueError, match="takes 32x48 images, larger than the camera's 24x40"):
+        LiveCorrector(run, Calibration(calibration.K / 2, calibration.baseline, (24, 40)))
 
 
 def _held_bytes(root: object) -> int:

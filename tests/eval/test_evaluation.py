@@ -228,10 +228,23 @@ def test_cli_real_sequence_subprocess() -> None:
     assert 2.0 < m["seg_trans_pct"] < 3.5 and 0.8 < m["seg_rot_deg_per_100m"] < 2.0  # libviso2-s on 00
 
 
-def test_evaluate_names_a_shape_that_is_not_a_pose_count(pair: tuple[np.ndarray, np.ndarray]) -> None:
+def test_evaluate_takes_kitti_rows_names_what_is_not_poses_and_prints_in_one_line(
+    pair: tuple[np.ndarray, np.ndarray]
+) -> None:
+    """One rule for poses, as everywhere (``validate_poses``): ``[N, 4, 4]`` or ``[N, 3, 4]`` on either side,
+    the same figures; a path where an array is expected, or another shape, is one ``ValueError`` naming the
+    argument; ``repr`` is one line of figures, not the arrays."""
     gt, est = pair
-    with pytest.raises(ValueError, match=r"^estimates\['p'\]: poses of shape \(300, 3, 4\); expected \[N, 4"):
-        evaluate(gt, {"p": est[:, :3, :]})
+    whole = evaluate(gt, {"p": est})
+    assert dict(evaluate(gt[:, :3], {"p": est[:, :3, :]})) == dict(whole)
+    with pytest.raises(ValueError, match=r"^estimates\['p'\]: expected poses of shape \[N, 4, 4\] or \[N, 3"):
+        evaluate(gt, {"p": est[:, :2]})
+    with pytest.raises(ValueError, match=r"^gt: the path 'gt.txt'; expected an array of poses .*read_traj"):
+        evaluate("gt.txt", est)
+    text = repr(whole)
+    m = whole.estimates["p"]
+    assert text == (f"Evaluation(300 poses, align='none'; p: m-ATE {m['m_ate_trans_m']:.4g} m, segments "
+                    f"{m['seg_trans_pct']:.4g} %)")
 
 
 def _anchored_m_ate(gt: np.ndarray, est: np.ndarray) -> float:

@@ -97,15 +97,53 @@ def test_a_script_claims_its_outputs_says_one_line_and_publishes(tmp_path: Path,
     blank = tmp_path / "blank.md"
     blank.write_text("no block\n")
     with pytest.raises(ValueError, match="no <!-- results:begin -->"):  # checked before the folder is made
-        script.claim(tmp_path / "w", page=blank)
+        script.claim(tmp_path / "w", script="ablation.py", page=blank)
     assert not (tmp_path / "w").exists()
-    assert script.claim(tmp_path / "w", page=page) == tmp_path / "w"
-    assert (tmp_path / "w" / WORKDIR_MARKER).is_file()
+    assert script.claim(tmp_path / "w", script="ablation.py", page=page) == tmp_path / "w"
+    assert (tmp_path / "w" / WORKDIR_MARKER).read_text().splitlines()[1:] == ["ablation"]
+    # One script's work folder is another's only where the two are documented to share one.
+    excerpt = tmp_path / "excerpt"
+    for name in ("experiments/protocols/kitti_raw_excerpt.py", "excerpt_ground_truth", "kitti_raw_excerpt"):
+        assert script.claim(excerpt, script=name) == excerpt
+    with pytest.raises(ValueError, match=f"--workdir {excerpt}: {excerpt} is the work folder of "
+                       "kitti_raw_excerpt, excerpt_ground_truth, and kitti_raw_drives would write"):
+        script.claim(excerpt, script="kitti_raw_drives.py")
     assert script.refuse("study", ValueError("bad"), 1) == 1
     script.publish("# Title\n\nthe table", page, ROOT / "experiments" / "studies" / "ablation.py")
     out, err = capsys.readouterr()
     assert err == "study: error: bad\n" and out.startswith("# Title\n\nthe table\nresults page: ")
     assert "the table" in page.read_text() and "Written by `ablation.py`" in page.read_text()
+
+
+def test_every_script_ends_on_ctrl_c_in_one_line_with_130(capsys) -> None:
+    """``interruptible``: a KeyboardInterrupt is one line and exit status 130 (as the commands), not a
+    traceback; every script's ``__main__`` goes through it."""
+
+    def stopped() -> int:
+        raise KeyboardInterrupt
+
+    assert script.interruptible(stopped, "/x/kitti_raw_excerpt.py") == 130
+    assert capsys.readouterr().err == ("kitti_raw_excerpt.py: interrupted; what it finished is kept, and the "
+                                       "same command resumes\n")
+    assert script.interruptible(lambda: 3, "s.py") == 3
+    scripts = sorted((ROOT / "experiments").glob("*/*.py"))
+    mains = {path.name: path.read_text().split('if __name__ == "__main__":')[-1] for path in scripts}
+    assert len(mains) >= 15 and all("sys.exit(interruptible(main, __file__))" in text
+                                    for text in mains.values()), mains
+
+
+def test_every_scripts_help_keeps_its_line_continuations() -> None:
+    """A script's docstring is its ``--help``, verbatim: a command continued with ``\\`` keeps the
+    backslash and its line break (in a plain string literal they vanish, and the two lines run together)."""
+    import ast
+
+    for path in sorted((ROOT / "experiments").glob("**/*.py")):
+        tree = ast.parse(path.read_text())
+        if not (tree.body and isinstance(tree.body[0], ast.Expr)):
+            continue
+        source = ast.get_source_segment(path.read_text(), tree.body[0]) or ""
+        continued = sum(line.endswith("\\") for line in source.splitlines())
+        assert (ast.get_docstring(tree, clean=False) or "").count("\\\n") == continued, path
 
 
 def test_a_demo_config_at_a_seed_merges_its_training(tmp_path: Path) -> None:

@@ -123,6 +123,9 @@ def test_real_data_scripts_refuse_a_workdir_over_their_inputs(
     user = tmp_path / "user"
     user.mkdir()
     (user / "notes.txt").write_text("mine")
+    other = tmp_path / "other"  # the work folder of a script none of them shares with
+    claim_workdir(other, owner="ablation")
+    (other / "results.md").write_text("ablation's")
     monkeypatch.chdir(tmp_path)
     before = {root: _snapshot(root) for root in (raw, tmp_path)}
     cases = {
@@ -131,6 +134,7 @@ def test_real_data_scripts_refuse_a_workdir_over_their_inputs(
         str(raw / "libviso2"): f"--workdir {raw / 'libviso2'}: lies inside the input --kitti-raw",
         f"{raw}/sub/../runs": "lies inside the input --kitti-raw",
         str(user): f"--workdir {user}: {user} holds files but is not the work folder of an experiment script",
+        str(other): f"--workdir {other}: {other} is the work folder of ablation, and {name} would write",
     }
     for workdir, needle in cases.items():
         argv = ["--kitti-raw", str(raw), "--workdir", workdir, "--no-progress", *extra]
@@ -189,12 +193,58 @@ def test_every_other_script_claims_its_outputs(tmp_path: Path, capsys: pytest.Ca
          f"--workdir {user}: {user} holds files but is not"),
         (STUDIES, "supervised_comparison", ["--workdir", str(user), "--skip-drives"],
          f"--workdir {user}: {user} holds files but is not"),
+        (STUDIES, "live_agreement",
+         ["--demo", str(user), "--drives", str(user), "--workdir", str(tmp_path / "w")],
+         f"--demo {user}: not a finished `dpc-jax demo --out` folder (no summary.json)"),
     ]
     before = _snapshot(tmp_path)
     for folder, name, argv, needle in cases:
         assert load_script(folder / f"{name}.py").main(argv) == 2, name
         _one_error(capsys.readouterr().err, needle)
-    assert _snapshot(tmp_path) == before
+    assert _snapshot(tmp_path) == before and not (tmp_path / "w").exists()
+
+
+def test_priors_vo_beside_a_folder_vo_is_refused_as_ambiguous(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--priors vo`` (our VO) where a folder ``vo`` of priors exists (the README's chain makes one): one
+    line saying how to name either, before any work; ``./vo`` is the folder."""
+    from dpc_jax.pipelines.protocol import priors_argument
+
+    (tmp_path / "vo").mkdir()
+    monkeypatch.chdir(tmp_path)
+    for name in ("kitti_stereo_dpc", "kitti_ss_dpc"):
+        with pytest.raises(SystemExit) as exited:
+            load_script(PROTOCOLS / f"{name}.py").main(["--kitti-odometry", "k", "--priors", "vo",
+                                                        "--workdir", "w"])
+        assert exited.value.code == 2
+        assert "argument --priors: 'vo' means our stereo VO, and there is a folder ./vo here: give ./vo" in (
+            capsys.readouterr().err)
+    assert priors_argument("./vo") == "./vo" and sorted(p.name for p in tmp_path.iterdir()) == ["vo"]
+    monkeypatch.chdir(tmp_path / "vo")
+    assert priors_argument("vo") == "vo"
+
+
+def test_bias_recovery_writes_where_out_says_with_the_config_as_shipped(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--out DIR`` needs no edit of the config (its caches go to DIR/cache, which the script makes), and
+    the default is ``runs/bias_recovery`` in the current folder, not in the checkout."""
+    study = load_script(STUDIES / "bias_recovery.py")
+    made: list[tuple[Path, str]] = []
+
+    def make_data(out: Path, config: object, args: object) -> None:
+        made.append((out, config.cache_root))
+        raise KeyboardInterrupt  # stop before the work: what it would write is known
+
+    monkeypatch.setattr(study, "make_data", make_data)
+    monkeypatch.chdir(tmp_path)
+    for argv, out in (([], Path("runs/bias_recovery")), (["--out", str(tmp_path / "elsewhere")],
+                                                          tmp_path / "elsewhere")):
+        with pytest.raises(KeyboardInterrupt):
+            study.main(argv)
+        assert made[-1] == (out, str((out / "cache").resolve()))
+    assert (tmp_path / "runs" / "bias_recovery").is_dir()
 
 
 def test_the_results_table_says_when_the_test_was_off() -> None:

@@ -41,7 +41,7 @@ def test_vo_and_correct_write_progress_lines_into_a_log(tmp_path: Path, capsys) 
     assert f"vo: {FRAMES}/{FRAMES} frames" in vo and "\r" not in vo
     cache = prepare_sequence(open_odometry(kitti, "05"), tmp_path / "p" / "stereo_05.mat", tmp_path / "cache",
                              size=dpc_protocol.SMOKE["image_size"], progress=False, workers=1)
-    config = TrainConfig(method="stereo_dpc", **dpc_protocol.SMOKE, **REFERENCE,
+    config = TrainConfig(method="stereo_dpc", **{**dpc_protocol.SMOKE, **REFERENCE},
                          cache_root=str(tmp_path / "cache"), train_sequences=("00",),
                          validation_sequences=("05",))
     write_stored_run(tmp_path / "run", config, {1: (7, 0.5, 0, -1e-4)})

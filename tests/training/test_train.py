@@ -135,6 +135,33 @@ def test_pose_warmup_masks_the_pose_head_and_then_starts_adam_afresh() -> None:
     np.testing.assert_allclose(history[warmup]["fc_out"], start + lrs[0], rtol=1e-6)
 
 
+def test_a_warmup_as_long_as_the_run_is_refused_by_train_and_warned_by_the_library(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``epochs <= pose_warmup_epochs``: the loss sees ξ_corr = 0 in every step, so the pose head keeps its
+    initialisation (the warm-up's mask, checked above). ``dpc-jax train`` refuses such a config in one line
+    naming the epochs it needs, before JAX; ``train`` warns with the same words."""
+    from dpc_jax._io import InputWarning
+    from dpc_jax.cli import main
+
+    needs = "epochs 2 <= pose_warmup_epochs 2: the loss sees ξ_corr = 0 in every epoch"
+    problem = TrainConfig(epochs=2, pose_warmup_epochs=2, validation_sequences=("v",)).pose_training_problem()
+    assert problem.startswith(needs) and "give epochs >= 3" in problem
+    for fields in ({"epochs": 2}, {"epochs": 1, "pose_warmup_epochs": 0},
+                   {"epochs": 1, "supervision": "supervised"}):
+        assert TrainConfig(validation_sequences=("v",), **fields).pose_training_problem() is None
+    config = tmp_path / "config.py"
+    config.write_text(f"CONFIG = {{'epochs': 1, 'cache_root': {str(tmp_path / 'none')!r}, "
+                      "'validation_sequences': ('05',)}\n")
+    assert main(["train", "--config", str(config), "--workdir", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"--config {config}: epochs 1 <= pose_warmup_epochs 1" in err, err
+    assert "give epochs >= 2" in err and not (tmp_path / "run").exists()
+    with pytest.warns(InputWarning, match="give epochs >= 2"), pytest.raises(ConfigError):
+        train(TrainConfig(epochs=1, cache_root=str(tmp_path / "none"), validation_sequences=("05",)),
+              tmp_path / "run", progress=False)
+
+
 def test_pose_lr_multiplier_scales_only_the_pose_head() -> None:
     base = dict(validation_sequences=("v",), preset="small", learning_rate=0.01, weight_decay=0.0,
                 pose_warmup_epochs=0)
@@ -263,7 +290,7 @@ def test_resume_from_a_damaged_checkpoint_names_it(
     from dpc_jax.cli import main
     from dpc_jax.training.checkpoints import CheckpointError
 
-    config = tiny_config(cache_root, epochs=1)
+    config = tiny_config(cache_root, epochs=1, pose_warmup_epochs=0)
     train(config, tmp_path / "run", progress=False, workers=0)
     # Truncate every array file of the stored state: what a full disk or a copy cut short leaves.
     for path in (tmp_path / "run" / "checkpoints" / "epochs" / "1" / "state").rglob("*"):

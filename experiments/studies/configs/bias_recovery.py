@@ -1,6 +1,7 @@
 """Bias recovery (the scientific check of self-supervision): Stereo DPC, small preset, synthetic sequences.
 
-The data are made by ``experiments/studies/bias_recovery.py`` under ``runs/bias_recovery/cache``:
+The data are made by ``experiments/studies/bias_recovery.py`` under ``OUT/cache`` (``--out OUT``, default
+``runs/bias_recovery``; the script sets ``cache_root`` to it):
 sequences s00–s03 for training, s04 for validation (epoch selection), s05 held out for the test.
 Their priors are the true relative poses with a yaw bias of 0.15°/frame plus noise.
 """
