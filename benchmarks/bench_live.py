@@ -84,7 +84,7 @@ def source(synthetic: bool) -> Frames:
 
     if not synthetic and (DRIVE / "2011_09_26").is_dir():
         sequence = open_raw(DRIVE, "2011_09_26", "0001")
-        paths = list(zip(sequence.left_paths, sequence.right_paths, strict=True))
+        paths = list(zip(sequence.images.left_paths, sequence.images.right_paths, strict=True))
         return Frames(paths, sequence.K, sequence.baseline, sequence.image_size,
                       f"KITTI raw 2011_09_26 drive 0001 ({sequence.image_size[1]}x{sequence.image_size[0]})")
     K = np.array([[721.5377, 0.0, 609.5593], [0.0, 721.5377, 172.854], [0.0, 0.0, 1.0]])

@@ -287,7 +287,6 @@ def _correct_live(
         report_stream,
         write_summary,
     )
-    from dpc_jax.data.kitti import load_image
     from dpc_jax.data.priors import FRAMES_KEY
     from dpc_jax.vo import StereoVO, VOResult
     from dpc_jax.vo.odometry import summary
@@ -307,28 +306,21 @@ def _correct_live(
         return 1
     live_summary = LiveSummary(args.realtime, time.perf_counter() - began)
     vo = StereoVO(sequence.K, sequence.baseline, config)
-    h, w = sequence.image_size
     # Per pair, for the VO's own summary and record; per frame, both trajectories for the evaluation.
     kept: dict[str, list[Any]] = {k: [] for k in ("relative", "inliers", "status", "times", "offset", "prior",
                                                    "corrected")}
     first_s = [0.0]  # the VO's time on frame 0, which has no pair
     # The four images of a frame (colour for the network, grey decoded as `dpc-jax vo` decodes it, so that
-    # the prior is its trajectory) are decoded two at a time.
+    # the prior is its trajectory) are decoded a pair at a time.
     decoder = ThreadPoolExecutor(2)
 
-    def decoded(path: Path, grey: bool) -> np.ndarray:
-        image = load_image(path, grey=grey)
-        if image.shape[:2] != (h, w):
-            raise ValueError(f"{path}: image is {image.shape[0]}x{image.shape[1]}, expected {h}x{w} like the "
-                             "sequence's first frame")
-        return image
-
     def arrivals() -> Any:
-        for k, paths in enumerate(zip(sequence.left_paths, sequence.right_paths, strict=True)):
-            def load(paths: tuple[Path, Path] = paths) -> list[np.ndarray]:
-                jobs = [decoder.submit(decoded, path, grey) for grey in (False, True) for path in paths]
-                return [job.result() for job in jobs]
+        for frame in sequence.images.stream(sequence.image_size):
+            def load(frame: Any = frame) -> list[np.ndarray]:
+                jobs = [decoder.submit(frame.decode, grey) for grey in (False, True)]
+                return [image for job in jobs for image in job.result()]
 
+            k = frame.index
             yield Arrived(first + k, float(sequence.times[k]), f"{sequence.name} frame {first + k}", load)
 
     def step(images: list[np.ndarray]) -> Corrected:

@@ -31,10 +31,10 @@ import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from dpc_jax.data import poses_io
+from dpc_jax.data.frames import ImageFiles, StereoFrames, load_image
 from dpc_jax.data.poses_io import validate_poses
 
 # The horizontal fields of view a rectified stereo camera is believed to have (KITTI's colour pair:
@@ -48,7 +48,8 @@ class StereoSequence:
     """A rectified stereo sequence on disk.
 
     * ``name``: identifier used for caches and reports (``"09"``, ``"2011_09_26_drive_0001"``).
-    * ``left_paths``, ``right_paths``: the N image files of the left and right camera, in order.
+    * ``images``: the N frames of the left and right camera (:class:`~dpc_jax.data.frames.ImageFiles`
+      for the KITTI layouts).
     * ``K``: float64 ``[3, 3]`` intrinsics of the left camera in pixels of the stored images.
     * ``baseline``: metres; the right camera is at ``+baseline`` along x of the left camera.
     * ``image_size``: ``(H, W)`` of the stored images.
@@ -59,8 +60,7 @@ class StereoSequence:
     """
 
     name: str
-    left_paths: tuple[Path, ...]
-    right_paths: tuple[Path, ...]
+    images: StereoFrames
     K: np.ndarray
     baseline: float
     image_size: tuple[int, int]
@@ -69,7 +69,7 @@ class StereoSequence:
     sources: tuple[Path, ...] = field(default=())
 
     def __len__(self) -> int:
-        return len(self.left_paths)
+        return len(self.images)
 
     def select(self, start: int, stop: int) -> StereoSequence:
         """The frames ``start <= i < stop`` (Python slice bounds, validated) as a new sequence."""
@@ -80,28 +80,10 @@ class StereoSequence:
             )
         return replace(
             self,
-            left_paths=self.left_paths[start:stop],
-            right_paths=self.right_paths[start:stop],
+            images=self.images.select(start, stop),
             times=self.times[start:stop],
             poses=None if self.poses is None else self.poses[start:stop],
         )
-
-
-def load_image(path: str | Path, grey: bool = False) -> np.ndarray:
-    """Decode an image file: uint8 ``[H, W, 3]`` RGB, or ``[H, W]`` when ``grey``.
-
-    Raises ``FileNotFoundError`` when the file is missing and ``ValueError`` naming the file when
-    it cannot be decoded (truncated or not an image).
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: image file not found")
-    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_COLOR)
-    if image is None:
-        raise ValueError(f"{path}: cannot decode the image (truncated or not a PNG/JPEG file)")
-    if image.dtype != np.uint8:
-        raise ValueError(f"{path}: expected an 8-bit image, got {image.dtype}")
-    return image if grey else cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
 def _frame_files(directory: Path) -> tuple[Path, ...]:
@@ -341,7 +323,7 @@ def open_odometry(root: str | Path, sequence: str | int, grey: bool = False) -> 
         poses = _check_poses(poses_io.read_trajectory(pose_path, "kitti"), len(left), str(pose_path))
         sources.append(pose_path)
     return StereoSequence(
-        name=name, left_paths=left, right_paths=right, K=K, baseline=baseline,
+        name=name, images=ImageFiles(left, right), K=K, baseline=baseline,
         image_size=image_size, times=times, poses=poses, sources=tuple(sources),
     )
 
@@ -428,6 +410,6 @@ def open_raw(
             gt = _check_poses(read_ground_truth(poses), len(left), str(poses))
             sources.append(Path(poses))
     return StereoSequence(
-        name=drive_name, left_paths=left, right_paths=right, K=K, baseline=baseline,
+        name=drive_name, images=ImageFiles(left, right), K=K, baseline=baseline,
         image_size=image_size, times=times, poses=gt, sources=tuple(sources),
     )

@@ -53,8 +53,9 @@ def world(tmp_path_factory: pytest.TempPathFactory) -> dict:
     record = json.loads(stored.read_text())
     record["image_size"] = [64, 96]
     stored.write_text(json.dumps(record))
+    files = sequence.images
     records = [f"{t:.3f} {left} {right} " + " ".join(f"{v:.17g}" for v in pose[:3].ravel()) + "\n"
-               for t, left, right, pose in zip(written["times"], sequence.left_paths, sequence.right_paths,
+               for t, left, right, pose in zip(written["times"], files.left_paths, files.right_paths,
                                                written["poses"], strict=True)]
     (tmp / "records.txt").write_text("".join(records))
     return {"tmp": tmp, "kitti": tmp / "kitti", "sequence": sequence, "run": tmp / "run",
@@ -94,7 +95,8 @@ def _reference(world: dict, *, force: bool, priors: np.ndarray | None, frames: i
     first = None if priors is not None else world["poses"][0]
     live = LiveCorrector(world["run"], Calibration.of(sequence), force=force, first_pose=first)
     out = []
-    for k, (left, right) in enumerate(zip(sequence.left_paths[:frames], sequence.right_paths[:frames],
+    files = sequence.images
+    for k, (left, right) in enumerate(zip(files.left_paths[:frames], files.right_paths[:frames],
                                           strict=True)):
         grey = (load_image(left, grey=True), load_image(right, grey=True))
         prior = None if priors is None else priors[k]
