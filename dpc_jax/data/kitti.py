@@ -160,30 +160,39 @@ def projection_matrix(entries: dict[str, tuple[int, str]], key: str, path: Path)
 def stereo_calibration(
     path: Path, left_key: str, right_key: str, image_size: tuple[int, int]
 ) -> tuple[np.ndarray, float]:
-    """``(K [3, 3], baseline m)`` of a rectified pair from its projection matrices.
-
-    ``K`` is the left 3×3 block; ``baseline = (P_left[0, 3] − P_right[0, 3]) / fu`` (docs/method.md §6).
-    ``image_size`` ``(H, W)``: the stored images, which the calibration must fit
-    (:func:`check_intrinsics`; the raw layout's ``S_rect_XX`` too, where the file gives it).
+    """``(K [3, 3], baseline m)`` of a rectified pair from its projection matrices in a KITTI calibration
+    file (:func:`rectified_pair`); ``image_size`` ``(H, W)``: the stored images, which the calibration
+    must fit (the raw layout's ``S_rect_XX`` too, where the file gives it).
     """
     entries = read_calibration(path)
     p_left = projection_matrix(entries, left_key, path)
     p_right = projection_matrix(entries, right_key, path)
+    for key in (left_key, right_key):
+        _check_rectified_size(entries, key, path, image_size)
+    return rectified_pair(p_left, p_right, image_size, f"{path}: {left_key}", f"{path}: {right_key}")
+
+
+def rectified_pair(
+    p_left: np.ndarray, p_right: np.ndarray, image_size: tuple[int, int], left: str, right: str
+) -> tuple[np.ndarray, float]:
+    """``(K [3, 3], baseline m)`` of a rectified pair from its 3×4 projection matrices.
+
+    ``K`` is the left 3×3 block; ``baseline = (P_left[0, 3] − P_right[0, 3]) / fu`` (docs/method.md §6;
+    ROS's ``CameraInfo.P`` follows the same rule). ``image_size`` ``(H, W)``: the images, which the
+    calibration must fit (:func:`check_intrinsics`). ``left``, ``right``: where each matrix was read
+    (a file and key, a recording's topic), for the ``ValueError`` of one that is not a rectified pair.
+    """
     K = p_left[:, :3].copy()
     fu = K[0, 0]
     if fu <= 0 or K[1, 1] <= 0 or K[2, 2] != 1.0:
-        raise ValueError(
-            f"{path}: {left_key} is not a pinhole projection [[fu,0,cu,·],[0,fv,cv,·],[0,0,1,·]]"
-        )
+        raise ValueError(f"{left} is not a pinhole projection [[fu,0,cu,·],[0,fv,cv,·],[0,0,1,·]]")
     if not np.allclose(p_left[:, :3], p_right[:, :3], rtol=1e-6, atol=1e-9):
-        raise ValueError(f"{path}: {left_key} and {right_key} differ in K; expected a rectified pair")
-    for key in (left_key, right_key):
-        _check_rectified_size(entries, key, path, image_size)
-    check_intrinsics(K, image_size, f"{path}: {left_key}")
+        raise ValueError(f"{left} and {right} differ in K; expected a rectified pair")
+    check_intrinsics(K, image_size, left)
     baseline = float((p_left[0, 3] - p_right[0, 3]) / fu)
     if baseline <= 0:
         raise ValueError(
-            f"{path}: baseline ({left_key}[0,3] − {right_key}[0,3]) / fu = {baseline:.4g} m; expected > 0 "
+            f"{left}, {right}: baseline (P_left[0,3] − P_right[0,3]) / fu = {baseline:.4g} m; expected > 0 "
             "(right camera to the right of the left one)"
         )
     return K, baseline
