@@ -53,7 +53,8 @@ class Bag:
         return self.store.types[msgtype](**fields)
 
     def header(self, stamp: int, frame_id: str) -> Any:
-        time = self.msg("builtin_interfaces/msg/Time", sec=stamp // 1_000_000_000, nanosec=stamp % 1_000_000_000)
+        sec, nanosec = divmod(stamp, 1_000_000_000)
+        time = self.msg("builtin_interfaces/msg/Time", sec=sec, nanosec=nanosec)
         if self.ros1:
             return self.msg("std_msgs/msg/Header", seq=0, stamp=time, frame_id=frame_id)
         return self.msg("std_msgs/msg/Header", stamp=time, frame_id=frame_id)
@@ -62,7 +63,8 @@ class Bag:
         msgtype = msg.__msgtype__
         if topic not in self.connections:
             self.connections[topic] = self.writer.add_connection(topic, msgtype, typestore=self.store)
-        data = self.store.serialize_ros1(msg, msgtype) if self.ros1 else self.store.serialize_cdr(msg, msgtype)
+        serialize = self.store.serialize_ros1 if self.ros1 else self.store.serialize_cdr
+        data = serialize(msg, msgtype)
         self.writer.write(self.connections[topic], stamp, data)
 
     def close(self) -> Path:
@@ -87,8 +89,10 @@ class Bag:
         return self.msg("sensor_msgs/msg/CompressedImage", header=self.header(stamp, frame_id), format=form,
                         data=np.frombuffer(data, np.uint8))
 
-    def camera_info(self, stamp: int, frame_id: str, size: tuple[int, int], P: np.ndarray,
-                    D: np.ndarray | None = None, R: np.ndarray | None = None, K: np.ndarray | None = None) -> Any:
+    def camera_info(
+        self, stamp: int, frame_id: str, size: tuple[int, int], P: np.ndarray, D: np.ndarray | None = None,
+        R: np.ndarray | None = None, K: np.ndarray | None = None,
+    ) -> Any:
         d = np.zeros(5) if D is None else np.asarray(D, np.float64)
         k = P[:, :3] if K is None else K
         r = np.eye(3) if R is None else R
@@ -111,12 +115,10 @@ class Bag:
                                       covariance=np.zeros(36)), twist=twist)
 
     def pose(self, matrix: np.ndarray) -> Any:
-        x, y, z, w = Rotation.from_matrix(matrix[:3, :3]).as_quat()
-        return self.msg("geometry_msgs/msg/Pose",
-                        position=self.msg("geometry_msgs/msg/Point", x=float(matrix[0, 3]), y=float(matrix[1, 3]),
-                                          z=float(matrix[2, 3])),
-                        orientation=self.msg("geometry_msgs/msg/Quaternion", x=float(x), y=float(y), z=float(z),
-                                             w=float(w)))
+        x, y, z, w = (float(v) for v in Rotation.from_matrix(matrix[:3, :3]).as_quat())
+        px, py, pz = (float(v) for v in matrix[:3, 3])
+        return self.msg("geometry_msgs/msg/Pose", position=self.msg("geometry_msgs/msg/Point", x=px, y=py, z=pz),
+                        orientation=self.msg("geometry_msgs/msg/Quaternion", x=x, y=y, z=z, w=w))
 
     def transform(self, stamp: int, parent: str, child: str, matrix: np.ndarray) -> Any:
         x, y, z, w = Rotation.from_matrix(matrix[:3, :3]).as_quat()
@@ -164,9 +166,11 @@ def write_recording(
                                                     (RIGHT, right_files, "P3", "cam_right", right_offset_ns)):
             at = stamp + offset
             if camera_info:
-                bag.write(topic.rsplit("/", 1)[0] + "/camera_info", at, bag.camera_info(at, frame_id, size, rows[key]))
+                info = bag.camera_info(at, frame_id, size, rows[key])
+                bag.write(topic.rsplit("/", 1)[0] + "/camera_info", at, info)
             if compressed:
-                bag.write(topic + "/compressed", at, bag.compressed(at, frame_id, files[k].read_bytes(), "png"))
+                png = files[k].read_bytes()
+                bag.write(topic + "/compressed", at, bag.compressed(at, frame_id, png, "png"))
             else:
                 rgb = cv2.cvtColor(cv2.imread(str(files[k])), cv2.COLOR_BGR2RGB)
                 bag.write(topic, at, bag.image(at, frame_id, rgb, "rgb8"))
