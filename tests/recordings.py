@@ -117,7 +117,8 @@ class Bag:
     def pose(self, matrix: np.ndarray) -> Any:
         x, y, z, w = (float(v) for v in Rotation.from_matrix(matrix[:3, :3]).as_quat())
         px, py, pz = (float(v) for v in matrix[:3, 3])
-        return self.msg("geometry_msgs/msg/Pose", position=self.msg("geometry_msgs/msg/Point", x=px, y=py, z=pz),
+        position = self.msg("geometry_msgs/msg/Point", x=px, y=py, z=pz)
+        return self.msg("geometry_msgs/msg/Pose", position=position,
                         orientation=self.msg("geometry_msgs/msg/Quaternion", x=x, y=y, z=z, w=w))
 
     def transform(self, stamp: int, parent: str, child: str, matrix: np.ndarray) -> Any:
