@@ -180,3 +180,37 @@ def write_recording(
         if frames is not None:
             frames(bag, k, stamp)
     return bag.close()
+
+
+def write_raw_recording(path: Path, root: Path, date: str, drive: str, frames: int, *, kind: str = "mcap",
+                        compressed: bool = False) -> Path:
+    """The first ``frames`` frames of KITTI raw drive ``DATE_drive_DRIVE_sync``'s colour pair (grey where it
+    has none) as a recording: the images (``rgb8``/``mono8``, or the PNG files), stamped with the drive's
+    ``timestamps.txt``, and ``CameraInfo`` with the ``P_rect`` rows of ``calib_cam_to_cam.txt``."""
+    folder = root / date / f"{date}_drive_{drive}_sync"
+    cameras = ("02", "03") if (folder / "image_02").is_dir() else ("00", "01")
+    calib = {}
+    for line in (root / date / "calib_cam_to_cam.txt").read_text().splitlines():
+        key, _, values = line.partition(":")
+        if key.startswith("P_rect_"):
+            calib[key[7:]] = np.array([float(v) for v in values.split()]).reshape(3, 4)
+    bag = Bag(path, kind)
+    for camera in cameras:
+        lines = (folder / f"image_{camera}" / "timestamps.txt").read_text().split("\n")[:frames]
+        stamps = np.array([np.datetime64(t.strip().replace(" ", "T"), "ns") for t in lines]).astype(np.int64)
+        files = sorted((folder / f"image_{camera}" / "data").glob("*.png"))[:frames]
+        side = "left" if camera == cameras[0] else "right"
+        for stamp, file in zip(stamps.tolist(), files, strict=True):
+            image = cv2.imread(str(file), cv2.IMREAD_UNCHANGED)
+            size = image.shape[:2]
+            info = bag.camera_info(stamp, f"cam{camera}", size, calib[camera])
+            bag.write(f"/kitti/{side}/camera_info", stamp, info)
+            if compressed:
+                bag.write(f"/kitti/{side}/image/compressed", stamp,
+                          bag.compressed(stamp, f"cam{camera}", file.read_bytes(), "png"))
+            elif image.ndim == 2:
+                bag.write(f"/kitti/{side}/image", stamp, bag.image(stamp, f"cam{camera}", image, "mono8"))
+            else:
+                bag.write(f"/kitti/{side}/image", stamp,
+                          bag.image(stamp, f"cam{camera}", cv2.cvtColor(image, cv2.COLOR_BGR2RGB), "rgb8"))
+    return bag.close()

@@ -83,6 +83,9 @@ def _reader(path: Path) -> Iterator[Any]:
     except _Error:
         raise
     except Exception as error:  # rosbags' errors differ by format (truncated, no footer, not a bag)
+        if "end magic" in str(error):  # rosbags' words for an MCAP file without its footer
+            raise _Error(f"{path}: the MCAP file has no footer: the recording was cut short (its recorder "
+                         "did not close it); expected a complete file (`mcap recover` writes one)") from None
         raise _Error(f"{path}: cannot read the recording ({_words(error)}); expected a ROS 1 .bag, a ROS 2 "
                      "bag folder or an .mcap/.db3 file") from None
     try:
