@@ -218,7 +218,9 @@ def test_the_cache_of_a_recording_is_that_of_the_kitti_layout_byte_for_byte(
         assert (caches[0] / array).read_bytes() == (caches[1] / array).read_bytes(), array
 
 
-def test_vo_on_a_recorded_kitti_drive_is_vo_on_its_files(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_vo_on_a_recorded_kitti_drive_is_vo_on_its_files(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """The first 6 frames of the real drive 0001 (colour, 375×1242) as a recording: `dpc-jax vo` writes the
     very trajectory it writes from the raw layout's files (stamps from timestamps.txt, P from P_rect)."""
     from conftest import DATA
