@@ -24,25 +24,30 @@ _BAG_OPTIONS = ("left_topic", "right_topic", "stamp_tolerance", "calib", "prior_
 
 def add_source_arguments(
     parser: argparse.ArgumentParser, group: argparse._MutuallyExclusiveGroup, *, many: bool = False,
-    prior_topic: bool = False,
+    prior_topic: bool = False, layouts: bool = True,
 ) -> None:
     """The source options: one of ``--kitti-odometry``/``--kitti-raw``/``--bag`` in ``group`` (the
     command's choice of input), the layouts' keys (``many``: several sequences or drives) and the
-    recording's topics (``prior_topic``: also ``--prior-topic``, where the command takes a prior)."""
-    group.add_argument("--kitti-odometry", type=path_option, metavar="ROOT",
-                       help="odometry layout root (holds sequences/ and poses/); also the synthetic layout")
-    group.add_argument("--kitti-raw", type=path_option, metavar="ROOT", help="raw layout root (holds DATE/)")
+    recording's topics (``prior_topic``: also ``--prior-topic``, where the command takes a prior).
+    ``layouts=False``: a recording only (``live``, whose own ``--calib`` and ``--grey`` serve it)."""
+    if layouts:
+        group.add_argument("--kitti-odometry", type=path_option, metavar="ROOT",
+                           help="odometry layout root (holds sequences/ and poses/); also the synthetic "
+                           "layout")
+        group.add_argument("--kitti-raw", type=path_option, metavar="ROOT",
+                           help="raw layout root (holds DATE/)")
     group.add_argument("--bag", type=path_option, metavar="REC",
                        help="a ROS recording: a ROS 1 .bag, a ROS 2 bag folder (sqlite3 or MCAP storage) or "
                        "an .mcap file (docs/formats.md)")
-    parser.add_argument("--sequence", nargs="+" if many else None, default=[] if many else None, metavar="XX",
-                        help="odometry: sequence" + ("(s)" if many else ""))
-    parser.add_argument("--date", metavar="YYYY_MM_DD", help="raw: recording date, e.g. 2011_09_26")
-    parser.add_argument("--drive", nargs="+" if many else None, default=[] if many else None, metavar="NNNN",
-                        help="raw: drive number" + ("(s)" if many else ""))
-    parser.add_argument("--grey", action="store_true",
-                        help="the grey pair (odometry: image_0/image_1; raw: image_00/image_01); default: "
-                        "the colour pair, or for a raw drive without one its grey pair")
+    if layouts:
+        parser.add_argument("--sequence", nargs="+" if many else None, default=[] if many else None,
+                            metavar="XX", help="odometry: sequence" + ("(s)" if many else ""))
+        parser.add_argument("--date", metavar="YYYY_MM_DD", help="raw: recording date, e.g. 2011_09_26")
+        parser.add_argument("--drive", nargs="+" if many else None, default=[] if many else None,
+                            metavar="NNNN", help="raw: drive number" + ("(s)" if many else ""))
+        parser.add_argument("--grey", action="store_true",
+                            help="the grey pair (odometry: image_0/image_1; raw: image_00/image_01); "
+                            "default: the colour pair, or for a raw drive without one its grey pair")
     bag = parser.add_argument_group("a recording (--bag)")
     bag.add_argument("--left-topic", metavar="TOPIC",
                      help="left camera's image topic (default: the one stereo pair of image topics, whose "
@@ -51,8 +56,9 @@ def add_source_arguments(
     bag.add_argument("--stamp-tolerance", type=float, metavar="S",
                      help="how far apart (s) a left and a right image, or a frame and its pose, may be "
                      "stamped (default: 0.01)")
-    bag.add_argument("--calib", type=file_path_option, metavar="FILE",
-                     help="KITTI calib.txt (P2/P3, or P0/P1) for a recording without CameraInfo")
+    if layouts:
+        bag.add_argument("--calib", type=file_path_option, metavar="FILE",
+                         help="KITTI calib.txt (P2/P3, or P0/P1) for a recording without CameraInfo")
     if prior_topic:
         bag.add_argument("--prior-topic", metavar="TOPIC",
                          help="the prior: nav_msgs/Odometry, PoseStamped, PoseWithCovarianceStamped or /tf")
@@ -73,25 +79,28 @@ def source_option(args: argparse.Namespace) -> tuple[str, Path] | None:
 
 def source_inputs(args: argparse.Namespace) -> list[Named]:
     """The source's paths by option, for the check that no output overwrites an input."""
-    return [("--kitti-odometry", args.kitti_odometry), ("--kitti-raw", args.kitti_raw), ("--bag", args.bag),
-            ("--calib", getattr(args, "calib", None))]
+    return [(f"--{kind}", getattr(args, kind.replace("-", "_"), None))
+            for kind in ("kitti-odometry", "kitti-raw", "bag", "calib")]
 
 
 def source_problem(args: argparse.Namespace) -> str | None:
     """Why the source options do not name one source with what it needs, or None (no JAX, no reading)."""
     given = source_option(args)
-    if given is None:
-        return None
-    kind, path = given
     bag_only = [f"--{name.replace('_', '-')}" for name in _BAG_OPTIONS
                 if getattr(args, name, None) is not None]
+    if given is None:  # another input (a cache, records): its --calib is its own
+        topics = [option for option in bag_only if option != "--calib"]
+        return (f"{', '.join(topics)}: only used with --bag (a recording), which is not given" if topics
+                else None)
+    kind, path = given
+    sequence, date, drive = (getattr(args, name, None) for name in ("sequence", "date", "drive"))
     if kind == "kitti-odometry":
-        if not args.sequence or args.date or args.drive:
+        if not sequence or date or drive:
             return "--kitti-odometry needs --sequence (and no --date/--drive)"
     elif kind == "kitti-raw":
-        if not args.date or not args.drive or args.sequence:
+        if not date or not drive or sequence:
             return "--kitti-raw needs --date and --drive (and no --sequence)"
-    elif args.sequence or args.date or args.drive or args.grey:
+    elif sequence or date or drive or getattr(args, "grey", False):
         return ("--bag reads one recording: --sequence, --date, --drive and --grey are the KITTI layouts' "
                 "options")
     if kind != "bag" and bag_only:
@@ -107,7 +116,7 @@ def source_problem(args: argparse.Namespace) -> str | None:
 
 def source_keys(args: argparse.Namespace) -> list[str | None]:
     """The sequences (or drives) the options name, one ``None`` for a recording."""
-    keys = args.sequence or args.drive
+    keys = getattr(args, "sequence", None) or getattr(args, "drive", None)
     if isinstance(keys, str):
         return [keys]
     return list(keys) if keys else [None]
@@ -129,7 +138,7 @@ def open_recording(args: argparse.Namespace, key: str | None = None, gt: Path | 
     bag = None
     if kind == "bag":
         tolerance = args.stamp_tolerance if args.stamp_tolerance is not None else DEFAULT_TOLERANCE
-        bag = BagOptions(path, args.left_topic, args.right_topic, tolerance, args.calib,
+        bag = BagOptions(path, args.left_topic, args.right_topic, tolerance, getattr(args, "calib", None),
                          getattr(args, "prior_topic", None), args.gt_topic, args.pose_frame)
     date = getattr(args, "date", None)
     recording = open_source(Source(kind, path, key, date, bool(getattr(args, "grey", False)), gt, bag))

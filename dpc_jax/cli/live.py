@@ -61,6 +61,7 @@ from dpc_jax.cli._common import (
     path_text,
     restore_problem,
 )
+from dpc_jax.cli._source import add_source_arguments, open_recording, source_problem
 
 if TYPE_CHECKING:
     from dpc_jax.correction.live import Calibration, LiveCorrector, LiveFrame
@@ -720,6 +721,28 @@ def _calibration(args: argparse.Namespace) -> Calibration:
     return Calibration(K, baseline, (int(size[0]), int(size[1])))
 
 
+def _recorded(args: argparse.Namespace) -> tuple[Calibration, str]:
+    """``--bag``: the recording's calibration (``dpc_jax.sources``: its CameraInfo, or ``--calib``) and how
+    messages name it; the recording is opened here, before JAX starts, and its frames read later."""
+    from dpc_jax.correction.live import Calibration
+
+    sequence = open_recording(args).sequence
+    return Calibration.of(sequence), f"--bag {args.bag}"
+
+
+def _recording_arrivals(args: argparse.Namespace) -> Iterator[Arrived]:
+    """The frames of ``--bag``, each with its pose of ``--prior-topic``, read in order."""
+    recording = open_recording(args)
+    sequence, prior = recording.sequence, recording.prior
+    assert prior is not None, "_check asks for --prior-topic"
+    for frame in sequence.images.stream(sequence.image_size):
+        def load(frame: Any = frame) -> Loaded:
+            left, right = frame.decode()
+            return left, right, prior[frame.index]
+
+        yield Arrived(frame.index, float(sequence.times[frame.index]), frame.where, load)
+
+
 # One record's frame, loaded: the left and right images (uint8 RGB) and the VO's pose [4, 4].
 Loaded = tuple[np.ndarray, np.ndarray, np.ndarray]
 
@@ -733,16 +756,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = Formatter
     parser.add_argument("--checkpoint", required=True, type=path_option, metavar="RUN",
                         help="training run folder (dpc-jax train --workdir)")
-    parser.add_argument("--calib", required=True, type=path_option, metavar="FILE",
+    parser.add_argument("--calib", type=path_option, metavar="FILE",
                         help="the rig's KITTI calibration: calib.txt (P2/P3) or calib_cam_to_cam.txt "
-                        "(P_rect_02/P_rect_03)")
+                        "(P_rect_02/P_rect_03); with --bag only for a recording without CameraInfo")
     parser.add_argument("--grey", action="store_true",
                         help="the calibration's grey pair (P0/P1, P_rect_00/P_rect_01) instead of the colour "
                         "one")
     parser.add_argument("--image-size", type=image_size, metavar="HxW",
                         help="the size of the records' images (default: the calibration's S_rect_XX)")
-    parser.add_argument("--records", type=path_text, metavar="FILE",
-                        help="the records (default: standard input, read as it grows)")
+    records = parser.add_mutually_exclusive_group()
+    records.add_argument("--records", type=path_text, metavar="FILE",
+                         help="the records (default: standard input, read as it grows)")
+    add_source_arguments(parser, records, prior_topic=True, layouts=False)
     parser.add_argument("--out", required=True, type=file_path_option, metavar="POSES_TXT",
                         help="corrected poses, one KITTI row per frame as it is corrected")
     parser.add_argument("--csv", type=file_path_option, metavar="FILE",
@@ -759,7 +784,11 @@ def _check(args: argparse.Namespace) -> str | None:
     args.csv_path = args.csv if args.csv is not None or streamed else args.out.with_suffix(".csv")
     args.json_path = None if streamed else args.out.with_suffix(".json")
     records = None if args.records in (None, "-") else Path(args.records)
-    problem = (correction_problem(args, "--checkpoint", args.checkpoint)
+    problem = (correction_problem(args, "--checkpoint", args.checkpoint) or source_problem(args)
+               or ("--calib FILE is required with records (the rig's calibration)"
+                   if args.calib is None and args.bag is None else None)
+               or ("--prior-topic TOPIC is required with --bag (the poses of the VO to correct)"
+                   if args.bag is not None and args.prior_topic is None else None)
                or input_problem(args.calib, "--calib") or input_problem(records, "--records")
                or finite_problem(disparity_offset=args.disparity_offset)
                or output_problem(args.out, "--out") or output_problem(args.csv_path, "--csv")
@@ -768,7 +797,8 @@ def _check(args: argparse.Namespace) -> str | None:
         return problem
     if records is not None and records.is_dir():
         return f"--records {records}: is a folder; expected a file of records"
-    inputs = [("--checkpoint", args.checkpoint), ("--calib", args.calib), ("--records", records)]
+    inputs = [("--checkpoint", args.checkpoint), ("--calib", args.calib), ("--records", records),
+              ("--bag", args.bag)]
     return (overlap_problem(inputs, [("--out", args.out), ("--csv", args.csv_path),
                                      ("--out (its .json summary)", args.json_path)])
             or stdout_problem(inputs) or beside_problem(beside_files(args.out, args.csv, args.csv_path,
@@ -792,20 +822,23 @@ def run(args: argparse.Namespace) -> int:
     if problem is not None:
         return error(problem, 2)
     try:
-        calibration = _calibration(args)
+        calibration, where = _recorded(args) if args.bag is not None else (_calibration(args),
+                                                                          f"--calib {args.calib}")
     except _UsageError as usage:
         return error(str(usage), 2)
     except (OSError, ValueError) as content:
         return error(str(content), 1)
     size = calibration.image_size
-    problem = (run_size_problem(args, args.checkpoint, "--checkpoint", size, f"--calib {args.calib}")
-               or offset_problem(args.disparity_offset, size[1], f"--calib {args.calib}"))
+    problem = (run_size_problem(args, args.checkpoint, "--checkpoint", size, where)
+               or offset_problem(args.disparity_offset, size[1], where))
     if problem is not None:
         return error(problem, 2)
-    stream, name, regular = _source(args)
-    with contextlib.closing(stream) if stream is not sys.stdin.buffer else contextlib.nullcontext():
+    stream, name, regular = _source(args) if args.bag is None else (None, str(args.bag), True)
+    with contextlib.closing(stream) if stream not in (None, sys.stdin.buffer) else contextlib.nullcontext():
         records: Iterator[Record]
-        if regular:  # a recording: checked whole before JAX starts
+        if stream is None:  # a recording, opened and checked before JAX starts
+            records = iter(())
+        elif regular:  # a file of records: checked whole before JAX starts
             try:
                 records = iter(_checked_records(stream.readlines(), name, size, args))
             except RecordError as content:
@@ -827,6 +860,9 @@ def run(args: argparse.Namespace) -> int:
                                                                      args.json_path)))
 
         def arrivals() -> Iterator[Arrived]:
+            if args.bag is not None:
+                yield from _recording_arrivals(args)
+                return
             for k, record in enumerate(records):
                 where = f"{name} line {record.line}"
 

@@ -205,6 +205,29 @@ def test_live_replays_a_recording_and_reports_the_frames_that_missed_their_deadl
     np.testing.assert_allclose(_poses(out), np.stack([f.pose for f in reference]), atol=1e-9)
 
 
+def test_live_on_a_recording_writes_what_its_records_give(
+    world: dict, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The sequence as a recording written by rosbags (rgb8 images, CameraInfo, the external VO's poses as
+    nav_msgs/Odometry): `live --bag --prior-topic` corrects the frames the records name, with their poses,
+    to the same poses as `live --records`; its CSV has the recording's times."""
+    from recordings import write_recording
+
+    recording = write_recording(tmp_path / "rec.bag", world["kitti"], kind="ros1",
+                                poses={"/vo": world["poses"]})
+    assert main(_live_args(world, tmp_path / "records.txt", "--records", world["tmp"] / "records.txt",
+                           "--force")) == 0
+    bag = ["live", "--checkpoint", str(world["run"]), "--bag", str(recording), "--prior-topic", "/vo",
+           "--force", "--realtime", "10", "--out", str(tmp_path / "bag.txt")]
+    assert main(bag) == 0
+    printed = capsys.readouterr().out
+    assert f"{recording}: {FRAMES} frames corrected live" in printed
+    np.testing.assert_allclose(_poses(tmp_path / "bag.txt"), _poses(tmp_path / "records.txt"), atol=1e-12)
+    assert [row["time_s"] for row in _rows(tmp_path / "bag.csv")] == [f"{0.1 * k:.6f}" for k in range(FRAMES)]
+    assert main([*bag[:-2], "--prior-topic", "/nowhere", "--out", str(tmp_path / "none.txt")]) == 1
+    assert "--prior-topic /nowhere: no such topic" in capsys.readouterr().err
+
+
 @pytest.fixture
 def interruptible() -> object:
     """SIGINT raises KeyboardInterrupt in the main thread, as from a terminal (a suite started in the
