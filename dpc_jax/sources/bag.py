@@ -488,3 +488,26 @@ class BagFrames:
     def locations(self) -> dict[str, str]:
         return {"left_images": f"{self.path.resolve()} {self.topics[0]}",
                 "right_images": f"{self.path.resolve()} {self.topics[1]}"}
+
+
+def read_pose_topic(path: Path, topic: str) -> tuple[np.ndarray, np.ndarray]:
+    """Every pose of ``topic`` (``nav_msgs/Odometry``, ``PoseStamped``, ``PoseWithCovarianceStamped``) in
+    a recording, by header stamp: ``(times [N] s, poses [N, 4, 4])``, as a timed trajectory file gives
+    them (``dpc-jax evaluate``); ``ValueError`` of one line naming the recording and the topic."""
+    kinds = (bag_poses.ODOMETRY, bag_poses.POSE, bag_poses.POSE_COVARIANCE)
+    with _reader(path) as reader:
+        topics = {c.topic: c.msgtype for c in reader.connections}
+        if topics.get(topic) not in kinds:
+            listed = ", ".join(sorted(t for t, kind in topics.items() if kind in kinds)) or "none"
+            what = "no such topic" if topic not in topics else f"a {topics[topic]} topic"
+            raise _Error(f"{path}: {topic}: {what}; expected nav_msgs/Odometry, PoseStamped or "
+                         f"PoseWithCovarianceStamped (its pose topics: {listed})")
+        connections = [c for c in reader.connections if c.topic == topic]
+        samples = [s for _, _, msg in _messages(reader, path, connections)
+                   for s in bag_poses.samples(topics[topic], msg, f"{path}: {topic}")]
+    if len(samples) < 2:
+        raise _Error(f"{path}: {topic}: {len(samples)} pose; expected a trajectory of at least 2")
+    order = np.argsort([s.stamp for s in samples], kind="stable")
+    stamps = np.asarray([samples[i].stamp for i in order], np.int64)
+    poses = validate_poses(np.stack([samples[i].matrix for i in order]), f"{path}: {topic}")
+    return stamps / 1e9, poses

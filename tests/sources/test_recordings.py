@@ -237,6 +237,44 @@ def test_vo_on_a_recorded_kitti_drive_is_vo_on_its_files(
     assert len(inliers) == 2 and min(inliers) > 50  # the VO tracked: the equality is not of extrapolations
 
 
+def test_evaluate_reads_trajectories_from_pose_topics_paired_by_stamp(
+    kitti: dict, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`evaluate --gt REC:TOPIC --est REC:TOPIC`: the metrics of the same poses as KITTI text files, with the
+    estimate's poses stamped 3 ms after the frames (paired by stamp within evo's 10 ms) and one extra pose
+    between frames that pairs with none."""
+    import json
+
+    from dpc_jax.data.poses_io import write_kitti_poses
+
+    gt = kitti["poses"]
+    est = gt.copy()
+    est[:, :3, 3] += np.random.default_rng(5).normal(0, 0.05, (len(gt), 3))
+
+    def poses(bag: Bag, k: int, stamp: int) -> None:
+        bag.write("/gt", stamp, bag.odometry(stamp, "odom", CAMERA_FRAME, gt[k]))
+        bag.write("/est", stamp + 3_000_000, bag.odometry(stamp + 3_000_000, "odom", CAMERA_FRAME, est[k]))
+        if k == 2:
+            alone = stamp + 50_000_000
+            bag.write("/est", alone, bag.odometry(alone, "odom", CAMERA_FRAME, est[k]))
+
+    path = write_recording(tmp_path / "poses.bag", kitti["random"], kind="ros1", frames=poses)
+    write_kitti_poses(tmp_path / "gt.txt", gt)
+    write_kitti_poses(tmp_path / "est.txt", est)
+    results = []
+    for pair in ((f"{path}:/gt", f"{path}:/est"), (tmp_path / "gt.txt", tmp_path / "est.txt")):
+        argv = ["evaluate", "--gt", str(pair[0]), "--est", str(pair[1]), "--label", "est", "--json", "-"]
+        assert main(argv) == 0
+        results.append(json.loads(capsys.readouterr().out))
+    topics, files = (result["estimates"]["est"] for result in results)
+    assert sum(isinstance(value, float) for value in files.values()) >= 4, files
+    for key, value in files.items():
+        if isinstance(value, float):
+            assert topics[key] == pytest.approx(value, rel=1e-9, abs=1e-12), key
+    _fails(capsys, ["evaluate", "--gt", f"{path}:/nowhere", "--est", f"{path}:/est"], str(path),
+           "/nowhere: no such topic", "its pose topics: /est, /gt")
+
+
 # --------------------------------------------------------------------------- bad recordings
 
 
