@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 from recordings import CAMERA_FRAME, EPOCH_NS, KINDS, Bag, stamps_of, write_raw_recording, write_recording
-from support import write_odometry
+from support import in_one_process, write_odometry
 
 from dpc_jax.cli import main
 from dpc_jax.data.frames import png_grey
@@ -307,6 +307,10 @@ def test_bad_recordings_get_one_line(kitti: dict, tmp_path: Path, capsys) -> Non
     _fails(capsys, [*vo, str(no_images)], str(no_images), "no image topic", "/left/camera_info")
     one = _write(tmp_path, "one", **{"/left/image": _rgb()})
     _fails(capsys, [*vo, str(one)], str(one), "one camera only (/left/image)")
+    # Before JAX starts: prepare and correct (which start it) read the recording's index first.
+    status, imported, done = in_one_process([["prepare", "--bag", one, "--prior-topic", "/odom", "--out",
+                                              tmp_path / "cache"]])
+    assert status == [1] and imported == [] and "one camera only" in done.stderr
     topics = ("/left/image", "/right/image", "/left/rect", "/right/rect")
     two_pairs = _write(tmp_path, "two-pairs", **{t: _rgb() for t in topics})
     _fails(capsys, [*vo, str(two_pairs)], "2 stereo pairs", "/left/rect", "--left-topic and --right-topic")
