@@ -72,6 +72,7 @@ EPILOG = """The sequence (--data, one of):
   a prepared cache   --data cache/05   (from `dpc-jax prepare`; corrects its own prior unless --prior)
   KITTI odometry     --kitti-odometry ROOT --sequence 05 --prior FILE   (also the synthetic layout)
   KITTI raw          --kitti-raw ROOT --date 2011_09_26 --drive 1 --prior FILE
+  a ROS recording    --bag REC --prior-topic TOPIC (or --prior FILE)   (docs/formats.md, "Recordings")
 Raw inputs are prepared on the fly at the run's image size (with flow when the network reads flow) into
 --cache DIR (kept, reused when up to date) or a temporary folder. Ground truth: poses/XX.txt (odometry),
 else --gt, else the poses_gt of a .mat prior; a cache keeps the ground truth it was prepared with.
@@ -89,7 +90,10 @@ starting at 0), the source frame number of every pose is written to OUT's stem +
 examples:
   dpc-jax correct --checkpoint runs/kitti_00 --data cache/00 --out corrected_00.txt --report report_00
   dpc-jax correct --checkpoint runs/excerpt --select loop --kitti-raw data/kitti-raw --date 2011_09_26 \\
-      --drive 1 --prior data/kitti-raw/libviso2/stereo_2011_09_26_drive_0001.mat --out corrected.txt"""
+      --drive 1 --prior data/kitti-raw/libviso2/stereo_2011_09_26_drive_0001.mat --out corrected.txt
+  dpc-jax correct --checkpoint runs/own_data --bag run.mcap --prior-topic /odom --out corrected.mcap
+OUT.mcap, OUT.bag or --format rosbag2 write the corrected trajectory and the prior as nav_msgs/Odometry
+(/dpc/odometry, /dpc/prior) at the frames' stamps."""
 
 
 

@@ -110,7 +110,10 @@ examples:
   my_vo --stream | dpc-jax live --checkpoint runs/own_data --calib KITTI/sequences/05/calib.txt \\
       --image-size 375x1242 --out live_05.txt
   dpc-jax live --checkpoint runs/excerpt --calib ROOT/2011_09_26/calib_cam_to_cam.txt \\
-      --records records.txt --realtime 10 --out live.txt"""
+      --records records.txt --realtime 10 --out live.txt
+  dpc-jax live --checkpoint runs/own_data --bag run.mcap --prior-topic /odom --realtime 10 --out live.txt
+A ROS recording (--bag REC) replaces the records: its stereo frames, its CameraInfo (or --calib) and the
+external VO's poses from --prior-topic (docs/formats.md, "Recordings")."""
 
 
 # ----------------------------------------------------------------------------------- shared options
