@@ -218,6 +218,30 @@ def test_the_cache_of_a_recording_is_that_of_the_kitti_layout_byte_for_byte(
         assert (caches[0] / array).read_bytes() == (caches[1] / array).read_bytes(), array
 
 
+def test_prepare_on_a_ros2_bag_folder_is_prepare_on_the_kitti_layout(kitti: dict, tmp_path: Path) -> None:
+    """`dpc-jax prepare --bag` (a ROS 2 bag folder of sqlite3 storage) and `--kitti-odometry` with the same
+    prior and ground-truth file (the layout's poses/00.txt): the same arrays; with `--prior-topic`, the same
+    prior to rounding."""
+    from dpc_jax.data.sequence_cache import load_cache
+
+    root = kitti["random"]
+    folder = write_recording(tmp_path / "run", root, kind="sqlite3", poses={"/odom": kitti["poses"]})
+    prior = root / "poses" / "00.txt"
+    common = ["--out", str(tmp_path / "cache"), "--size", "24x36", "--no-progress"]
+    assert main(["prepare", "--kitti-odometry", str(root), "--sequence", "00", "--prior", str(prior),
+                 *common]) == 0
+    assert main(["prepare", "--bag", str(folder), "--prior", str(prior), "--gt", str(prior), *common]) == 0
+    files, bag = tmp_path / "cache" / "00", tmp_path / "cache" / "run"
+    arrays = sorted(p.name for p in files.glob("*.npy"))
+    assert len(arrays) >= 6 and arrays == sorted(p.name for p in bag.glob("*.npy"))
+    for array in arrays:
+        assert (files / array).read_bytes() == (bag / array).read_bytes(), array
+    assert main(["prepare", "--bag", str(folder), "--prior-topic", "/odom", "--out",
+                 str(tmp_path / "topic"), "--size", "24x36", "--no-progress"]) == 0
+    from_topic = load_cache(tmp_path / "topic" / "run").prior
+    np.testing.assert_allclose(from_topic, load_cache(files).prior, atol=1e-12)
+
+
 def test_vo_on_a_recorded_kitti_drive_is_vo_on_its_files(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
