@@ -599,3 +599,12 @@ def test_cli_corrects_a_recording_as_its_kitti_layout(setup: dict, tmp_path: Pat
         assert [s for s, _ in read[topic]] == stamps_of(times)
         np.testing.assert_allclose(np.stack([p for _, p in read[topic]]), poses, atol=1e-9)
     assert not np.allclose(expected["/dpc/odometry"], prior, atol=1e-6)  # --force: the network's correction
+    # A ROS 1 bag and a ROS 2 bag folder hold the same messages.
+    for out, more in ((tmp_path / "c.bag", []), (tmp_path / "c_ros2", ["--format", "rosbag2"])):
+        assert main([*common, "--bag", str(recording), "--prior-topic", "/vo", "--out", str(out), *more]) == 0
+        with AnyReader([out]) as reader:
+            stamps = [stamp for connection, stamp, _ in reader.messages()
+                      if connection.topic == "/dpc/odometry"]
+            assert stamps == stamps_of(times) and len(reader.connections) == 2
+    assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith("05")) == [
+        "bag.txt", "c.bag", "c.mcap", "c_ros2", "files.txt"]  # nothing else left beside the outputs
