@@ -6,7 +6,6 @@ on the source."""
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -105,9 +104,6 @@ def source_problem(args: argparse.Namespace) -> str | None:
                 "options")
     if kind != "bag" and bag_only:
         return f"{', '.join(bag_only)}: only used with --bag (a recording), which is not given"
-    tolerance = getattr(args, "stamp_tolerance", None)
-    if tolerance is not None and not (math.isfinite(tolerance) and tolerance > 0):
-        return f"--stamp-tolerance {tolerance}: expected a positive number of seconds"
     if kind == "bag" and not path.exists():
         return f"--bag {path}: no such file or folder"
     return (input_problem(path, f"--{kind}", folder=True) if kind != "bag" else None) or input_problem(
