@@ -25,8 +25,8 @@ its folder:
   (``dpc_jax.data.cache_products.farneback_flow``).
 
 The comparison prints (and with ``--results-page`` writes into that page) both folders' versions, our VO's
-metrics side by side and how far the trajectories are apart, and for each product and size the share of
-pixels that differ and the largest and mean absolute difference. ``--smoke`` measures one frame at 64×96
+metrics side by side and how far the trajectories are apart, and for each product and size (the flow also
+as a cache rounds it) the share of pixels that differ and the largest and mean absolute difference. ``--smoke`` measures one frame at 64×96
 and the VO over the first 20 frames (m-ATE only: no 100 m segment), in seconds: the wiring.
 """
 
@@ -172,6 +172,15 @@ def difference(a: np.ndarray, b: np.ndarray, kind: str) -> dict[str, float]:
             "max": float(gap.max(initial=0.0)), "mean": float(gap.mean()) if gap.size else 0.0, **found}
 
 
+def as_cached(flow: np.ndarray) -> np.ndarray:
+    """Flow ``[..., H, W, 2]`` (px) as a cache stores it and the network reads it: rounded to the int16
+    units of its size (``dpc_jax.data.sequence_cache.flow_step``), in px again."""
+    from dpc_jax.data.sequence_cache import decode_flow, encode_flow, flow_step
+
+    step = flow_step(flow.shape[-3:-1])
+    return decode_flow(encode_flow(flow, step), step)
+
+
 def trajectory_gap(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     """The largest distance (m) between the positions of two trajectories ``[N, 4, 4]`` and the largest
     angle (°) between their orientations, over all frames."""
@@ -224,13 +233,17 @@ def compare_text(folders: Sequence[Path], loaded: Sequence[tuple[dict[str, Any],
     differ = int(np.count_nonzero(inliers_a != inliers_b))
     vo = table(["our VO", "A", "B", "B − A"], rows)
     product_rows = []
+    units = {"images": "grey levels", "disparity": "px", "flow": "px (length of the difference)"}
     for name in [name for kind in KINDS for name in arrays_a if name.split()[0] == kind]:
         kind, size = name.split()
-        found = difference(arrays_a[name], arrays_b[name], kind)
-        unit = {"images": "grey levels", "disparity": "px", "flow": "px (length of the difference)"}[kind]
-        product_rows.append([kind, size, f"{100 * found['differ']:.3g} %", number(found["max"]),
-                             number(found["mean"]), unit,
-                             f"{100 * found['validity']:.3g} %" if "validity" in found else ""])
+        pairs = {kind: (arrays_a[name], arrays_b[name])}
+        if kind == "flow":
+            pairs["flow as cached"] = (as_cached(arrays_a[name]), as_cached(arrays_b[name]))
+        for label, (a, b) in pairs.items():
+            found = difference(a, b, kind)
+            product_rows.append([label, size, f"{100 * found['differ']:.3g} %", number(found["max"]),
+                                 number(found["mean"]), units[kind],
+                                 f"{100 * found['validity']:.3g} %" if "validity" in found else ""])
     products = table(["product", "size", "pixels that differ", "max abs diff", "mean abs diff", "unit",
                       "matched in one only"], product_rows)
     frames = ", ".join(map(str, record_a["frames"]))
@@ -242,7 +255,8 @@ def compare_text(folders: Sequence[Path], loaded: Sequence[tuple[dict[str, Any],
         f"on {differ} of {inliers_a.size} pairs.", "",
         f"Frames {frames} (flow: to the next frame) prepared at each size (the right image moved by "
         f"{record_a['shift_px']} px first). Images: the grey left and right images as prepared; disparity: "
-        "StereoSGBM, both cameras, compared where both matched; flow: Farnebäck, left camera.", "", products])
+        "StereoSGBM, both cameras, compared where both matched; flow: Farnebäck, left camera; flow as "
+        "cached: rounded to the int16 units a cache stores (ss-DPC-Net's input).", "", products])
 
 
 def compare(args: argparse.Namespace) -> int:
