@@ -50,8 +50,8 @@ DATE, DRIVE = "2011_09_26", "0001"
 LIBVISO2 = "libviso2/stereo_2011_09_26_drive_0001.mat"
 FRAMES = (0, 35, 70, 105)
 SIZES = (None, (240, 376), (64, 96))  # None: the stored images' own size
-# The right image is moved by a calibration residual before resizing, as a cache of a drive (our VO's
-# measured offset, about +0.6 px here) and the demo's (+0.8 px) are: so cv2.warpAffine takes part too.
+# The right image is moved by a calibration residual before resizing, as a drive's caches (by the offset our
+# VO measures, +1.16 px on this drive) and the demo's (+0.8 px) are: so cv2.warpAffine takes part too.
 SHIFT_PX = 0.6
 SMOKE_FRAMES, SMOKE_VO_FRAMES = (0,), 20
 METRICS = (("seg_trans_pct", "segment error t (%)"), ("seg_rot_deg_per_100m", "segment error r (°/100 m)"),
