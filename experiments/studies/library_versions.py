@@ -99,7 +99,7 @@ def measure(args: argparse.Namespace) -> int:
         if args.results_page is not None:
             raise ValueError("--results-page: only with --compare (a measurement writes its folder)")
         sequence = open_raw(args.kitti_raw, DATE, DRIVE, poses=args.kitti_raw / LIBVISO2)
-        kit.claim(args.out, [("--kitti-raw", args.kitti_raw)], option="--out")
+        kit.claim(args.out, [("--kitti-raw", args.kitti_raw)], script=__file__, option="--out")
     except (OSError, ValueError, KeyError) as error:
         return kit.refuse("library_versions", error)
     clock = kit.Clock()
@@ -263,7 +263,8 @@ def compare_text(folders: Sequence[Path], loaded: Sequence[tuple[dict[str, Any],
 
 def compare(args: argparse.Namespace) -> int:
     try:
-        kit.claim(None, [("--compare", folder) for folder in args.compare], page=args.results_page)
+        kit.claim(None, [("--compare", folder) for folder in args.compare], script=__file__,
+                  page=args.results_page)
         loaded = [_load(folder) for folder in args.compare]
         text = compare_text(args.compare, loaded)
     except (OSError, ValueError, KeyError) as error:
@@ -278,4 +279,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(kit.interruptible(main, __file__))
