@@ -86,7 +86,7 @@ def size_name(shape: tuple[int, ...]) -> str:
 def measure(args: argparse.Namespace) -> int:
     from dpc_jax._io import atomic_write
     from dpc_jax.data.cache_products import farneback_flow, grey
-    from dpc_jax.data.kitti import load_image, open_raw
+    from dpc_jax.data.kitti import open_raw
     from dpc_jax.data.poses_io import write_kitti_poses
     from dpc_jax.data.preparation import prepared_pair, resized_image, resized_intrinsics
     from dpc_jax.eval.evaluation import evaluate
@@ -111,6 +111,9 @@ def measure(args: argparse.Namespace) -> int:
     scores = evaluate(sequence.poses, {"vo": result.poses}).estimates["vo"]
     clock.say(f"our VO: {len(sequence)} frames")
 
+    # Each frame and the next one (its flow's target), decoded once for every size.
+    indices = sorted({i for k in frames for i in (k, k + 1)})
+    decoded = {frame.index: frame.decode() for frame in sequence.images.stream(sequence.image_size, indices)}
     # Any: typed as arrays, mypy matches the ** of savez_compressed below against its allow_pickle: bool.
     arrays: dict[str, Any] = {}
     for shape in sizes:
@@ -118,11 +121,9 @@ def measure(args: argparse.Namespace) -> int:
         K = resized_intrinsics(sequence.K, sequence.image_size, size)
         images, disparities, flows = [], [], []
         for k in frames:
-            left, right, disparity = prepared_pair(load_image(sequence.left_paths[k]),
-                                                   load_image(sequence.right_paths[k]), size, K,
-                                                   sequence.baseline, SHIFT_PX)
+            left, right, disparity = prepared_pair(*decoded[k], size, K, sequence.baseline, SHIFT_PX)
             assert disparity is not None  # every size here is wide enough for StereoSGBM
-            following = resized_image(load_image(sequence.left_paths[k + 1]), size)
+            following = resized_image(decoded[k + 1][0], size)
             images.append(np.stack([grey(left), grey(right)]))
             disparities.append(disparity)
             flows.append(farneback_flow(grey(left), grey(following)))
