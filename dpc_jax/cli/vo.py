@@ -57,8 +57,9 @@ flushed; the prior (this VO's poses, those `dpc-jax vo` writes without --correct
 record above); the CSV gets one row per frame with its pose: which state produced it (start, prior,
 forced, or the part of the correction applied), the tests' events, the VO's columns and the time of
 each stage (`dpc-jax live --help` lists the columns); OUT with suffix .json the summary at the end.
---realtime HZ replays the sequence at the camera's rate and reports the frames whose pose was written
-after the next frame was due. Ctrl-C: exit status 130, every line written so far whole.
+--realtime HZ replays the sequence at the camera's rate (without HZ at its own times: a recording's
+header stamps, the layouts' times) and reports the frames whose pose was written after the next frame
+was due. Ctrl-C: exit status 130, every line written so far whole.
   dpc-jax vo --kitti-raw ROOT --date 2011_09_26 --drive 0001 --gt GT.mat --start gt \\
       --correct runs/drive_0005 --realtime 10 --out live.txt"""
 
@@ -270,18 +271,19 @@ def _correct_live(
         Corrected,
         LiveOutputs,
         LiveSummary,
+        Pace,
         correct_frames,
         corrector,
         network_words,
         report_stream,
         write_summary,
     )
+    from dpc_jax.data.calibration import Calibration
     from dpc_jax.data.priors import FRAMES_KEY
     from dpc_jax.vo import StereoVO, VOResult
     from dpc_jax.vo.odometry import summary
 
     import_jax()
-    from dpc_jax.correction.live import Calibration
     from dpc_jax.training.checkpoints import CheckpointError
 
     first, stop = frames
@@ -293,7 +295,7 @@ def _correct_live(
         problem = restore_problem(failed.folder, failed.__cause__ or failed)
         print(f"dpc-jax vo: error: {problem}", file=sys.stderr)
         return 1
-    live_summary = LiveSummary(args.realtime, time.perf_counter() - began)
+    live_summary = LiveSummary(Pace.of(args.realtime, sequence.times), time.perf_counter() - began)
     vo = StereoVO(sequence.K, sequence.baseline, config)
     # Per pair, for the VO's own summary and record; per frame, both trajectories for the evaluation.
     kept: dict[str, list[Any]] = {k: [] for k in ("relative", "inliers", "status", "times", "offset", "prior",

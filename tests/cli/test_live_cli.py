@@ -228,6 +228,42 @@ def test_live_on_a_recording_writes_what_its_records_give(
     assert "--prior-topic /nowhere: no such topic" in capsys.readouterr().err
 
 
+def test_live_replays_a_recording_at_its_own_stamps(
+    world: dict, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`live --bag REC --realtime` (no HZ): frame k arrives when the recording's header stamps say, its
+    stamps irregular here (0.05 s to 0.3 s apart), and misses its deadline when its pose is written after
+    the next frame's stamp; records, which have no stamps, are refused it before JAX starts."""
+    from recordings import write_recording
+
+    kitti = tmp_path / "kitti"
+    shutil.copytree(world["kitti"], kitti)
+    stamps = [0.0, 0.05, 0.35, 0.4, 0.5, 0.8]
+    (kitti / "sequences" / "00" / "times.txt").write_text("".join(f"{t:.6e}\n" for t in stamps))
+    recording = write_recording(tmp_path / "rec.mcap", kitti, poses={"/vo": world["poses"]})
+    out = tmp_path / "bag.txt"
+    assert main(["live", "--checkpoint", str(world["run"]), "--bag", str(recording), "--prior-topic", "/vo",
+                 "--realtime", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    rows = _rows(tmp_path / "bag.csv")
+    assert [float(row["time_s"]) for row in rows] == pytest.approx(stamps, abs=1e-6)
+    for k, row in enumerate(rows):
+        assert float(row["arrival_s"]) == pytest.approx(stamps[k], abs=1e-6)
+        assert float(row["written_s"]) >= stamps[k]  # the command waited for the stamp
+        due = stamps[k + 1] if k + 1 < FRAMES else float("inf")
+        assert row["missed"] == str(int(float(row["written_s"]) > due))
+    missed = [int(row["frame"]) for row in rows if row["missed"] == "1"]
+    record = json.loads((tmp_path / "bag.json").read_text())
+    assert record["realtime_stamps"] and record["realtime_hz"] is None
+    assert record["missed_deadlines"] == missed
+    assert "realtime at the frames' own stamps:" in printed
+    np.testing.assert_allclose(_poses(out), world["poses"], atol=1e-9)
+    assert main(_live_args(world, tmp_path / "r.txt", "--records", world["tmp"] / "records.txt",
+                           "--realtime")) == 2
+    assert "--realtime without HZ replays a recording (--bag)" in _one_line(capsys.readouterr().err)
+    assert not (tmp_path / "r.txt").exists()
+
+
 @pytest.fixture
 def interruptible() -> object:
     """SIGINT raises KeyboardInterrupt in the main thread, as from a terminal (a suite started in the
