@@ -1,11 +1,15 @@
 """A ROS recording as a source (``dpc_jax.sources.bag``): recordings written by ``rosbags``' own writers
 (tests/recordings.py) from a KITTI odometry sequence give the frames, calibration, times and poses the KITTI
-layout gives, the same cache byte for byte and the same VO trajectory; images of every encoding decode as
-OpenCV decodes them; stamps pair left and right; CameraInfo with distortion is rectified as OpenCV's
-``undistort`` does; ``/tf_static`` moves a pose onto the camera; and each bad recording is one line."""
+layout gives and the same cache byte for byte; the real drive 0001 as every kind of recording, with raw and
+PNG-compressed images, gives `dpc-jax vo` the very trajectory of the raw layout; images of every encoding
+decode as OpenCV decodes them; stamps pair left and right; CameraInfo with distortion is rectified as
+OpenCV's ``undistort`` does; ``/tf_static`` moves a pose onto the camera; and each bad recording is one
+line."""
 
 from __future__ import annotations
 
+import contextlib
+import io
 from pathlib import Path
 
 import cv2
@@ -242,23 +246,47 @@ def test_prepare_on_a_ros2_bag_folder_is_prepare_on_the_kitti_layout(kitti: dict
     np.testing.assert_allclose(from_topic, load_cache(files).prior, atol=1e-12)
 
 
-def test_vo_on_a_recorded_kitti_drive_is_vo_on_its_files(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
-    """The first 6 frames of the real drive 0001 (colour, 375×1242) as a recording: `dpc-jax vo` writes the
-    very trajectory it writes from the raw layout's files (stamps from timestamps.txt, P from P_rect)."""
+def _median_inliers(printed: str) -> list[int]:
+    """The median inliers of each `dpc-jax vo` run's summary line in its printed output."""
+    return [int(line.split("median inliers ")[1].split(",")[0])
+            for line in printed.splitlines() if "median inliers" in line]
+
+
+# The frames of the real drive 0001 that `vo --bag` runs on: three pairs, enough for a median of inliers.
+DRIVE_FRAMES = 4
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """The raw layout of the real drive 0001 and `dpc-jax vo`'s trajectory of its first frames from the
+    layout's files, as bytes (once for the module)."""
     from conftest import DATA
 
-    raw = DATA / "kitti-raw"
-    path = write_raw_recording(tmp_path / "drive.mcap", raw, "2011_09_26", "0001", 6, compressed=True)
-    for name, source in (("files", ["--kitti-raw", str(raw), "--date", "2011_09_26", "--drive", "1",
-                                    "--frames", "0:6"]),
-                         ("bag", ["--bag", str(path)])):
-        assert main(["vo", *source, "--out", str(tmp_path / f"{name}.txt"), "--no-progress"]) == 0
-    assert (tmp_path / "files.txt").read_bytes() == (tmp_path / "bag.txt").read_bytes()
-    inliers = [int(line.split("median inliers ")[1].split(",")[0])
-               for line in capsys.readouterr().out.splitlines() if "median inliers" in line]
-    assert len(inliers) == 2 and min(inliers) > 50  # the VO tracked: the equality is not of extrapolations
+    raw, tmp = DATA / "kitti-raw", tmp_path_factory.mktemp("drive")
+    out, printed = tmp / "files.txt", io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        status = main(["vo", "--kitti-raw", str(raw), "--date", "2011_09_26", "--drive", "1", "--frames",
+                       f"0:{DRIVE_FRAMES}", "--out", str(out), "--no-progress"])
+    assert status == 0, f"dpc-jax vo on {raw}"
+    inliers = _median_inliers(printed.getvalue())
+    assert len(inliers) == 1 and inliers[0] > 50  # the VO tracked: the equality is not of extrapolations
+    return {"raw": raw, "trajectory": out.read_bytes()}
+
+
+@pytest.mark.parametrize("compressed", [False, True], ids=["raw", "png"])
+@pytest.mark.parametrize("kind", KINDS)
+def test_vo_on_a_recorded_kitti_drive_is_vo_on_its_files(
+    drive: dict, tmp_path: Path, capsys: pytest.CaptureFixture[str], kind: str, compressed: bool
+) -> None:
+    """The first frames of the real drive 0001 (colour, 375×1242) as each kind of recording, with raw
+    (``rgb8``) or PNG-compressed images: `dpc-jax vo --bag` writes the very trajectory it writes from the
+    raw layout's files (stamps from timestamps.txt, P from P_rect)."""
+    path = write_raw_recording(tmp_path / f"drive{SUFFIX[kind]}", drive["raw"], "2011_09_26", "0001",
+                               DRIVE_FRAMES, kind=kind, compressed=compressed)
+    assert main(["vo", "--bag", str(path), "--out", str(tmp_path / "bag.txt"), "--no-progress"]) == 0
+    assert (tmp_path / "bag.txt").read_bytes() == drive["trajectory"]
+    inliers = _median_inliers(capsys.readouterr().out)
+    assert len(inliers) == 1 and inliers[0] > 50
 
 
 def test_evaluate_reads_trajectories_from_pose_topics_paired_by_stamp(
