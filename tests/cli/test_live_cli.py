@@ -232,13 +232,14 @@ def test_live_replays_a_recording_at_its_own_stamps(
     world: dict, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """`live --bag REC --realtime` (no HZ): frame k arrives when the recording's header stamps say, its
-    stamps irregular here (0.05 s to 0.3 s apart), and misses its deadline when its pose is written after
-    the next frame's stamp; records, which have no stamps, are refused it before JAX starts."""
+    stamps irregular here (0.05 s to 0.2 s apart), and misses its deadline when its pose is written after
+    the next frame's stamp; `vo --correct --realtime` keeps the layout's times the same way; records,
+    which have no stamps, are refused it before JAX starts."""
     from recordings import write_recording
 
     kitti = tmp_path / "kitti"
     shutil.copytree(world["kitti"], kitti)
-    stamps = [0.0, 0.05, 0.35, 0.4, 0.5, 0.8]
+    stamps = [0.0, 0.05, 0.25, 0.3, 0.35, 0.5]
     (kitti / "sequences" / "00" / "times.txt").write_text("".join(f"{t:.6e}\n" for t in stamps))
     recording = write_recording(tmp_path / "rec.mcap", kitti, poses={"/vo": world["poses"]})
     out = tmp_path / "bag.txt"
@@ -258,6 +259,12 @@ def test_live_replays_a_recording_at_its_own_stamps(
     assert record["missed_deadlines"] == missed
     assert "realtime at the frames' own stamps:" in printed
     np.testing.assert_allclose(_poses(out), world["poses"], atol=1e-9)
+    # `vo --correct --realtime` on the layout the recording was written from: the sequence's times.txt.
+    assert main(["vo", "--kitti-odometry", str(kitti), "--sequence", "00", "--correct", str(world["run"]),
+                 "--realtime", "--out", str(tmp_path / "vo.txt")]) == 0
+    arrivals = [float(row["arrival_s"]) for row in _rows(tmp_path / "vo.csv")]
+    assert arrivals == pytest.approx(stamps, abs=1e-6)
+    capsys.readouterr()  # vo's own lines (its random images fall back to constant velocity)
     assert main(_live_args(world, tmp_path / "r.txt", "--records", world["tmp"] / "records.txt",
                            "--realtime")) == 2
     assert "--realtime without HZ replays a recording (--bag)" in _one_line(capsys.readouterr().err)
