@@ -50,6 +50,7 @@ import numpy as np
 
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 from dpc_jax.runtime.machine import this_cpu
+from dpc_jax.runtime.versions import versions_line
 
 ROOT = Path(__file__).resolve().parents[1]
 DRIVE = ROOT.parent / "shared" / "data" / "kitti-raw"
@@ -63,7 +64,9 @@ TIMED = ("vo", "correction", "both", "png")
 STAGES = ("prepare", "network", "measure")
 HEADER = ("method", "size", "preset", "compile s", "VO ms p50 / p99 / max", "correction", "VO + correction",
           "from PNG", "correction's stages, p50 ms: prepare / network / measure", "command", "machine",
-          "commit", "date")
+          "libraries", "commit", "date")
+# The libraries column came on 2026-12-07: a row of an older table says so.
+UNRECORDED = "not recorded"
 
 
 @dataclass(frozen=True)
@@ -84,7 +87,7 @@ def source(synthetic: bool) -> Frames:
 
     if not synthetic and (DRIVE / "2011_09_26").is_dir():
         sequence = open_raw(DRIVE, "2011_09_26", "0001")
-        paths = list(zip(sequence.left_paths, sequence.right_paths, strict=True))
+        paths = list(zip(sequence.images.left_paths, sequence.images.right_paths, strict=True))
         return Frames(paths, sequence.K, sequence.baseline, sequence.image_size,
                       f"KITTI raw 2011_09_26 drive 0001 ({sequence.image_size[1]}x{sequence.image_size[0]})")
     K = np.array([[721.5377, 0.0, 609.5593], [0.0, 721.5377, 172.854], [0.0, 0.0, 1.0]])
@@ -210,7 +213,8 @@ def rows(results: Sequence[Result], preset: str, command: str, machine: str, com
     for r in results:
         stages = " / ".join(f"{r.ms(stage)[0]:.1f}" for stage in STAGES)
         out.append([NAMES[r.method], f"{r.size[0]}×{r.size[1]}", preset, f"{r.compile_s:.1f}",
-                    *(_three(r.ms(name)) for name in TIMED), stages, f"`{command}`", machine, commit, date])
+                    *(_three(r.ms(name)) for name in TIMED), stages, f"`{command}`", machine, versions_line(),
+                    commit, date])
     return out
 
 
@@ -234,6 +238,9 @@ def parse_table(text: str) -> list[list[str]]:
         if not line.startswith("|"):
             continue
         cells = [c.strip().replace("\\|", "|") for c in line.strip().strip("|").split(" | ")]
+        if len(cells) == len(HEADER) - 1:  # a table from before the libraries column
+            at = HEADER.index("libraries")
+            cells = [*cells[:at], UNRECORDED, *cells[at:]]
         if len(cells) == len(HEADER) and cells[0] != HEADER[0] and set(cells[0]) != {"-"}:
             found.append(cells)
     return found

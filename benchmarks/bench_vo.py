@@ -42,7 +42,7 @@ def main() -> None:
     start = time.perf_counter()
     frames = [
         (load_image(left, grey=True), load_image(right, grey=True))
-        for left, right in zip(sequence.left_paths[:n], sequence.right_paths[:n], strict=True)
+        for left, right in zip(sequence.images.left_paths[:n], sequence.images.right_paths[:n], strict=True)
     ]
     decode_ms = (time.perf_counter() - start) / n * 1e3
     config = VOConfig()

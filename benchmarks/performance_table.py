@@ -131,6 +131,16 @@ def parse_vo(text: str) -> list[Row]:
                 f"{vo[1]} frames/s ({decoding[1]} with PNG decoding)")]
 
 
+def parse_bag(text: str) -> list[Row]:
+    size = _find(r"decoded to colour, (\d+) frames of (\d+)x(\d+)", text, "bench_bag")
+    rates = {name: _table_row(text, name, "bench_bag")[1]
+             for name in ("KITTI PNG files", "MCAP, rgb8", "MCAP, PNG-compressed", "ROS 1 bag, rgb8")}
+    return [Row("a recording's stereo pairs read and decoded",
+                f"{size[2]}×{size[3]} colour, {size[1]} frames",
+                f"{rates['MCAP, rgb8']} frames/s from MCAP (rgb8), {rates['MCAP, PNG-compressed']} (PNG), "
+                f"{rates['ROS 1 bag, rgb8']} from a ROS 1 bag; KITTI's PNG files {rates['KITTI PNG files']}")]
+
+
 def parse_metrics(text: str) -> list[Row]:
     poses = _find(r"N = (\d+) poses", text, "bench_metrics")
     found = _find(r"^trajectory_metrics \(all\)\s+([\d.]+)\s+([\d.]+)\s+([\d.]+)\s+([\d.]+)×", text,
@@ -221,6 +231,7 @@ BENCHMARKS = {
         Benchmark("bench_synth", ("--write",),
                   ("--write", "--frames", "4", "--size", "64x96", "--repeats", "1"), parse_synth),
         Benchmark("bench_vo", (), ("--frames", "12", "--repeats", "1"), parse_vo),
+        Benchmark("bench_bag", (), ("--frames", "12", "--repeats", "1"), parse_bag),
         Benchmark("bench_metrics", (), ("--repeats", "2"), parse_metrics),
         Benchmark("bench_cli", (), ("--repeats", "1"), parse_cli),
         Benchmark("bench_core", (),

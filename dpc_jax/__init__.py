@@ -23,7 +23,8 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     # Trajectory files.
     "dpc_jax.data.poses_io": ("read_trajectory", "write_kitti_poses", "write_tum", "associate"),
     # Sequences on disk and their preparation.
-    "dpc_jax.data": ("StereoSequence", "open_odometry", "open_raw", "prepare_sequence"),
+    "dpc_jax.data": ("StereoSequence", "open_odometry", "open_raw", "prepare_sequence", "Calibration",
+                     "load_calibration"),
     "dpc_jax.data.sequence_cache": ("load_cache",),
     # The networks and their configurations.
     "dpc_jax.nn.model_config": ("ModelConfig", "SSDPCLossConfig", "StereoDPCLossConfig"),
@@ -35,7 +36,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "dpc_jax.correction.corrector": ("correct_cache", "correct_sequence", "write_trajectory"),
     "dpc_jax.results.correction": ("Correction",),
     "dpc_jax.results.acceptance": ("Acceptance",),
-    "dpc_jax.correction.live": ("LiveCorrector", "Calibration"),
+    "dpc_jax.correction.live": ("LiveCorrector",),
     # Evaluating against ground truth, and what a prior's error is made of.
     "dpc_jax.eval.evaluation": ("evaluate", "Evaluation"),
     "dpc_jax.eval.metrics": ("m_ate", "segment_errors", "ate", "rpe"),

@@ -309,6 +309,7 @@ def make_caches(root: Path, names: list[str], n_frames: int = 12, flow: bool = F
     """Prepared caches of tiny textured sequences moving 1 m/frame forward, with ground truth (and with
     ``flow``, the optical flow ss-DPC-Net reads)."""
     from dpc_jax.data.cache import prepare_sequence
+    from dpc_jax.data.frames import ImageFiles
     from dpc_jax.data.kitti import StereoSequence
 
     h, w = TINY_SIZE
@@ -328,7 +329,7 @@ def make_caches(root: Path, names: list[str], n_frames: int = 12, flow: bool = F
         gt[:, 2, 3] = np.arange(n_frames)
         prior = gt.copy()
         prior[:, 0, 3] += rng.normal(0, 0.01, n_frames)
-        sequence = StereoSequence(name, tuple(paths["l"]), tuple(paths["r"]), K, 0.5, TINY_SIZE,
+        sequence = StereoSequence(name, ImageFiles(tuple(paths["l"]), tuple(paths["r"])), K, 0.5, TINY_SIZE,
                                   np.arange(n_frames) * 0.1, gt)
         prepare_sequence(sequence, prior, root / "cache", size=TINY_SIZE, flow=flow, progress=False,
                          workers=1)

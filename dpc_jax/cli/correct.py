@@ -33,6 +33,7 @@ from dpc_jax.cli._common import (
     path_text,
     restore_problem,
 )
+from dpc_jax.cli._source import add_source_arguments, open_recording, source_inputs, source_problem
 from dpc_jax.correction.decision import DEFAULT_MEAN_TEST, MEAN_TESTS
 from dpc_jax.correction.judge import (
     JUDGE_SIZE,
@@ -46,8 +47,12 @@ from dpc_jax.data.poses_io import frames_path
 from dpc_jax.report.correction_report import applied_words
 from dpc_jax.report.evaluation_report import REPORT_FILES as EVALUATION_FILES
 from dpc_jax.runtime.progress import progress_mode
+from dpc_jax.sources.odometry_out import recording_kind
 
 if TYPE_CHECKING:
+    import numpy as np
+
+    from dpc_jax._io import OutputSet
     from dpc_jax.correction.adapt import Adaptation
     from dpc_jax.correction.corrector import Correction
     from dpc_jax.correction.inference import TrainedRun
@@ -68,6 +73,7 @@ EPILOG = """The sequence (--data, one of):
   a prepared cache   --data cache/05   (from `dpc-jax prepare`; corrects its own prior unless --prior)
   KITTI odometry     --kitti-odometry ROOT --sequence 05 --prior FILE   (also the synthetic layout)
   KITTI raw          --kitti-raw ROOT --date 2011_09_26 --drive 1 --prior FILE
+  a ROS recording    --bag REC --prior-topic TOPIC (or --prior FILE)   (docs/formats.md, "Recordings")
 Raw inputs are prepared on the fly at the run's image size (with flow when the network reads flow) into
 --cache DIR (kept, reused when up to date) or a temporary folder. Ground truth: poses/XX.txt (odometry),
 else --gt, else the poses_gt of a .mat prior; a cache keeps the ground truth it was prepared with.
@@ -85,7 +91,10 @@ starting at 0), the source frame number of every pose is written to OUT's stem +
 examples:
   dpc-jax correct --checkpoint runs/kitti_00 --data cache/00 --out corrected_00.txt --report report_00
   dpc-jax correct --checkpoint runs/excerpt --select loop --kitti-raw data/kitti-raw --date 2011_09_26 \\
-      --drive 1 --prior data/kitti-raw/libviso2/stereo_2011_09_26_drive_0001.mat --out corrected.txt"""
+      --drive 1 --prior data/kitti-raw/libviso2/stereo_2011_09_26_drive_0001.mat --out corrected.txt
+  dpc-jax correct --checkpoint runs/own_data --bag run.mcap --prior-topic /odom --out corrected.mcap
+OUT.mcap, OUT.bag or --format rosbag2 write the corrected trajectory and the prior as nav_msgs/Odometry
+(/dpc/odometry, /dpc/prior) at the frames' stamps."""
 
 
 
@@ -100,17 +109,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "validation gradient loss, most loop closures, or the newest")
     data = parser.add_mutually_exclusive_group(required=True)
     data.add_argument("--data", type=path_option, metavar="CACHE", help="a prepared sequence cache folder")
-    data.add_argument("--kitti-odometry", type=path_option, metavar="ROOT",
-                      help="odometry (or synthetic) layout root")
-    data.add_argument("--kitti-raw", type=path_option, metavar="ROOT", help="raw layout root (holds DATE/)")
-    parser.add_argument("--sequence", metavar="XX", help="odometry sequence")
-    parser.add_argument("--date", metavar="YYYY_MM_DD", help="raw: recording date, e.g. 2011_09_26")
-    parser.add_argument("--drive", metavar="NNNN", help="raw: drive number")
-    parser.add_argument("--grey", action="store_true",
-                        help="raw inputs: the grey pair (odometry: image_0/image_1; raw: image_00/image_01); "
-                        "default: the colour pair, or for a raw drive without one its grey pair")
+    add_source_arguments(parser, data, prior_topic=True)
     parser.add_argument("--prior", type=path_text, metavar="FILE",
-                        help="VO estimate to correct (KITTI/TUM text or .mat); required with raw inputs")
+                        help="VO estimate to correct (KITTI/TUM text or .mat); required with raw inputs (a "
+                        "recording: or --prior-topic)")
     parser.add_argument("--prior-format", choices=("kitti", "tum", "mat"), help="override the extension")
     parser.add_argument("--gt", type=path_text, metavar="FILE",
                         help="raw inputs: ground-truth pose file (KITTI/TUM/.mat)")
@@ -123,8 +125,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mono-rescale", action="store_true",
                         help="raw inputs: rescale each prior step to the ground-truth step (monocular VO)")
     parser.add_argument("--out", required=True, type=file_path_option, metavar="FILE",
-                        help="corrected trajectory")
-    parser.add_argument("--format", choices=("kitti", "tum"), default="kitti", help="format of --out")
+                        help="corrected trajectory; OUT.mcap (an MCAP file), OUT.bag (a ROS 1 bag) or "
+                        "--format rosbag2 (a ROS 2 bag folder): nav_msgs/Odometry per frame, the prior "
+                        "beside it")
+    parser.add_argument("--format", choices=("kitti", "tum", "rosbag2"), default="kitti",
+                        help="format of --out (a name ending in .mcap or .bag: that recording)")
     parser.add_argument("--rotation-only", action=argparse.BooleanOptionalAction, default=None,
                         help="apply only the rotation of the correction (default: the run's rotation_only)")
     parser.add_argument("--batch-size", type=int, metavar="N", help="inference batch (default: the run's)")
@@ -185,12 +190,16 @@ def _check_arguments(args: argparse.Namespace) -> str | None:
     raw_only = {"--gt": args.gt, "--cache": args.cache, "--frames": args.frames,
                 "--remove-static": args.remove_static or None, "--mono-rescale": args.mono_rescale or None,
                 "--grey": args.grey or None}
+    problem = source_problem(args)
+    if problem is not None:
+        return problem
     if args.data is not None:
         given = [name for name, value in raw_only.items() if value is not None]
         if given or args.sequence or args.date or args.drive:
             extra = given + [o for o, v in (("--sequence", args.sequence), ("--date", args.date),
                                             ("--drive", args.drive)) if v]
-            return f"{', '.join(extra)} only apply to raw inputs (--kitti-odometry/--kitti-raw), not --data"
+            return (f"{', '.join(extra)} only apply to raw inputs (--kitti-odometry/--kitti-raw/--bag), not "
+                    "--data")
         if not args.data.is_dir():
             return f"--data {args.data}: not a folder (expected a cache prepared by `dpc-jax prepare`)"
         if not (args.data / "manifest.json").is_file():
@@ -203,13 +212,13 @@ def _check_arguments(args: argparse.Namespace) -> str | None:
         if args.no_judge:
             return ("--no-judge goes with raw inputs (--kitti-odometry/--kitti-raw), whose default judge it "
                     "turns off; a --data cache is judged only with --judge CACHE")
-    elif args.kitti_odometry is not None:
-        if not args.sequence or args.date or args.drive:
-            return "--kitti-odometry needs --sequence (and no --date/--drive)"
-    elif not args.date or not args.drive or args.sequence:
-        return "--kitti-raw needs --date and --drive (and no --sequence)"
-    if args.data is None and args.prior is None:
-        return "--prior FILE is required with raw inputs (the VO estimate to correct)"
+    if args.data is None and args.prior is None and args.prior_topic is None:
+        return ("--prior FILE is required with raw inputs (the VO estimate to correct; a recording: or "
+                "--prior-topic TOPIC)")
+    if args.prior is not None and args.prior_topic is not None:
+        return "--prior and --prior-topic: give one prior"
+    if args.format == "tum" and recording_kind(args.out) is not None:
+        return f"--format tum: --out {args.out} is named as a recording; give a text file's name"
     if args.batch_size is not None and args.batch_size < 1:
         return f"--batch-size must be >= 1, got {args.batch_size}"
     if not 0.0 < args.alpha < 1.0:
@@ -229,9 +238,7 @@ def _check_arguments(args: argparse.Namespace) -> str | None:
         return "--judge-size goes with raw inputs (with --data: --judge CACHE)"
     if args.adapt_lr is not None and not args.adapt_lr > 0:
         return f"--adapt-lr must be > 0, got {args.adapt_lr}"
-    problem = (input_problem(args.kitti_odometry, "--kitti-odometry", folder=True)
-               or input_problem(args.judge, "--judge", folder=True)
-               or input_problem(args.kitti_raw, "--kitti-raw", folder=True)
+    problem = (input_problem(args.judge, "--judge", folder=True)
                or input_problem(args.prior, "--prior") or input_problem(args.gt, "--gt")
                or output_problem(args.out, "--out") or output_problem(args.report, "--report", folder=True)
                or output_problem(args.cache, "--cache", folder=True)
@@ -242,8 +249,7 @@ def _check_arguments(args: argparse.Namespace) -> str | None:
         return (f"--adapt: the adapted network goes beside --out (OUT's stem + '.adapted/'), and --out "
                 f"{args.out} is a stream; give --out a file")
     inputs = [("--checkpoint", args.checkpoint), ("--data", args.data), ("--judge", args.judge),
-              ("--kitti-odometry", args.kitti_odometry), ("--kitti-raw", args.kitti_raw),
-              ("--prior", args.prior), ("--gt", args.gt)]
+              *source_inputs(args), ("--prior", args.prior), ("--gt", args.gt)]
     outputs = [("--out", args.out), ("--report", args.report), ("--cache", args.cache),
                ("--adapt", adapted_path(args.out) if args.adapt else None)]
     problem = (overlap_problem(inputs, outputs)
@@ -276,14 +282,15 @@ def _raw_inputs_problem(args: argparse.Namespace) -> str | None:
     from dpc_jax.data.priors import load_prior
 
     try:
-        sequence = _open_sequence(args)
+        recording = open_recording(args, args.sequence or args.drive)
     except (OSError, ValueError, KeyError) as error:
         return str(error)
+    sequence = recording.sequence
     problem = frames_problem(args.frames, len(sequence), sequence.name)
     if problem is not None:
         return problem
     try:
-        load_prior(args.prior, len(sequence), args.prior_format, frames=args.frames)
+        load_prior(_prior(args), len(sequence), args.prior_format, frames=args.frames)
     except (OSError, ValueError) as error:
         return f"--prior {error}"
     try:
@@ -297,12 +304,18 @@ def _raw_inputs_problem(args: argparse.Namespace) -> str | None:
 
 
 def _open_sequence(args: argparse.Namespace) -> StereoSequence:
-    """The sequence of the raw inputs (``--kitti-odometry`` or ``--kitti-raw``), opened (no JAX)."""
-    from dpc_jax.data.kitti import open_odometry, open_raw
+    """The sequence of the raw inputs (``--kitti-odometry``, ``--kitti-raw`` or ``--bag``), opened once
+    (no JAX)."""
+    return open_recording(args, args.sequence or args.drive).sequence
 
-    if args.kitti_odometry is not None:
-        return open_odometry(args.kitti_odometry, args.sequence, grey=args.grey)
-    return open_raw(args.kitti_raw, args.date, args.drive, cameras="grey" if args.grey else "auto")
+
+def _prior(args: argparse.Namespace) -> str | np.ndarray:
+    """The prior of the raw inputs: ``--prior FILE``, or the recording's ``--prior-topic``."""
+    if args.prior is not None:
+        return str(args.prior)
+    prior = open_recording(args, None).prior
+    assert prior is not None, "_check_arguments asks for a prior"
+    return prior
 
 
 def _cache_folders_problem(args: argparse.Namespace) -> str | None:
@@ -529,11 +542,11 @@ def _sequence(
     common = {"remove_static": args.remove_static, "mono_rescale": args.mono_rescale, "frames": args.frames,
               "prior_format": args.prior_format, "ground_truth": args.gt, "verify": args.verify,
               "progress": progress_mode(args.no_progress)}
-    cache = prepare_sequence(sequence, args.prior, cache_root, size=run_.image_size, flow=run_.use_flow,
-                             **common)
+    prior = _prior(args)
+    cache = prepare_sequence(sequence, prior, cache_root, size=run_.image_size, flow=run_.use_flow, **common)
     judge = None
     if args.judge_size is not None:
-        judge = prepare_sequence(sequence, args.prior, cache_root, size=args.judge_size,
+        judge = prepare_sequence(sequence, prior, cache_root, size=args.judge_size,
                                  name=f"{sequence.name}_judge", **common)
     from dpc_jax.data.sequence_cache import load_cache
 
@@ -577,9 +590,13 @@ def _write_outputs(
 
     # The corrected trajectory (with its frame list) and the report are written all or nothing.
     with OutputSet() as outputs:
-        staged = write_trajectory(outputs.file(args.out), correction, args.format)
-        if not is_stream(args.out):
-            record_beside([args.out.parent / path.name for path in staged[1:]], outputs)
+        kind = recording_kind(args.out) or ("rosbag2" if args.format == "rosbag2" else None)
+        if kind is not None:
+            staged = [_write_recording(args, outputs, kind, correction)]
+        else:
+            staged = write_trajectory(outputs.file(args.out), correction, args.format)
+            if not is_stream(args.out):
+                record_beside([args.out.parent / path.name for path in staged[1:]], outputs)
         if args.report is not None:
             title = f"DPC correction: {correction.name}"
             folder = outputs.folder(args.report)
@@ -595,6 +612,30 @@ def _write_outputs(
         # A stream takes the trajectory only; the frame list staged beside it is not made.
         return [args.out]
     return [args.out.parent / path.name for path in staged]
+
+
+def _write_recording(args: argparse.Namespace, outputs: OutputSet, kind: str, correction: Correction) -> Path:
+    """Stage ``--out`` as a recording of the corrected trajectory and the prior (``nav_msgs/Odometry`` at
+    the frames' stamps: a recording's own, else the frame times); return its final path."""
+    import numpy as np
+
+    from dpc_jax.sources.odometry_out import CORRECTED, PRIOR, write_odometry
+
+    source = open_recording(args, args.sequence or args.drive) if args.data is None else None
+    first = source.first_stamp if source is not None else 0
+    frames = (source.world_frame, source.camera_frame) if source is not None else ("world", "camera")
+    stamps = first + np.round(np.asarray(correction.times, np.float64) * 1e9).astype(np.int64)
+    trajectories = {CORRECTED: correction.corrected, PRIOR: correction.prior}
+    if kind == "rosbag2":
+        folder = outputs.folder(args.out)
+        staged = folder / ".rosbag2"
+        write_odometry(staged, kind, stamps, *frames, trajectories)
+        for item in staged.iterdir():
+            item.rename(folder / item.name)
+        staged.rmdir()
+    else:
+        write_odometry(outputs.file(args.out), kind, stamps, *frames, trajectories)
+    return Path(args.out)
 
 
 def _print_summary(

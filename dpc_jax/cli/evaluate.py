@@ -32,7 +32,9 @@ Formats by extension (.mat, .tum) or column count (12 KITTI, 8 TUM), or --format
 is read for its poses_gt, given to --est for its poses_est (--mat reads both). Where the ground truth and
 every estimate have times (TUM), poses are paired by time as evo does: the nearest times within
 --t-max-diff (estimate times shifted by --t-offset); fewer than half matched is refused. Otherwise they
-are paired pose by pose, in order."""
+are paired pose by pose, in order. A pose topic of a ROS recording is a trajectory with times: REC:TOPIC
+(nav_msgs/Odometry, PoseStamped or PoseWithCovarianceStamped; REC a .bag, .mcap or ROS 2 bag folder),
+as --gt or --est, e.g. --gt run.bag:/ground_truth --est corrected.mcap:/dpc/odometry."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -99,18 +101,52 @@ def _error(message: str) -> int:
     return 2
 
 
+def _topic(path: Path | None) -> tuple[Path, str] | None:
+    """``(recording, topic)`` of a ``REC:TOPIC`` trajectory argument, or None for a file."""
+    if path is None or ":/" not in str(path):
+        return None
+    recording, topic = str(path).split(":/", 1)
+    return Path(recording), "/" + topic
+
+
+def _input_problem(path: Path | None, option: str) -> str | None:
+    """:func:`input_problem` of a trajectory argument: a file, or the recording of ``REC:TOPIC``."""
+    topic = _topic(path)
+    if topic is None:
+        return input_problem(path, option)
+    return None if topic[0].exists() else f"{option} {path}: no such recording {topic[0]}"
+
+
+def _format(path: Path, given: str | None) -> str:
+    """The format of a trajectory argument: ``topic`` for ``REC:TOPIC``, else the file's."""
+    from dpc_jax.data.poses_io import detect_format
+
+    return "topic" if _topic(path) is not None else given or detect_format(path)
+
+
+def _read(
+    path: Path, given: str | None, mat_key: str = "poses_est", *, timed: bool = True
+) -> tuple[np.ndarray | None, np.ndarray]:
+    """``(times or None, poses)`` of a trajectory argument (a file, or ``REC:TOPIC``); not ``timed``: to be
+    paired by order (a TUM file's jumps in time warn)."""
+    from dpc_jax.data.poses_io import read_timed_trajectory, read_trajectory
+
+    topic = _topic(path)
+    if topic is None:
+        if not timed:
+            return None, read_trajectory(path, given, mat_key=mat_key)
+        return read_timed_trajectory(path, given, mat_key=mat_key)
+    from dpc_jax.sources.bag import read_pose_topic
+
+    return read_pose_topic(*topic)
+
+
 def _inputs(
     args: argparse.Namespace,
 ) -> tuple[np.ndarray, dict[str, np.ndarray], Association | None]:
     """Read ground truth and estimates -> ``(gt, {label: estimate}, association)``, paired: by time where
     every file has times (``association`` says how), else by order; raises ValueError/OSError."""
-    from dpc_jax.data.poses_io import (
-        MAX_TIME_DIFF,
-        detect_format,
-        read_mat,
-        read_timed_trajectory,
-        read_trajectory,
-    )
+    from dpc_jax.data.poses_io import MAX_TIME_DIFF, read_mat
     from dpc_jax.eval.evaluation import associate_by_time, check_label
 
     timing = [f"{option} {value:g}" for option, value in (("--t-max-diff", args.t_max_diff),
@@ -146,14 +182,14 @@ def _inputs(
     # Paired by time only where every file has times: a file without them is paired by order, and then
     # so is every other (and a jump in a TUM file's times warns).
     files = [args.gt, *args.est]
-    timed = all((args.format or detect_format(path)) == "tum" for path in files)
+    timed = all(_format(path, args.format) in ("tum", "topic") for path in files)
     if timing and not timed:
-        untimed = next(path for path in files if (args.format or detect_format(path)) != "tum")
+        untimed = next(path for path in files if _format(path, args.format) not in ("tum", "topic"))
         raise ValueError(f"{', '.join(timing)}: pairing by time needs times in every file, and {untimed} "
                          "has none (a KITTI or .mat trajectory is paired by order)")
     if not timed:
-        gt = read_trajectory(args.gt, args.format, mat_key="poses_gt")
-        estimates = {label: read_trajectory(path, args.format)
+        gt = _read(args.gt, args.format, mat_key="poses_gt", timed=False)[1]
+        estimates = {label: _read(path, args.format, timed=False)[1]
                      for label, path in zip(labels, args.est, strict=True)}
         for path, est in zip(args.est, estimates.values(), strict=True):
             if est.shape[0] != gt.shape[0]:
@@ -161,9 +197,8 @@ def _inputs(
                     f"{path} has {est.shape[0]} poses but the ground truth {args.gt} has {gt.shape[0]}"
                 )
         return gt, estimates, None
-    gt_times, gt = read_timed_trajectory(args.gt, args.format, mat_key="poses_gt")
-    read = {label: read_timed_trajectory(path, args.format)
-            for label, path in zip(labels, args.est, strict=True)}
+    gt_times, gt = _read(args.gt, args.format, mat_key="poses_gt")
+    read = {label: _read(path, args.format) for label, path in zip(labels, args.est, strict=True)}
     # Every file is TUM here, so every one has its times.
     assert gt_times is not None and all(stamps is not None for stamps, _ in read.values())
     times = {label: stamps for label, (stamps, _) in read.items() if stamps is not None}
@@ -192,8 +227,8 @@ def _own_files_problem(args: argparse.Namespace, labels: list[str]) -> str | Non
 def run(args: argparse.Namespace) -> int:
     inputs = [("--mat", args.mat), ("--gt", args.gt), *(("--est", path) for path in args.est)]
     problem = (
-        input_problem(args.mat, "--mat") or input_problem(args.gt, "--gt")
-        or next(filter(None, (input_problem(path, "--est") for path in args.est)), None)
+        input_problem(args.mat, "--mat") or _input_problem(args.gt, "--gt")
+        or next(filter(None, (_input_problem(path, "--est") for path in args.est)), None)
         or output_problem(None if args.json == "-" else args.json, "--json")
         or output_problem(args.report, "--report", folder=True)
         or output_problem(args.export, "--export", folder=True)

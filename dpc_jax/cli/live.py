@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import enum
 import functools
 import json
 import math
@@ -61,9 +62,11 @@ from dpc_jax.cli._common import (
     path_text,
     restore_problem,
 )
+from dpc_jax.cli._source import add_source_arguments, open_recording, source_problem
 
 if TYPE_CHECKING:
-    from dpc_jax.correction.live import Calibration, LiveCorrector, LiveFrame
+    from dpc_jax.correction.live import LiveCorrector, LiveFrame
+    from dpc_jax.data.calibration import Calibration
 
 HELP = "Correct an external VO's poses live, each as its stereo pair and pose arrive (records on stdin)."
 # Restart with huge-page malloc (dpc_jax.runtime.hugepages): the network runs about a quarter faster.
@@ -85,6 +88,16 @@ POSE_FIELDS = 12
 MIN_RATE_HZ = 1 / 3600
 RECORD_SHAPE = "LEFT RIGHT and the 12 numbers of a KITTI pose row (camera-to-world), optionally TIME first"
 
+
+class Replay(enum.Enum):
+    """``--realtime`` without HZ (its ``const``: argparse would pass a string through ``float``): the
+    frames are replayed at their own times, a recording's header stamps."""
+
+    OWN_TIMES = "own times"
+
+
+OWN_TIMES = Replay.OWN_TIMES
+
 EPILOG = f"""Records (--records FILE, default standard input), one frame per line, as the VO makes them:
   [TIME] LEFT RIGHT r11 r12 r13 tx r21 r22 r23 ty r31 r32 r33 tz
 LEFT, RIGHT: the rectified stereo pair's image files (PNG/JPEG at the calibration's size; paths without
@@ -104,12 +117,16 @@ the end. Ctrl-C: exit status 130, every line written so far whole.
 
 --realtime HZ replays a recording at the camera's rate: record k is due HZ⁻¹·k s after the first, the
 command waits for it, and it misses its deadline when its pose is written after record k+1 is due.
+--realtime without HZ replays a ROS recording (--bag) at its own header stamps instead.
 
 examples:
   my_vo --stream | dpc-jax live --checkpoint runs/own_data --calib KITTI/sequences/05/calib.txt \\
       --image-size 375x1242 --out live_05.txt
   dpc-jax live --checkpoint runs/excerpt --calib ROOT/2011_09_26/calib_cam_to_cam.txt \\
-      --records records.txt --realtime 10 --out live.txt"""
+      --records records.txt --realtime 10 --out live.txt
+  dpc-jax live --checkpoint runs/own_data --bag run.mcap --prior-topic /odom --realtime --out live.txt
+A ROS recording (--bag REC) replaces the records: its stereo frames, its CameraInfo (or --calib) and the
+external VO's poses from --prior-topic (docs/formats.md, "Recordings")."""
 
 
 # ----------------------------------------------------------------------------------- shared options
@@ -143,9 +160,10 @@ def add_correction_arguments(parser: argparse.ArgumentParser, *, requires: str |
                        "at 120x188 on two CPU cores")
     judge.add_argument("--no-judge", action="store_true",
                        help=f"{but}decide on the network's image size alone (no judge)")
-    parser.add_argument("--realtime", type=float, metavar="HZ",
+    parser.add_argument("--realtime", type=float, nargs="?", const=OWN_TIMES, metavar="HZ",
                         help=f"{but}replay at the camera's rate: frame k is due k/HZ s after the first; "
-                        "report the frames whose pose is written after the next one is due")
+                        "without HZ at the frames' own times (a recording's header stamps); report the "
+                        "frames whose pose is written after the next one is due")
 
 
 def correction_problem(args: argparse.Namespace, run_option: str, run: Path | None) -> str | None:
@@ -164,7 +182,8 @@ def correction_problem(args: argparse.Namespace, run_option: str, run: Path | No
         return None
     if args.alpha is not None and not 0.0 < args.alpha < 1.0:
         return f"--alpha {args.alpha}: expected a level in (0, 1), such as 0.01"
-    if args.realtime is not None and not (math.isfinite(args.realtime) and args.realtime >= MIN_RATE_HZ):
+    if args.realtime not in (None, OWN_TIMES) and not (math.isfinite(args.realtime)
+                                                       and args.realtime >= MIN_RATE_HZ):
         return (f"--realtime {args.realtime}: expected the camera's rate in frames per second (> 0, at least "
                 f"one frame an hour: {MIN_RATE_HZ:.3g}), such as 10")
     problem = input_problem(run, run_option, folder=True)
@@ -379,12 +398,41 @@ def _ms(seconds: float | None) -> str:
     return "" if seconds is None else f"{1e3 * seconds:.3f}"
 
 
+@dataclass(frozen=True)
+class Pace:
+    """When each frame of a replay (``--realtime``) is due, in seconds after the first frame arrived:
+    frame k at ``k / hz`` (a camera's fixed rate, ``hz``), or at ``times[k] - times[0]`` (the frames' own
+    times ``[N]`` s, a recording's header stamps; ``hz`` None). A frame misses its deadline when its pose
+    is written after the next frame is due; the last of ``times`` has no next frame and so no deadline."""
+
+    hz: float | None
+    times: np.ndarray | None = None
+
+    @classmethod
+    def of(cls, realtime: float | Replay | None, times: np.ndarray | None) -> Pace | None:
+        """The pace of ``--realtime`` (None: not given; :data:`OWN_TIMES`: the frames' ``times``)."""
+        if realtime is None:
+            return None
+        return cls(None, np.asarray(times, np.float64)) if realtime == OWN_TIMES else cls(float(realtime))
+
+    def due(self, k: int) -> float:
+        """Frame ``k``'s due time (s after the first frame's)."""
+        if self.hz is not None:
+            return k / self.hz
+        assert self.times is not None, "a pace of own times holds them"
+        return float(self.times[k] - self.times[0]) if k < len(self.times) else math.inf
+
+    def words(self) -> str:
+        return f"{self.hz:g} Hz" if self.hz is not None else "at the frames' own stamps"
+
+
 @dataclass
 class LiveSummary:
     """What the command reports at the end: counts per state, the tests' events, the latency and the
-    stage times per frame (one float each per frame), the frames that missed their deadline."""
+    stage times per frame (one float each per frame), the frames that missed their deadline
+    (``pace``: the replay's, None without ``--realtime``)."""
 
-    hz: float | None
+    pace: Pace | None
     compile_s: float
     states: Counter[str] = field(default_factory=Counter)
     events: list[tuple[int, str]] = field(default_factory=list)
@@ -422,7 +470,9 @@ class LiveSummary:
             "frames": self.frames, "compile_s": self.compile_s, "states": dict(self.states),
             "events": [{"frame": number, "event": event} for number, event in self.events],
             "ms": {name: self.percentiles(name) for name in self.seconds},
-            "realtime_hz": self.hz, "missed_deadlines": self.missed if self.hz else None,
+            "realtime_hz": None if self.pace is None else self.pace.hz,
+            "realtime_stamps": self.pace is not None and self.pace.hz is None,
+            "missed_deadlines": self.missed if self.pace is not None else None,
         }
 
     def lines(self) -> list[str]:
@@ -438,13 +488,13 @@ class LiveSummary:
             lines.append(f"latency per frame (arrival to pose written): p50 {latency['p50']:.1f} ms, p99 "
                          f"{latency['p99']:.1f} ms, max {latency['max']:.1f} ms ({', '.join(stages)} ms); "
                          f"network restored and compiled in {self.compile_s:.1f} s before the first frame")
-        if self.hz:
+        if self.pace is not None:
             if self.missed:
                 shown = ", ".join(map(str, self.missed[:10])) + (", ..." if len(self.missed) > 10 else "")
-                lines.append(f"realtime {self.hz:g} Hz: {len(self.missed)} of {self.frames} frames missed "
-                             f"their deadline (frames {shown})")
+                lines.append(f"realtime {self.pace.words()}: {len(self.missed)} of {self.frames} frames "
+                             f"missed their deadline (frames {shown})")
             else:
-                lines.append(f"realtime {self.hz:g} Hz: every one of the {self.frames} frames met its "
+                lines.append(f"realtime {self.pace.words()}: every one of the {self.frames} frames met its "
                              "deadline")
         return lines
 
@@ -455,9 +505,9 @@ def correct_frames(
     """Correct each frame as it arrives and write it (module docstring).
 
     ``frames``: the source, which blocks until the next frame is there (a stream) or gives it at once
-    (a recording); ``step``: the frame's loaded images → its correction. With ``summary.hz`` frame k is
-    due ``k / hz`` s after the first arrived (the command sleeps until then) and misses its deadline
-    when its pose is written after frame k+1 is due; else it arrives when the source gives it. A
+    (a recording); ``step``: the frame's loaded images → its correction. With ``summary.pace`` frame k
+    is due ``pace.due(k)`` s after the first arrived (the command sleeps until then) and misses its
+    deadline when its pose is written after frame k+1 is due; else it arrives when the source gives it. A
     frame that cannot be loaded or corrected (``ValueError``, ``OSError``) raises :class:`RecordError`
     with the frame's name (``where``) in front.
     """
@@ -466,8 +516,9 @@ def correct_frames(
         now = time.perf_counter()
         started = now if started is None else started
         arrival = now
-        if summary.hz:
-            arrival = started + k / summary.hz
+        pace = summary.pace
+        if pace is not None:
+            arrival = started + pace.due(k)
             if now < arrival:
                 time.sleep(arrival - now)
         try:
@@ -479,24 +530,26 @@ def correct_frames(
             raise
         except (OSError, ValueError) as error:
             raise RecordError(f"{arrived.where}: {error}") from None
-        due = started + (k + 1) / summary.hz if summary.hz else math.inf
-        row = functools.partial(_row, arrived, corrected, read_s, arrival - started, started, due, summary.hz)
+        due = started + pace.due(k + 1) if pace is not None else math.inf
+        row = functools.partial(_row, arrived, corrected, read_s, arrival - started, started, due,
+                                pace is not None)
         with whole_lines():  # written and counted together: a Ctrl-C reports the frames in the files
             written = outputs.write(corrected.frame.pose, corrected.frame.prior, row)
             summary.add(arrived.number, corrected, read_s, written - arrival, written > due)
 
 
 def _row(arrived: Arrived, corrected: Corrected, read_s: float, arrival_s: float, started: float, due: float,
-         hz: float | None, written: float) -> str:
+         paced: bool, written: float) -> str:
     """The CSV row (:data:`CSV_COLUMNS`) of a frame that arrived ``arrival_s`` s after the first,
-    its poses written at the clock's ``written`` (the first frame arrived at ``started``), due ``due``."""
+    its poses written at the clock's ``written`` (the first frame arrived at ``started``), due ``due``
+    (``paced``: under ``--realtime``, which gives the ``missed`` column)."""
     frame = corrected.frame
     inliers, status, offset = corrected.vo if corrected.vo is not None else ("", "", None)
     cells = [arrived.number, "" if arrived.time_s is None else f"{arrived.time_s:.6f}", frame.state,
              ";".join(frame.events), inliers, status, "" if offset is None else f"{offset:.4f}", _ms(read_s),
              _ms(corrected.vo_s), *(_ms(frame.seconds.get(stage)) for stage in CORRECTION_STAGES),
              _ms(written - started - arrival_s), f"{arrival_s:.6f}", f"{written - started:.6f}",
-             "" if not hz else int(written > due)]
+             "" if not paced else int(written > due)]
     return ",".join(map(str, cells)) + "\n"
 
 
@@ -685,39 +738,43 @@ def _pair_problem(record: Record, args: argparse.Namespace, where: str) -> None:
 
 
 def _calibration(args: argparse.Namespace) -> Calibration:
-    """The stereo calibration of ``--calib`` (its colour pair's keys, or the grey pair's with ``--grey``)
-    for images of ``--image-size`` (or the file's ``S_rect_XX``); ``ValueError`` naming the file."""
-    from dpc_jax.correction.live import Calibration
-    from dpc_jax.data.kitti import read_calibration, stereo_calibration
+    """The stereo calibration of ``--calib`` (``dpc_jax.data.calibration.load_calibration``: its colour
+    pair, or the grey one with ``--grey``) for images of ``--image-size`` (or the file's ``S_rect_XX``);
+    ``ValueError`` naming the file, :class:`_UsageError` where it gives no size and none is given."""
+    from dpc_jax.data.calibration import NoImageSize, load_calibration, pair_keys
+    from dpc_jax.data.kitti import read_calibration
 
-    entries = read_calibration(args.calib)
-    kinds = {True: [("P_rect_00", "P_rect_01"), ("P0", "P1")],
-             False: [("P_rect_02", "P_rect_03"), ("P2", "P3")]}
     # A KITTI file with both pairs: the records' images say which pair they are (_pair_problem).
-    args.both_pairs = all(any(all(key in entries for key in pair) for pair in kind)
-                          for kind in kinds.values())
-    pairs = kinds[bool(args.grey)]
-    keys = next((pair for pair in pairs if all(key in entries for key in pair)), None)
-    if keys is None:
-        wanted = " or ".join(f"{a}/{b}" for a, b in pairs)
-        kind = "grey" if args.grey else "colour"
-        raise ValueError(f"{args.calib}: no {kind} stereo pair; expected the keys {wanted} (a KITTI "
-                         "calib.txt or calib_cam_to_cam.txt)")
-    size = args.image_size
-    if size is None:
-        key = "S_rect_" + keys[0].removeprefix("P_rect_")
-        if not keys[0].startswith("P_rect_") or key not in entries:
-            missing = f"no {key}" if keys[0].startswith("P_rect_") else "a calib.txt has none"
-            raise _UsageError(f"--calib {args.calib}: does not give the images' size ({missing}); give "
-                              "--image-size HxW")
-        try:
-            width, height = (int(float(v)) for v in entries[key][1].split())
-        except ValueError:
-            raise ValueError(f"{args.calib}, line {entries[key][0]}: {key} must hold 2 numbers (width "
-                             "height)") from None
-        size = (height, width)
-    K, baseline = stereo_calibration(args.calib, keys[0], keys[1], size)
-    return Calibration(K, baseline, (int(size[0]), int(size[1])))
+    entries = read_calibration(args.calib)
+    args.both_pairs = all(pair_keys(entries, grey) is not None for grey in (True, False))
+    try:
+        return load_calibration(args.calib, grey=args.grey, image_size=args.image_size)
+    except NoImageSize as missing:
+        raise _UsageError(f"--calib {args.calib}: does not give the images' size ({missing.reason}); give "
+                          "--image-size HxW") from None
+
+
+def _recorded(args: argparse.Namespace) -> tuple[Calibration, str, np.ndarray]:
+    """``--bag``: the recording's calibration (``dpc_jax.sources``: its CameraInfo, or ``--calib``), how
+    messages name it and its frames' times ``[N]`` (s since the first stamp); the recording is opened
+    here, before JAX starts, and its frames read later."""
+    from dpc_jax.data.calibration import Calibration
+
+    sequence = open_recording(args).sequence
+    return Calibration.of(sequence), f"--bag {args.bag}", sequence.times
+
+
+def _recording_arrivals(args: argparse.Namespace) -> Iterator[Arrived]:
+    """The frames of ``--bag``, each with its pose of ``--prior-topic``, read in order."""
+    recording = open_recording(args)
+    sequence, prior = recording.sequence, recording.prior
+    assert prior is not None, "_check asks for --prior-topic"
+    for frame in sequence.images.stream(sequence.image_size):
+        def load(frame: Any = frame) -> Loaded:
+            left, right = frame.decode()
+            return left, right, prior[frame.index]
+
+        yield Arrived(frame.index, float(sequence.times[frame.index]), frame.where, load)
 
 
 # One record's frame, loaded: the left and right images (uint8 RGB) and the VO's pose [4, 4].
@@ -733,16 +790,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = Formatter
     parser.add_argument("--checkpoint", required=True, type=path_option, metavar="RUN",
                         help="training run folder (dpc-jax train --workdir)")
-    parser.add_argument("--calib", required=True, type=path_option, metavar="FILE",
+    parser.add_argument("--calib", type=path_option, metavar="FILE",
                         help="the rig's KITTI calibration: calib.txt (P2/P3) or calib_cam_to_cam.txt "
-                        "(P_rect_02/P_rect_03)")
+                        "(P_rect_02/P_rect_03); with --bag only for a recording without CameraInfo")
     parser.add_argument("--grey", action="store_true",
                         help="the calibration's grey pair (P0/P1, P_rect_00/P_rect_01) instead of the colour "
                         "one")
     parser.add_argument("--image-size", type=image_size, metavar="HxW",
                         help="the size of the records' images (default: the calibration's S_rect_XX)")
-    parser.add_argument("--records", type=path_text, metavar="FILE",
-                        help="the records (default: standard input, read as it grows)")
+    records = parser.add_mutually_exclusive_group()
+    records.add_argument("--records", type=path_text, metavar="FILE",
+                         help="the records (default: standard input, read as it grows)")
+    add_source_arguments(parser, records, prior_topic=True, layouts=False)
     parser.add_argument("--out", required=True, type=file_path_option, metavar="POSES_TXT",
                         help="corrected poses, one KITTI row per frame as it is corrected")
     parser.add_argument("--csv", type=file_path_option, metavar="FILE",
@@ -759,7 +818,14 @@ def _check(args: argparse.Namespace) -> str | None:
     args.csv_path = args.csv if args.csv is not None or streamed else args.out.with_suffix(".csv")
     args.json_path = None if streamed else args.out.with_suffix(".json")
     records = None if args.records in (None, "-") else Path(args.records)
-    problem = (correction_problem(args, "--checkpoint", args.checkpoint)
+    problem = (correction_problem(args, "--checkpoint", args.checkpoint) or source_problem(args)
+               or ("--calib FILE is required with records (the rig's calibration)"
+                   if args.calib is None and args.bag is None else None)
+               or ("--prior-topic TOPIC is required with --bag (the poses of the VO to correct)"
+                   if args.bag is not None and args.prior_topic is None else None)
+               or ("--realtime without HZ replays a recording (--bag) at its own stamps; records have none: "
+                   "give the camera's rate, --realtime HZ" if args.realtime == OWN_TIMES and args.bag is None
+                   else None)
                or input_problem(args.calib, "--calib") or input_problem(records, "--records")
                or finite_problem(disparity_offset=args.disparity_offset)
                or output_problem(args.out, "--out") or output_problem(args.csv_path, "--csv")
@@ -768,7 +834,8 @@ def _check(args: argparse.Namespace) -> str | None:
         return problem
     if records is not None and records.is_dir():
         return f"--records {records}: is a folder; expected a file of records"
-    inputs = [("--checkpoint", args.checkpoint), ("--calib", args.calib), ("--records", records)]
+    inputs = [("--checkpoint", args.checkpoint), ("--calib", args.calib), ("--records", records),
+              ("--bag", args.bag)]
     return (overlap_problem(inputs, [("--out", args.out), ("--csv", args.csv_path),
                                      ("--out (its .json summary)", args.json_path)])
             or stdout_problem(inputs) or beside_problem(beside_files(args.out, args.csv, args.csv_path,
@@ -792,20 +859,23 @@ def run(args: argparse.Namespace) -> int:
     if problem is not None:
         return error(problem, 2)
     try:
-        calibration = _calibration(args)
+        calibration, where, times = _recorded(args) if args.bag is not None else (
+            _calibration(args), f"--calib {args.calib}", None)
     except _UsageError as usage:
         return error(str(usage), 2)
     except (OSError, ValueError) as content:
         return error(str(content), 1)
     size = calibration.image_size
-    problem = (run_size_problem(args, args.checkpoint, "--checkpoint", size, f"--calib {args.calib}")
-               or offset_problem(args.disparity_offset, size[1], f"--calib {args.calib}"))
+    problem = (run_size_problem(args, args.checkpoint, "--checkpoint", size, where)
+               or offset_problem(args.disparity_offset, size[1], where))
     if problem is not None:
         return error(problem, 2)
-    stream, name, regular = _source(args)
-    with contextlib.closing(stream) if stream is not sys.stdin.buffer else contextlib.nullcontext():
+    stream, name, regular = _source(args) if args.bag is None else (None, str(args.bag), True)
+    with contextlib.closing(stream) if stream not in (None, sys.stdin.buffer) else contextlib.nullcontext():
         records: Iterator[Record]
-        if regular:  # a recording: checked whole before JAX starts
+        if stream is None:  # a recording, opened and checked before JAX starts
+            records = iter(())
+        elif regular:  # a file of records: checked whole before JAX starts
             try:
                 records = iter(_checked_records(stream.readlines(), name, size, args))
             except RecordError as content:
@@ -820,13 +890,16 @@ def run(args: argparse.Namespace) -> int:
             live = corrector(args, args.checkpoint, calibration, disparity_offset=args.disparity_offset)
         except CheckpointError as failed:
             return error(restore_problem(failed.folder, failed.__cause__ or failed), 1)
-        summary = LiveSummary(args.realtime, time.perf_counter() - began)
+        summary = LiveSummary(Pace.of(args.realtime, times), time.perf_counter() - began)
         report = report_stream(args.out, args.csv_path)
         outputs = LiveOutputs(args.out, None, args.csv_path, (args.json_path,),
                               tuple(path for _, path in beside_files(args.out, args.csv, args.csv_path,
                                                                      args.json_path)))
 
         def arrivals() -> Iterator[Arrived]:
+            if args.bag is not None:
+                yield from _recording_arrivals(args)
+                return
             for k, record in enumerate(records):
                 where = f"{name} line {record.line}"
 

@@ -22,9 +22,18 @@ from dpc_jax.cli._common import (
     path_text,
     size_problem,
 )
+from dpc_jax.cli._source import (
+    add_source_arguments,
+    open_recording,
+    source_inputs,
+    source_keys,
+    source_problem,
+)
 from dpc_jax.runtime.progress import progress_mode
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from dpc_jax.data.kitti import StereoSequence
     from dpc_jax.runtime.progress import Progress
 
@@ -36,6 +45,7 @@ EPILOG = """examples:
   dpc-jax prepare --kitti-odometry ROOT --sequence 00 05 --prior 'priors/stereo_{seq}.mat' --out cache --flow
   dpc-jax prepare --kitti-raw ROOT --date 2011_09_26 --drive 1 \\
       --prior libviso2/stereo_2011_09_26_drive_0001.mat --out cache --frames 0:12 --size 120x188
+  dpc-jax prepare --bag recording.mcap --prior-topic /odom --out cache --size 120x188
 The synthetic sequences use the odometry layout (--kitti-odometry). '{seq}' in --prior/--gt is replaced by
 each sequence name. Ground truth: poses/XX.txt (odometry), else --gt, else the poses_gt of a .mat prior.
 Prints each cache folder on stdout and whether it was built or reused (up to date) on stderr.
@@ -50,18 +60,11 @@ prepare of the same cache is refused (a lock left by a killed run is reported, t
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = EPILOG
     parser.formatter_class = Formatter
-    layout = parser.add_mutually_exclusive_group(required=True)
-    layout.add_argument("--kitti-odometry", type=path_option, metavar="ROOT",
-                        help="odometry layout root (holds sequences/ and poses/); also the synthetic layout")
-    layout.add_argument("--kitti-raw", type=path_option, metavar="ROOT", help="raw layout root (holds DATE/)")
-    parser.add_argument("--sequence", nargs="+", default=[], metavar="XX", help="odometry sequence(s)")
-    parser.add_argument("--grey", action="store_true",
-                        help="the grey pair (odometry: image_0/image_1; raw: image_00/image_01); default: "
-                        "the colour pair, or for a raw drive without one its grey pair")
-    parser.add_argument("--date", metavar="YYYY_MM_DD", help="raw: recording date, e.g. 2011_09_26")
-    parser.add_argument("--drive", nargs="+", default=[], metavar="NNNN", help="raw: drive number(s)")
-    parser.add_argument("--prior", required=True, type=path_text, metavar="FILE",
-                        help="VO estimate per frame (KITTI/TUM text or .mat); '{seq}' = sequence name")
+    source = parser.add_mutually_exclusive_group(required=True)
+    add_source_arguments(parser, source, many=True, prior_topic=True)
+    parser.add_argument("--prior", type=path_text, metavar="FILE",
+                        help="VO estimate per frame (KITTI/TUM text or .mat); '{seq}' = sequence name; a "
+                        "recording's own prior: --prior-topic")
     parser.add_argument("--prior-format", choices=("kitti", "tum", "mat"),
                         help="format of --prior (default: from the extension or the column count)")
     parser.add_argument("--gt", type=path_text, metavar="FILE",
@@ -107,7 +110,7 @@ def _manifest_identity(folder: Path) -> tuple[int, int] | None:
 
 
 def _poses_problem(
-    sequence: StereoSequence, prior: str, gt: str | None, args: argparse.Namespace
+    sequence: StereoSequence, prior: str | np.ndarray, gt: str | None, args: argparse.Namespace
 ) -> str | None:
     """Why the prior or the ``--gt`` file does not hold one rigid pose per frame of ``sequence``, or None.
 
@@ -129,50 +132,46 @@ def _poses_problem(
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.kitti_odometry is not None:
-        if not args.sequence or args.date or args.drive:
-            return _error("--kitti-odometry needs --sequence (and no --date/--drive)")
-    elif not args.date or not args.drive or args.sequence:
-        return _error("--kitti-raw needs --date and --drive (and no --sequence)")
-    keys = args.sequence or args.drive
+    problem = source_problem(args)
+    if problem is None and (args.prior is None) == (getattr(args, "prior_topic", None) is None):
+        problem = ("give the prior as --prior FILE or, with --bag, --prior-topic TOPIC" if args.prior is None
+                   else "--prior and --prior-topic: give one prior")
+    if problem is not None:
+        return _error(problem)
+    keys = source_keys(args)
     for option, value in (("--prior", args.prior), ("--gt", args.gt)):
         if len(keys) > 1 and value is not None and "{seq}" not in value:
             return _error(f"{option} {value}: {len(keys)} sequences would share this one file; "
                           "put {seq} in the path where the sequence name goes")
-    problem = (input_problem(args.kitti_odometry, "--kitti-odometry", folder=True)
-               or input_problem(args.kitti_raw, "--kitti-raw", folder=True)
-               or output_problem(args.out, "--out", folder=True)
-               or overlap_problem([("--kitti-odometry", args.kitti_odometry),
-                                   ("--kitti-raw", args.kitti_raw)], [("--out", args.out)])
+    problem = (output_problem(args.out, "--out", folder=True)
+               or overlap_problem(source_inputs(args), [("--out", args.out)])
                or size_problem(args.size, args.allow_large)
                or finite_problem(disparity_offset=args.disparity_offset))
     if problem is not None:
         return _error(problem)
     # Every sequence is opened (its files listed, calibration and times read: OpenCV, no JAX) and
     # its prior and ground-truth files found before the first one is prepared.
-    from dpc_jax.data.kitti import open_odometry, open_raw
     from dpc_jax.data.sequence_cache import MANIFEST, newer_cache_problem
 
     sequences = []
-    for key in args.sequence or args.drive:
+    for key in keys:
         try:
-            if args.kitti_odometry is not None:
-                sequence = open_odometry(args.kitti_odometry, key, grey=args.grey)
-            else:
-                sequence = open_raw(args.kitti_raw, args.date, key, cameras="grey" if args.grey else "auto")
+            recording = open_recording(args, key)
         except (OSError, ValueError, KeyError) as error:
-            return _error(f"{key}: {error}", status=1)
+            return _error(f"{key}: {error}" if key is not None else str(error), status=1)
+        sequence = recording.sequence
+        label = key or sequence.name
         problem = (frames_problem(args.frames, len(sequence), sequence.name)
                    or offset_problem(args.disparity_offset, sequence.image_size[1], sequence.name))
         if problem is not None:
             return _error(problem)
-        prior = args.prior.replace("{seq}", sequence.name)
+        prior_file = None if args.prior is None else args.prior.replace("{seq}", sequence.name)
         gt = None if args.gt is None else args.gt.replace("{seq}", sequence.name)
-        problem = input_problem(prior, "--prior") or input_problem(gt, "--gt")
+        problem = input_problem(prior_file, "--prior") or input_problem(gt, "--gt")
         if problem is not None:
-            return _error(f"{key}: {problem}", status=1)
+            return _error(f"{label}: {problem}", status=1)
         # The cache replaces OUT/NAME: a folder there must be a cache (data.cache checks no more).
-        problem = overlap_problem([("--prior", prior), ("--gt", gt)], [("--out", args.out)]) or (
+        problem = overlap_problem([("--prior", prior_file), ("--gt", gt)], [("--out", args.out)]) or (
             foreign_folder_problem(args.out / sequence.name, f"--out {args.out}", marker=MANIFEST,
                                    made_by="a cache of `dpc-jax prepare`"))
         newer = newer_cache_problem(args.out / sequence.name)
@@ -182,10 +181,12 @@ def run(args: argparse.Namespace) -> int:
         if height > h or width > w:
             return _error(f"--size {height}x{width}: larger than the source images of {sequence.name} "
                           f"({h}x{w}); a cache is never upsampled: give at most {h}x{w}")
+        prior = prior_file if prior_file is not None else recording.prior
+        assert prior is not None, "source_problem asks for a prior"
         problem = _poses_problem(sequence, prior, gt, args)
         if problem is not None:
-            return _error(f"{key}: {problem}", status=1)
-        sequences.append((key, sequence, prior, gt))
+            return _error(f"{label}: {problem}", status=1)
+        sequences.append((label, sequence, prior, gt))
     from dpc_jax._io import LockError, new_folders_removed_on_failure, output_lock
 
     # A failed or interrupted run leaves no --out folder that it made and left empty. Every cache it

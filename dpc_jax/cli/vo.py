@@ -22,6 +22,7 @@ from dpc_jax.cli._common import (
     path_option,
     restore_problem,
 )
+from dpc_jax.cli._source import add_source_arguments, open_recording, source_inputs, source_problem
 from dpc_jax.cli.live import add_correction_arguments, correction_problem, run_size_problem
 from dpc_jax.runtime.progress import progress_mode
 
@@ -34,16 +35,19 @@ EPILOG = """examples:
   dpc-jax vo --kitti-odometry ROOT --sequence 09 --out vo/09.txt
   dpc-jax vo --kitti-raw ROOT --date 2011_09_26 --drive 0001 \\
       --gt ROOT/libviso2/stereo_2011_09_26_drive_0001.mat --start gt --out vo/0001.txt
-The synthetic sequences use the odometry layout (--kitti-odometry). The trajectory is KITTI pose text
-(camera-to-world of the left camera, one 3x4 row per frame) starting at the identity, or at the ground
-truth's first pose with --start gt. The CSV (default: OUT with suffix .csv) has one row per frame pair:
-frame (its number in the sequence), inliers, status (ok | constant_velocity), disparity_offset_px, time_s.
-With ground truth the m-ATE and final-position error are printed. OUT with suffix .json summarises the run
-(source_frames: the frames START, STOP it estimated, which `prepare` and `correct` check the prior against;
-frames, fallbacks and their share, median inliers, final offset, and a warning when more than 5 % of the
-pairs fell back to constant velocity, which is also printed on stderr). The three files are written
-together or not at all; beside a stream (--out /dev/stdout) no file is made: only the trajectory, and the
-CSV where --csv names it; with either on standard output, the lines this command prints go to stderr.
+  dpc-jax vo --bag recording.mcap --out vo/recording.txt
+The synthetic sequences use the odometry layout (--kitti-odometry). A recording (--bag: ROS 1 .bag, ROS 2
+bag folder, .mcap) gives its stereo pair, calibration and, with --gt-topic, its ground truth.
+The trajectory is KITTI pose text (camera-to-world of the left camera, one 3x4 row per frame) starting at
+the identity, or at the ground truth's first pose with --start gt. The CSV (default: OUT with suffix
+.csv) has one row per frame pair: frame (its number in the sequence), inliers, status (ok |
+constant_velocity), disparity_offset_px, time_s. With ground truth the m-ATE and final-position error are
+printed. OUT with suffix .json summarises the run (source_frames: the frames START, STOP it estimated,
+which `prepare` and `correct` check the prior against; frames, fallbacks and their share, median inliers,
+final offset, and a warning when more than 5 % of the pairs fell back to constant velocity, which is also
+printed on stderr). The three files are written together or not at all; beside a stream (--out
+/dev/stdout) no file is made: only the trajectory, and the CSV where --csv names it; with either on
+standard output, the lines this command prints go to stderr.
 
 Live correction (--correct RUN): each frame's pose is corrected by the run's network the moment the VO
 has made it, behind sequential tests that apply a correction only once the frames seen so far show that
@@ -53,8 +57,9 @@ flushed; the prior (this VO's poses, those `dpc-jax vo` writes without --correct
 record above); the CSV gets one row per frame with its pose: which state produced it (start, prior,
 forced, or the part of the correction applied), the tests' events, the VO's columns and the time of
 each stage (`dpc-jax live --help` lists the columns); OUT with suffix .json the summary at the end.
---realtime HZ replays the sequence at the camera's rate and reports the frames whose pose was written
-after the next frame was due. Ctrl-C: exit status 130, every line written so far whole.
+--realtime HZ replays the sequence at the camera's rate (without HZ at its own times: a recording's
+header stamps, the layouts' times) and reports the frames whose pose was written after the next frame
+was due. Ctrl-C: exit status 130, every line written so far whole.
   dpc-jax vo --kitti-raw ROOT --date 2011_09_26 --drive 0001 --gt GT.mat --start gt \\
       --correct runs/drive_0005 --realtime 10 --out live.txt"""
 
@@ -64,16 +69,7 @@ after the next frame was due. Ctrl-C: exit status 130, every line written so far
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = EPILOG
     parser.formatter_class = Formatter
-    layout = parser.add_mutually_exclusive_group(required=True)
-    layout.add_argument("--kitti-odometry", type=path_option, metavar="ROOT",
-                        help="odometry layout root (holds sequences/ and poses/); also the synthetic layout")
-    layout.add_argument("--kitti-raw", type=path_option, metavar="ROOT", help="raw layout root (holds DATE/)")
-    parser.add_argument("--sequence", metavar="XX", help="odometry: sequence")
-    parser.add_argument("--grey", action="store_true",
-                        help="the grey pair (odometry: image_0/image_1; raw: image_00/image_01); default: "
-                        "the colour pair, or for a raw drive without one its grey pair")
-    parser.add_argument("--date", metavar="YYYY_MM_DD", help="raw: recording date, e.g. 2011_09_26")
-    parser.add_argument("--drive", metavar="NNNN", help="raw: drive number")
+    add_source_arguments(parser, parser.add_mutually_exclusive_group(required=True))
     parser.add_argument("--gt", type=path_option, metavar="FILE",
                         help="raw: ground truth (KITTI/TUM text or .mat, its poses_gt)")
     parser.add_argument("--out", required=True, type=file_path_option, metavar="POSES_TXT",
@@ -101,16 +97,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _open(args: argparse.Namespace):  # -> StereoSequence (imported lazily)
-    from dpc_jax.data.kitti import open_odometry, open_raw
-
-    if args.kitti_odometry is not None:
-        if not args.sequence or args.date or args.drive or args.gt:
-            raise _UsageError("--kitti-odometry needs --sequence (and no --date/--drive/--gt)")
-        return open_odometry(args.kitti_odometry, args.sequence, grey=args.grey)
-    if not args.date or not args.drive or args.sequence:
-        raise _UsageError("--kitti-raw needs --date and --drive (and no --sequence)")
-    return open_raw(args.kitti_raw, args.date, args.drive, poses=args.gt,
-                    cameras="grey" if args.grey else "auto")
+    problem = source_problem(args) or (
+        "--gt FILE goes with --kitti-raw (odometry: ROOT/poses/XX.txt; a recording: --gt-topic)"
+        if args.gt is not None and args.kitti_raw is None else None)
+    if problem is not None:
+        raise _UsageError(problem)
+    return open_recording(args, args.sequence or args.drive, gt=args.gt).sequence
 
 
 class _UsageError(Exception):
@@ -157,8 +149,7 @@ def run(args: argparse.Namespace) -> int:
     if args.correct is not None:
         prior_out = args.prior_out if args.prior_out is not None or streamed else prior_path(args.out)
     prior_json = None if prior_out is None or is_stream(prior_out) else prior_out.with_suffix(".json")
-    problem = (input_problem(args.kitti_odometry, "--kitti-odometry", folder=True)
-               or input_problem(args.kitti_raw, "--kitti-raw", folder=True) or input_problem(args.gt, "--gt")
+    problem = (source_problem(args) or input_problem(args.gt, "--gt")
                or correction_problem(args, "--correct", args.correct)
                or (f"--prior-out {args.prior_out}: only used with --correct RUN (the live correction), which "
                    "is not given" if args.prior_out is not None and args.correct is None else None)
@@ -166,8 +157,7 @@ def run(args: argparse.Namespace) -> int:
                or output_problem(json_path, "--out") or output_problem(prior_out, "--prior-out")
                or finite_problem(disparity_offset=args.disparity_offset))
     if problem is None:
-        inputs = [("--kitti-odometry", args.kitti_odometry), ("--kitti-raw", args.kitti_raw),
-                  ("--gt", args.gt), ("--correct", args.correct)]
+        inputs = [*source_inputs(args), ("--gt", args.gt), ("--correct", args.correct)]
         problem = _same_file_problem(args.out, csv_path, json_path) or overlap_problem(
             inputs, [("--out", args.out), ("--csv", csv_path), ("--out (its .json summary)", json_path),
                      ("--prior-out", prior_out), ("--prior-out (its .json record)", prior_json)])
@@ -281,19 +271,19 @@ def _correct_live(
         Corrected,
         LiveOutputs,
         LiveSummary,
+        Pace,
         correct_frames,
         corrector,
         network_words,
         report_stream,
         write_summary,
     )
-    from dpc_jax.data.kitti import load_image
+    from dpc_jax.data.calibration import Calibration
     from dpc_jax.data.priors import FRAMES_KEY
     from dpc_jax.vo import StereoVO, VOResult
     from dpc_jax.vo.odometry import summary
 
     import_jax()
-    from dpc_jax.correction.live import Calibration
     from dpc_jax.training.checkpoints import CheckpointError
 
     first, stop = frames
@@ -305,30 +295,23 @@ def _correct_live(
         problem = restore_problem(failed.folder, failed.__cause__ or failed)
         print(f"dpc-jax vo: error: {problem}", file=sys.stderr)
         return 1
-    live_summary = LiveSummary(args.realtime, time.perf_counter() - began)
+    live_summary = LiveSummary(Pace.of(args.realtime, sequence.times), time.perf_counter() - began)
     vo = StereoVO(sequence.K, sequence.baseline, config)
-    h, w = sequence.image_size
     # Per pair, for the VO's own summary and record; per frame, both trajectories for the evaluation.
     kept: dict[str, list[Any]] = {k: [] for k in ("relative", "inliers", "status", "times", "offset", "prior",
                                                    "corrected")}
     first_s = [0.0]  # the VO's time on frame 0, which has no pair
     # The four images of a frame (colour for the network, grey decoded as `dpc-jax vo` decodes it, so that
-    # the prior is its trajectory) are decoded two at a time.
+    # the prior is its trajectory) are decoded a pair at a time.
     decoder = ThreadPoolExecutor(2)
 
-    def decoded(path: Path, grey: bool) -> np.ndarray:
-        image = load_image(path, grey=grey)
-        if image.shape[:2] != (h, w):
-            raise ValueError(f"{path}: image is {image.shape[0]}x{image.shape[1]}, expected {h}x{w} like the "
-                             "sequence's first frame")
-        return image
-
     def arrivals() -> Any:
-        for k, paths in enumerate(zip(sequence.left_paths, sequence.right_paths, strict=True)):
-            def load(paths: tuple[Path, Path] = paths) -> list[np.ndarray]:
-                jobs = [decoder.submit(decoded, path, grey) for grey in (False, True) for path in paths]
-                return [job.result() for job in jobs]
+        for frame in sequence.images.stream(sequence.image_size):
+            def load(frame: Any = frame) -> list[np.ndarray]:
+                jobs = [decoder.submit(frame.decode, grey) for grey in (False, True)]
+                return [image for job in jobs for image in job.result()]
 
+            k = frame.index
             yield Arrived(first + k, float(sequence.times[k]), f"{sequence.name} frame {first + k}", load)
 
     def step(images: list[np.ndarray]) -> Corrected:

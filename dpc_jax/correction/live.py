@@ -53,6 +53,7 @@ from dpc_jax.correction.decision import (
 )
 from dpc_jax.correction.inference import TrainedRun, load_run
 from dpc_jax.correction.judge import judge_rule
+from dpc_jax.data.calibration import Calibration
 from dpc_jax.data.preparation import as_rgb, prepared_pair, resized_intrinsics
 from dpc_jax.data.sequence_cache import (
     SequenceCache,
@@ -70,21 +71,6 @@ def _rigid(pose: Any, source: str) -> np.ndarray:
     pose = np.asarray(pose, np.float64)
     validate_poses(pose[None], source)
     return np.vstack([pose, [0.0, 0.0, 0.0, 1.0]]) if pose.shape == (3, 4) else pose
-
-
-@dataclass(frozen=True)
-class Calibration:
-    """A rectified stereo camera: ``K`` ``[3, 3]`` (px) of its full-size images of ``image_size`` =
-    ``(H, W)`` px, the right camera ``baseline`` m along x of the left one."""
-
-    K: np.ndarray
-    baseline: float
-    image_size: tuple[int, int]
-
-    @classmethod
-    def of(cls, sequence: Any) -> Calibration:
-        """The calibration of an opened sequence (``dpc_jax.data.kitti.StereoSequence``)."""
-        return cls(np.asarray(sequence.K, np.float64), float(sequence.baseline), tuple(sequence.image_size))
 
 
 @dataclass(frozen=True)

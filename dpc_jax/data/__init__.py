@@ -1,6 +1,8 @@
 """KITTI data layer: readers, VO priors, the preprocessing cache and the numpy input pipeline.
 
 * :mod:`dpc_jax.data.kitti`: ``open_odometry``, ``open_raw``, ``load_image``, ``StereoSequence``.
+* :mod:`dpc_jax.data.calibration`: ``Calibration``, ``load_calibration`` (a KITTI calibration file's
+  stereo pair).
 * :mod:`dpc_jax.data.priors`: ``load_prior``, ``relative_xi``, ``rescale_monocular``.
 * :mod:`dpc_jax.data.cache`: ``prepare_sequence`` (the ``dpc-jax prepare`` command).
 * :mod:`dpc_jax.data.sequence_cache`: ``load_cache``, ``SequenceCache`` (the cache's on-disk format
@@ -19,6 +21,7 @@ from dpc_jax.runtime.lazy import lazy_getattr
 
 _EXPORTS: dict[str, tuple[str, ...]] = {
     "dpc_jax.data.cache": ("prepare_sequence",),
+    "dpc_jax.data.calibration": ("Calibration", "load_calibration"),
     "dpc_jax.data.kitti": ("StereoSequence", "load_image", "open_odometry", "open_raw"),
     "dpc_jax.data.pipeline": ("Split", "TrainLoader", "iterate_sequence", "leave_one_out"),
     "dpc_jax.data.priors": ("load_prior", "relative_xi", "rescale_monocular"),

@@ -42,9 +42,11 @@ the Farnebäck parameters of docs/method.md §6.
 
 Identity of the inputs (``manifest["input_hash"]``): SHA-256 over the cache format version, the
 parameters, the calibration/time/pose/prior files by *content* (small), in-memory prior or
-ground-truth arrays by content, and the image files by *path, size and modification time* —
-hashing gigabytes of PNGs on every run would cost more than the check saves; a replaced image
-changes its mtime. Re-running with the same hash finds the complete cache and reuses it when
+ground-truth arrays by content, and the images by what ``StereoFrames.identity`` gives: image files by
+*path, size and modification time* — hashing gigabytes of PNGs on every run would cost more than the
+check saves; a replaced image changes its mtime — and a recording by its files' path, size and
+modification time with the topics and frames read. Re-running with the same hash finds the complete
+cache and reuses it when
 every file still reads as its manifest says (as ``load_cache`` checks it: shapes, poses, and each
 file's size and the digest of its sample, or with ``verify`` of all its bytes), else rebuilds it.
 The digests are computed from the bytes as they are written
@@ -78,7 +80,8 @@ import numpy as np
 
 from dpc_jax._io import atomic_write, install_folder, output_lock, remove_stale, temp_name
 from dpc_jax.data.cache_products import FARNEBACK, ordered_map, save_array, write_frame_products
-from dpc_jax.data.kitti import StereoSequence, load_image, read_ground_truth
+from dpc_jax.data.frames import StereoFrame
+from dpc_jax.data.kitti import StereoSequence, read_ground_truth
 from dpc_jax.data.poses_io import validate_poses
 from dpc_jax.data.preparation import prepared_pair, resized_intrinsics
 from dpc_jax.data.priors import load_prior, rescale_monocular
@@ -126,9 +129,8 @@ def input_hash(
         h.update(f"{Path(prior_source).resolve()}:{_file_digest(Path(prior_source))}".encode())
     for array in extra_arrays:
         h.update(np.ascontiguousarray(array, dtype=np.float64).tobytes())
-    for path in (*sequence.left_paths, *sequence.right_paths):
-        st = path.stat()
-        h.update(f"{path.resolve()}:{st.st_size}:{st.st_mtime_ns}".encode())
+    for text in sequence.images.identity():
+        h.update(text.encode())
     return h.hexdigest()
 
 
@@ -142,17 +144,6 @@ def read_manifest(cache_dir: str | Path) -> dict | None:
     except (UnicodeDecodeError, json.JSONDecodeError):
         return None
     return manifest if isinstance(manifest, dict) else None
-
-
-def _decoded(path: Path, expected: tuple[int, int]) -> np.ndarray:
-    """The image at ``path`` (uint8 ``[H, W, 3]``), checked to be of the sequence's size ``expected``."""
-    image = load_image(path)
-    if image.shape[:2] != expected:
-        raise ValueError(
-            f"{path}: image is {image.shape[0]}×{image.shape[1]}, expected {expected[0]}×{expected[1]} "
-            "like the sequence's first frame"
-        )
-    return image
 
 
 def prepare_sequence(
@@ -382,14 +373,14 @@ def _write_arrays(
         log.info("%s: images %d px wide are too narrow for StereoSGBM; no stereo depth stored",
                  label, size[1])
 
-    def frame(i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    def frame(read: StereoFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         # The one preparation of a frame, the live corrector's too.
-        return prepared_pair(_decoded(sequence.left_paths[i], sequence.image_size),
-                             _decoded(sequence.right_paths[i], sequence.image_size), size, K, baseline,
-                             disparity_offset, match=depth)
+        return prepared_pair(*read.decode(), size, K, baseline, disparity_offset, match=depth)
 
+    # The frames are read in order (a recording front to back) and decoded on the workers.
+    frames = sequence.images.stream(sequence.image_size, kept.tolist())
     return write_frame_products(
-        tmp, ordered_map(frame, kept.tolist(), workers), kept.size, size, depth=depth,
+        tmp, ordered_map(frame, frames, workers), kept.size, size, depth=depth,
         flow_kinds=flow_kinds, flow_step=flow_step(size), label=label, workers=workers, progress=progress,
     )
 
@@ -435,8 +426,7 @@ def _manifest(
         "hash_method": "sha256: parameters, text/pose/prior files by content, images by path+size+mtime",
         "parameters": parameters,
         "sources": {
-            "left_images": str(sequence.left_paths[0].parent.resolve()),
-            "right_images": str(sequence.right_paths[0].parent.resolve()),
+            **sequence.images.locations(),
             "files": [str(Path(p).resolve()) for p in sequence.sources],
             "prior": "array" if isinstance(prior, np.ndarray) else str(Path(prior).resolve()),
             "ground_truth": (

@@ -31,10 +31,10 @@ import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from dpc_jax.data import poses_io
+from dpc_jax.data.frames import ImageFiles, StereoFrames, load_image
 from dpc_jax.data.poses_io import validate_poses
 
 # The horizontal fields of view a rectified stereo camera is believed to have (KITTI's colour pair:
@@ -48,7 +48,8 @@ class StereoSequence:
     """A rectified stereo sequence on disk.
 
     * ``name``: identifier used for caches and reports (``"09"``, ``"2011_09_26_drive_0001"``).
-    * ``left_paths``, ``right_paths``: the N image files of the left and right camera, in order.
+    * ``images``: the N frames of the left and right camera (:class:`~dpc_jax.data.frames.ImageFiles`
+      for the KITTI layouts).
     * ``K``: float64 ``[3, 3]`` intrinsics of the left camera in pixels of the stored images.
     * ``baseline``: metres; the right camera is at ``+baseline`` along x of the left camera.
     * ``image_size``: ``(H, W)`` of the stored images.
@@ -59,8 +60,7 @@ class StereoSequence:
     """
 
     name: str
-    left_paths: tuple[Path, ...]
-    right_paths: tuple[Path, ...]
+    images: StereoFrames
     K: np.ndarray
     baseline: float
     image_size: tuple[int, int]
@@ -69,7 +69,7 @@ class StereoSequence:
     sources: tuple[Path, ...] = field(default=())
 
     def __len__(self) -> int:
-        return len(self.left_paths)
+        return len(self.images)
 
     def select(self, start: int, stop: int) -> StereoSequence:
         """The frames ``start <= i < stop`` (Python slice bounds, validated) as a new sequence."""
@@ -80,28 +80,10 @@ class StereoSequence:
             )
         return replace(
             self,
-            left_paths=self.left_paths[start:stop],
-            right_paths=self.right_paths[start:stop],
+            images=self.images.select(start, stop),
             times=self.times[start:stop],
             poses=None if self.poses is None else self.poses[start:stop],
         )
-
-
-def load_image(path: str | Path, grey: bool = False) -> np.ndarray:
-    """Decode an image file: uint8 ``[H, W, 3]`` RGB, or ``[H, W]`` when ``grey``.
-
-    Raises ``FileNotFoundError`` when the file is missing and ``ValueError`` naming the file when
-    it cannot be decoded (truncated or not an image).
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: image file not found")
-    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_COLOR)
-    if image is None:
-        raise ValueError(f"{path}: cannot decode the image (truncated or not a PNG/JPEG file)")
-    if image.dtype != np.uint8:
-        raise ValueError(f"{path}: expected an 8-bit image, got {image.dtype}")
-    return image if grey else cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
 def _frame_files(directory: Path) -> tuple[Path, ...]:
@@ -178,30 +160,39 @@ def projection_matrix(entries: dict[str, tuple[int, str]], key: str, path: Path)
 def stereo_calibration(
     path: Path, left_key: str, right_key: str, image_size: tuple[int, int]
 ) -> tuple[np.ndarray, float]:
-    """``(K [3, 3], baseline m)`` of a rectified pair from its projection matrices.
-
-    ``K`` is the left 3×3 block; ``baseline = (P_left[0, 3] − P_right[0, 3]) / fu`` (docs/method.md §6).
-    ``image_size`` ``(H, W)``: the stored images, which the calibration must fit
-    (:func:`check_intrinsics`; the raw layout's ``S_rect_XX`` too, where the file gives it).
+    """``(K [3, 3], baseline m)`` of a rectified pair from its projection matrices in a KITTI calibration
+    file (:func:`rectified_pair`); ``image_size`` ``(H, W)``: the stored images, which the calibration
+    must fit (the raw layout's ``S_rect_XX`` too, where the file gives it).
     """
     entries = read_calibration(path)
     p_left = projection_matrix(entries, left_key, path)
     p_right = projection_matrix(entries, right_key, path)
+    for key in (left_key, right_key):
+        _check_rectified_size(entries, key, path, image_size)
+    return rectified_pair(p_left, p_right, image_size, f"{path}: {left_key}", f"{path}: {right_key}")
+
+
+def rectified_pair(
+    p_left: np.ndarray, p_right: np.ndarray, image_size: tuple[int, int], left: str, right: str
+) -> tuple[np.ndarray, float]:
+    """``(K [3, 3], baseline m)`` of a rectified pair from its 3×4 projection matrices.
+
+    ``K`` is the left 3×3 block; ``baseline = (P_left[0, 3] − P_right[0, 3]) / fu`` (docs/method.md §6;
+    ROS's ``CameraInfo.P`` follows the same rule). ``image_size`` ``(H, W)``: the images, which the
+    calibration must fit (:func:`check_intrinsics`). ``left``, ``right``: where each matrix was read
+    (a file and key, a recording's topic), for the ``ValueError`` of one that is not a rectified pair.
+    """
     K = p_left[:, :3].copy()
     fu = K[0, 0]
     if fu <= 0 or K[1, 1] <= 0 or K[2, 2] != 1.0:
-        raise ValueError(
-            f"{path}: {left_key} is not a pinhole projection [[fu,0,cu,·],[0,fv,cv,·],[0,0,1,·]]"
-        )
+        raise ValueError(f"{left} is not a pinhole projection [[fu,0,cu,·],[0,fv,cv,·],[0,0,1,·]]")
     if not np.allclose(p_left[:, :3], p_right[:, :3], rtol=1e-6, atol=1e-9):
-        raise ValueError(f"{path}: {left_key} and {right_key} differ in K; expected a rectified pair")
-    for key in (left_key, right_key):
-        _check_rectified_size(entries, key, path, image_size)
-    check_intrinsics(K, image_size, f"{path}: {left_key}")
+        raise ValueError(f"{left} and {right} differ in K; expected a rectified pair")
+    check_intrinsics(K, image_size, left)
     baseline = float((p_left[0, 3] - p_right[0, 3]) / fu)
     if baseline <= 0:
         raise ValueError(
-            f"{path}: baseline ({left_key}[0,3] − {right_key}[0,3]) / fu = {baseline:.4g} m; expected > 0 "
+            f"{left}, {right}: baseline (P_left[0,3] − P_right[0,3]) / fu = {baseline:.4g} m; expected > 0 "
             "(right camera to the right of the left one)"
         )
     return K, baseline
@@ -341,7 +332,7 @@ def open_odometry(root: str | Path, sequence: str | int, grey: bool = False) -> 
         poses = _check_poses(poses_io.read_trajectory(pose_path, "kitti"), len(left), str(pose_path))
         sources.append(pose_path)
     return StereoSequence(
-        name=name, left_paths=left, right_paths=right, K=K, baseline=baseline,
+        name=name, images=ImageFiles(left, right), K=K, baseline=baseline,
         image_size=image_size, times=times, poses=poses, sources=tuple(sources),
     )
 
@@ -428,6 +419,6 @@ def open_raw(
             gt = _check_poses(read_ground_truth(poses), len(left), str(poses))
             sources.append(Path(poses))
     return StereoSequence(
-        name=drive_name, left_paths=left, right_paths=right, K=K, baseline=baseline,
+        name=drive_name, images=ImageFiles(left, right), K=K, baseline=baseline,
         image_size=image_size, times=times, poses=gt, sources=tuple(sources),
     )

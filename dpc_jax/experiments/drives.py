@@ -97,11 +97,16 @@ def plan(context: Context) -> Plan:
                 adapt_steps=2 if args.smoke else protocol.adapt_steps, tables=_tables(trained_on))
 
 
+def _left_folder(sequence: Any) -> str:
+    """The camera folder of a raw drive's left images (``image_00``: grey; ``image_02``: colour)."""
+    return Path(sequence.images.locations()["left_images"]).parts[-2]
+
+
 def _notes(context: Context, sequences: dict[str, Any], offsets: dict[str, float]) -> str:
     protocol, judge_size = context.protocol, context.protocol.judge_size
     drives = protocol.drives
     described = "; ".join(
-        f"{s.name}: {len(s)} frames, {'grey' if s.left_paths[0].parts[-3] == 'image_00' else 'colour'} pair, "
+        f"{s.name}: {len(s)} frames, {'grey' if _left_folder(s) == 'image_00' else 'colour'} pair, "
         f"trained on frames {drives[d].train_frames[0]}–{drives[d].train_frames[1] - 1}, validated on "
         f"{drives[d].validation_frames[0]}–{drives[d].validation_frames[1] - 1}, images rectified by "
         f"{offsets[d]:+.3f} px" for d, s in sequences.items())

@@ -55,7 +55,6 @@ def photometric_errors(sequence: Any, candidates: np.ndarray, offsets_px: Sequen
     import jax.numpy as jnp
     from tqdm.auto import tqdm
 
-    from dpc_jax.data.kitti import load_image
     from dpc_jax.data.stereo_depth import sgbm_inverse_depth
     from dpc_jax.geometry.warp import inverse_warp
 
@@ -71,16 +70,17 @@ def photometric_errors(sequence: Any, candidates: np.ndarray, offsets_px: Sequen
         residual = jnp.abs(rebuilt[..., 0] - target)
         return jnp.sum(residual * common, axis=(1, 2)) / jnp.maximum(jnp.sum(common), 1)
 
+    frames = list(sequence.images.stream(sequence.image_size))
+
     def grey(k: int) -> np.ndarray:
-        return load_image(sequence.left_paths[k], grey=True).astype(np.float32) / 255
+        return frames[k].decode(grey=True)[0].astype(np.float32) / 255
 
     pairs = candidates.shape[1]
     out = np.zeros((pairs, len(offsets_px), candidates.shape[0]))
     source = grey(0)
     for i in tqdm(range(pairs), desc="pairs", disable=not progress):
-        inv_depth, valid, _, _ = sgbm_inverse_depth(load_image(sequence.left_paths[i]),
-                                                    load_image(sequence.right_paths[i]),
-                                                    sequence.K[0, 0], sequence.baseline)
+        left, right = frames[i].decode()
+        inv_depth, valid, _, _ = sgbm_inverse_depth(left, right, sequence.K[0, 0], sequence.baseline)
         target, source = source, grey(i + 1)  # each frame is decoded once as grey
         gradient = np.hypot(cv2.Sobel(target, cv2.CV_32F, 1, 0), cv2.Sobel(target, cv2.CV_32F, 0, 1)) / 8
         steps = jnp.asarray(candidates[:, i], jnp.float32)

@@ -29,7 +29,7 @@ from typing import TypedDict
 
 import numpy as np
 
-from dpc_jax.data.kitti import StereoSequence, load_image
+from dpc_jax.data.kitti import StereoSequence
 from dpc_jax.runtime.progress import Progress, progress_bar
 from dpc_jax.vo.features import detect_bucketed, track
 from dpc_jax.vo.motion import camera_pixels, estimate_motion
@@ -301,16 +301,10 @@ def run_vo_frames(
 
 
 def _sequence_frames(sequence: StereoSequence) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-    """The grey pairs of ``sequence``; ``ValueError`` naming the file and frame for an image whose size
-    is not the sequence's (the size its calibration was checked against)."""
-    h, w = sequence.image_size
-    for k, paths in enumerate(zip(sequence.left_paths, sequence.right_paths, strict=True)):
-        pair = tuple(load_image(path, grey=True) for path in paths)
-        for path, image in zip(paths, pair, strict=True):
-            if image.shape != (h, w):
-                raise ValueError(f"{path}: image is {image.shape[0]}×{image.shape[1]} (frame {k}), expected "
-                                 f"{h}×{w} like the sequence's first frame")
-        yield pair[0], pair[1]
+    """The grey pairs of ``sequence``, in order; ``ValueError`` naming the file (or message) and frame for an
+    image whose size is not the sequence's (the size its calibration was checked against)."""
+    for frame in sequence.images.stream(sequence.image_size):
+        yield frame.decode(grey=True)
 
 
 def run_vo(
@@ -325,18 +319,12 @@ def run_vo(
     Colour images are converted to grey on loading. ``first_pose``: camera-to-world pose of frame 0
     (identity when ``None``; pass ``sequence.poses[0]`` to start at the ground truth).
 
-    Raises ``ValueError`` when the two cameras have different frame counts and
-    ``FileNotFoundError``/``ValueError`` naming the file when an image is missing or unreadable.
+    Raises ``FileNotFoundError``/``ValueError`` naming the file (or message) when an image is missing or
+    unreadable.
     """
-    n_left, n_right = len(sequence.left_paths), len(sequence.right_paths)
-    if n_left != n_right:
-        raise ValueError(
-            f"{sequence.name}: {n_left} left images ({sequence.left_paths[0].parent if n_left else '?'}) but "
-            f"{n_right} right images ({sequence.right_paths[0].parent if n_right else '?'})"
-        )
     return run_vo_frames(
         _sequence_frames(sequence), sequence.K, sequence.baseline, config,
-        first_pose=first_pose, total=n_left, progress=progress,
+        first_pose=first_pose, total=len(sequence), progress=progress,
     )
 
 

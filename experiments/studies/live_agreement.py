@@ -99,8 +99,9 @@ def run_case(case: dict[str, Any], cache: Path, judged: bool) -> dict[str, Any]:
     offline = correct_cache(run, prepared, rotation_only=case["rotation_only"], judge=judge)
     live = LiveCorrector(run, Calibration.of(sequence), rotation_only=case["rotation_only"],
                          first_pose=gt[0], disparity_offset=case["offset"], judge_size=judge_size)
+    files = sequence.images
     frames = [live(load_image(left), load_image(right), prior[k])
-              for k, (left, right) in enumerate(zip(sequence.left_paths, sequence.right_paths, strict=True))]
+              for k, (left, right) in enumerate(zip(files.left_paths, files.right_paths, strict=True))]
     poses = np.stack([f.pose for f in frames])
     summary = evaluate(gt, {"prior": offline.prior, "offline": offline.corrected, "live": poses}).estimates
     states = Counter(f.state for f in frames[1:])

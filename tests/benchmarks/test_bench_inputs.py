@@ -14,6 +14,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 @pytest.mark.parametrize(("script", "option", "needle"), [
     ("bench_vo", "--root", "raw drive folder not found"),
+    ("bench_bag", "--root", "raw drive folder not found"),
     ("bench_metrics", "--mat", "no such file"),
     ("bench_cli", "--mat", "no such file"),
 ])

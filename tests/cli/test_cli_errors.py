@@ -752,9 +752,9 @@ def test_prepare_removes_the_temporaries_of_killed_runs_and_reports_rebuild_or_r
 def test_ctrl_c_in_prepare_is_one_line_and_leaves_no_temporary(
     data: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import dpc_jax.data.cache as cache_module
+    import dpc_jax.data.frames as frames_module
 
-    real = cache_module._decoded  # each image of a frame is decoded through it
+    real = frames_module.load_image  # each image of a frame is decoded through it
     calls: list[Path] = []
 
     def interrupted(path: Path, *args: object) -> np.ndarray:
@@ -763,7 +763,7 @@ def test_ctrl_c_in_prepare_is_one_line_and_leaves_no_temporary(
             raise KeyboardInterrupt
         return real(path, *args)
 
-    monkeypatch.setattr(cache_module, "_decoded", interrupted)
+    monkeypatch.setattr(frames_module, "load_image", interrupted)
     out = tmp_path / "cache"
     assert main(["prepare", "--kitti-odometry", str(data["kitti"]), "--sequence", "00", "--prior",
                  str(data["prior"]), "--out", str(out), "--size", "10x16"]) == 130

@@ -53,8 +53,9 @@ def world(tmp_path_factory: pytest.TempPathFactory) -> dict:
     record = json.loads(stored.read_text())
     record["image_size"] = [64, 96]
     stored.write_text(json.dumps(record))
+    files = sequence.images
     records = [f"{t:.3f} {left} {right} " + " ".join(f"{v:.17g}" for v in pose[:3].ravel()) + "\n"
-               for t, left, right, pose in zip(written["times"], sequence.left_paths, sequence.right_paths,
+               for t, left, right, pose in zip(written["times"], files.left_paths, files.right_paths,
                                                written["poses"], strict=True)]
     (tmp / "records.txt").write_text("".join(records))
     return {"tmp": tmp, "kitti": tmp / "kitti", "sequence": sequence, "run": tmp / "run",
@@ -94,7 +95,8 @@ def _reference(world: dict, *, force: bool, priors: np.ndarray | None, frames: i
     first = None if priors is not None else world["poses"][0]
     live = LiveCorrector(world["run"], Calibration.of(sequence), force=force, first_pose=first)
     out = []
-    for k, (left, right) in enumerate(zip(sequence.left_paths[:frames], sequence.right_paths[:frames],
+    files = sequence.images
+    for k, (left, right) in enumerate(zip(files.left_paths[:frames], files.right_paths[:frames],
                                           strict=True)):
         grey = (load_image(left, grey=True), load_image(right, grey=True))
         prior = None if priors is None else priors[k]
@@ -201,6 +203,72 @@ def test_live_replays_a_recording_and_reports_the_frames_that_missed_their_deadl
     np.testing.assert_allclose(_poses(out), world["poses"], atol=1e-9)
     reference = _reference(world, force=False, priors=world["poses"])
     np.testing.assert_allclose(_poses(out), np.stack([f.pose for f in reference]), atol=1e-9)
+
+
+def test_live_on_a_recording_writes_what_its_records_give(
+    world: dict, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The sequence as a recording written by rosbags (rgb8 images, CameraInfo, the external VO's poses as
+    nav_msgs/Odometry): `live --bag --prior-topic` corrects the frames the records name, with their poses,
+    to the same poses as `live --records`; its CSV has the recording's times."""
+    from recordings import write_recording
+
+    recording = write_recording(tmp_path / "rec.bag", world["kitti"], kind="ros1",
+                                poses={"/vo": world["poses"]})
+    assert main(_live_args(world, tmp_path / "records.txt", "--records", world["tmp"] / "records.txt",
+                           "--force")) == 0
+    bag = ["live", "--checkpoint", str(world["run"]), "--bag", str(recording), "--prior-topic", "/vo",
+           "--force", "--realtime", "10", "--out", str(tmp_path / "bag.txt")]
+    assert main(bag) == 0
+    printed = capsys.readouterr().out
+    assert f"{recording}: {FRAMES} frames corrected live" in printed
+    np.testing.assert_allclose(_poses(tmp_path / "bag.txt"), _poses(tmp_path / "records.txt"), atol=1e-12)
+    assert [row["time_s"] for row in _rows(tmp_path / "bag.csv")] == [f"{0.1 * k:.6f}" for k in range(FRAMES)]
+    assert main([*bag[:-2], "--prior-topic", "/nowhere", "--out", str(tmp_path / "none.txt")]) == 1
+    assert "--prior-topic /nowhere: no such topic" in capsys.readouterr().err
+
+
+def test_live_replays_a_recording_at_its_own_stamps(
+    world: dict, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`live --bag REC --realtime` (no HZ): frame k arrives when the recording's header stamps say, its
+    stamps irregular here (0.05 s to 0.2 s apart), and misses its deadline when its pose is written after
+    the next frame's stamp; `vo --correct --realtime` keeps the layout's times the same way; records,
+    which have no stamps, are refused it before JAX starts."""
+    from recordings import write_recording
+
+    kitti = tmp_path / "kitti"
+    shutil.copytree(world["kitti"], kitti)
+    stamps = [0.0, 0.05, 0.25, 0.3, 0.35, 0.5]
+    (kitti / "sequences" / "00" / "times.txt").write_text("".join(f"{t:.6e}\n" for t in stamps))
+    recording = write_recording(tmp_path / "rec.mcap", kitti, poses={"/vo": world["poses"]})
+    out = tmp_path / "bag.txt"
+    assert main(["live", "--checkpoint", str(world["run"]), "--bag", str(recording), "--prior-topic", "/vo",
+                 "--realtime", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    rows = _rows(tmp_path / "bag.csv")
+    assert [float(row["time_s"]) for row in rows] == pytest.approx(stamps, abs=1e-6)
+    for k, row in enumerate(rows):
+        assert float(row["arrival_s"]) == pytest.approx(stamps[k], abs=1e-6)
+        assert float(row["written_s"]) >= stamps[k]  # the command waited for the stamp
+        due = stamps[k + 1] if k + 1 < FRAMES else float("inf")
+        assert row["missed"] == str(int(float(row["written_s"]) > due))
+    missed = [int(row["frame"]) for row in rows if row["missed"] == "1"]
+    record = json.loads((tmp_path / "bag.json").read_text())
+    assert record["realtime_stamps"] and record["realtime_hz"] is None
+    assert record["missed_deadlines"] == missed
+    assert "realtime at the frames' own stamps:" in printed
+    np.testing.assert_allclose(_poses(out), world["poses"], atol=1e-9)
+    # `vo --correct --realtime` on the layout the recording was written from: the sequence's times.txt.
+    assert main(["vo", "--kitti-odometry", str(kitti), "--sequence", "00", "--correct", str(world["run"]),
+                 "--realtime", "--out", str(tmp_path / "vo.txt")]) == 0
+    arrivals = [float(row["arrival_s"]) for row in _rows(tmp_path / "vo.csv")]
+    assert arrivals == pytest.approx(stamps, abs=1e-6)
+    capsys.readouterr()  # vo's own lines (its random images fall back to constant velocity)
+    assert main(_live_args(world, tmp_path / "r.txt", "--records", world["tmp"] / "records.txt",
+                           "--realtime")) == 2
+    assert "--realtime without HZ replays a recording (--bag)" in _one_line(capsys.readouterr().err)
+    assert not (tmp_path / "r.txt").exists()
 
 
 @pytest.fixture

@@ -166,7 +166,7 @@ def real_pairs() -> tuple[Batch, DPCOutputs, tuple[np.ndarray, np.ndarray], np.n
     K[0, 2] = (seq.K[0, 2] + 0.5) * w / seq.image_size[1] - 0.5
     K[1, 2] = (seq.K[1, 2] + 0.5) * h / seq.image_size[0] - 0.5
     left, right = ([cv2.resize(load_image(p), (w, h), interpolation=cv2.INTER_AREA) for p in paths]
-                   for paths in (seq.left_paths, seq.right_paths))
+                   for paths in (seq.images.left_paths, seq.images.right_paths))
     depth = [sgbm_inverse_depth(a, b, K[0, 0], seq.baseline) for a, b in zip(left, right, strict=True)]
     left_arr, right_arr = np.stack(left), np.stack(right)
     inv_l, ok_l = np.stack([d[0] for d in depth]), np.stack([d[1] for d in depth])

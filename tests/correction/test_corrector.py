@@ -553,3 +553,58 @@ def test_cli_judge_measures_the_test_on_another_cache_of_the_same_frames(setup: 
     assert not (tmp_path / "d.txt").exists()
 
 
+
+
+def test_cli_corrects_a_recording_as_its_kitti_layout(setup: dict, tmp_path: Path, capsys) -> None:
+    """Sequence 05 as a recording written by rosbags (PNG-compressed images, CameraInfo, the prior as
+    nav_msgs/Odometry): `correct --bag` writes the trajectory `correct --kitti-odometry` writes, byte for
+    byte with the same prior file; and with --prior-topic, --out OUT.mcap holds one nav_msgs/Odometry per
+    frame at the frames' stamps, corrected and prior, that the bag library reads back."""
+    from recordings import CAMERA_FRAME, stamps_of, write_recording
+    from rosbags.highlevel import AnyReader
+    from scipy.spatial.transform import Rotation
+
+    from dpc_jax.cli import main
+    from dpc_jax.data.poses_io import read_mat, read_trajectory
+
+    prior_file = setup["priors"] / "stereo_05.mat"
+    _, prior = read_mat(prior_file)
+    recording = write_recording(tmp_path / "05.mcap", setup["kitti"], "05", compressed=True,
+                                poses={"/vo": prior})
+    common = ["correct", "--checkpoint", str(setup["run"]), "--force", "--no-progress"]
+    assert main([*common, "--kitti-odometry", str(setup["kitti"]), "--sequence", "05", "--prior",
+                 str(prior_file), "--out", str(tmp_path / "files.txt")]) == 0
+    assert main([*common, "--bag", str(recording), "--prior", str(prior_file),
+                 "--out", str(tmp_path / "bag.txt")]) == 0
+    assert (tmp_path / "files.txt").read_bytes() == (tmp_path / "bag.txt").read_bytes()
+    assert main([*common, "--bag", str(recording), "--prior-topic", "/vo", "--out",
+                 str(tmp_path / "c.mcap")]) == 0
+    capsys.readouterr()
+    expected = {"/dpc/odometry": read_trajectory(tmp_path / "files.txt", "kitti"), "/dpc/prior": prior}
+    times = [float(t) for t in (setup["kitti"] / "sequences" / "05" / "times.txt").read_text().split()]
+    with AnyReader([tmp_path / "c.mcap"]) as reader:
+        assert {c.topic: (c.msgtype, c.msgcount) for c in reader.connections} == {
+            topic: ("nav_msgs/msg/Odometry", FRAMES) for topic in expected}
+        read: dict[str, list] = {topic: [] for topic in expected}
+        for connection, stamp, raw in reader.messages():
+            msg = reader.deserialize(raw, connection.msgtype)
+            assert msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec == stamp
+            assert (msg.header.frame_id, msg.child_frame_id) == ("odom", CAMERA_FRAME)
+            pose = np.eye(4)
+            q, p = msg.pose.pose.orientation, msg.pose.pose.position
+            pose[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+            pose[:3, 3] = [p.x, p.y, p.z]
+            read[connection.topic].append((stamp, pose))
+    for topic, poses in expected.items():
+        assert [s for s, _ in read[topic]] == stamps_of(times)
+        np.testing.assert_allclose(np.stack([p for _, p in read[topic]]), poses, atol=1e-9)
+    assert not np.allclose(expected["/dpc/odometry"], prior, atol=1e-6)  # --force: the network's correction
+    # A ROS 1 bag and a ROS 2 bag folder hold the same messages.
+    for out, more in ((tmp_path / "c.bag", []), (tmp_path / "c_ros2", ["--format", "rosbag2"])):
+        assert main([*common, "--bag", str(recording), "--prior-topic", "/vo", "--out", str(out), *more]) == 0
+        with AnyReader([out]) as reader:
+            stamps = [stamp for connection, stamp, _ in reader.messages()
+                      if connection.topic == "/dpc/odometry"]
+            assert stamps == stamps_of(times) and len(reader.connections) == 2
+    assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith("05")) == [
+        "bag.txt", "c.bag", "c.mcap", "c_ros2", "files.txt"]  # nothing else left beside the outputs

@@ -50,7 +50,7 @@ def _optimised() -> object:
 def _frames(sequence):
     from dpc_jax.data.kitti import load_image
 
-    for left, right in zip(sequence.left_paths, sequence.right_paths, strict=True):
+    for left, right in zip(sequence.images.left_paths, sequence.images.right_paths, strict=True):
         yield load_image(left), load_image(right)
 
 

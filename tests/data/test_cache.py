@@ -48,7 +48,7 @@ def test_excerpt_images_poses_and_intrinsics(excerpt: Path) -> None:
     np.testing.assert_array_equal(cache.indices, np.arange(*FRAMES))
     seq = open_raw(RAW, "2011_09_26", 1)
     for k in (0, n - 1):
-        for stored, paths in ((cache.left, seq.left_paths), (cache.right, seq.right_paths)):
+        for stored, paths in ((cache.left, seq.images.left_paths), (cache.right, seq.images.right_paths)):
             bgr = cv2.imread(str(paths[FRAMES[0] + k]))
             expected = cv2.resize(bgr, SIZE[::-1], interpolation=cv2.INTER_AREA)[..., ::-1]
             np.testing.assert_array_equal(stored[k], expected)
@@ -172,7 +172,7 @@ def test_touched_image_changes_the_input_hash(tmp_path: Path) -> None:
     seq = open_odometry(tmp_path / "kitti", "00")
     path = prepare_sequence(seq, seq.poses, tmp_path / "out", size=(10, 16), progress=False)
     digest = json.loads((path / "manifest.json").read_text())["input_hash"]
-    image = seq.left_paths[2]
+    image = seq.images.left_paths[2]
     stat = image.stat()
     os.utime(image, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))
     prepare_sequence(seq, seq.poses, tmp_path / "out", size=(10, 16), progress=False)
@@ -187,7 +187,7 @@ def test_bad_input_writes_no_cache_and_keeps_the_old_one(tmp_path: Path) -> None
         prepare_sequence(seq, seq.poses[:4], out, size=(10, 16), progress=False)
     assert not (out / "00").exists()
     good = prepare_sequence(seq, seq.poses, out, size=(10, 16), progress=False)
-    bad_png = seq.right_paths[3]
+    bad_png = seq.images.right_paths[3]
     bad_png.write_bytes(bad_png.read_bytes()[:50])
     with pytest.raises(ValueError, match=r"image_3/000003\.png: cannot decode"):
         prepare_sequence(seq, seq.poses, out, size=(12, 16), progress=False)
@@ -198,7 +198,7 @@ def test_bad_input_writes_no_cache_and_keeps_the_old_one(tmp_path: Path) -> None
 def test_image_of_wrong_size_is_named(tmp_path: Path) -> None:
     write_odometry(tmp_path / "kitti", n=4)
     seq = open_odometry(tmp_path / "kitti", "00")
-    cv2.imwrite(str(seq.left_paths[2]), np.zeros((21, 32, 3), np.uint8))
+    cv2.imwrite(str(seq.images.left_paths[2]), np.zeros((21, 32, 3), np.uint8))
     with pytest.raises(ValueError, match=r"image_2/000002\.png: image is 21×32, expected 20×32"):
         prepare_sequence(seq, seq.poses, tmp_path / "out", size=(10, 16), progress=False)
     assert not (tmp_path / "out" / "00").exists()

@@ -29,21 +29,22 @@ def test_odometry_colour_and_grey_pairs(odometry: tuple[Path, dict]) -> None:
     assert seq.baseline == pytest.approx(BASELINE_COLOUR, abs=1e-12)
     np.testing.assert_allclose(seq.times, written["times"])
     np.testing.assert_allclose(seq.poses, written["poses"], atol=1e-10)
-    assert [p.name for p in seq.left_paths] == [f"{k:06d}.png" for k in range(6)]
-    assert seq.left_paths[0].parent.name == "image_2" and seq.right_paths[0].parent.name == "image_3"
-    np.testing.assert_array_equal(load_image(seq.left_paths[3]), written["images"][2][3])
-    np.testing.assert_array_equal(load_image(seq.right_paths[5]), written["images"][3][5])
+    assert [p.name for p in seq.images.left_paths] == [f"{k:06d}.png" for k in range(6)]
+    files = seq.images
+    assert files.left_paths[0].parent.name == "image_2" and files.right_paths[0].parent.name == "image_3"
+    np.testing.assert_array_equal(load_image(seq.images.left_paths[3]), written["images"][2][3])
+    np.testing.assert_array_equal(load_image(seq.images.right_paths[5]), written["images"][3][5])
 
     grey = open_odometry(root, "00", grey=True)
     assert grey.baseline == pytest.approx(BASELINE_GREY, abs=1e-12)
-    assert grey.left_paths[0].parent.name == "image_0"
-    np.testing.assert_array_equal(load_image(grey.right_paths[2], grey=True), written["images"][1][2])
+    assert grey.images.left_paths[0].parent.name == "image_0"
+    np.testing.assert_array_equal(load_image(grey.images.right_paths[2], grey=True), written["images"][1][2])
 
 
 def test_select_frame_range(odometry: tuple[Path, dict]) -> None:
     root, written = odometry
     part = open_odometry(root, "00").select(2, 5)
-    assert [p.name for p in part.left_paths] == ["000002.png", "000003.png", "000004.png"]
+    assert [p.name for p in part.images.left_paths] == ["000002.png", "000003.png", "000004.png"]
     np.testing.assert_allclose(part.poses, written["poses"][2:5], atol=1e-10)
     with pytest.raises(ValueError, match=r"frame range \[4, 9\)"):
         open_odometry(root, "00").select(4, 9)
@@ -127,7 +128,7 @@ def test_truncated_and_missing_png(odometry: tuple[Path, dict], tmp_path: Path) 
 def test_real_raw_excerpt() -> None:
     seq = open_raw(RAW, "2011_09_26", 1, poses=RAW_MAT)
     assert seq.name == "2011_09_26_drive_0001"
-    assert len(seq) == 108 and len(seq.right_paths) == 108
+    assert len(seq) == 108 and len(seq.images.right_paths) == 108
     assert seq.image_size == (375, 1242)
     # README: fu = fv = 721.5377, cu = 609.5593, cv = 172.854, baseline ≈ 0.532 m.
     np.testing.assert_allclose(seq.K, [[721.5377, 0, 609.5593], [0, 721.5377, 172.854], [0, 0, 1]])
@@ -136,10 +137,10 @@ def test_real_raw_excerpt() -> None:
     assert seq.poses.shape == (108, 4, 4)
     steps = np.linalg.norm(np.diff(seq.poses[:, :3, 3], axis=0), axis=1)
     assert 100 < steps.sum() < 115  # README: about 107 m
-    image = load_image(seq.left_paths[0])
+    image = load_image(seq.images.left_paths[0])
     assert image.shape == (375, 1242, 3) and image.dtype == np.uint8
     # cv2 reads BGR; the reader must return RGB.
-    np.testing.assert_array_equal(image[..., ::-1], cv2.imread(str(seq.left_paths[0])))
+    np.testing.assert_array_equal(image[..., ::-1], cv2.imread(str(seq.images.left_paths[0])))
 
 
 def test_raw_ground_truth_of_wrong_length() -> None:
@@ -165,8 +166,9 @@ def test_real_raw_grey_pair_of_drive_0005() -> None:
 
     gt = read_ground_truth(RAW_MAT_0005)[:91]  # README: the first 91 of 154 poses belong to the images
     seq = open_raw(RAW, "2011_09_26", 5, poses=gt)  # auto: the drive holds only its grey pair
-    assert seq.name == "2011_09_26_drive_0005" and len(seq) == 91 == len(seq.right_paths)
-    assert seq.left_paths[0].parts[-3] == "image_00" and seq.right_paths[0].parts[-3] == "image_01"
+    assert seq.name == "2011_09_26_drive_0005" and len(seq) == 91 == len(seq.images.right_paths)
+    files = seq.images
+    assert files.left_paths[0].parts[-3] == "image_00" and files.right_paths[0].parts[-3] == "image_01"
     assert seq.image_size == (375, 1242)
     p0, p1 = _calibration_row("P_rect_00"), _calibration_row("P_rect_01")
     np.testing.assert_array_equal(seq.K, p0[:, :3])
@@ -176,19 +178,19 @@ def test_real_raw_grey_pair_of_drive_0005() -> None:
     length = np.linalg.norm(np.diff(seq.poses[:, :3, 3], axis=0), axis=1).sum()
     assert 30 < length < 38  # README: about 34 m
     # Grey PNGs enter every colour consumer as three equal channels (the network sees replicated grey).
-    image = load_image(seq.left_paths[0])
-    reference = cv2.imread(str(seq.left_paths[0]), cv2.IMREAD_UNCHANGED)
+    image = load_image(seq.images.left_paths[0])
+    reference = cv2.imread(str(seq.images.left_paths[0]), cv2.IMREAD_UNCHANGED)
     assert reference.ndim == 2 and image.shape == (375, 1242, 3)
     for c in range(3):
         np.testing.assert_array_equal(image[..., c], reference)
-    np.testing.assert_array_equal(load_image(seq.right_paths[5], grey=True),
-                                  cv2.imread(str(seq.right_paths[5]), cv2.IMREAD_UNCHANGED))
-    assert open_raw(RAW, "2011_09_26", 5, cameras="grey").left_paths == seq.left_paths
+    np.testing.assert_array_equal(load_image(seq.images.right_paths[5], grey=True),
+                                  cv2.imread(str(seq.images.right_paths[5]), cv2.IMREAD_UNCHANGED))
+    assert open_raw(RAW, "2011_09_26", 5, cameras="grey").images.left_paths == seq.images.left_paths
 
 
 def test_raw_pair_choice_and_missing_cameras(tmp_path: Path) -> None:
     colour = open_raw(RAW, "2011_09_26", 1)  # auto: the colour pair when the drive has it
-    assert colour.left_paths[0].parts[-3] == "image_02"
+    assert colour.images.left_paths[0].parts[-3] == "image_02"
     missing = r"drive_000{}_sync: the {} pair \(image_0{}/, image_0{}/\) is missing"
     with pytest.raises(ValueError, match=missing.format(5, "colour", 2, 3)):
         open_raw(RAW, "2011_09_26", 5, cameras="colour")

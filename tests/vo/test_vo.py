@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from conftest import DATA
 
+from dpc_jax.data.frames import ImageFiles
 from dpc_jax.data.kitti import StereoSequence, open_raw
 from dpc_jax.vo import StereoVO, VOConfig, VOStatus, run_vo, run_vo_frames
 from dpc_jax.vo.features import detect_bucketed
@@ -281,7 +282,7 @@ def _sequence(tmp_path: Path, frames: list, n_right: int | None = None) -> Stere
         cv2.imwrite(str(right[-1]), b)
     n = len(frames)
     return StereoSequence(
-        name="synthetic", left_paths=tuple(left), right_paths=tuple(right[:n_right]), K=K,
+        name="synthetic", images=ImageFiles(tuple(left), tuple(right[:n_right])), K=K,
         baseline=BASELINE, image_size=(HEIGHT, WIDTH), times=np.arange(n, dtype=float),
     )
 
@@ -289,14 +290,14 @@ def _sequence(tmp_path: Path, frames: list, n_right: int | None = None) -> Stere
 def test_run_vo_errors_name_the_files(tmp_path: Path, scene: tuple[np.ndarray, list]) -> None:
     _, frames = scene
     with pytest.raises(ValueError, match=r"3 left images .* but 2 right images"):
-        run_vo(_sequence(tmp_path, frames[:3], n_right=2))
+        _sequence(tmp_path, frames[:3], n_right=2)
     sequence = _sequence(tmp_path, frames[:3])
-    sequence.right_paths[1].write_bytes(sequence.right_paths[1].read_bytes()[:100])
+    sequence.images.right_paths[1].write_bytes(sequence.images.right_paths[1].read_bytes()[:100])
     with pytest.raises(ValueError, match=r"r1\.png"):
         run_vo(sequence)
     (tmp_path / "missing").mkdir()
     sequence = _sequence(tmp_path / "missing", frames[:3])
-    sequence.left_paths[2].unlink()
+    sequence.images.left_paths[2].unlink()
     with pytest.raises(FileNotFoundError, match=r"l2\.png"):
         run_vo(sequence)
 
@@ -428,7 +429,7 @@ def test_vo_prior_file_is_reused_until_its_inputs_change(
     write_vo_prior(sequence, out, VOConfig(estimate_offset=False), first_pose=poses[0])
     assert out.stat().st_mtime_ns != stamp
     stamp = out.stat().st_mtime_ns
-    image = sequence.left_paths[2]
+    image = sequence.images.left_paths[2]
     cv2.imwrite(str(image), cv2.flip(cv2.imread(str(image)), 1))
     write_vo_prior(sequence, out, VOConfig(estimate_offset=False), first_pose=poses[0])
     assert out.stat().st_mtime_ns != stamp

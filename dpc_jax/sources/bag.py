@@ -1,0 +1,513 @@
+"""A ROS recording as a stereo sequence: a ROS 1 ``.bag``, a ROS 2 bag folder (sqlite3 or MCAP storage),
+a plain ``.mcap`` or ``.db3`` file, read with ``rosbags`` (docs/formats.md, "Recordings").
+
+:func:`open_bag` reads the recording once for its index: the stamps and sizes of the two image topics,
+the first ``CameraInfo`` of each camera, the pose topics asked for and ``/tf_static``; the images
+themselves are read again, in order, when they are used (:class:`BagFrames`), so memory does not grow
+with the recording's length.
+
+* **Topics.** Left and right are ``--left-topic``/``--right-topic``, or chosen when the recording holds
+  exactly one pair of image topics whose names differ only by ``left``/``right`` or ``0``/``1``.
+* **Frames.** Left and right images are paired by header stamp: each left image with the nearest right
+  one when they are within ``tolerance`` seconds of each other and each is the other's nearest; an
+  image without a partner is skipped and counted. Stamps that do not increase on a topic are refused.
+  The sequence's times are the left stamps in seconds since the first pair's.
+* **Calibration.** From the ``camera_info`` topic beside each image topic: with all-zero ``D`` the
+  images are taken as rectified and ``P`` as it is (a note when ``R`` is not the identity); with
+  distortion (``plumb_bob``, ``rational_polynomial``) every image is rectified with OpenCV from ``D``,
+  ``K``, ``R`` and ``P``, as ROS's ``image_proc`` does. Else ``--calib FILE`` (KITTI ``calib.txt``:
+  ``P2``/``P3``, or ``P0``/``P1`` when the file has no ``P2``). ``K`` and the baseline come from the two
+  ``P`` (:func:`~dpc_jax.data.kitti.rectified_pair`).
+* **Poses.** A prior or ground-truth topic gives one pose per frame, the one nearest the left image's
+  stamp within ``tolerance``. Poses describe the left camera: the pose's own frame (an odometry's or a
+  transform's child frame, or ``pose_frame``) is the camera's frame id, or ``/tf_static`` links them and
+  the pose is moved onto the camera, or ``pose_frame`` is the camera's frame id (they coincide).
+
+Every problem is a ``ValueError`` of one line that names the recording, the topic and what was expected.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from dpc_jax.data.frames import StereoFrame, checked_size
+from dpc_jax.data.kitti import StereoSequence, read_calibration, rectified_pair, stereo_calibration
+from dpc_jax.data.poses_io import validate_poses
+from dpc_jax.sources import bag_images, bag_poses
+from dpc_jax.sources.recording import Recording, Source
+
+# Left and right images further apart than this are not one frame; also how far a pose may be from its
+# frame. KITTI's grey pair is up to 3.5 ms apart; a rig without a hardware trigger is further.
+DEFAULT_TOLERANCE = 0.01
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
+TF_STATIC = "/tf_static"
+_DISTORTION_MODELS = ("plumb_bob", "rational_polynomial")
+
+
+@dataclass(frozen=True)
+class BagOptions:
+    """What to read from a recording (the command line's ``--bag`` options)."""
+
+    path: Path
+    left_topic: str | None = None
+    right_topic: str | None = None
+    tolerance: float = DEFAULT_TOLERANCE
+    calib: Path | None = None
+    prior_topic: str | None = None
+    gt_topic: str | None = None
+    pose_frame: str | None = None
+
+
+class _Error(ValueError):
+    pass
+
+
+@contextmanager
+def _reader(path: Path) -> Iterator[Any]:
+    """An open ``rosbags`` reader of ``path``; whatever it raises becomes one line naming the recording."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    try:
+        reader = AnyReader([path], default_typestore=get_typestore(Stores.LATEST))
+        reader.open()
+    except _Error:
+        raise
+    except Exception as error:  # rosbags' errors differ by format (truncated, no footer, not a bag)
+        if "end magic" in str(error):  # rosbags' words for an MCAP file without its footer
+            raise _Error(f"{path}: the MCAP file has no footer: the recording was cut short (its recorder "
+                         "did not close it); expected a complete file (`mcap recover` writes one)") from None
+        raise _Error(f"{path}: cannot read the recording ({_words(error)}); expected a ROS 1 .bag, a ROS 2 "
+                     "bag folder or an .mcap/.db3 file") from None
+    try:
+        yield reader
+    finally:
+        reader.close()
+
+
+def _words(error: BaseException) -> str:
+    text = " ".join(str(error).split()) or type(error).__name__
+    return text[:200]
+
+
+def _messages(reader: Any, path: Path, connections: list[Any]) -> Iterator[tuple[Any, int, Any]]:
+    """``(connection, message number on its topic, message)`` in the recording's order; a recording that
+    breaks off (truncated, no MCAP footer) is one line."""
+    numbers: dict[str, int] = {}
+    try:
+        for connection, _, raw in reader.messages(connections=connections):
+            number = numbers.get(connection.topic, 0)
+            numbers[connection.topic] = number + 1
+            yield connection, number, reader.deserialize(raw, connection.msgtype)
+    except Exception as error:  # rosbags' errors differ by format
+        raise _Error(f"{path}: the recording breaks off ({_words(error)}); expected a complete recording "
+                     "(was it cut short?)") from None
+
+
+def _stereo_names(left: str, right: str) -> bool:
+    """Whether two topic names differ only by ``left``/``right`` or ``0``/``1`` at one place."""
+    for a, b in (("left", "right"), ("0", "1")):
+        for i in range(len(left)):
+            if left.startswith(a, i) and right == left[:i] + b + left[i + len(a):]:
+                return True
+    return False
+
+
+def _image_topics(path: Path, topics: dict[str, str], options: BagOptions) -> tuple[str, str]:
+    images = sorted(t for t, kind in topics.items() if kind in bag_images.IMAGE_TYPES)
+    listed = ", ".join(images) or "none"
+    if options.left_topic is not None or options.right_topic is not None:
+        if options.left_topic is None or options.right_topic is None:
+            raise _Error(f"{path}: --left-topic and --right-topic go together; its image topics: {listed}")
+        for option, topic in (("--left-topic", options.left_topic), ("--right-topic", options.right_topic)):
+            if topic not in topics:
+                raise _Error(f"{path}: {option} {topic}: no such topic; its image topics: {listed}")
+            if topics[topic] not in bag_images.IMAGE_TYPES:
+                raise _Error(f"{path}: {option} {topic} is {topics[topic]}; expected sensor_msgs/Image or "
+                             f"CompressedImage (its image topics: {listed})")
+        return options.left_topic, options.right_topic
+    if not images:
+        raise _Error(f"{path}: no image topic (sensor_msgs/Image or CompressedImage); its topics: "
+                     f"{', '.join(sorted(topics)) or 'none'}")
+    if len(images) == 1:
+        raise _Error(f"{path}: one camera only ({images[0]}); expected the two image topics of a stereo pair")
+    pairs = [(a, b) for a in images for b in images if _stereo_names(a, b)]
+    if len(pairs) != 1:
+        found = "no stereo pair" if not pairs else f"{len(pairs)} stereo pairs"
+        raise _Error(f"{path}: {found} among its image topics ({listed}); pass --left-topic and "
+                     "--right-topic")
+    return pairs[0]
+
+
+def _info_topic(image_topic: str, topics: dict[str, str]) -> str | None:
+    """The ``camera_info`` beside an image topic (``/cam/image_raw`` → ``/cam/camera_info``, also for
+    ``/cam/image_raw/compressed``)."""
+    parts = image_topic.rstrip("/").split("/")
+    for cut in (1, 2):
+        topic = "/".join([*parts[:-cut], "camera_info"])
+        if topics.get(topic) == CAMERA_INFO:
+            return topic
+    return None
+
+
+@dataclass
+class _Camera:
+    """What the index pass keeps of one image topic."""
+
+    topic: str
+    stamps: list[int]
+    size: tuple[int, int] | None = None
+    frame_id: str = ""
+    first: tuple[str, Any] | None = None  # the first message, for the size of a compressed one
+
+
+def _field(msg: Any, name: str) -> np.ndarray:
+    """A ``CameraInfo`` matrix field (ROS 2: ``k``; ROS 1: ``K``) as float64."""
+    value = getattr(msg, name, None)
+    return np.asarray(value if value is not None else getattr(msg, name.upper()), np.float64)
+
+
+def _calibration(
+    path: Path, infos: dict[str, Any], cameras: tuple[_Camera, _Camera], size: tuple[int, int],
+    options: BagOptions, notes: list[str],
+) -> tuple[np.ndarray, float, tuple[Any, Any] | None, tuple[Path, ...]]:
+    """``(K, baseline, rectification maps or None, calibration files read)``."""
+    if options.calib is not None:
+        entries = read_calibration(options.calib)
+        keys = ("P2", "P3") if "P2" in entries else ("P0", "P1")
+        K, baseline = stereo_calibration(options.calib, *keys, size)
+        return K, baseline, None, (options.calib,)
+    missing = [camera.topic for camera in cameras if camera.topic not in infos]
+    if missing:
+        raise _Error(f"{path}: no CameraInfo beside {missing[0]} (expected a camera_info topic in its "
+                     "namespace) and no --calib FILE; pass --calib with the pair's P matrices")
+    h, w = size
+    projections: list[np.ndarray] = []
+    maps: list[Any] = []
+    distorted = False
+    for camera in cameras:
+        topic, msg = infos[camera.topic]
+        where = f"{path}: {topic}"
+        if (int(msg.height), int(msg.width)) != (h, w):
+            raise _Error(f"{where}: CameraInfo is for {msg.height}x{msg.width} images, but {camera.topic} "
+                         f"holds {h}x{w}; expected the images' size")
+        d, k, r, p = (_field(msg, name) for name in ("d", "k", "r", "p"))
+        finite = np.all(np.isfinite(np.concatenate([d, k, r, p])))
+        if k.size != 9 or r.size != 9 or p.size != 12 or not finite:
+            raise _Error(f"{where}: CameraInfo with K, R, P of {k.size}, {r.size}, {p.size} numbers; "
+                         "expected 9, 9 and 12 finite numbers")
+        P = p.reshape(3, 4)
+        if np.any(d != 0):
+            if msg.distortion_model not in _DISTORTION_MODELS:
+                raise _Error(f"{where}: distortion model {msg.distortion_model!r}; expected one of "
+                             f"{', '.join(_DISTORTION_MODELS)} or rectified images (all-zero D)")
+            distorted = True
+            maps.append(cv2.initUndistortRectifyMap(k.reshape(3, 3), d, r.reshape(3, 3), P[:, :3], (w, h),
+                                                    cv2.CV_32FC1))
+        else:
+            maps.append(None)
+            if not np.allclose(r.reshape(3, 3), np.eye(3)):
+                notes.append(f"{where}: D is all zero, so the images are taken as rectified and P used as it "
+                             "is, but R is not the identity")
+        projections.append(P)
+    K, baseline = rectified_pair(projections[0], projections[1], size,
+                                 *(f"{path}: {infos[camera.topic][0]} P" for camera in cameras))
+    if distorted:
+        identity = (None, None)
+        maps = [m if m is not None else identity for m in maps]
+        return K, baseline, (maps[0], maps[1]), ()
+    return K, baseline, None, ()
+
+
+def _nearest(stamps: np.ndarray, of: np.ndarray) -> np.ndarray:
+    """Per stamp of ``of``, the index of the nearest of the increasing ``stamps`` (on a tie the earlier)."""
+    after = np.clip(np.searchsorted(stamps, of), 0, stamps.size - 1)
+    before = np.clip(after - 1, 0, stamps.size - 1)
+    return np.where(np.abs(stamps[before] - of) <= np.abs(stamps[after] - of), before, after)
+
+
+def _pairs(left: np.ndarray, right: np.ndarray, tolerance_ns: int) -> np.ndarray:
+    """int64 ``[N, 2]`` message numbers of the left and right images paired by nearest stamp: mutual
+    nearest neighbours within ``tolerance_ns`` (both stamp arrays increasing)."""
+    if left.size == 0 or right.size == 0:
+        return np.zeros((0, 2), np.int64)
+
+    to_right = _nearest(right, left)
+    to_left = _nearest(left, right)
+    k = np.arange(left.size)
+    keep = (to_left[to_right] == k) & (np.abs(right[to_right] - left) <= tolerance_ns)
+    return np.stack([k[keep], to_right[keep]], axis=1).astype(np.int64)
+
+
+def _increasing(path: Path, camera: _Camera) -> np.ndarray:
+    stamps = np.asarray(camera.stamps, np.int64)
+    back = np.flatnonzero(np.diff(stamps) <= 0)
+    if back.size:
+        i = int(back[0]) + 1
+        raise _Error(f"{path}: {camera.topic}: the header stamp of image {i} ({stamps[i] / 1e9:.9f} s) "
+                     f"{'repeats' if stamps[i] == stamps[i - 1] else 'goes back from'} image {i - 1}'s "
+                     f"({stamps[i - 1] / 1e9:.9f} s); expected increasing stamps")
+    return stamps
+
+
+def _pose_topic(
+    path: Path, option: str, topic: str, samples: list[bag_poses.PoseSample], msgtype: str,
+    stamps: np.ndarray, tolerance_ns: int, camera_frame: str, pose_frame: str | None,
+    static: dict[tuple[str, str], np.ndarray],
+) -> tuple[np.ndarray, str]:
+    """The poses of ``topic`` at the frames' left ``stamps`` as camera-to-world ``[N, 4, 4]``, and the world
+    frame's id."""
+    body = pose_frame
+    if msgtype == bag_poses.TF:
+        body = body or camera_frame
+        samples = [s for s in samples if s.child == body]
+        if not samples:
+            raise _Error(f"{path}: {option} {topic}: no transform to frame {body!r}; pass --pose-frame "
+                         "FRAME to name the frame whose transforms are the poses")
+    where = f"{path}: {option} {topic}"
+    if not samples:
+        raise _Error(f"{where}: no pose; expected one per frame")
+    body = body or samples[0].child
+    if body is None:
+        raise _Error(f"{where}: {msgtype} names no frame for its poses; pass --pose-frame {camera_frame} if "
+                     "they are the left camera's poses (or the frame /tf_static links to it)")
+    link = np.eye(4)
+    if body != camera_frame:
+        found = bag_poses.static_link(static, body, camera_frame)
+        if found is None:
+            raise _Error(f"{where}: poses of frame {body!r}, images of frame {camera_frame!r}, and "
+                         f"{TF_STATIC} does not link them; pass --pose-frame {camera_frame} if the two "
+                         "coincide")
+        link = found
+    order = np.argsort([s.stamp for s in samples], kind="stable")
+    pose_stamps = np.asarray([samples[i].stamp for i in order], np.int64)
+    nearest = _nearest(pose_stamps, stamps)
+    far = np.flatnonzero(np.abs(pose_stamps[nearest] - stamps) > tolerance_ns)
+    if far.size:
+        k = int(far[0])
+        raise _Error(f"{where}: no pose within {tolerance_ns / 1e6:g} ms of frame {k} (stamp "
+                     f"{stamps[k] / 1e9:.9f} s); the topic holds {pose_stamps.size} poses for {stamps.size} "
+                     "frames, expected one per frame")
+    poses = np.stack([samples[order[i]].matrix @ link for i in nearest])
+    return validate_poses(poses, where), samples[0].parent
+
+
+def open_source(source: Source) -> Recording:
+    """The recording ``source.path`` with ``source.bag``'s options (:func:`open_bag`)."""
+    options = source.bag or BagOptions(source.path)
+    return open_bag(options)
+
+
+def open_bag(options: BagOptions) -> Recording:
+    """Open a recording (module docstring); ``ValueError`` of one line for every problem."""
+    path = options.path
+    if not math.isfinite(options.tolerance) or options.tolerance <= 0:
+        raise _Error(f"--stamp-tolerance {options.tolerance}: expected a positive number of seconds")
+    tolerance_ns = round(options.tolerance * 1e9)
+    with _reader(path) as reader:
+        topics = {c.topic: c.msgtype for c in reader.connections}
+        left_topic, right_topic = _image_topics(path, topics, options)
+        cameras = (_Camera(left_topic, []), _Camera(right_topic, []))
+        by_topic = {camera.topic: camera for camera in cameras}
+        info_topics = {}
+        if options.calib is None:
+            info_topics = {t: _info_topic(t, topics) for t in (left_topic, right_topic)}
+        pose_topics = {}
+        for option, topic in (("--prior-topic", options.prior_topic), ("--gt-topic", options.gt_topic)):
+            if topic is None:
+                continue
+            if topics.get(topic) not in bag_poses.POSE_TYPES:
+                listed = ", ".join(sorted(t for t, kind in topics.items() if kind in bag_poses.POSE_TYPES))
+                what = "no such topic" if topic not in topics else f"a {topics[topic]} topic"
+                raise _Error(f"{path}: {option} {topic}: {what}; expected nav_msgs/Odometry, PoseStamped, "
+                             f"PoseWithCovarianceStamped or /tf (its pose topics: {listed or 'none'})")
+            pose_topics[option] = topic
+        wanted = {left_topic, right_topic, *pose_topics.values(),
+                  *(t for t in info_topics.values() if t is not None)}
+        if pose_topics and TF_STATIC in topics:
+            wanted.add(TF_STATIC)
+        infos: dict[str, tuple[str, Any]] = {}
+        samples: dict[str, list[bag_poses.PoseSample]] = {t: [] for t in pose_topics.values()}
+        static: dict[tuple[str, str], np.ndarray] = {}
+        connections = [c for c in reader.connections if c.topic in wanted]
+        for connection, number, msg in _messages(reader, path, connections):
+            topic, msgtype = connection.topic, connection.msgtype
+            camera = by_topic.get(topic)
+            if camera is not None:
+                _index_image(path, camera, number, msgtype, msg)
+            for image_topic, info_topic in info_topics.items():
+                if topic == info_topic and image_topic not in infos:
+                    infos[image_topic] = (topic, msg)
+            if topic in samples:
+                samples[topic].extend(bag_poses.samples(msgtype, msg, f"{path}: {topic}"))
+            if topic == TF_STATIC:
+                for s in bag_poses.samples(msgtype, msg, f"{path}: {topic}"):
+                    static[(s.parent, s.child or "")] = s.matrix
+    for camera in cameras:
+        if not camera.stamps:
+            raise _Error(f"{path}: {camera.topic}: no image; expected the images of one camera of the pair")
+    left_stamps, right_stamps = (_increasing(path, camera) for camera in cameras)
+    size = cameras[0].size or _first_size(path, cameras[0])
+    right_size = cameras[1].size or _first_size(path, cameras[1])
+    if right_size != size:
+        raise _Error(f"{path}: {right_topic} holds {right_size[0]}x{right_size[1]} images, {left_topic} "
+                     f"{size[0]}x{size[1]}; expected one size for both cameras")
+    pairs = _pairs(left_stamps, right_stamps, tolerance_ns)
+    notes: list[str] = []
+    skipped = (left_stamps.size - pairs.shape[0], right_stamps.size - pairs.shape[0])
+    if any(skipped):
+        notes.append(f"{path}: {skipped[0]} left and {skipped[1]} right images without a partner within "
+                     f"{tolerance_ns / 1e6:g} ms skipped ({pairs.shape[0]} stereo frames)")
+    if pairs.shape[0] < 2:
+        raise _Error(f"{path}: {pairs.shape[0]} stereo frames of {left_topic} and {right_topic} within "
+                     f"{tolerance_ns / 1e6:g} ms of each other; expected at least 2 (--stamp-tolerance)")
+    K, baseline, maps, calib_files = _calibration(path, infos, cameras, size, options, notes)
+    stamps = left_stamps[pairs[:, 0]]
+    camera_frame = cameras[0].frame_id
+    poses: dict[str, np.ndarray] = {}
+    world_frame = "world"
+    for option, topic in pose_topics.items():
+        poses[option], parent = _pose_topic(
+            path, option, topic, samples[topic], topics[topic], stamps, tolerance_ns, camera_frame,
+            options.pose_frame, static)
+        if option == "--prior-topic":
+            world_frame = parent
+    pair_stamps = np.stack([stamps, right_stamps[pairs[:, 1]]], axis=1)
+    frames = BagFrames(path, (left_topic, right_topic), pairs, pair_stamps, maps)
+    name = path.stem if path.is_file() else path.name
+    sequence = StereoSequence(name=name, images=frames, K=K, baseline=baseline, image_size=size,
+                              times=(stamps - stamps[0]) / 1e9, poses=poses.get("--gt-topic"),
+                              sources=calib_files)
+    return Recording(sequence, poses.get("--prior-topic"), int(stamps[0]), camera_frame, world_frame,
+                     tuple(notes))
+
+
+def _index_image(path: Path, camera: _Camera, number: int, msgtype: str, msg: Any) -> None:
+    """Keep an image message's stamp; check its encoding (and, raw, its size) against the first one's."""
+    where = f"{path}: {camera.topic}"
+    problem = bag_images.encoding_problem(msgtype, msg)
+    if problem is not None:
+        raise _Error(f"{where}: image {number} has {problem}")
+    camera.stamps.append(bag_poses.stamp_ns(msg.header))
+    if number == 0:
+        camera.frame_id = msg.header.frame_id
+        camera.first = (msgtype, msg)
+    if msgtype == bag_images.IMAGE:
+        size = bag_images.raw_size(msg)
+        if camera.size is None:
+            camera.size = size
+        elif size != camera.size:
+            raise _Error(f"{where}: image {number} is {size[0]}x{size[1]}, image 0 {camera.size[0]}x"
+                         f"{camera.size[1]}; expected images of one size")
+
+
+def _first_size(path: Path, camera: _Camera) -> tuple[int, int]:
+    """The size of a compressed topic's first image (decoded)."""
+    assert camera.first is not None
+    msgtype, msg = camera.first
+    image = bag_images.decode(msgtype, msg, True, f"{path}: {camera.topic} image 0")
+    return int(image.shape[0]), int(image.shape[1])
+
+
+@dataclass(frozen=True)
+class BagFrames:
+    """The stereo frames of a recording: message numbers ``[N, 2]`` on the left and right topics, their
+    header stamps (ns, ``[N, 2]``) and the rectification maps of distorted cameras (None: rectified)."""
+
+    path: Path
+    topics: tuple[str, str]
+    numbers: np.ndarray
+    stamps: np.ndarray
+    maps: tuple[Any, Any] | None = None
+
+    def __len__(self) -> int:
+        return int(self.numbers.shape[0])
+
+    def select(self, start: int, stop: int) -> BagFrames:
+        return replace(self, numbers=self.numbers[start:stop], stamps=self.stamps[start:stop])
+
+    def stream(self, size: tuple[int, int], indices: Sequence[int] | None = None) -> Iterator[StereoFrame]:
+        chosen = list(range(len(self))) if indices is None else list(indices)
+        if not chosen:
+            return
+        wanted = self.numbers[chosen]
+        needed = ({int(n) for n in wanted[:, 0]}, {int(n) for n in wanted[:, 1]})
+        held: dict[tuple[int, int], tuple[str, Any]] = {}
+        j = 0
+        with _reader(self.path) as reader:
+            connections = [c for c in reader.connections if c.topic in self.topics]
+            for connection, number, msg in _messages(reader, self.path, connections):
+                side = self.topics.index(connection.topic)
+                if number in needed[side]:
+                    held[(side, number)] = (connection.msgtype, msg)
+                while j < len(chosen) and all((side, int(wanted[j, side])) in held for side in (0, 1)):
+                    left, right = (held.pop((side, int(wanted[j, side]))) for side in (0, 1))
+                    yield self._frame(chosen[j], left, right, size)
+                    j += 1
+                if j == len(chosen):
+                    return
+        raise _Error(f"{self.path}: the recording holds fewer images than its index said (frame {chosen[j]} "
+                     "missing); was it changed while read?")
+
+    def _frame(
+        self, index: int, left: tuple[str, Any], right: tuple[str, Any], size: tuple[int, int]
+    ) -> StereoFrame:
+        where = f"{self.path}: {self.topics[0]} at {self.stamps[index][0] / 1e9:.9f} s"
+        maps = self.maps
+
+        def read(grey: bool) -> tuple[np.ndarray, np.ndarray]:
+            images = []
+            for side, (msgtype, msg) in enumerate((left, right)):
+                at = f"{self.path}: {self.topics[side]} at {self.stamps[index][side] / 1e9:.9f} s"
+                image = checked_size(bag_images.decode(msgtype, msg, grey, at), size, at)
+                if maps is not None and maps[side][0] is not None:
+                    image = cv2.remap(image, maps[side][0], maps[side][1], cv2.INTER_LINEAR)
+                images.append(image)
+            return images[0], images[1]
+
+        return StereoFrame(index, where, read)
+
+    def identity(self) -> list[str]:
+        files = sorted(p for p in self.path.rglob("*") if p.is_file()) if self.path.is_dir() else [self.path]
+        texts = []
+        for file in files:
+            st = file.stat()
+            texts.append(f"{file.resolve()}:{st.st_size}:{st.st_mtime_ns}")
+        frames = hashlib.sha256(np.ascontiguousarray(self.numbers).tobytes()).hexdigest()
+        return [*texts, f"topics {self.topics[0]} {self.topics[1]} frames {frames}"]
+
+    def locations(self) -> dict[str, str]:
+        return {"left_images": f"{self.path.resolve()} {self.topics[0]}",
+                "right_images": f"{self.path.resolve()} {self.topics[1]}"}
+
+
+def read_pose_topic(path: Path, topic: str) -> tuple[np.ndarray, np.ndarray]:
+    """Every pose of ``topic`` (``nav_msgs/Odometry``, ``PoseStamped``, ``PoseWithCovarianceStamped``) in
+    a recording, by header stamp: ``(times [N] s, poses [N, 4, 4])``, as a timed trajectory file gives
+    them (``dpc-jax evaluate``); ``ValueError`` of one line naming the recording and the topic."""
+    kinds = (bag_poses.ODOMETRY, bag_poses.POSE, bag_poses.POSE_COVARIANCE)
+    with _reader(path) as reader:
+        topics = {c.topic: c.msgtype for c in reader.connections}
+        if topics.get(topic) not in kinds:
+            listed = ", ".join(sorted(t for t, kind in topics.items() if kind in kinds)) or "none"
+            what = "no such topic" if topic not in topics else f"a {topics[topic]} topic"
+            raise _Error(f"{path}: {topic}: {what}; expected nav_msgs/Odometry, PoseStamped or "
+                         f"PoseWithCovarianceStamped (its pose topics: {listed})")
+        connections = [c for c in reader.connections if c.topic == topic]
+        samples = [s for _, _, msg in _messages(reader, path, connections)
+                   for s in bag_poses.samples(topics[topic], msg, f"{path}: {topic}")]
+    if len(samples) < 2:
+        raise _Error(f"{path}: {topic}: {len(samples)} pose; expected a trajectory of at least 2")
+    order = np.argsort([s.stamp for s in samples], kind="stable")
+    stamps = np.asarray([samples[i].stamp for i in order], np.int64)
+    poses = validate_poses(np.stack([samples[i].matrix for i in order]), f"{path}: {topic}")
+    return stamps / 1e9, poses
