@@ -65,6 +65,12 @@ def build_parser() -> argparse.ArgumentParser:
         module = importlib.import_module(f"{__name__}.{name}")
         command = sub.add_parser(name, help=module.HELP, description=module.HELP, formatter_class=Formatter)
         module.add_arguments(command)
+        if not any("--no-progress" in action.option_strings for action in command._actions):
+            # One option set for scripts that run every command alike: where nothing shows progress
+            # (evaluate, live), --no-progress is accepted and changes nothing.
+            command.add_argument("--no-progress", action="store_true",
+                                 help="accepted for scripts that pass it to every command; this one shows "
+                                      "no progress")
         command.set_defaults(_run=module.run, _huge_pages=module.HUGE_PAGES)
     return parser
 
