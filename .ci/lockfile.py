@@ -56,7 +56,8 @@ def main(argv: list[str]) -> int:
         when = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d")
         block = (f"Written by `bash .ci/latest{' --oldest' if mode == 'oldest' else ''} --record` at commit "
                  f"{commit(ROOT)}, {when}, on {this_cpu()}, with {versions_line()}.\n\n"
-                 f"The checks (ruff, lint-imports, mypy, the test command): **{outcome}**.\n\n"
+                 f"The checks (ruff, lint-imports, {'' if mode == 'oldest' else 'mypy, '}the test command): "
+                 f"**{outcome}**.\n\n"
                  f"What moved against the lock:\n\n{text}")
         replace_block(ROOT / "docs" / "dependencies.md", mode, block)
     return 0
