@@ -66,7 +66,8 @@ Measure = Callable[[Mapping[str, np.ndarray]], Mapping[str, np.ndarray]]
 
 @dataclass(frozen=True)
 class MeanTest:
-    """How a whole part's mean is tested (``docs/method.md`` §8, the options of issue 59).
+    """How a whole part's mean is tested (``docs/method.md`` §8: the options compared, and the rule
+    stated before their results that picks the default).
 
     ``at_judge``: with a judge, test the mean at the judge's size only (at the network's size a whole
     part passes on its own Δ); without one, at the network's size as always. ``alpha``: the mean's own

@@ -83,24 +83,21 @@ class StereoFrame:
 class StereoFrames(Protocol):
     """The images of a stereo sequence: ``len`` frames, cut by :meth:`select`, read by :meth:`stream`."""
 
-    def __len__(self) -> int: ...
+    def __len__(self) -> int:
+        """The number of stereo frames."""
 
     def select(self, start: int, stop: int) -> StereoFrames:
         """The frames ``start <= i < stop``."""
-        ...
 
     def stream(self, size: tuple[int, int], indices: Sequence[int] | None = None) -> Iterator[StereoFrame]:
         """The frames ``indices`` (increasing; all when None) in order, each decoding to ``size`` ``(H, W)``
         images or raising ``ValueError`` naming it."""
-        ...
 
     def identity(self) -> list[str]:
         """Texts that change when the frames' stored bytes may have changed (a cache's input hash)."""
-        ...
 
     def locations(self) -> dict[str, str]:
         """Where the left and right images are (``left_images``, ``right_images``), for a manifest."""
-        ...
 
 
 @dataclass(frozen=True)

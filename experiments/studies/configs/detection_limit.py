@@ -67,7 +67,7 @@ TRAINING = {
 # Every cell is also decided the earlier way (the mean not tested apart) from the same network, and both
 # finals are tabulated.
 # And by every option of where and how the mean is tested (``decisions``, dpc_jax.correction.decision's
-# MEAN_TESTS; docs/method.md §8, issue 59), from the same proposal and with the judge of the profile (the
+# MEAN_TESTS; docs/method.md §8), from the same proposal and with the judge of the profile (the
 # test sequences rendered again at that size), the rule stated there choosing among them.
 CORRECTION = {"rotation_only": True, "mean_test": True, "mean_window": 50,
               "decisions": ["mean-at-network", "mean-at-judge", "mean-at-judge-a05", "mean-noninferior"]}
