@@ -96,6 +96,7 @@ class SequentialTest:
     withdrawals: int = 0
     log_wealth: np.ndarray = field(default_factory=lambda: np.zeros(BETS.size))
     episode_sum: float = 0.0  # sum of the differences since the test (re)started
+    total: float = 0.0  # sum of all the differences
     helped: int = 0  # pairs with a negative difference since acceptance
     signed: int = 0  # pairs with a nonzero difference since acceptance
     cusum: float = 0.0
@@ -111,6 +112,11 @@ class SequentialTest:
         return self.alpha * 6.0 / (math.pi**2 * j**2)
 
     @property
+    def mean(self) -> float:
+        """The mean of all the differences seen (nan before the first)."""
+        return self.total / self.pairs if self.pairs else math.nan
+
+    @property
     def evidence(self) -> float:
         """The mixture wealth ``W_t`` (accepting at ``1 / level``), or the CUSUM while accepted."""
         return self.cusum if self.accepted else float(np.mean(np.exp(self.log_wealth)))
@@ -122,6 +128,7 @@ class SequentialTest:
             raise ValueError(f"{self.name}: the difference of pair {self.pairs} is not finite")
         self.pairs += 1
         self.episode_pairs += 1
+        self.total += delta
         sign = -float(np.sign(delta))  # +1: the correction helped this pair
         if not self.accepted:
             self.log_wealth += np.log1p(BETS * sign)

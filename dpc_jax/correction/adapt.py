@@ -45,7 +45,7 @@ from dpc_jax.training.optim import create_train_state, make_optimizer
 from dpc_jax.training.steps import make_train_step
 
 if TYPE_CHECKING:
-    from dpc_jax.results.correction import AdaptationSummary, Correction
+    from dpc_jax.results.correction import AdaptationSummary
 
 
 @dataclass(frozen=True)
@@ -159,21 +159,6 @@ def adapt(
     adapted_run = dataclasses.replace(run, selection=f"{run.selection}+adapted", graphdef=model_graphdef,
                                       state=model_state, improves_on_prior=True)
     return Adaptation(adapted_run, run, config, held_out, log, time.perf_counter() - began)
-
-
-def adapt_and_correct(
-    run: TrainedRun, cache: SequenceCache, how: AdaptConfig, *, progress: Progress = False,
-    **correct_options: Any
-) -> tuple[Adaptation, Correction]:
-    """Adapt ``run`` to ``cache`` (:func:`adapt`), then correct ``cache`` with the adapted network
-    (``dpc_jax.correction.corrector.correct_cache`` with ``correct_options``), its acceptance test on
-    the kept-out pairs only; the correction carries the adaptation's summary."""
-    from dpc_jax.correction.corrector import correct_cache
-
-    adaptation = adapt(run, cache, how, progress=progress)
-    correction = correct_cache(adaptation.run, cache, held_out=adaptation.held_out, progress=progress,
-                               **correct_options)
-    return adaptation, dataclasses.replace(correction, adaptation=adaptation.summary())
 
 
 def save_adapted(directory: str | os.PathLike, adaptation: Adaptation, metrics: dict[str, Any]) -> Path:

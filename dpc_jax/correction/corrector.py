@@ -31,12 +31,14 @@ import dataclasses
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from dpc_jax._io import atomic_write
 from dpc_jax.correction.acceptance import DEFAULT_ALPHA, paired_test
+from dpc_jax.correction.adapt import Adaptation, AdaptConfig
+from dpc_jax.correction.adapt import adapt as adapt_network
 from dpc_jax.correction.decision import (
     DEFAULT_MEAN_TEST,
     MEAN_TESTS,
@@ -52,11 +54,8 @@ from dpc_jax.data.poses_io import WRITE_FORMATS, frames_path, write_kitti_poses,
 from dpc_jax.data.priors import prior_for_cache
 from dpc_jax.data.sequence_cache import SequenceCache, load_cache
 from dpc_jax.results.acceptance import Acceptance
-from dpc_jax.results.correction import Correction
+from dpc_jax.results.correction import AdaptationSummary, Correction
 from dpc_jax.runtime.progress import Progress
-
-if TYPE_CHECKING:
-    from dpc_jax.correction.adapt import Adaptation, AdaptConfig
 
 
 def default_acceptance_depth(run: TrainedRun) -> str:
@@ -187,13 +186,13 @@ def choose(trained: Correction, adapted: Correction | None = None) -> tuple[str,
     effects. Forced corrections (``force``) are not compared: the adapted one is applied. The
     returned correction's ``choice`` records the comparison.
     """
-    if adapted is None or adapted.applied == "none":
-        name = "trained" if trained.applied != "none" else "prior"
+    if adapted is None or adapted.part == "none":
+        name = "trained" if trained.part != "none" else "prior"
         first = "no adapted correction" if adapted is None else "the adapted correction failed its test"
         reason = first + ("; the trained correction passed its test" if name == "trained"
                           else "; the trained correction failed its test: the prior is kept")
         return name, dataclasses.replace(trained, choice={"final": name, "reason": reason})
-    if trained.applied == "none" or adapted.acceptance.forced:
+    if trained.part == "none" or adapted.acceptance.forced:
         reason = ("forced" if adapted.acceptance.forced
                   else "the adapted correction passed its test, the trained one did not")
         return "adapted", dataclasses.replace(adapted, choice={"final": "adapted", "reason": reason})
@@ -251,28 +250,44 @@ def correct_sequence(
     trained = correct_cache(run, cache, progress=progress, **options)
     adaptation = adapted = None
     if adapt is not None:
-        from dpc_jax.correction.adapt import adapt_and_correct
-
-        adaptation, adapted = adapt_and_correct(run, cache, adapt, progress=progress, **options)
+        adaptation = adapt_network(run, cache, adapt, progress=progress)
+        adapted = correct_adapted(adaptation.run, cache, adaptation.held_out, adaptation.summary(),
+                                  progress=progress, **options)
     final, result = choose(trained, adapted)
     return CorrectedSequence(trained, adapted, adaptation, final, result)
 
 
+def correct_adapted(run: TrainedRun, cache: SequenceCache, held_out: np.ndarray,
+                    summary: AdaptationSummary | None = None, **options: Any) -> Correction:
+    """``cache`` corrected by an adapted network ``run`` (:func:`correct_cache` with ``options``), its
+    tests on the pairs ``held_out`` of adaptation only; the correction carries the adaptation's
+    ``summary``."""
+    correction = correct_cache(run, cache, held_out=held_out, **options)
+    return dataclasses.replace(correction, adaptation=summary)
+
+
 def decided_again(
-    done: CorrectedSequence, run: TrainedRun, cache: SequenceCache, **options: Any
+    run: TrainedRun, cache: SequenceCache | str | os.PathLike, *, done: CorrectedSequence | None = None,
+    adapted: tuple[TrainedRun, np.ndarray] | None = None, **options: Any
 ) -> CorrectedSequence:
-    """The proposals of ``done`` (the network as trained and adapted, on ``cache``, corrected by
-    :func:`correct_sequence`) decided again with other ``options`` of :func:`correct_cache` (e.g.
-    ``mean_test=False``, the earlier decision), and chosen again: nothing is adapted again, and with
-    StereoSGBM depth no network runs."""
-    trained = correct_cache(run, cache, proposal=done.trained.xi_corr, **options)
-    adapted = None
-    if done.adapted is not None and done.adaptation is not None:
-        adapted = correct_cache(done.adaptation.run, cache, proposal=done.adapted.xi_corr,
-                                held_out=done.adaptation.held_out, **options)
-        adapted = dataclasses.replace(adapted, adaptation=done.adaptation.summary())
-    final, result = choose(trained, adapted)
-    return CorrectedSequence(trained, adapted, done.adaptation, final, result)
+    """``cache`` corrected again by the network as trained (``run``) and, when there is one, by the
+    adapted network on the pairs it never saw, decided with ``options`` of :func:`correct_cache` (e.g.
+    ``mean_test=False``, the earlier decision) and chosen again (:func:`choose`); nothing is trained or
+    adapted. ``done``: the sequence corrected before by :func:`correct_sequence`: its proposals are
+    decided again with its adapted network (with StereoSGBM depth no network runs); else ``adapted``:
+    ``(run, held_out)``, an adapted network and its kept-out pairs (the networks run)."""
+    cache = cache if isinstance(cache, SequenceCache) else load_cache(cache)
+    adaptation = None if done is None else done.adaptation
+    if adaptation is not None:
+        adapted = (adaptation.run, adaptation.held_out)
+    trained = correct_cache(run, cache, proposal=None if done is None else done.trained.xi_corr, **options)
+    again = None
+    if adapted is not None:
+        proposal = None if done is None or done.adapted is None else done.adapted.xi_corr
+        summary = None if adaptation is None else adaptation.summary()
+        again = correct_adapted(adapted[0], cache, adapted[1], summary, proposal=proposal, **options)
+    final, result = choose(trained, again)
+    return CorrectedSequence(trained, again, adaptation, final, result)
 
 
 def write_trajectory(path: str | os.PathLike, correction: Correction, format: str = "kitti") -> list[Path]:

@@ -45,13 +45,15 @@ non-inferiority test).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
-from dpc_jax.correction.acceptance import DEFAULT_ALPHA, paired_test
-from dpc_jax.results.acceptance import Acceptance, PairedTest
+from dpc_jax.correction.acceptance import DEFAULT_ALPHA, SequentialTest, paired_test
+from dpc_jax.results.acceptance import Acceptance, PairedTest, judge_test_name, mean_test_name, part_name
 
 COMPONENTS = ("full", "rotation")
 AXES = "xyz"  # camera axes: x right (pitch), y down (yaw), z forward (roll)
@@ -122,107 +124,328 @@ def component_mask(component: str) -> np.ndarray:
 @dataclass(frozen=True)
 class Part:
     """A part of a correction: a component, whole or its remainder (its moving mean over ``window``
-    pairs removed), times a scale."""
+    pairs removed: centred, or with ``trailing`` over the pairs up to each one), times a scale."""
 
     component: str
     remainder: bool = False
     scale: float = 1.0
     window: int = MEAN_WINDOW
+    trailing: bool = False
 
     @property
     def name(self) -> str:
-        return self.component + (" − mean" if self.remainder else "") + (
-            f" ×{self.scale:g}" if self.scale != 1.0 else "")
+        """Its one name (:func:`~dpc_jax.results.acceptance.part_name`): ``rotation_xz − mean ×0.5``."""
+        return part_name(self.component, self.remainder, self.scale)
 
     def of(self, xi: np.ndarray) -> np.ndarray:
         """This part of ``xi`` ``[M, 6]`` → ``[M, 6]`` float64."""
-        return part_of(xi, self.component, self.remainder, self.scale, window=self.window)
+        return part_of(xi, self.component, self.remainder, self.scale, self.window, self.trailing)
 
     def mean(self, xi: np.ndarray) -> np.ndarray:
         """The mean ``[6]`` over all the pairs of the component's entries of ``xi``."""
         return (np.asarray(xi, np.float64) * component_mask(self.component)).mean(axis=0)
 
 
-def moving_mean(x: np.ndarray, window: int = MEAN_WINDOW) -> np.ndarray:
+def moving_mean(x: np.ndarray, window: int = MEAN_WINDOW, trailing: bool = False) -> np.ndarray:
     """The centred moving mean ``[M, ...]`` of ``x`` ``[M, ...]`` over ``window`` consecutive rows: row k
     the mean of rows ``[k − ⌊window/2⌋, k + ⌈window/2⌉)``, cut to the rows there are (at the ends and
     in a sequence shorter than the window, the mean of fewer rows; the whole mean when ``M ≤
-    window/2``)."""
+    window/2``). ``trailing``: the mean of rows ``[k − window + 1, k]`` instead, what is known at row
+    k while the rows arrive (the live corrector's)."""
     x = np.asarray(x, np.float64)
     if window < 1:
         raise ValueError(f"window must be >= 1, got {window}")
     m = x.shape[0]
     sums = np.concatenate([np.zeros((1, *x.shape[1:])), np.cumsum(x, axis=0)])
-    start = np.clip(np.arange(m) - window // 2, 0, m)
-    stop = np.clip(np.arange(m) + (window - window // 2), 0, m)
+    before = window - 1 if trailing else window // 2
+    start = np.clip(np.arange(m) - before, 0, m)
+    stop = np.clip(np.arange(m) + window - before, 0, m)
     shape = (m,) + (1,) * (x.ndim - 1)
     return (sums[stop] - sums[start]) / (stop - start).reshape(shape)
 
 
 def part_of(xi: np.ndarray, component: str, remainder: bool = False, scale: float = 1.0,
-            mean: np.ndarray | None = None, window: int = MEAN_WINDOW) -> np.ndarray:
+            window: int = MEAN_WINDOW, trailing: bool = False) -> np.ndarray:
     """``scale · (ξ ⊙ m − [mean])`` → ``[M, 6]`` float64, ``m`` the mask of ``component``.
 
     ``xi``: ``[M, 6]`` corrections ``[ρ (m), φ (rad)]``; with ``remainder`` the moving mean of
-    ``ξ ⊙ m`` over ``window`` pairs (:func:`moving_mean`) is removed, or ``mean`` (``[6]`` or
-    ``[M, 6]``) when given: the live corrector's mean of the pairs seen. The one implementation of
-    "what is applied" (offline and live).
+    ``ξ ⊙ m`` over ``window`` pairs (:func:`moving_mean`, centred or ``trailing``) is removed. The one
+    implementation of "what is applied" (offline and live: the live corrector's pair is the last row
+    of its last ``window`` corrections, with the trailing mean).
     """
     xi = np.asarray(xi, np.float64)
     if xi.ndim != 2 or xi.shape[1] != 6:
         raise ValueError(f"xi must be [M, 6], got {xi.shape}")
     masked = xi * component_mask(component)
     if remainder:
-        masked = masked - (moving_mean(masked, window) if mean is None else np.asarray(mean, np.float64))
+        masked = masked - moving_mean(masked, window, trailing)
     return scale * masked
 
 
 def applied_correction(xi: np.ndarray, acceptance: Acceptance) -> np.ndarray:
     """The correction ``[M, 6]`` that ``acceptance`` applies to the proposal ``xi`` (zeros for none)."""
-    return part_of(xi, acceptance.decision, acceptance.remainder, acceptance.scale,
-                   window=acceptance.window or MEAN_WINDOW)
+    return part_of(xi, acceptance.component, acceptance.remainder, acceptance.scale,
+                   acceptance.window or MEAN_WINDOW, acceptance.trailing)
 
 
-class _Sized:
-    """The measurements at one size, each candidate measured once, and the tests made there; ``mean``:
-    how a whole part's mean is tested here (None: not here)."""
+def judge_problem(method: str, run_size: tuple[int, int], judge_size: tuple[int, int],
+                  camera_size: tuple[int, int] | None = None, fu: float | None = None,
+                  baseline: float | None = None) -> str | None:
+    """Why a judge of ``judge_size`` cannot judge a ``method`` run of ``run_size`` (``(H, W)`` px), or
+    None: the one check of a judge (``correct``'s judge cache, the live corrector's judge size, the
+    command line before JAX starts). A judge measures Δ with StereoSGBM depth (a stereo run), on at
+    least the network's pixels and no more than the camera gives (``camera_size``, when known); with
+    ``fu`` (px, at the judge's size) and ``baseline`` (m), its images must leave StereoSGBM room to
+    match. The sentence names the size, not the option or file: the caller prefixes it."""
+    from dpc_jax.data.stereo_depth import sgbm_fits
 
-    def __init__(self, measure: Measure, xi: np.ndarray, suffix: str, tested: slice | np.ndarray,
-                 alpha: float, tests: dict[str, PairedTest], mean: MeanTest | None) -> None:
-        self.measure, self.xi, self.suffix, self.tested, self.alpha = measure, xi, suffix, tested, alpha
-        self.tests, self.mean = tests, mean
-        self.delta: dict[str, np.ndarray] = {}
+    (h, w), (nh, nw) = judge_size, run_size
+    if method != "stereo_dpc":
+        return f"a judge measures Δ with stereo depth; the run is {method}"
+    if h < nh or w < nw:
+        return (f"a judge of {h}x{w} is smaller than the run's images ({nh}x{nw}); a judge measures Δ on "
+                "more pixels than the network saw, not fewer")
+    if camera_size is not None and (h > camera_size[0] or w > camera_size[1]):
+        ch, cw = camera_size
+        return (f"a judge of {h}x{w} is larger than the camera's images ({ch}x{cw}); a judge upsampled "
+                "from smaller images sees nothing they do not")
+    if fu is not None and baseline is not None and not sgbm_fits(w, fu, baseline):
+        return f"a judge of {h}x{w} is too narrow for StereoSGBM to match the camera's disparities"
+    return None
 
-    def ensure(self, parts: list[Part]) -> None:
-        todo = {p.name: p.of(self.xi) for p in parts if p.name not in self.delta}
-        if todo:
-            measured = self.measure(todo)
-            self.delta.update({name: np.asarray(measured[name], np.float64) for name in todo})
 
-    def test(self, name: str, delta: np.ndarray, alpha: float | None = None) -> PairedTest:
-        result = paired_test(name + self.suffix, delta[self.tested],
-                             self.alpha if alpha is None else alpha)
-        self.tests[result.component] = result
-        return result
+NETWORK, JUDGE = "network", "judge"  # the sizes a part is measured at
 
-    def passes(self, part: Part, mean_test: bool, said: list[str]) -> bool:
-        """Whether ``part`` passes here: its Δ, and for a whole part with ``mean_test`` its mean where
-        :attr:`mean` says it is tested here."""
-        rest = Part(part.component, True, part.scale, part.window)
-        whole = not part.remainder and mean_test and self.mean is not None
-        self.ensure([part, rest] if whole else [part])
-        test = self.test(part.name, self.delta[part.name])
-        said.append(f"{test.component}: p = {test.p_value:.3g}" + ("" if test.passed else " (failed)"))
-        if not test.passed or not whole:
-            return test.passed
-        assert self.mean is not None
-        differences = self.delta[part.name] - self.delta[rest.name]
-        gain = -float(self.delta[part.name][self.tested].mean())  # > 0: the whole passed
-        mean = self.test(f"mean of {part.name}", differences - self.mean.margin * gain, self.mean.alpha)
-        margin = f" (margin {self.mean.margin:g} of the gain)" if self.mean.margin else ""
-        said.append(f"{mean.component}{margin}: p = {mean.p_value:.3g}"
-                    + ("" if mean.passed else " (failed)"))
-        return mean.passed
+
+class _Missing(Exception):
+    """A fixed-sample decision reached a part whose Δ it has not been given."""
+
+
+@dataclass
+class _Walk:
+    """One pass of the decision over its tests: what it consulted, made and said, and its outcome."""
+
+    consulted: list[tuple[str, Part]]
+    made: dict[str, PairedTest]
+    said: list[str]
+    part: Part | None = None
+    missing: tuple[tuple[str, Part], ...] = ()
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What a :class:`Decision` applies now (``part``; None: nothing), the tests it made (fixed-sample:
+    by name; sequential: empty, its tests are :attr:`Decision.tests`) and why, in words."""
+
+    part: Part | None
+    tests: dict[str, PairedTest]
+    reason: str
+
+
+class Decision:
+    """The one decision of what to apply (module docstring), fed the Δ of the parts pair by pair.
+
+    ``update`` takes each pair's Δ of the parts it :meth:`needs` (at the network's size and at the
+    judge's); :attr:`outcome` is what to apply after the pairs fed. The parts, their order and names,
+    the tests of a whole part's mean, the axes and the judge's scale are one walk over the tests
+    (:meth:`_choose`): a part is applied only once its own tests accept it. The test of one part is
+    ``sequential`` (live: :class:`~dpc_jax.correction.acceptance.SequentialTest`, valid however long
+    it is watched, the walk asks for every part it passes by) or fixed-sample (offline: the
+    one-sided Wilcoxon test of every Δ fed, :func:`paired_test`; the walk stops at the first part it
+    has no Δ of, so that only the parts that can still change what is applied are measured).
+    ``trailing``: a remainder removes the mean of the pairs up to each one (what live can know) rather
+    than the centred one; it changes what the driver measures (:attr:`Part.of`), not the tests.
+    Fed every pair of a sequence, the fixed-sample decision is :func:`decide`'s.
+    """
+
+    def __init__(
+        self,
+        *,
+        components: tuple[str, ...] = COMPONENTS,
+        alpha: float = DEFAULT_ALPHA,
+        judge: bool = False,
+        mean_test: bool = True,
+        window: int = MEAN_WINDOW,
+        trailing: bool = False,
+        mean: MeanTest = MEAN_TESTS[DEFAULT_MEAN_TEST],
+        force: bool = False,
+        sequential: bool = False,
+    ) -> None:
+        unknown = [c for c in components if c not in COMPONENTS]
+        if unknown or not components:
+            raise ValueError(f"components must be a non-empty subset of {COMPONENTS}, got {components}")
+        if not 0.0 < alpha < 1.0:
+            raise ValueError(f"alpha must be in (0, 1), got {alpha}")
+        self.components, self.alpha, self.judge = tuple(components), float(alpha), bool(judge)
+        self.mean_test, self.window, self.trailing = bool(mean_test), int(window), bool(trailing)
+        self.force, self.sequential = bool(force), bool(sequential)
+        # Where a whole part's mean is tested (None: not at that size).
+        self._mean = {NETWORK: None if mean.at_judge and judge else mean, JUDGE: mean if judge else None}
+        self._fed: dict[tuple[str, Part], list[np.ndarray]] = {}  # fixed-sample: the Δ fed
+        self.tests: dict[str, SequentialTest] = {}  # sequential: by test name
+
+    def part(self, component: str, remainder: bool = False, scale: float = 1.0) -> Part:
+        """A part of this decision (its window and mean)."""
+        return Part(component, remainder, scale, self.window, self.trailing)
+
+    def needs(self) -> list[tuple[str, Part]]:
+        """``(size, part)`` whose Δ the next :meth:`update` must carry: sequential, every part the walk
+        consults; fixed-sample, those it stopped at (none: the decision is made)."""
+        walk = self._walk()
+        return list(walk.missing) if not self.sequential else list(dict.fromkeys(walk.consulted))
+
+    def update(self, network: Mapping[Part, float | np.ndarray],
+               judge: Mapping[Part, float | np.ndarray] | None = None) -> tuple[str, ...]:
+        """Take Δ of parts on the next pair (sequential: one number each) or pairs (fixed-sample: a
+        number or ``[K]`` each, the same pairs for all) → the tests accepted or withdrawn there."""
+        events: list[str] = []
+        for size, given in ((NETWORK, network), (JUDGE, judge or {})):
+            if not self.sequential:
+                for part, value in given.items():
+                    values = np.atleast_1d(np.asarray(value, np.float64))
+                    self._fed.setdefault((size, part), []).append(values)
+                continue
+            name = judge_test_name if size == JUDGE else str
+            for part, value in given.items():
+                events += self._feed(name(part.name), float(value), self.alpha)
+            mean = self._mean[size]
+            for part in given:
+                rest = Part(part.component, True, part.scale, part.window, part.trailing)
+                if mean is None or not self.mean_test or part.remainder or rest not in given:
+                    continue
+                # Bounded harm against the whole's gain so far (the fixed-sample test's, over all pairs).
+                gain = -self.tests[name(part.name)].mean
+                difference = float(given[part]) - float(given[rest]) - mean.margin * gain
+                events += self._feed(name(mean_test_name(part.name)), difference, mean.alpha or self.alpha)
+        return tuple(events)
+
+    def _feed(self, name: str, value: float, alpha: float) -> list[str]:
+        change = self.tests.setdefault(name, SequentialTest(name, alpha)).update(value)
+        return [] if change is None else [f"{name} {change}"]
+
+    @property
+    def outcome(self) -> Outcome:
+        """What to apply after the pairs fed (fixed-sample: ``ValueError`` while it :meth:`needs` Δ)."""
+        walk = self._walk()
+        if walk.missing:
+            needed = ", ".join(f"{p.name} ({s})" for s, p in walk.missing)
+            raise ValueError(f"the decision needs Δ of {needed}")
+        said = "; ".join(walk.said)
+        if self.force:
+            return Outcome(walk.part, walk.made, f"forced ({said})")
+        if walk.part is None:
+            return Outcome(None, walk.made, f"nothing passed ({said}): the prior is kept")
+        return Outcome(walk.part, walk.made, said)
+
+    def _walk(self) -> _Walk:
+        walk = _Walk([], {}, [])
+        try:
+            walk.part = self._choose(walk)
+        except _Missing:
+            walk.part = None
+        return walk
+
+    def _choose(self, walk: _Walk) -> Part | None:
+        """The walk: for each component in order, the whole part (its Δ and its mean), else its remainder;
+        a rotation narrowed to the axes that pass alone; at the judge too, then at the judge's scale."""
+        if self.force:
+            part = self.part(self.components[0])
+            self._passes(walk, NETWORK, part)
+            return part
+        for component in self.components:
+            for remainder in (False, True) if self.mean_test else (False,):
+                part = self.part(component, remainder)
+                if not self._passes(walk, NETWORK, part):
+                    continue
+                candidates = [part]
+                if component == "rotation":
+                    candidates = self._axes(walk, part) + candidates
+                for candidate in candidates:
+                    if not self.judge:
+                        return candidate
+                    if self._passes(walk, JUDGE, candidate):
+                        return self._scaled(walk, candidate)
+        return None
+
+    def _consult(self, walk: _Walk, size: str, parts: list[Part]) -> None:
+        walk.consulted += [(size, p) for p in parts]
+        missing = tuple((size, p) for p in parts if (size, p) not in self._fed)
+        if missing and not self.sequential:
+            walk.missing = missing
+            raise _Missing
+
+    def _delta(self, size: str, part: Part) -> np.ndarray:
+        return np.concatenate(self._fed[size, part])
+
+    def _test(self, walk: _Walk, size: str, name: str, values: Callable[[], np.ndarray],
+              alpha: float | None = None, note: str | None = "") -> tuple[bool, str]:
+        """The test ``name`` at ``size`` → (accepted, its figure in words), said as the walk goes (with
+        ``note`` after the name; None: not said)."""
+        name = judge_test_name(name) if size == JUDGE else name
+        if self.sequential:
+            test = self.tests.get(name)
+            passed, words = test is not None and test.accepted, f"{0 if test is None else test.pairs} pairs"
+        else:
+            result = paired_test(name, values(), self.alpha if alpha is None else alpha)
+            walk.made[result.component] = result
+            passed, words = result.passed, f"p = {result.p_value:.3g}"
+        if note is not None:
+            walk.said.append(f"{name}{note}: {words}" + ("" if passed else " (failed)"))
+        return passed, words
+
+    def _passes(self, walk: _Walk, size: str, part: Part) -> bool:
+        """Whether ``part`` passes at ``size``: its Δ, and for a whole part (with ``mean_test``) its mean
+        where :attr:`_mean` says it is tested."""
+        mean = self._mean[size] if self.mean_test and not part.remainder else None
+        rest = Part(part.component, True, part.scale, part.window, part.trailing)
+        self._consult(walk, size, [part] if mean is None else [part, rest])
+        passed, _ = self._test(walk, size, part.name, lambda: self._delta(size, part))
+        if not passed or mean is None:
+            return passed
+
+        def differences() -> np.ndarray:
+            whole = self._delta(size, part)
+            return whole - self._delta(size, rest) + mean.margin * float(whole.mean())  # margin · gain
+
+        note = f" (margin {mean.margin:g} of the gain)" if mean.margin else ""
+        return self._test(walk, size, mean_test_name(part.name), differences, mean.alpha, note)[0]
+
+    def _axes(self, walk: _Walk, part: Part) -> list[Part]:
+        """The rotation about the axes whose part passes alone, when some but not all do and it passes
+        its own tests (``[]`` otherwise)."""
+        singles = [self.part(rotation_component(a), part.remainder) for a in AXES]
+        self._consult(walk, NETWORK, singles)
+        passing = "".join(a for a, single in zip(AXES, singles, strict=True)
+                          if self._test(walk, NETWORK, single.name, partial(self._delta, NETWORK, single))[0])
+        if passing in ("", AXES):
+            return []
+        subset = self.part(rotation_component(passing), part.remainder)
+        walk.said.append(f"alone, only the rotation about {', '.join(passing)} passes")
+        return [subset] if self._passes(walk, NETWORK, subset) else []
+
+    def _scaled(self, walk: _Walk, part: Part) -> Part:
+        """``part``, passed at both sizes, at the scale of :data:`JUDGE_SCALES` with the lowest mean Δ at
+        the judge when that scale passes there."""
+        scaled = [self.part(part.component, part.remainder, s) for s in JUDGE_SCALES]
+        self._consult(walk, JUDGE, scaled)
+        means = {p.scale: self._mean_delta(p) for p in scaled}
+        best = min(means, key=lambda s: means[s])
+        walk.said.append("mean Δ at the judge by scale: "
+                         + ", ".join(f"×{s:g} {m:.3g}" for s, m in means.items()))
+        if best == 1.0:
+            return part
+        candidate = self.part(part.component, part.remainder, best)
+        passed, words = self._test(walk, JUDGE, candidate.name, lambda: self._delta(JUDGE, candidate),
+                                   note=None)
+        walk.said.append(f"applied ×{best:g} ({words})" if passed else f"×{best:g} did not pass ({words})")
+        return candidate if passed else part
+
+    def _mean_delta(self, part: Part) -> float:
+        """Mean Δ of ``part`` at the judge over the pairs fed."""
+        if self.sequential:
+            test = self.tests.get(judge_test_name(part.name))
+            return math.inf if test is None or not test.pairs else test.mean
+        return float(self._delta(JUDGE, part).mean())
 
 
 def decide(
@@ -235,94 +458,48 @@ def decide(
     judge: Measure | None = None,
     mean_test: bool = True,
     window: int = MEAN_WINDOW,
+    trailing: bool = False,
     mean: MeanTest = MEAN_TESTS[DEFAULT_MEAN_TEST],
     force: bool = False,
 ) -> Acceptance:
-    """What to apply of ``xi`` ``[M, 6]`` (module docstring) → :class:`Acceptance`.
+    """What to apply of ``xi`` ``[M, 6]`` (module docstring): the fixed-sample :class:`Decision` fed
+    every pair → :class:`Acceptance`. It measures only what the decision still needs: each time it
+    stops at parts it has no Δ of, those are measured on all M pairs at once and fed.
 
     ``measure``: Δ ``[M]`` of named corrections ``[M, 6]`` on the M pairs at the network's size;
     ``components``: the components in order of preference (a subset of :data:`COMPONENTS`; a
     rotation-only run: ``("rotation",)``); ``tested``: the pairs the tests use (default all; after
     adaptation, the pairs it never saw; the mean is over all M pairs, as applied); ``judge``: the
     measurement at a larger size; ``mean_test``: test the mean apart (False: the earlier decision);
-    ``window``: the pairs the moving mean is taken over; ``mean``: where and how the mean is tested
-    (:class:`MeanTest`; with ``mean_test``);
-    ``force``: apply the first component whole whatever the tests say (they are still made and
-    recorded).
+    ``window``: the pairs the moving mean is taken over, centred or ``trailing``; ``mean``: where and
+    how the mean is tested (:class:`MeanTest`; with ``mean_test``); ``force``: apply the first
+    component whole whatever the tests say (they are still made and recorded).
     """
     xi = np.asarray(xi, np.float64)
-    unknown = [c for c in components if c not in COMPONENTS]
-    if unknown or not components:
-        raise ValueError(f"components must be a non-empty subset of {COMPONENTS}, got {components}")
-    if not 0.0 < alpha < 1.0:
-        raise ValueError(f"alpha must be in (0, 1), got {alpha}")
+    decision = Decision(components=components, alpha=alpha, judge=judge is not None, mean_test=mean_test,
+                        window=window, trailing=trailing, mean=mean, force=force)
     chosen = slice(None) if tested is None else np.asarray(tested)
-    tests: dict[str, PairedTest] = {}
-    network = _Sized(measure, xi, "", chosen, alpha, tests,
-                     None if mean.at_judge and judge is not None else mean)
-    judged = None if judge is None else _Sized(judge, xi, " (judge)", chosen, alpha, tests, mean)
-    said: list[str] = []
-    if force:
-        part = Part(components[0], window=window)
-        network.passes(part, mean_test, said)
-        return _record(alpha, tests, part, xi, network, f"forced ({'; '.join(said)})", forced=True)
-    for component in components:
-        for remainder in (False, True) if mean_test else (False,):
-            part = Part(component, remainder, window=window)
-            if not network.passes(part, mean_test, said):
-                continue
-            candidates = [part]
-            if component == "rotation":
-                candidates = _axes(network, part, mean_test, said) + candidates
-            for candidate in candidates:
-                if judged is None:
-                    return _record(alpha, tests, candidate, xi, network, "; ".join(said))
-                if judged.passes(candidate, mean_test, said):
-                    return _scaled(alpha, tests, candidate, xi, judged, said)
-    return Acceptance(alpha, tests, "none", "nothing passed (" + "; ".join(said) + "): the prior is kept")
-
-
-def _axes(network: _Sized, part: Part, mean_test: bool, said: list[str]) -> list[Part]:
-    """The rotation about the axes whose part passes alone, when some but not all do and it passes
-    itself (``[]`` otherwise)."""
-    singles = [Part(rotation_component(a), part.remainder, window=part.window) for a in AXES]
-    network.ensure(singles)
-    passing = "".join(a for a, p in zip(AXES, singles, strict=True)
-                      if network.test(p.name, network.delta[p.name]).passed)
-    if passing in ("", AXES):
-        return []
-    subset = Part(rotation_component(passing), part.remainder, window=part.window)
-    said.append(f"alone, only the rotation about {', '.join(passing)} passes")
-    return [subset] if network.passes(subset, mean_test, said) else []
-
-
-def _scaled(alpha: float, tests: dict[str, PairedTest], part: Part, xi: np.ndarray, judged: _Sized,
-            said: list[str]) -> Acceptance:
-    """``part``, passed at both sizes, at the scale of :data:`JUDGE_SCALES` with the lowest mean Δ at
-    the judge when that scale passes there."""
-    scaled = [Part(part.component, part.remainder, s, part.window) for s in JUDGE_SCALES]
-    judged.ensure(scaled)
-    means = {p.scale: float(judged.delta[p.name][judged.tested].mean()) for p in scaled}
-    best = min(means, key=lambda s: means[s])
-    said.append("mean Δ at the judge by scale: " + ", ".join(f"×{s:g} {m:.3g}" for s, m in means.items()))
-    if best != 1.0:
-        candidate = Part(part.component, part.remainder, best, part.window)
-        test = judged.test(candidate.name, judged.delta[candidate.name])
-        if test.passed:
-            said.append(f"applied ×{best:g} (p = {test.p_value:.3g})")
-            part = candidate
-        else:
-            said.append(f"×{best:g} did not pass (p = {test.p_value:.3g})")
-    return _record(alpha, tests, part, xi, judged, "; ".join(said))
-
-
-def _record(alpha: float, tests: dict[str, PairedTest], part: Part, xi: np.ndarray, where: _Sized,
-            reason: str, forced: bool = False) -> Acceptance:
-    where.ensure([part])
-    mean = tuple(float(v) for v in part.mean(xi)) if part.remainder else None
-    return Acceptance(alpha, tests, part.component, reason, forced=forced, scale=part.scale,
-                      remainder=part.remainder, mean=mean, window=part.window if part.remainder else None,
-                      delta=where.delta[part.name])
+    measures = {NETWORK: measure, JUDGE: judge}
+    measured: dict[tuple[str, Part], np.ndarray] = {}
+    while needs := decision.needs():
+        fed: dict[str, dict[Part, np.ndarray]] = {NETWORK: {}, JUDGE: {}}
+        for size, at in measures.items():
+            parts = [p for s, p in needs if s == size]
+            if parts and at is not None:
+                got = at({p.name: p.of(xi) for p in parts})
+                for p in parts:
+                    measured[size, p] = np.asarray(got[p.name], np.float64)
+                    fed[size][p] = measured[size, p][chosen]
+        decision.update(fed[NETWORK], fed[JUDGE])
+    outcome = decision.outcome
+    part = outcome.part
+    if part is None:
+        return Acceptance(alpha, outcome.tests, "none", outcome.reason)
+    where = JUDGE if judge is not None and not force else NETWORK
+    return Acceptance(alpha, outcome.tests, part.component, outcome.reason, forced=force, scale=part.scale,
+                      remainder=part.remainder, mean=tuple(float(v) for v in part.mean(xi)) if part.remainder
+                      else None, window=part.window if part.remainder else None,
+                      trailing=part.trailing and part.remainder, delta=measured[where, part])
 
 
 def refused(acceptance: Acceptance, why: str) -> Acceptance:

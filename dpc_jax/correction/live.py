@@ -11,21 +11,23 @@ pose (:class:`LiveFrame`). Per frame:
    predicts ξ for the pair and the measurement gives Δ of its parts, through the same functions as
    ``dpc-jax correct`` (``dpc_jax.engine.predict``): the network was compiled for it before the first
    frame.
-3. The parts of ξ (the full correction and its rotation, each whole and without its running mean over
-   the last pairs, the rotation also about each camera axis alone)
-   are tested sequentially on their Δ (``dpc_jax.correction.acceptance.SequentialTest``: a false
-   acceptance stays below α however long it runs, and an accepted part is withdrawn when the evidence
-   turns); the pair gets the largest part accepted, in the order of the offline decision
-   (``dpc_jax.correction.decision``), or nothing.
+3. The one decision of ``correct`` (``dpc_jax.correction.decision.Decision``), sequential: the parts
+   of ξ it consults (in its order: the full correction and its rotation, each whole with its mean
+   tested apart or without its trailing mean over the last pairs; a rotation narrowed to the axes
+   whose own tests accept, which it then tests itself) are measured on the pair and their tests
+   fed (``dpc_jax.correction.acceptance.SequentialTest``: a false acceptance stays below α however
+   long it runs, and an accepted part is withdrawn when the evidence turns); the pair gets the part
+   the decision applies after it, or nothing.
 4. With a *judge* (``judge_size``, as ``correct``'s judge: the same frames at a larger size, StereoSGBM
-   depth, no network), the part the tests would apply is also measured there, and it is applied only
-   once its own sequential test at the judge's size has accepted too: at 64×96 the images of a real
-   drive can favour a rotation the ground truth does not (``docs/method.md`` §8). The judge's work is
-   done only while a part is accepted at the network's size.
+   depth, no network), the parts the decision consults there (what the network's size would apply,
+   its mean, its scales) are measured on the pair at the judge's size: a part is applied only once its
+   tests there have accepted too (at 64×96 the images of a real drive can favour a rotation the
+   ground truth does not, ``docs/method.md`` §8), at the judge's scale. The judge's work is done only
+   while a part is accepted at the network's size.
 5. ``T_w_k = T_w_{k-1} · inv(Exp(ξ_applied) · T_vo_{k,k-1})``: a pose once returned is never changed.
 
 What is kept between frames is what the next frame needs: the previous prepared frame and poses, the
-tests' running statistics and the corrections of the last pairs (for the running mean), and with a judge
+tests' running statistics and the corrections of the last pairs (for the trailing mean), and with a judge
 the previous pair at full size; memory does not grow with the frames.
 """
 
@@ -34,23 +36,16 @@ from __future__ import annotations
 import os
 import time
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 
-from dpc_jax.correction.acceptance import DEFAULT_ALPHA, SequentialTest
+from dpc_jax.correction.acceptance import DEFAULT_ALPHA
 from dpc_jax.correction.corrector import default_acceptance_depth
-from dpc_jax.correction.decision import (
-    AXES,
-    COMPONENTS,
-    MEAN_WINDOW,
-    Part,
-    component_mask,
-    part_of,
-    rotation_component,
-)
+from dpc_jax.correction.decision import COMPONENTS, JUDGE, MEAN_WINDOW, NETWORK, Decision, Part, judge_problem
 from dpc_jax.correction.inference import TrainedRun, load_run
 from dpc_jax.correction.judge import judge_rule
 from dpc_jax.data.calibration import Calibration
@@ -80,10 +75,10 @@ class LiveFrame:
     ``index``: the frame's number (0: the first); ``pose``: ``[4, 4]`` float64 corrected
     camera-to-world pose; ``prior``: the prior's pose (composed from the same first pose);
     ``proposal``: ``[6]`` the network's ξ for the pair ending at this frame (None for frame 0);
-    ``applied``: ``[6]`` the part of it applied (zeros when none); ``state``: which state produced
-    the pose: ``start``, ``prior`` (no part accepted yet, or withdrawn), ``forced``, or the part
-    applied (``rotation``, ``rotation − mean``, ``full``, ``full − mean``); ``events``: tests
-    accepted or withdrawn at this pair; ``seconds``: time per stage: ``vo`` (our VO, or the check of
+    ``part``: the part of it applied, by its one name (``rotation_xz − mean``; ``none``: the prior's
+    step, at frame 0, before a part is accepted or once withdrawn); ``correction``: ``[6]`` that part
+    (zeros for none); ``forced``: applied whatever the tests say; ``events``: tests accepted or
+    withdrawn at this pair; ``seconds``: time per stage: ``vo`` (our VO, or the check of
     the given prior), ``prepare`` (the pair resized and matched; then the two frames made a batch on
     the device, with their optical flow for a network that reads flow), ``network`` (its forward pass),
     ``measure`` (Δ of the parts for the tests), ``judge`` (with a judge, while a part is accepted: the
@@ -96,10 +91,24 @@ class LiveFrame:
     pose: np.ndarray
     prior: np.ndarray
     proposal: np.ndarray | None
-    applied: np.ndarray
-    state: str
+    correction: np.ndarray
+    part: str
+    forced: bool = False
     events: tuple[str, ...] = ()
     seconds: dict[str, float] = field(default_factory=dict)
+
+    # The names ``cli/live.py`` reads until it reads ``part`` and ``correction``.
+    @property
+    def state(self) -> str:
+        """``start``, ``forced``, ``prior`` (nothing applied) or :attr:`part`."""
+        if self.index == 0:
+            return "start"
+        return "forced" if self.forced else "prior" if self.part == "none" else self.part
+
+    @property
+    def applied(self) -> np.ndarray:
+        """:attr:`correction`."""
+        return self.correction
 
 
 @dataclass
@@ -114,6 +123,19 @@ class _Previous:
     pose: np.ndarray  # the corrected one
     full: tuple[np.ndarray, np.ndarray] | None = None  # the pair as given, kept only for a judge
     judged: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None  # prepared at the judge's size
+
+
+# The numbers of parts a pair's measurement is padded to (each compiled once, before the first frame):
+# two for a whole part and its remainder, up to the rotation's axes and their subset, and the judge's scales.
+_PADDED = (2, 4, 8, 16)
+
+
+def _padded(count: int) -> int:
+    """The smallest of :data:`_PADDED` that holds ``count`` parts."""
+    fits = [n for n in _PADDED if n >= count]
+    if not fits:
+        raise ValueError(f"{count} parts to measure on one pair, more than the {_PADDED[-1]} compiled")
+    return fits[0]
 
 
 class LiveCorrector:
@@ -167,18 +189,19 @@ class LiveCorrector:
         self.disparity_offset = float(disparity_offset)
         self.first_pose = None if first_pose is None else _rigid(first_pose, "first_pose")
         self.alpha = float(alpha)
-        self.tests = {name: SequentialTest(name, alpha) for name in self._test_names()}
         self._judge_K = self.K
         if judge_size == "rule":
             judge_size = judge_rule(self.run.config.method, self.size, calibration.image_size)
         self.judge_size = None if judge_size is None or self.force else self._checked_judge(judge_size)
-        # One test per part judged, made when the part is first to be applied.
-        self.judge_tests: dict[str, SequentialTest] = {}
+        # The one decision of ``correct``, sequential, with the mean of the pairs seen.
+        self.decision = Decision(components=self.components, alpha=self.alpha,
+                                 judge=self.judge_size is not None, mean_test=self.mean_test, trailing=True,
+                                 force=self.force, sequential=True)
         self._vo_config = vo
         self._vo: Any = None
         self._previous: _Previous | None = None
-        # The corrections of the last pairs: the running mean a remainder removes (its window as offline).
-        self._recent: deque[np.ndarray] = deque(maxlen=MEAN_WINDOW)
+        # The corrections of the last pairs: the trailing mean a remainder removes (its window as offline).
+        self._recent: deque[np.ndarray] = deque(maxlen=MEAN_WINDOW - 1)
         self._pairs = 0
         self._loss = self.run.config.loss_config()
         self._flow = self.run.use_flow
@@ -187,53 +210,34 @@ class LiveCorrector:
         self._compile()
 
     def _checked_judge(self, size: tuple[int, int]) -> tuple[int, int]:
-        from dpc_jax.data.stereo_depth import sgbm_fits
-
         h, w = (int(x) for x in size)
-        (ch, cw), (nh, nw) = self.calibration.image_size, self.size
-        if self.run.config.method != "stereo_dpc":
-            raise ValueError(f"judge {h}x{w}: a judge measures Δ with stereo depth; the run is "
-                             f"{self.run.config.method}")
-        if not (nh <= h <= ch and nw <= w <= cw):
-            raise ValueError(f"judge {h}x{w}: expected a size between the run's {nh}x{nw} and the camera's "
-                             f"{ch}x{cw}")
         K = resized_intrinsics(self.calibration.K, self.calibration.image_size, (h, w))
-        if not sgbm_fits(w, float(K[0, 0]), self.calibration.baseline):
-            raise ValueError(f"judge {h}x{w}: too narrow for StereoSGBM to match the camera's disparities")
+        problem = judge_problem(self.run.config.method, self.size, (h, w), self.calibration.image_size,
+                                float(K[0, 0]), self.calibration.baseline)
+        if problem is not None:
+            raise ValueError(f"judge {h}x{w}: {problem}")
         self._judge_K = K
         return h, w
 
-    def _test_names(self) -> list[str]:
-        names = []
-        for component in self.components:
-            names.append(component)
-            if self.mean_test:
-                names += [f"mean of {component}", f"{component} − mean"]
-        return names + [part.name for part in self._singles()]
-
-    def _singles(self) -> list[Part]:
-        """The rotation about each camera axis alone, whole and without its mean: the axis split of the
-        offline decision (an accepted rotation is applied about the axes whose own test has accepted)."""
-        if "rotation" not in self.components:
-            return []
-        return [Part(rotation_component(a), remainder) for remainder in ((False, True) if self.mean_test
-                                                                          else (False,)) for a in AXES]
-
     def _compile(self) -> None:
-        """Predict, measure and compose once on a blank pair, so that the first frame compiles nothing
-        (the composition's compilation alone took 0.4 s)."""
+        """Predict, measure and compose once on a blank pair, for every number of parts a pair can
+        measure (:func:`_padded`), so that no frame compiles anything (the composition's compilation
+        alone took 0.4 s)."""
         h, w = self.size
         blank = np.zeros((h, w, 3), np.uint8)
         _, _, disparity = prepared_pair(blank, blank, self.size, self.K, self.calibration.baseline,
                                         match=self.depth == "sgbm")
         frame = _Previous(blank, blank, disparity, np.eye(4), np.eye(4), np.eye(4))
-        self._correction_of(self._window(frame, frame, np.eye(4)))
+        window = self._window(frame, frame, np.eye(4))
+        for count in _PADDED:
+            self._correction_of(window, [Part("full")] * count)
         self._compose(frame, np.eye(4), np.zeros(6))
         if self.judge_size is not None:
             h, w = self.calibration.image_size
             full = np.zeros((h, w, 3), np.uint8)
             judged = _Previous(blank, blank, disparity, np.eye(4), np.eye(4), np.eye(4), (full, full))
-            self._judged_delta(judged, judged, np.eye(4), np.zeros(6))
+            for count in _PADDED:
+                self._judged_deltas(judged, judged, np.eye(4), np.zeros((count, 6)))
 
     def _window(self, previous: _Previous, current: _Previous, prior_pose: np.ndarray) -> SequenceCache:
         """The two frames as a cache in memory: what prediction and measurement read."""
@@ -263,13 +267,10 @@ class LiveCorrector:
             prior=prior, gt=None, K=K, baseline=self.calibration.baseline, indices=np.arange(2),
             times=np.zeros(2), flows=flows, manifest={}, stereo_depth=depth)
 
-    def _judged_delta(self, previous: _Previous, current: _Previous, prior_pose: np.ndarray,
-                      correction: np.ndarray) -> float:
-        """Δ of ``correction`` ``[6]`` on the pair at the judge's size (each frame prepared there once)."""
-        import jax.numpy as jnp
-
-        from dpc_jax.engine.predict import effects_step, pair_batch
-
+    def _judged_deltas(self, previous: _Previous, current: _Previous, prior_pose: np.ndarray,
+                       corrections: np.ndarray) -> np.ndarray:
+        """Δ ``[K]`` of ``corrections`` ``[K, 6]`` on the pair at the judge's size (each frame prepared
+        there once)."""
         assert self.judge_size is not None
         for frame in (previous, current):
             if frame.judged is None:
@@ -278,26 +279,41 @@ class LiveCorrector:
                                              self.calibration.baseline, self.disparity_offset)
         window = self._pair_cache((previous.judged, current.judged), self._judge_K,  # type: ignore[arg-type]
                                   np.stack([previous.raw, prior_pose]), {})
-        batch = pair_batch(window, False, window.stereo_depth)
-        candidates = jnp.asarray(correction[None, None], jnp.float32)
-        effects = effects_step(None, None, self._loss)(None, batch, candidates, None)
-        return float(np.asarray(effects["delta"], np.float64)[0, 0])
+        return self._deltas(window, window.stereo_depth, corrections, judged=True)
 
-    def _correction_of(self, window: SequenceCache,
-                       seconds: dict[str, float] | None = None) -> tuple[np.ndarray, dict[str, float]]:
-        """ξ ``[6]`` of the window's pair and Δ of each part (running mean included) → ``(ξ, Δ)``;
-        ``seconds`` gets the time of the batch's assembly and transfer (added to ``prepare``), of the
-        network (``network``) and of the measurement (``measure``).
+    def _deltas(self, window: SequenceCache, stereo: Any, corrections: np.ndarray, judged: bool = False,
+                batch: Any = None) -> np.ndarray:
+        """Δ ``[K]`` of ``corrections`` ``[K, 6]`` on the window's pair (``batch``: its batch, when made),
+        with ``correct``'s measurement (``effects_step``: the stereo depth and no network, else the
+        network's depth; at the judge, the stereo depth), L(0) included. The corrections are padded to
+        a count of :data:`_PADDED`, which are compiled before the first frame."""
+        import jax.numpy as jnp
+
+        from dpc_jax.engine.predict import effects_step, pair_batch
+
+        batch = pair_batch(window, self._flow and not judged, stereo) if batch is None else batch
+        count = len(corrections)
+        padded = np.zeros((_padded(count), 1, 6))
+        padded[:count, 0] = corrections
+        candidates = jnp.asarray(padded, jnp.float32)
+        if judged or (stereo is not None and not self.run.config.learn_ssim_weight):
+            effects = effects_step(None, None, self._loss)(None, batch, candidates, None)
+        else:
+            effects = self._model.effects_step(self._loss)(self._model.leaves, batch, candidates, None)
+        return np.asarray(effects["delta"], np.float64)[:count, 0]
+
+    def _correction_of(self, window: SequenceCache, parts: list[Part],
+                       seconds: dict[str, float] | None = None) -> tuple[np.ndarray, dict[Part, float]]:
+        """ξ ``[6]`` of the window's pair and Δ of ``parts`` of it → ``(ξ, Δ by part)``; ``seconds`` gets
+        the time of the batch's assembly and transfer (added to ``prepare``), of the network
+        (``network``) and of the measurement (``measure``).
 
         The steps of ``correct`` on one pair, assembled and moved to the device once for both: the
         network's forward pass (``dpc_jax.engine.predict.xi_step``; ``correct``'s prediction also
         computes the training loss and Δ of the whole correction, which this does not need), then Δ of
-        the parts with the same measurement as ``correct`` (``effects_step``: the stereo depth and no
-        network, else the network's depth), L(0) included.
+        the parts (:meth:`_deltas`).
         """
-        import jax.numpy as jnp
-
-        from dpc_jax.engine.predict import effects_step, pair_batch, stereo_depth_of
+        from dpc_jax.engine.predict import pair_batch, stereo_depth_of
 
         seconds = {} if seconds is None else seconds
         began = time.perf_counter()
@@ -308,70 +324,15 @@ class LiveCorrector:
         xi = np.asarray(self._model.xi_step(self.run.config.method)(self._model.leaves, batch), np.float64)[0]
         predicted = time.perf_counter()
         seconds["network"] = predicted - assembled
-        mean = self._running_mean(xi)
-        remainders = (False, True) if self.mean_test else (False,)
-        measured = [Part(c, r) for c in self.components for r in remainders]
-        parts = {part.name: self._vector(xi, part, mean) for part in [*measured, *self._singles()]}
-        candidates = jnp.asarray(np.stack(list(parts.values()))[:, None], jnp.float32)
-        if stereo is not None and not self.run.config.learn_ssim_weight:
-            effects = effects_step(None, None, self._loss)(None, batch, candidates, None)
-        else:
-            effects = self._model.effects_step(self._loss)(self._model.leaves, batch, candidates, None)
-        delta = np.asarray(effects["delta"], np.float64)[:, 0]
+        delta = self._deltas(window, stereo, self._vectors(xi, parts), batch=batch)
         seconds["measure"] = time.perf_counter() - predicted
-        return xi, {name: float(delta[i]) for i, name in enumerate(parts)}
+        return xi, dict(zip(parts, delta.tolist(), strict=True))
 
-    def _running_mean(self, xi: np.ndarray) -> np.ndarray:
-        """The mean ``[6]`` of the corrections of the last pairs, ``xi`` (this pair's) the last of them."""
-        return np.mean([*self._recent, xi][-MEAN_WINDOW:], axis=0)
-
-    def _vector(self, xi: np.ndarray, part: Part | None, mean: np.ndarray) -> np.ndarray:
-        """``part`` of this pair's ``xi`` ``[6]`` (without the running ``mean`` for a remainder); zeros:
-        None."""
-        if part is None:
-            return np.zeros(6)
-        if part.remainder:
-            return self._remainder(xi, part.component, mean)
-        return part_of(xi[None], part.component)[0]
-
-    @staticmethod
-    def _remainder(xi: np.ndarray, component: str, mean: np.ndarray) -> np.ndarray:
-        """``component`` of ``xi`` ``[6]`` without the same entries of the running ``mean`` ``[6]``."""
-        return part_of(xi[None], component, True, mean=mean * component_mask(component))[0]
-
-    def _part(self) -> Part | None:
-        """The largest part whose tests have accepted, in the offline decision's order; an accepted
-        rotation about the axes whose own test has accepted, when some but not all have."""
-        if self.force:
-            return Part(self.components[0])
-        for component in self.components:
-            mean_accepted = not self.mean_test or self.tests[f"mean of {component}"].accepted
-            rest_accepted = self.mean_test and self.tests[f"{component} − mean"].accepted
-            for remainder, accepted in ((False, self.tests[component].accepted and mean_accepted),
-                                        (True, rest_accepted)):
-                if not accepted:
-                    continue
-                if component != "rotation":
-                    return Part(component, remainder)
-                axes = "".join(a for a in AXES
-                               if self.tests[Part(rotation_component(a), remainder).name].accepted)
-                return Part(rotation_component(axes) if axes else component, remainder)
-        return None
-
-    @property
-    def state(self) -> str:
-        """``forced``, the part now applied, or ``prior``."""
-        if self.force:
-            return "forced"
-        part = self._judged(self._part())
-        return "prior" if part is None else part.name
-
-    def _judged(self, part: Part | None) -> Part | None:
-        """``part`` when there is no judge or its test at the judge's size has accepted it, else None."""
-        if part is None or self.judge_size is None:
-            return part
-        test = self.judge_tests.get(part.name)
-        return part if test is not None and test.accepted else None
+    def _vectors(self, xi: np.ndarray, parts: Sequence[Part | None]) -> np.ndarray:
+        """``parts`` of this pair's ``xi`` ``[6]`` (a remainder without the trailing mean of the last
+        pairs, this one the last) → ``[K, 6]``; zeros for None."""
+        recent = np.stack([*self._recent, xi])
+        return np.stack([np.zeros(6) if p is None else p.of(recent)[-1] for p in parts]).reshape(-1, 6)
 
     def __call__(
         self, left: np.ndarray, right: np.ndarray, prior: np.ndarray | None = None, *,
@@ -408,33 +369,32 @@ class LiveCorrector:
             current.pose = current.prior = start
             self._previous = current
             seconds["total"] = time.perf_counter() - began
-            return LiveFrame(0, time_s, start.copy(), current.prior.copy(), None, np.zeros(6), "start",
-                             (), seconds)
+            return LiveFrame(0, time_s, start.copy(), current.prior.copy(), None, np.zeros(6), "none",
+                             self.force, (), seconds)
         t = time.perf_counter()
         window = self._window(previous, current, prior_pose)  # with its optical flow, for ss-DPC-Net
         seconds["prepare"] += time.perf_counter() - t
-        # What the judge measures is chosen from the tests of the pairs before this one (a choice made
-        # after seeing this pair's Δ would select the pairs that favour it).
-        candidate = None if self.judge_size is None else self._part()
-        xi, delta = self._correction_of(window, seconds)
-        events = self._update_tests(delta)
-        if candidate is not None:
+        # What is measured is chosen from the tests of the pairs before this one (a choice made after
+        # seeing this pair's Δ would select the pairs that favour it).
+        needs = self.decision.needs()
+        xi, delta = self._correction_of(window, [p for size, p in needs if size == NETWORK], seconds)
+        judged = [p for size, p in needs if size == JUDGE]
+        at_judge: dict[Part, float] = {}
+        if judged:
             t = time.perf_counter()
-            judged = self._judged_delta(previous, current, prior_pose,
-                                        self._vector(xi, candidate, self._running_mean(xi)))
-            test = self.judge_tests.setdefault(candidate.name,
-                                               SequentialTest(f"judge: {candidate.name}", self.alpha))
-            change = test.update(judged)
-            events += () if change is None else (f"{test.name} {change}",)
+            values = self._judged_deltas(previous, current, prior_pose, self._vectors(xi, judged))
+            at_judge = dict(zip(judged, values.tolist(), strict=True))
             seconds["judge"] = time.perf_counter() - t
-        applied = self._vector(xi, self._judged(self._part()), self._running_mean(xi))
+        events = self.decision.update(delta, at_judge)
+        part = self.decision.outcome.part
+        correction = self._vectors(xi, [part])[0]
         self._recent.append(xi)
         self._pairs += 1
-        current.pose, current.prior = self._compose(previous, prior_pose, applied)
+        current.pose, current.prior = self._compose(previous, prior_pose, correction)
         self._previous = current
         seconds["total"] = time.perf_counter() - began
-        return LiveFrame(self._pairs, time_s, current.pose.copy(), current.prior.copy(), xi, applied,
-                         self.state, events, seconds)
+        return LiveFrame(self._pairs, time_s, current.pose.copy(), current.prior.copy(), xi, correction,
+                         "none" if part is None else part.name, self.force, events, seconds)
 
     def _prior_pose(self, left: np.ndarray, right: np.ndarray, prior: np.ndarray | None,
                     grey: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
@@ -454,23 +414,6 @@ class LiveCorrector:
             return np.eye(4) if self.first_pose is None else self.first_pose
         assert self._previous is not None
         return self._previous.raw @ np.linalg.inv(estimate.relative)
-
-    def _update_tests(self, delta: dict[str, float]) -> tuple[str, ...]:
-        events = []
-        for component in self.components:
-            differences = {component: delta[component]}
-            if self.mean_test:
-                rest = delta[f"{component} − mean"]
-                differences |= {f"mean of {component}": delta[component] - rest, f"{component} − mean": rest}
-            for name, value in differences.items():
-                change = self.tests[name].update(value)
-                if change is not None:
-                    events.append(f"{name} {change}")
-        for single in self._singles():
-            change = self.tests[single.name].update(delta[single.name])
-            if change is not None:
-                events.append(f"{single.name} {change}")
-        return tuple(events)
 
     def _compose(self, previous: _Previous, prior_pose: np.ndarray,
                  applied: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -22,7 +22,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from dpc_jax.correction.decision import Measure
+from dpc_jax.correction.decision import Measure, judge_problem
 from dpc_jax.correction.inference import TrainedRun
 from dpc_jax.data.sequence_cache import SequenceCache, load_cache
 from dpc_jax.engine.predict import measure_effects, stereo_depth_of
@@ -54,20 +54,16 @@ def measurement(
 def judge_cache(
     run: TrainedRun, cache: SequenceCache, judge: SequenceCache | str | os.PathLike
 ) -> SequenceCache:
-    """The judge of ``cache`` for ``run`` (a cache or its folder), checked: the same frames, a stereo
-    run; its prior is replaced by ``cache``'s (Δ is measured around the prior being corrected)."""
+    """The judge of ``cache`` for ``run`` (a cache or its folder), checked: the same frames, and
+    ``dpc_jax.correction.decision.judge_problem``'s check (the one of every judge); its prior is replaced by ``cache``'s (Δ is measured around the prior being corrected)."""
     judged = judge if isinstance(judge, SequenceCache) else load_cache(judge)
-    if run.config.method != "stereo_dpc":
-        raise ValueError(f"{judged.path}: a judge measures Δ with stereo depth; the run is "
-                         f"{run.config.method}")
+    problem = judge_problem(run.config.method, cache.image_size, judged.image_size)
+    if problem is not None:
+        raise ValueError(f"{judged.path}: {problem}")
     same_sequence = judged.manifest.get("sequence") == cache.manifest.get("sequence")
     if not same_sequence or not np.array_equal(np.asarray(judged.indices), np.asarray(cache.indices)):
         raise ValueError(f"{judged.path}: holds frames other than those of {cache.path}; a judge must be "
                          "the same frames prepared at another size")
-    if judged.image_size[0] < cache.image_size[0] or judged.image_size[1] < cache.image_size[1]:
-        (h, w), (ch, cw) = judged.image_size, cache.image_size
-        raise ValueError(f"{judged.path}: a judge must be at least the network's size, got {h}x{w} for a "
-                         f"cache of {ch}x{cw}")
     return dataclasses.replace(judged, prior=cache.prior)
 
 

@@ -312,7 +312,7 @@ def measure_cell(study: Study, run_dir: Path, cache_root: Path,
     test (the study's decision at the network's size, the earlier one, and with the judge caches under
     ``judges`` every option of ``decisions``, all from the same proposal) and measure the removal against
     the ground truth (read here only): the epoch and one record per test sequence."""
-    from dpc_jax.correction.corrector import correct_cache
+    from dpc_jax.correction.corrector import correct_sequence, decided_again
     from dpc_jax.correction.inference import load_run
     from dpc_jax.eval.evaluation import evaluate
 
@@ -324,11 +324,12 @@ def measure_cell(study: Study, run_dir: Path, cache_root: Path,
     for name in study.tests:
         # One store of Δ per sequence: each candidate is measured once, whichever decision asks for it.
         common = {"rotation_only": rotation_only, "window": study.correction["mean_window"], "store": {}}
-        final = correct_cache(run, cache_root / name, mean_test=study.correction["mean_test"], **common)
-        earlier = correct_cache(run, cache_root / name, mean_test=False, proposal=final.xi_corr, **common)
+        done = correct_sequence(run, cache_root / name, mean_test=study.correction["mean_test"], **common)
+        final = done.trained
+        earlier = decided_again(run, cache_root / name, done=done, mean_test=False, **common).trained
         decided = {} if judges is None else {
-            option: correct_cache(run, cache_root / name, mean=MEAN_TESTS[option], judge=judges / name,
-                                  proposal=final.xi_corr, **common)
+            option: decided_again(run, cache_root / name, done=done, mean=MEAN_TESTS[option],
+                                  judge=judges / name, **common).trained
             for option in study.correction.get("decisions", ())}
         gt = np.asarray(final.ground_truth, np.float64)
         estimates = {"prior": final.prior, "network": final.proposed, "final": final.corrected,

@@ -314,7 +314,7 @@ def correct_and_evaluate(
     final, correction, corrections = done.final, done.result, done.corrections
     earlier = None
     if protocol.earlier_decision and protocol.acceptance and protocol.mean_test:
-        again = decided_again(done, run, loaded, mean_test=False, **options)
+        again = decided_again(run, loaded, done=done, mean_test=False, **options)
         applied = again.final + (f" ({again.result.acceptance.part})" if again.final != "prior" else "")
         earlier = Final(applied, _estimates(again.result)["corrected"])
     if correction.evaluation is None:

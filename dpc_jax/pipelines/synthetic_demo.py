@@ -328,7 +328,7 @@ def decided_again_in(out: str | os.PathLike, config: DemoConfig, **options: Any)
     trained and, when it adapted, the adapted network in ``adapted/`` with its kept-out pairs), decided
     with other ``options`` of ``dpc_jax.correction.corrector.correct_cache`` (e.g. ``mean_test=False``:
     the earlier decision) and chosen again → ``(final, correction)``; nothing is trained or adapted."""
-    from dpc_jax.correction.corrector import choose, correct_cache
+    from dpc_jax.correction.corrector import decided_again
     from dpc_jax.correction.inference import load_run
     from dpc_jax.data.cache import prepare_sequence
     from dpc_jax.data.kitti import open_odometry
@@ -343,10 +343,10 @@ def decided_again_in(out: str | os.PathLike, config: DemoConfig, **options: Any)
     cache = load_cache(prepare_sequence(open_odometry(out / "data", "test"), out / "vo" / "test.txt",
                                         out / _CACHE_DIR, size=size, disparity_offset=offset, progress=False))
     options = {"force": not config.acceptance, **options}
-    trained = correct_cache(load_run(out / _RUN_DIR, config.select), cache, **options)
     adapted = None
     if config.adapt_steps:
         held_out = np.asarray(json.loads((out / "adapted" / "adapt.json").read_text())["held_out_pairs"])
-        adapted = correct_cache(load_run(out / "adapted", "last"), cache, held_out=held_out, **options)
-    return choose(trained, adapted)
+        adapted = (load_run(out / "adapted", "last"), held_out)
+    again = decided_again(load_run(out / _RUN_DIR, config.select), cache, adapted=adapted, **options)
+    return again.final, again.result
 

@@ -28,15 +28,15 @@ def applied_words(acceptance: Acceptance, rotation_only: bool = False) -> str:
     """What an acceptance test let through, in words: ``none``, ``full 6-DoF``, ``rotation only``,
     ``rotation about x, z only``, each with ``without its mean`` (its moving mean removed; the overall
     mean of what was removed in mm and mrad) and the judge's scale."""
-    decision = acceptance.decision
-    if decision == "none":
+    component = acceptance.component
+    if component == "none":
         return "none"
     words = {"full": "rotation only" if rotation_only else "full 6-DoF", "rotation": "rotation only"}.get(
-        decision) or f"{rotation_axes_words(decision)} only"
+        component) or f"{rotation_axes_words(component)} only"
     if acceptance.remainder and acceptance.mean is not None:
         mean = acceptance.mean
         rotation = ", ".join(f"{1e3 * v:+.3f}" for v in mean[3:])
-        translation = ("" if decision != "full"
+        translation = ("" if component != "full"
                        else " mm, ".join(f"{1e3 * v:+.2f}" for v in mean[:3]) + " mm; ")
         over = f" over {acceptance.window} pairs" if acceptance.window else ""
         words += f", without its mean{over} (on average {translation}{rotation} mrad per step)"

@@ -32,7 +32,7 @@ def decision_label(acceptance: Acceptance) -> str:
     """What the acceptance test let through, in the words of the test table and the progress lines."""
     if acceptance.forced:
         return "not tested (applied)"
-    return "rejected" if acceptance.decision == "none" else f"accepted ({applied_words(acceptance)})"
+    return "rejected" if acceptance.part == "none" else f"accepted ({applied_words(acceptance)})"
 
 
 def _epoch_table(metrics_csv: Path, selected: int) -> str:

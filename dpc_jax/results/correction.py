@@ -60,10 +60,15 @@ class Correction:
     choice: dict[str, object] | None = None
 
     @property
+    def part(self) -> str:
+        """What :attr:`corrected` applies, in its one name (``acceptance.part``): ``none``,
+        ``rotation_xz − mean``, …"""
+        return self.acceptance.part
+
+    @property
     def applied(self) -> str:
-        """The component in :attr:`corrected`: ``full``, ``rotation``, ``rotation_<axes>`` or ``none``
-        (whole or without its mean, at a scale: ``acceptance.part``)."""
-        return self.acceptance.decision
+        """:attr:`part`, by the name ``dpc-jax correct`` reads until it reads :attr:`part`."""
+        return self.part
 
     @property
     def all_source_frames(self) -> bool:
@@ -75,8 +80,7 @@ class Correction:
         out: dict[str, object] = {
             "sequence": self.name,
             "epoch": self.epoch,
-            "applied": self.applied,
-            "part": self.acceptance.part,
+            "part": self.part,
             "rotation_only": self.rotation_only,
             "acceptance": self.acceptance.to_dict(),
         }

@@ -92,7 +92,7 @@ def evaluate_test(config: Any, workdir: Path, selection: str) -> dict[str, float
     [name] = config.test_sequences
     correction = correct_cache(run, Path(config.cache_root) / name)
     prior, gt, corrected = correction.prior, correction.ground_truth, correction.corrected
-    result = {"selection": selection, "epoch": run.epoch, "applied": correction.applied}
+    result = {"selection": selection, "epoch": run.epoch, "applied": correction.part}
     for label, estimate in (("prior", prior), ("network", correction.proposed), ("corrected", corrected)):
         errors = metrics.segment_errors(gt, estimate)
         result[f"{label}_r_err"] = float(errors.rot_deg_per_100m)

@@ -100,14 +100,14 @@ def test_true_depth_rejects_a_spurious_yaw_and_accepts_the_true_correction(rende
     deltas = {k: np.asarray(v) for k, v in
               _correction_deltas(outputs._replace(xi_corr=_yaw(n)), batch, config, valid).items()}
     assert np.all(deltas["full"] > 0)
-    assert decide(_yaw(n), batch_measure(outputs, batch, config, valid)).decision == "none"
+    assert decide(_yaw(n), batch_measure(outputs, batch, config, valid)).component == "none"
     # A prior with a known −2 mrad yaw error per step: the true correction (+2 mrad) is accepted, in full.
     biased = np.asarray(se3_exp(-_yaw(n))) @ steps
     batch = batch._replace(xi_vo=np.asarray(log_poses(biased)))
     deltas = {k: np.asarray(v) for k, v in
               _correction_deltas(outputs._replace(xi_corr=_yaw(n)), batch, config, valid).items()}
     result = decide(_yaw(n), batch_measure(outputs, batch, config, valid))
-    assert np.all(deltas["full"] < 0) and result.decision == "full" and not result.remainder
+    assert np.all(deltas["full"] < 0) and result.component == "full" and not result.remainder
     assert result.tests["full"].p_value == pytest.approx(2.0**-8)
     # Its Δ is the measurement's, the per-sample Δ of correction_deltas.
     np.testing.assert_allclose(result.delta, deltas["full"], rtol=1e-4, atol=1e-7)  # float32
@@ -205,11 +205,11 @@ def test_on_real_frames_a_planted_correction_is_accepted_when_it_helps_and_refus
     config = StereoDPCLossConfig()
     xi = _planted_rotations(n, mrad)
     refused = decide(xi, batch_measure(outputs, batch, config, valid))
-    assert refused.decision == "none", refused.reason
+    assert refused.component == "none", refused.reason
     biased = np.asarray(se3_exp(-xi)) @ steps  # a prior with the planted error; ξ undoes it exactly
     helped_batch = batch._replace(xi_vo=np.asarray(log_poses(biased)))
     accepted = decide(xi, batch_measure(outputs, helped_batch, config, valid))
-    assert accepted.decision == "full", accepted.reason
+    assert accepted.component == "full", accepted.reason
 
 
 def test_on_real_frames_a_wrong_mean_is_removed_and_a_right_one_kept(real_pairs) -> None:
@@ -228,11 +228,11 @@ def test_on_real_frames_a_wrong_mean_is_removed_and_a_right_one_kept(real_pairs)
     measure = batch_measure(outputs, batch, config, valid)
     wrong = decide(per_step - bias, measure, components=("rotation",))
     assert wrong.tests["rotation"].passed and not wrong.tests["mean of rotation"].passed
-    assert wrong.decision.startswith("rotation") and wrong.remainder, wrong.reason
+    assert wrong.component.startswith("rotation") and wrong.remainder, wrong.reason
     assert not decide(per_step - bias, measure, components=("rotation",), mean_test=False).remainder
     right = decide(per_step + bias, measure, components=("rotation",))
     assert right.tests["mean of rotation"].passed
-    assert right.decision.startswith("rotation") and not right.remainder, right.reason
+    assert right.component.startswith("rotation") and not right.remainder, right.reason
 
 
 def test_on_real_frames_a_spurious_axis_is_dropped_and_the_helpful_one_kept(real_pairs) -> None:
@@ -251,4 +251,4 @@ def test_on_real_frames_a_spurious_axis_is_dropped_and_the_helpful_one_kept(real
     result = decide(spurious, batch_measure(outputs, batch, config, valid), components=("rotation",),
                     mean_test=False)
     assert result.tests["rotation_y"].passed and not result.tests["rotation_x"].passed
-    assert result.decision == "rotation_y", result.reason
+    assert result.component == "rotation_y", result.reason

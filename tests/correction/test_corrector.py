@@ -317,7 +317,7 @@ def test_cli_keeps_the_prior_when_no_epoch_beats_it_and_applies_with_force(
     assert f"measured at the cache's {SIZE[0]}x{SIZE[1]} only" in out and "--judge CACHE" in out
     np.testing.assert_allclose(read_trajectory(kept, "kitti"), cache.prior, atol=1e-9)
     summary = json.loads((tmp_path / "kept" / "summary.json").read_text())
-    assert summary["applied"] == "none" and "selection delta" in summary["acceptance"]["reason"]
+    assert summary["part"] == "none" and "selection delta" in summary["acceptance"]["reason"]
     assert {"full", "rotation"} <= set(summary["acceptance"]["tests"])
     assert "Applied: nothing" in (tmp_path / "kept" / "report.md").read_text()
 
@@ -339,15 +339,15 @@ def test_the_decision_follows_the_test_on_the_sequence(setup: dict, run) -> None
     for alpha in (1e-9, 0.999):
         result = correct_cache(run, cache, alpha=alpha)
         tests = result.acceptance.tests
-        if result.applied == "none":
+        if result.part == "none":
             assert not any(t.passed for name, t in tests.items() if name in ("full", "rotation"))
         else:
-            assert tests[result.applied + (" − mean" if result.acceptance.remainder else "")].passed
+            assert tests[result.part].passed
         xi = applied_correction(result.xi_corr, result.acceptance)
         np.testing.assert_allclose(result.corrected, _compose(xi, cache.prior, cache.gt[0], False), atol=1e-9)
         np.testing.assert_allclose(result.proposed, _compose(result.xi_corr, cache.prior, cache.gt[0], False),
                                    atol=1e-9)
-    assert correct_cache(run, cache, alpha=1e-9).applied == "none"  # 9 pairs cannot reach p < 1e-9
+    assert correct_cache(run, cache, alpha=1e-9).part == "none"  # 9 pairs cannot reach p < 1e-9
 
 
 @pytest.mark.slow
@@ -394,11 +394,11 @@ def test_choose_takes_the_adapted_correction_only_when_it_beats_the_trained_one(
     rng = np.random.default_rng(0)
     n, held = 120, np.arange(2, 120, 3)
     trained = _candidate(-1e-3 + 1e-4 * rng.standard_normal(n), None, 1.0)
-    assert trained.applied == "full"
+    assert trained.part == "full"
     better = _candidate(trained.delta["full"] - 5e-4 + 1e-4 * rng.standard_normal(n), held, 2.0)
     as_good = _candidate(trained.delta["full"] + 1e-4 * rng.standard_normal(n), held, 3.0)
     for adapted, expected in ((better, "adapted"), (as_good, "trained")):
-        assert adapted.applied == "full"
+        assert adapted.part == "full"
         difference = adapted.delta["full"][held] - trained.delta["full"][held]
         p = stats.wilcoxon(difference, alternative="less").pvalue
         assert (p < 0.01) == (expected == "adapted")
@@ -423,7 +423,7 @@ def test_choose_falls_back_in_order_adapted_trained_prior() -> None:
     assert choose(trained_good, adapted_bad)[0] == "trained"
     assert choose(trained_bad, adapted_good)[0] == "adapted"
     name, final = choose(trained_bad, adapted_bad)
-    assert name == "prior" and final.applied == "none" and final.choice is not None
+    assert name == "prior" and final.part == "none" and final.choice is not None
     assert "prior is kept" in str(final.choice["reason"])
 
 

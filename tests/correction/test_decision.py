@@ -63,7 +63,7 @@ def test_a_proposal_right_per_step_and_right_in_the_mean_is_applied_whole() -> N
     truth = BIAS + rotations(200, 1.0, 0)
     proposal = truth + rotations(200, 0.1, 1)
     result = decide(proposal, bowl(truth), components=("rotation",))
-    assert result.decision == "rotation" and not result.remainder and result.scale == 1.0
+    assert result.component == "rotation" and not result.remainder and result.scale == 1.0
     assert result.tests["rotation"].passed and result.tests["mean of rotation"].passed
     np.testing.assert_allclose(applied_correction(proposal, result), proposal * component_mask("rotation"))
 
@@ -78,7 +78,7 @@ def test_a_wrong_mean_is_removed_and_the_per_step_part_kept() -> None:
     whole = paired_test("rotation", measure({"w": proposal})["w"])
     assert whole.passed  # what the earlier decision applied
     result = decide(proposal, measure, components=("rotation",))
-    assert result.decision == "rotation" and result.remainder, result.reason
+    assert result.component == "rotation" and result.remainder, result.reason
     assert not result.tests["mean of rotation"].passed and result.tests["rotation − mean"].passed
     applied = applied_correction(proposal, result)
     np.testing.assert_allclose(applied, proposal - _moving_mean_loop(proposal, MEAN_WINDOW), atol=1e-15)
@@ -96,21 +96,21 @@ def test_a_wrong_mean_is_removed_and_the_per_step_part_kept() -> None:
 def test_nothing_passes_nothing_is_applied_and_zero_effects_fail() -> None:
     truth = rotations(50, 1.0, 0)
     result = decide(rotations(50, 1.0, 5), bowl(truth))
-    assert result.decision == "none" and result.delta is None and "prior is kept" in result.reason
+    assert result.component == "none" and result.delta is None and "prior is kept" in result.reason
     assert np.all(applied_correction(np.ones((50, 6)), result) == 0)
     flat = decide(np.zeros((50, 6)), bowl(truth))
-    assert flat.decision == "none" and math.isnan(flat.tests["full"].statistic)
+    assert flat.component == "none" and math.isnan(flat.tests["full"].statistic)
 
 
 def test_the_full_correction_comes_before_its_rotation() -> None:
     truth = rotations(100, 1.0, 0)
     truth[:, :3] = np.random.default_rng(3).normal(scale=0.02, size=(100, 3))
     right = truth + rotations(100, 0.05, 1)
-    assert decide(right, bowl(truth)).decision == "full"
+    assert decide(right, bowl(truth)).component == "full"
     wrong_shift = right.copy()
     wrong_shift[:, :3] = -3 * truth[:, :3]
     result = decide(wrong_shift, bowl(truth))
-    assert result.decision == "rotation" and not result.tests["full"].passed
+    assert result.component == "rotation" and not result.tests["full"].passed
 
 
 def test_axes_that_fail_alone_are_dropped() -> None:
@@ -120,7 +120,7 @@ def test_axes_that_fail_alone_are_dropped() -> None:
     proposal[:, 4] = -truth[:, 4] * 0.5  # a yaw that hurts on every pair
     measure = bowl(truth)
     result = decide(proposal, measure, components=("rotation",))
-    assert result.decision == "rotation_xz" and not result.remainder, result.reason
+    assert result.component == "rotation_xz" and not result.remainder, result.reason
     assert {"rotation_x", "rotation_y", "rotation_z", "rotation_xz", "mean of rotation_xz"} <= set(
         result.tests)
     np.testing.assert_allclose(applied_correction(proposal, result), proposal * [0, 0, 0, 1, 0, 1])
@@ -134,14 +134,14 @@ def test_the_judge_must_agree_and_picks_the_scale() -> None:
     proposal = truth / 0.75  # right direction, a third too large
     network = bowl(proposal)  # the coarse images ask for what the network proposes
     result = decide(proposal, network, components=("rotation",), judge=bowl(truth))
-    assert result.decision == "rotation" and result.scale == 0.75, result.reason
+    assert result.component == "rotation" and result.scale == 0.75, result.reason
     assert "rotation ×0.75 (judge)" in result.tests and "mean of rotation (judge)" in result.tests
     np.testing.assert_allclose(applied_correction(proposal, result), truth * component_mask("rotation"))
     # The judge's Δ of what is applied is what choose compares.
     np.testing.assert_allclose(result.delta, bowl(truth)({"x": truth * component_mask("rotation")})["x"])
     # A judge that sees harm refuses what the network's size accepted.
     refused = decide(proposal, network, components=("rotation",), judge=bowl(-truth))
-    assert refused.decision == "none" and not refused.tests["rotation (judge)"].passed
+    assert refused.component == "none" and not refused.tests["rotation (judge)"].passed
 
 
 def test_tested_pairs_and_forcing() -> None:
@@ -149,10 +149,10 @@ def test_tested_pairs_and_forcing() -> None:
     proposal = truth.copy()
     proposal[::2] = -truth[::2]  # right on odd pairs, wrong on even ones
     measure = bowl(truth)
-    assert decide(proposal, measure, components=("rotation",), tested=np.arange(1, 100, 2)).decision != "none"
-    assert decide(proposal, measure, components=("rotation",), tested=np.arange(0, 100, 2)).decision == "none"
+    assert decide(proposal, measure, components=("rotation",), tested=np.arange(1, 100, 2)).part != "none"
+    assert decide(proposal, measure, components=("rotation",), tested=np.arange(0, 100, 2)).part == "none"
     forced = decide(proposal, measure, components=("rotation",), tested=np.arange(0, 100, 2), force=True)
-    assert forced.forced and forced.decision == "rotation" and not forced.remainder
+    assert forced.forced and forced.component == "rotation" and not forced.remainder
     assert "rotation" in forced.tests and not forced.tests["rotation"].passed
     with pytest.raises(ValueError, match="components"):
         decide(proposal, measure, components=("translation",))
@@ -167,11 +167,13 @@ def test_each_candidate_is_measured_once_per_size() -> None:
     assert len(measure.asked) == len(set(measure.asked))  # type: ignore[attr-defined]
 
 
-def _moving_mean_loop(x: np.ndarray, window: int) -> np.ndarray:
-    """The reference: each row's mean over the rows within ⌊w/2⌋ before and ⌈w/2⌉ − 1 after it."""
+def _moving_mean_loop(x: np.ndarray, window: int, trailing: bool = False) -> np.ndarray:
+    """The reference: each row's mean over the rows within ⌊w/2⌋ before and ⌈w/2⌉ − 1 after it, or
+    (``trailing``) over it and the w − 1 rows before it."""
     out = np.empty_like(x, dtype=np.float64)
     for k in range(x.shape[0]):
-        out[k] = x[max(0, k - window // 2):min(x.shape[0], k + window - window // 2)].mean(axis=0)
+        first, last = (k - window + 1, k + 1) if trailing else (k - window // 2, k + window - window // 2)
+        out[k] = x[max(0, first):min(x.shape[0], last)].mean(axis=0)
     return out
 
 
@@ -179,6 +181,8 @@ def test_the_moving_mean_is_a_windowed_average() -> None:
     x = np.random.default_rng(0).normal(size=(130, 6))
     for window in (1, 2, 7, 50, 400):
         np.testing.assert_allclose(moving_mean(x, window), _moving_mean_loop(x, window), atol=1e-12)
+        np.testing.assert_allclose(moving_mean(x, window, trailing=True), _moving_mean_loop(x, window, True),
+                                   atol=1e-12)
     np.testing.assert_allclose(moving_mean(x[:20], 50), np.broadcast_to(x[:20].mean(axis=0), (20, 6)),
                                atol=1e-12)  # shorter than half the window: the sequence's own mean
     np.testing.assert_allclose(moving_mean(x, 1), x, atol=1e-12)
@@ -191,8 +195,9 @@ def test_parts_and_records() -> None:
     np.testing.assert_array_equal(part_of(xi, "rotation_xz"), xi * [0, 0, 0, 1, 0, 1])
     np.testing.assert_allclose(part_of(xi, "full", remainder=True, scale=0.5), 0.5 * (xi - xi.mean(axis=0)))
     np.testing.assert_allclose(part_of(xi, "full", remainder=True, window=1), np.zeros_like(xi))
-    np.testing.assert_allclose(part_of(xi, "rotation", remainder=True, mean=np.ones(6)),
-                               xi * component_mask("rotation") - 1.0)
+    rotation = xi * component_mask("rotation")
+    np.testing.assert_allclose(part_of(xi, "rotation", remainder=True, window=2, trailing=True),
+                               rotation - np.concatenate([rotation[:1], (rotation[1:] + rotation[:-1]) / 2]))
     np.testing.assert_array_equal(component_mask("none"), np.zeros(6))
     record = Acceptance(0.01, {}, "rotation_xz", "why", scale=0.75, remainder=True, mean=(0.0,) * 6)
     assert record.part == "rotation_xz − mean ×0.75"
@@ -234,7 +239,7 @@ def test_the_means_own_level() -> None:
     assert today.remainder and today.tests["mean of rotation"].p_value == pytest.approx(p, rel=1e-12)
     apart = decide(xi, tabled(WHOLE, differences), components=("rotation",),
                    mean=MEAN_TESTS["mean-at-judge-a05"])  # no judge: at the network's size, at 0.05
-    assert apart.decision == "rotation" and not apart.remainder, apart.reason
+    assert apart.component == "rotation" and not apart.remainder, apart.reason
     assert apart.tests["mean of rotation"].p_value == pytest.approx(p, rel=1e-12)
 
 
@@ -270,7 +275,7 @@ def test_the_mean_at_the_judges_size() -> None:
     assert "mean of rotation (judge)" not in today.tests
     at_judge = decide(proposal, network, components=("rotation",), judge=judge,
                       mean=MEAN_TESTS["mean-at-judge"])
-    assert at_judge.decision == "rotation" and not at_judge.remainder, at_judge.reason
+    assert at_judge.component == "rotation" and not at_judge.remainder, at_judge.reason
     assert "mean of rotation" not in at_judge.tests
     rotation = part_of(proposal, "rotation")
     rest = part_of(proposal, "rotation", remainder=True)

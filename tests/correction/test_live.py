@@ -72,13 +72,14 @@ def test_forced_live_gives_the_poses_of_forced_correct(world: dict) -> None:
     poses = np.stack([f.pose for f in frames])
     np.testing.assert_allclose(poses, offline.corrected, atol=1e-6)
     np.testing.assert_allclose(np.stack([f.proposal for f in frames[1:]]), offline.xi_corr, atol=1e-6)
-    assert frames[0].state == "start" and {f.state for f in frames[1:]} == {"forced"}
+    assert frames[0].part == "none" and {f.part for f in frames[1:]} == {"full"}
+    assert all(f.forced for f in frames)
     # The tests' own decision, on nine pairs: no sequential test can accept so early (2^9 < 1 / α), so
     # every pose is the prior's, composed from the same first pose.
     tested = LiveCorrector(run, calibration, first_pose=gt[0])
     frames = [tested(left, right, prior[k]) for k, (left, right) in enumerate(_frames(world["sequence"]))]
     np.testing.assert_allclose(np.stack([f.pose for f in frames]), offline.prior, atol=1e-9)
-    assert {f.state for f in frames[1:]} == {"prior"}
+    assert {f.part for f in frames[1:]} == {"none"}
     np.testing.assert_allclose(np.stack([f.prior for f in frames]), offline.prior, atol=1e-9)
     with pytest.raises(ValueError, match="expected both 48x72"):
         tested(np.zeros((40, 72), np.uint8), np.zeros((40, 72), np.uint8), prior[0])
@@ -199,11 +200,12 @@ def test_a_harmful_correction_is_never_applied_and_a_scene_change_withdraws() ->
 
 def test_the_judge_measures_what_corrects_judge_does_and_gates_what_is_applied(world: dict,
                                                                                  tmp_path) -> None:
-    """With a judge (the camera's 48x72 frames; the network's are 32x48): the part the tests would apply
-    is measured on the pair at the judge's size, the same Δ as ``correct``'s judge on the same frames
-    prepared there; it is applied only once the judge's own test has accepted: never while the judge
+    """With a judge (the camera's 48x72 frames; the network's are 32x48), once the tests at the network's
+    size accept the rotation (its measurement there replaced by one that favours it): the rotation is
+    measured on the pair at the judge's size, the same Δ as ``correct``'s judge on the same frames
+    prepared there; it is applied only once the judge's own tests have accepted: never while the judge
     says it hurts, from the judge's acceptance on while it says it helps."""
-    from dpc_jax.correction.decision import Part, part_of
+    from dpc_jax.correction.decision import part_of
     from dpc_jax.correction.inference import load_run
     from dpc_jax.correction.live import Calibration, LiveCorrector
     from dpc_jax.correction.measure import judge_measurement
@@ -214,33 +216,58 @@ def test_the_judge_measures_what_corrects_judge_does_and_gates_what_is_applied(w
     run = load_run(world["run"], "delta")
     gt, prior = read_mat(world["priors"] / "stereo_05.mat")
     calibration = Calibration.of(world["sequence"])
-    with pytest.raises(ValueError, match="between the run's 32x48 and the camera's 48x72"):
+    with pytest.raises(ValueError, match=r"larger than the camera's images \(48x72\)"):
         LiveCorrector(run, calibration, judge_size=(64, 96))
-    live = LiveCorrector(run, calibration, first_pose=gt[0], judge_size=(48, 72))
-    live._part = lambda: Part("rotation")  # the tests at the network's size have accepted the rotation
-    measured: list[float] = []
-    judged = live._judged_delta
-    live._judged_delta = lambda *a: measured.append(judged(*a)) or measured[-1]
-    frames = [live(left, right, prior[k]) for k, (left, right) in enumerate(_frames(world["sequence"]))]
+
+    def favoured(live: LiveCorrector) -> LiveCorrector:
+        """The network's size measures the rotation helping (its mean too) and the full correction
+        hurting, whatever the images say."""
+        measured = live._correction_of
+
+        def correction_of(window, parts, seconds=None):
+            xi, _ = measured(window, parts, seconds)
+            return xi, {p: 1.0 if p.component == "full" else -0.5 if p.remainder else -1.0 for p in parts}
+
+        live._correction_of = correction_of  # type: ignore[method-assign]
+        return live
+
+    frames_list = list(_frames(world["sequence"]))
+    live = favoured(LiveCorrector(run, calibration, first_pose=gt[0], judge_size=(48, 72)))
+    judged: list[tuple[int, float]] = []
+    at_judge = live._judged_deltas
+
+    def recorded(previous, current, prior_pose, corrections):
+        values = at_judge(previous, current, prior_pose, corrections)
+        judged.append((live._pairs, float(values[0])))  # the first part consulted there: the rotation
+        return values
+
+    live._judged_deltas = recorded  # type: ignore[method-assign]
+    frames = [live(*frames_list[k % FRAMES], prior[k % FRAMES]) for k in range(3 * FRAMES)]
+    assert judged and all(f.part == "none" for f in frames[:judged[0][0] + 1])
     judge = prepare_sequence(world["sequence"], world["priors"] / "stereo_05.mat", tmp_path / "judge",
                              size=(48, 72), progress=False, workers=1)
-    xi = np.stack([f.proposal for f in frames[1:]])
+    xi = np.stack([f.proposal for f in frames[1:FRAMES]])
     offline = judge_measurement(run, load_cache(world["cache"]), judge)({"rotation": part_of(xi, "rotation")})
-    np.testing.assert_allclose(measured, offline["rotation"], atol=1e-6)
+    # Pair k joins frames k and k + 1 of the sequence, each pass (those from its last frame to its first:
+    # no such pair offline).
+    within = [(k % FRAMES, value) for k, value in judged if (k + 1) % FRAMES]
+    assert within
+    np.testing.assert_allclose([v for _, v in within], offline["rotation"][[k for k, _ in within]], atol=1e-6)
+    step = np.eye(4)
+    step[2, 3] = 1.0
 
-    def states(sign: float) -> list[str]:
-        gated = LiveCorrector(run, calibration, judge_size=(48, 72))
-        gated._part = lambda: Part("rotation")
-        gated._judged_delta = lambda *a: sign * 1e-3
-        pose, step, out = np.eye(4), np.eye(4), []
-        step[2, 3] = 1.0
-        for k in range(60):
-            out.append(gated(*_frames_list[k % FRAMES], pose))
+    def parts(sign: float) -> list[str]:
+        gated = favoured(LiveCorrector(run, calibration, judge_size=(48, 72)))
+        gated._judged_deltas = lambda *a: sign * 1e-3 * np.where(  # type: ignore[method-assign]
+            np.arange(len(a[3])) == 1, 0.5, 1.0)  # its remainder helps half as much: the mean helps too
+        pose, out = np.eye(4), []
+        for k in range(80):
+            out.append(gated(*frames_list[k % FRAMES], pose))
             pose = pose @ step
-        return [f.state for f in out[1:]]
+        return [f.part for f in out[1:]]
 
-    _frames_list = list(_frames(world["sequence"]))
-    assert set(states(+1.0)) == {"prior"}  # the judge says it hurts on every pair: never applied
-    helped = states(-1.0)
-    first = helped.index("rotation")
-    assert 5 <= first < 20 and set(helped[first:]) == {"rotation"} and set(helped[:first]) == {"prior"}
+    assert set(parts(+1.0)) == {"none"}  # the judge says it hurts on every pair: never applied
+    helped = parts(-1.0)
+    first = next(k for k, p in enumerate(helped) if p != "none")
+    assert helped[first].startswith("rotation") and set(helped[:first]) == {"none"}
+    assert set(helped[first:]) <= {"rotation", "rotation ×0.25", "rotation ×0.5", "rotation ×0.75"}

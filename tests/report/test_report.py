@@ -131,7 +131,7 @@ def test_correction_report_without_ground_truth(tmp_path: Path) -> None:
                            "## Acceptance test (no ground truth used)\n\n")
     assert "**Applied: nothing: the corrected trajectory is the prior** (rotation: failed)." in text
     summary = json.loads((tmp_path / "r" / "summary.json").read_text())
-    assert summary == {"sequence": "05", "epoch": 2, "applied": "none", "part": "none", "rotation_only": True,
+    assert summary == {"sequence": "05", "epoch": 2, "part": "none", "rotation_only": True,
                        "acceptance": acceptance.to_dict(), "adaptation": adaptation}
 
 
