@@ -51,6 +51,7 @@ import jax
 from bench_data import write_random_cache
 from bench_train import SMOKE_LABEL
 
+from dpc_jax.correction.acceptance import DEFAULT_ALPHA
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 from dpc_jax.runtime.machine import this_cpu
 
@@ -212,9 +213,9 @@ def bench_method(
 
     def correct_whole() -> float:
         began = time.perf_counter()
-        correction = correct_cache(run, cache, batch_size=args.batch)
+        correction = correct_cache(run, cache, batch_size=args.batch, alpha=args.alpha)
         rate = pairs / (time.perf_counter() - began)
-        decisions.append(correction.acceptance.decision)
+        decisions.append(correction.part)
         return rate
 
     correct_whole()  # warm-up: compiles the prediction and the evaluation
@@ -258,6 +259,9 @@ def main() -> None:
     parser.add_argument("--train", default="00")
     parser.add_argument("--validation", default="01")
     parser.add_argument("--correct", default="02", help="the sequence corrected (default 02)")
+    parser.add_argument("--alpha", type=float, default=DEFAULT_ALPHA,
+                        help="the acceptance tests' level (default %(default)s); 1e-300 refuses every "
+                             "part: the worst case, every part measured that a refusal needs")
     parser.add_argument("--correct-frames", type=int, default=200,
                         help="frames of the synthetic sequence corrected (default 200)")
     parser.add_argument("--json", metavar="FILE", help="write the figures as JSON (- for stdout)")

@@ -55,7 +55,8 @@ def judge_cache(
     run: TrainedRun, cache: SequenceCache, judge: SequenceCache | str | os.PathLike
 ) -> SequenceCache:
     """The judge of ``cache`` for ``run`` (a cache or its folder), checked: the same frames, and
-    ``dpc_jax.correction.decision.judge_problem``'s check (the one of every judge); its prior is replaced by ``cache``'s (Δ is measured around the prior being corrected)."""
+    ``dpc_jax.correction.decision.judge_problem``'s check (the one of every judge); its prior is
+    replaced by ``cache``'s (Δ is measured around the prior being corrected)."""
     judged = judge if isinstance(judge, SequenceCache) else load_cache(judge)
     problem = judge_problem(run.config.method, cache.image_size, judged.image_size)
     if problem is not None:

@@ -16,9 +16,13 @@ from scipy import stats
 
 from dpc_jax.correction.acceptance import paired_test
 from dpc_jax.correction.decision import (
+    JUDGE_SCALES,
     MEAN_TESTS,
     MEAN_WINDOW,
+    Decision,
     MeanTest,
+    Outcome,
+    Part,
     applied_correction,
     component_mask,
     decide,
@@ -303,3 +307,100 @@ def test_one_proposal_decided_by_every_option_measures_each_candidate_once() -> 
         assert shared.part == fresh.part and shared.tests == fresh.tests
     for measure in (network, judge):
         assert len(measure.asked) == len(set(measure.asked))  # type: ignore[attr-defined]
+
+
+# -- one decision, offline and live (issue 60) ----------------------------------------------------------
+
+def _every_part(decision: Decision) -> list[Part]:
+    """Every part a decision can consult: each component (and rotation about any axes), whole and
+    remainder, at every scale the judge compares."""
+    components = ["full", *(rotation_component(a) for a in ("x", "y", "z", "xy", "xz", "yz", "xyz"))]
+    return [decision.part(c, r, s) for c in components for r in (False, True) for s in JUDGE_SCALES]
+
+
+def _fed_pair_by_pair(xi: np.ndarray, network, judge, **options) -> Outcome:
+    """The fixed-sample decision fed the pairs one by one, every part's Δ on each (measured on the
+    whole sequence first: a remainder's centred mean needs all of ξ)."""
+    decision = Decision(judge=judge is not None, **options)
+    parts = _every_part(decision)
+    at_network = network({p.name: p.of(xi) for p in parts})
+    at_judge = None if judge is None else judge({p.name: p.of(xi) for p in parts})
+    for k in range(xi.shape[0]):
+        decision.update({p: at_network[p.name][k] for p in parts},
+                        None if at_judge is None else {p: at_judge[p.name][k] for p in parts})
+    assert not decision.needs()
+    return decision.outcome
+
+
+CASES = {  # (proposal, network's measurement, judge's, options): one case per way the decision goes
+    "whole": lambda t: (t + rotations(200, 0.1, 1), bowl(t), None, {"components": ("rotation",)}),
+    "remainder": lambda t: ((t - BIAS) - BIAS + rotations(200, 0.1, 1), bowl(t), None, {}),
+    "axes": lambda t: (t * [1, 1, 1, 1, -0.5, 1], bowl(t), None, {"components": ("rotation",)}),
+    "judge's scale": lambda t: (t / 0.75, bowl(t / 0.75), bowl(t), {"components": ("rotation",)}),
+    "judge refuses": lambda t: (t, bowl(t), bowl(-t), {}),
+    "nothing": lambda t: (rotations(200, 1.0, 5), bowl(t), None, {"alpha": 0.05}),
+    "non-inferior mean": lambda t: (t + rotations(200, 0.1, 1), bowl(t - BIAS), bowl(t),
+                                    {"mean": MEAN_TESTS["mean-noninferior"]}),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_fed_pair_by_pair_the_decision_ends_as_the_offline_one(case: str) -> None:
+    """The sequential decision (fixed-sample tests) fed every pair's Δ of every part, one pair at a time,
+    ends with the offline decision on the same Δ: the same part, the same tests, the same reasons; and the
+    offline one measured only what it needed. Each test's p is scipy's Wilcoxon on its Δ (the reference)."""
+    truth = BIAS + rotations(200, 1.0, 0)
+    xi, network, judge, options = CASES[case](truth)
+    offline = decide(xi, network, judge=judge, **options)
+    assert len(network.asked) < len(_every_part(Decision()))  # type: ignore[attr-defined]
+    fed = _fed_pair_by_pair(xi, network, judge, **options)
+    assert offline.part == ("none" if fed.part is None else fed.part.name), (offline.reason, fed.reason)
+    assert offline.tests == fed.tests and offline.reason == fed.reason
+    if offline.part != "none":
+        applied = offline.tests[offline.part if judge is None else offline.part + " (judge)"]
+        reference = stats.wilcoxon(offline.delta, alternative="less").pvalue
+        assert applied.p_value == pytest.approx(reference, rel=1e-12)
+
+
+def test_only_what_can_change_the_decision_is_measured() -> None:
+    """A full correction that passes with its mean: its rotation and axes are never measured."""
+    truth = rotations(100, 1.0, 0) + BIAS
+    truth[:, :3] = np.random.default_rng(3).normal(scale=0.02, size=(100, 3))
+    measure = bowl(truth)
+    assert decide(truth + rotations(100, 0.05, 1), measure).part == "full"
+    assert measure.asked == ["full", "full − mean"]  # type: ignore[attr-defined]
+
+
+def test_an_axis_subset_is_applied_only_once_its_own_test_accepts() -> None:
+    """Live, pair by pair (sequential tests): the rotation helps with its mean, its x and z alone help,
+    but the rotation about x and z together hurts (Δ of a part is not the sum of its axes'). The old live
+    rule applied ``rotation_xz`` as soon as the rotation's and the single axes' tests accepted; the one
+    decision tests the subset itself, which never accepts, and applies the whole rotation."""
+    decision = Decision(components=("rotation",), sequential=True)
+    helps = {"rotation": -1.0, "rotation − mean": -0.5, "rotation_x": -1.0, "rotation_y": 1.0,
+             "rotation_z": -1.0, "rotation_xz": 1.0}
+    parts: list[str] = []
+    for _ in range(120):
+        needs = decision.needs()
+        assert all(size == "network" for size, _ in needs)
+        decision.update({p: helps.get(p.name, helps.get(p.name.replace(" − mean", ""), 0.0) - 0.1)
+                         for _, p in needs})
+        parts.append("none" if decision.outcome.part is None else decision.outcome.part.name)
+    tests = decision.tests
+    # What the old rule read: the rotation and x and z alone accepted.
+    assert tests["rotation"].accepted and tests["mean of rotation"].accepted
+    assert tests["rotation_x"].accepted and tests["rotation_z"].accepted and not tests["rotation_y"].accepted
+    assert tests["rotation_xz"].pairs > 0 and not tests["rotation_xz"].accepted
+    assert "rotation_xz" not in parts and parts[-1] == "rotation"
+
+
+def test_a_sequential_decision_measures_what_it_consults_and_the_live_mean_trails() -> None:
+    """Sequential: every part the walk consults is asked for each pair (the full correction and the
+    rotation, whole and remainder, before anything is accepted); a remainder's mean is the trailing one."""
+    decision = Decision(sequential=True, trailing=True)
+    assert [p.name for _, p in decision.needs()] == ["full", "full − mean", "rotation", "rotation − mean"]
+    assert all(p.trailing for _, p in decision.needs())
+    xi = rotations(60, 1.0, 4)
+    rotation = part_of(xi, "rotation")
+    np.testing.assert_allclose(decision.part("rotation", True).of(xi),
+                               rotation - _moving_mean_loop(rotation, MEAN_WINDOW, trailing=True), atol=1e-15)
