@@ -39,17 +39,10 @@ from dpc_jax._io import atomic_write
 from dpc_jax.correction.acceptance import DEFAULT_ALPHA, paired_test
 from dpc_jax.correction.adapt import Adaptation, AdaptConfig
 from dpc_jax.correction.adapt import adapt as adapt_network
-from dpc_jax.correction.decision import (
-    DEFAULT_MEAN_TEST,
-    MEAN_TESTS,
-    MEAN_WINDOW,
-    MeanTest,
-    applied_correction,
-    decide,
-    refused,
-)
+from dpc_jax.correction.decision import DEFAULT_MEAN_TEST, MEAN_TESTS, MeanTest, decide, refused
 from dpc_jax.correction.inference import TrainedRun, run_prediction
 from dpc_jax.correction.measure import judge_measurement, measurement, remembered
+from dpc_jax.correction.parts import MEAN_WINDOW, applied_correction
 from dpc_jax.data.poses_io import WRITE_FORMATS, frames_path, write_kitti_poses, write_tum
 from dpc_jax.data.priors import prior_for_cache
 from dpc_jax.data.sequence_cache import SequenceCache, load_cache

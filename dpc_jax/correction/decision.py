@@ -5,20 +5,20 @@ and of a *measurement* ``measure({name: ξ' [M, 6]}) → {name: Δ [M]}``: the p
 ``Δ_i = L_i(ξ'_i) − L_i(0)`` of any correction on the same pairs (``dpc_jax.correction.measure``).
 No ground truth, no network: the tests of ``dpc_jax.correction.acceptance`` on what it measures.
 
-**Parts.** A *component* of ξ is which entries are applied: ``full`` (6-DoF), ``rotation`` (φ only)
-or ``rotation_<axes>`` (the rotation about some camera axes). Each is taken *whole* (``ξ ⊙ m``) or
-as its *remainder* ``ξ ⊙ m − mean_W(ξ ⊙ m)``: the per-step part, with the correction's *mean* removed,
-its moving mean over :data:`MEAN_WINDOW` consecutive pairs (:func:`moving_mean`; over the whole
-sequence when it is shorter). The two differ in what they do to a trajectory: composed over a stretch
-of road, a correction's mean there turns and stretches the path (the drift the segment errors
-measure), its remainder only moves single steps. And the per-pair test hardly sees the mean: each
-pair's Δ is dominated by how well the correction fits that pair's own error, so a correction that fits
-the per-step noise well passes with any small mean it carries, right or wrong, and a wrong mean then
-raises the drift (``docs/method.md`` §8). So the mean is tested on its own, on the same pairs:
-``Δ_i(whole) − Δ_i(remainder) = L_i(whole) − L_i(remainder)`` below zero says that adding the mean
-to the remainder explains the pairs better. The mean is a moving one, not the sequence's: a network
-that is wrong about the mean is wrong about it locally as well (its error varies with the scene and
-the motion), and a remainder that kept those local means would still drift over 100 m.
+**Parts** (``dpc_jax.correction.parts``). A *component* of ξ is which entries are applied: ``full``
+(6-DoF), ``rotation`` (φ only) or ``rotation_<axes>`` (the rotation about some camera axes). Each is
+taken *whole* (``ξ ⊙ m``) or as its *remainder* ``ξ ⊙ m − mean_W(ξ ⊙ m)``: the per-step part, with the
+correction's *mean* removed, its moving mean over ``MEAN_WINDOW`` consecutive pairs (centred offline,
+trailing live; over the whole sequence when it is shorter). The two differ in what they do to a
+trajectory: composed over a stretch of road, a correction's mean there turns and stretches the path (the
+drift the segment errors measure), its remainder only moves single steps. And the per-pair test hardly
+sees the mean: each pair's Δ is dominated by how well the correction fits that pair's own error, so a
+correction that fits the per-step noise well passes with any small mean it carries, right or wrong, and
+a wrong mean then raises the drift (``docs/method.md`` §8). So the mean is tested on its own, on the
+same pairs: ``Δ_i(whole) − Δ_i(remainder) = L_i(whole) − L_i(remainder)`` below zero says that adding
+the mean to the remainder explains the pairs better. The mean is a moving one, not the sequence's: a
+network that is wrong about the mean is wrong about it locally as well (its error varies with the scene
+and the motion), and a remainder that kept those local means would still drift over 100 m.
 
 **Order.** For each component in ``components`` (``full`` then ``rotation``): the whole part is
 applied when its Δ passes *and* its mean passes; else the remainder when its Δ passes; else the next
@@ -35,6 +35,10 @@ one axis and wrong about another.
 part chosen at the network's size must pass the same tests there too; failing, the next part is
 tried. Then of :data:`JUDGE_SCALES` times that part, the one with the lowest mean Δ at the judge is
 applied when it passes there.
+
+**One decision, offline and live.** :class:`Decision` is that walk over the tests of the parts, fed
+the pairs' Δ: with fixed-sample tests (offline, :func:`decide`: every pair, measured only when the
+walk reaches a part) or sequential ones (the live corrector, ``dpc_jax.correction.live``).
 
 **Where and how the mean is tested** (:class:`MeanTest`, the options of :data:`MEAN_TESTS`,
 ``docs/method.md`` §8): at both sizes (today's default), or with a judge at the judge's size only (a
@@ -53,13 +57,10 @@ from functools import partial
 import numpy as np
 
 from dpc_jax.correction.acceptance import DEFAULT_ALPHA, SequentialTest, paired_test
-from dpc_jax.results.acceptance import Acceptance, PairedTest, judge_test_name, mean_test_name, part_name
+from dpc_jax.correction.parts import AXES, MEAN_WINDOW, Part, rotation_component
+from dpc_jax.results.acceptance import Acceptance, PairedTest, judge_test_name, mean_test_name
 
 COMPONENTS = ("full", "rotation")
-AXES = "xyz"  # camera axes: x right (pitch), y down (yaw), z forward (roll)
-# Pairs the mean of a correction is taken over: well under the shortest segment the segment errors
-# measure (100 m, about 100 frames at KITTI's speeds), so that a remainder drifts over none of them.
-MEAN_WINDOW = 50
 # The scales of a passed correction the judge compares.
 JUDGE_SCALES = (0.25, 0.5, 0.75, 1.0)
 
@@ -99,93 +100,6 @@ MEAN_TESTS = {
     "mean-noninferior": MeanTest(at_judge=True, margin=0.05),
 }
 DEFAULT_MEAN_TEST = "mean-at-network"
-
-
-def rotation_component(axes: str) -> str:
-    """The component of a rotation about ``axes`` (in order, a part of ``"xyz"``): ``rotation_xz``,
-    or ``rotation`` for all three."""
-    if not axes or "".join(a for a in AXES if a in axes) != axes:
-        raise ValueError(f"axes must be a non-empty ordered part of {AXES!r}, got {axes!r}")
-    return "rotation" if axes == AXES else f"rotation_{axes}"
-
-
-def component_mask(component: str) -> np.ndarray:
-    """Which entries of ξ = [ρ, φ] a component applies → float64 ``[6]`` of 0/1."""
-    if component == "full":
-        return np.ones(6)
-    if component == "none":
-        return np.zeros(6)
-    axes = AXES if component == "rotation" else component.removeprefix("rotation_")
-    if not component.startswith("rotation") or rotation_component(axes) != component:
-        raise ValueError(f"not a component: {component!r}")
-    return np.array([0.0, 0.0, 0.0, *(float(a in axes) for a in AXES)])
-
-
-@dataclass(frozen=True)
-class Part:
-    """A part of a correction: a component, whole or its remainder (its moving mean over ``window``
-    pairs removed: centred, or with ``trailing`` over the pairs up to each one), times a scale."""
-
-    component: str
-    remainder: bool = False
-    scale: float = 1.0
-    window: int = MEAN_WINDOW
-    trailing: bool = False
-
-    @property
-    def name(self) -> str:
-        """Its one name (:func:`~dpc_jax.results.acceptance.part_name`): ``rotation_xz − mean ×0.5``."""
-        return part_name(self.component, self.remainder, self.scale)
-
-    def of(self, xi: np.ndarray) -> np.ndarray:
-        """This part of ``xi`` ``[M, 6]`` → ``[M, 6]`` float64."""
-        return part_of(xi, self.component, self.remainder, self.scale, self.window, self.trailing)
-
-    def mean(self, xi: np.ndarray) -> np.ndarray:
-        """The mean ``[6]`` over all the pairs of the component's entries of ``xi``."""
-        return (np.asarray(xi, np.float64) * component_mask(self.component)).mean(axis=0)
-
-
-def moving_mean(x: np.ndarray, window: int = MEAN_WINDOW, trailing: bool = False) -> np.ndarray:
-    """The centred moving mean ``[M, ...]`` of ``x`` ``[M, ...]`` over ``window`` consecutive rows: row k
-    the mean of rows ``[k − ⌊window/2⌋, k + ⌈window/2⌉)``, cut to the rows there are (at the ends and
-    in a sequence shorter than the window, the mean of fewer rows; the whole mean when ``M ≤
-    window/2``). ``trailing``: the mean of rows ``[k − window + 1, k]`` instead, what is known at row
-    k while the rows arrive (the live corrector's)."""
-    x = np.asarray(x, np.float64)
-    if window < 1:
-        raise ValueError(f"window must be >= 1, got {window}")
-    m = x.shape[0]
-    sums = np.concatenate([np.zeros((1, *x.shape[1:])), np.cumsum(x, axis=0)])
-    before = window - 1 if trailing else window // 2
-    start = np.clip(np.arange(m) - before, 0, m)
-    stop = np.clip(np.arange(m) + window - before, 0, m)
-    shape = (m,) + (1,) * (x.ndim - 1)
-    return (sums[stop] - sums[start]) / (stop - start).reshape(shape)
-
-
-def part_of(xi: np.ndarray, component: str, remainder: bool = False, scale: float = 1.0,
-            window: int = MEAN_WINDOW, trailing: bool = False) -> np.ndarray:
-    """``scale · (ξ ⊙ m − [mean])`` → ``[M, 6]`` float64, ``m`` the mask of ``component``.
-
-    ``xi``: ``[M, 6]`` corrections ``[ρ (m), φ (rad)]``; with ``remainder`` the moving mean of
-    ``ξ ⊙ m`` over ``window`` pairs (:func:`moving_mean`, centred or ``trailing``) is removed. The one
-    implementation of "what is applied" (offline and live: the live corrector's pair is the last row
-    of its last ``window`` corrections, with the trailing mean).
-    """
-    xi = np.asarray(xi, np.float64)
-    if xi.ndim != 2 or xi.shape[1] != 6:
-        raise ValueError(f"xi must be [M, 6], got {xi.shape}")
-    masked = xi * component_mask(component)
-    if remainder:
-        masked = masked - moving_mean(masked, window, trailing)
-    return scale * masked
-
-
-def applied_correction(xi: np.ndarray, acceptance: Acceptance) -> np.ndarray:
-    """The correction ``[M, 6]`` that ``acceptance`` applies to the proposal ``xi`` (zeros for none)."""
-    return part_of(xi, acceptance.component, acceptance.remainder, acceptance.scale,
-                   acceptance.window or MEAN_WINDOW, acceptance.trailing)
 
 
 def judge_problem(method: str, run_size: tuple[int, int], judge_size: tuple[int, int],

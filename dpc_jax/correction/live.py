@@ -45,9 +45,11 @@ import numpy as np
 
 from dpc_jax.correction.acceptance import DEFAULT_ALPHA
 from dpc_jax.correction.corrector import default_acceptance_depth
-from dpc_jax.correction.decision import COMPONENTS, JUDGE, MEAN_WINDOW, NETWORK, Decision, Part, judge_problem
+from dpc_jax.correction.decision import COMPONENTS, JUDGE, NETWORK, Decision, judge_problem
 from dpc_jax.correction.inference import TrainedRun, load_run
 from dpc_jax.correction.judge import judge_rule
+from dpc_jax.correction.measure import PADDED, pair_deltas
+from dpc_jax.correction.parts import MEAN_WINDOW, Part
 from dpc_jax.data.calibration import Calibration
 from dpc_jax.data.preparation import as_rgb, prepared_pair, resized_intrinsics
 from dpc_jax.data.sequence_cache import (
@@ -123,19 +125,6 @@ class _Previous:
     pose: np.ndarray  # the corrected one
     full: tuple[np.ndarray, np.ndarray] | None = None  # the pair as given, kept only for a judge
     judged: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None  # prepared at the judge's size
-
-
-# The numbers of parts a pair's measurement is padded to (each compiled once, before the first frame):
-# two for a whole part and its remainder, up to the rotation's axes and their subset, and the judge's scales.
-_PADDED = (2, 4, 8, 16)
-
-
-def _padded(count: int) -> int:
-    """The smallest of :data:`_PADDED` that holds ``count`` parts."""
-    fits = [n for n in _PADDED if n >= count]
-    if not fits:
-        raise ValueError(f"{count} parts to measure on one pair, more than the {_PADDED[-1]} compiled")
-    return fits[0]
 
 
 class LiveCorrector:
@@ -221,22 +210,22 @@ class LiveCorrector:
 
     def _compile(self) -> None:
         """Predict, measure and compose once on a blank pair, for every number of parts a pair can
-        measure (:func:`_padded`), so that no frame compiles anything (the composition's compilation
-        alone took 0.4 s)."""
+        measure (``dpc_jax.correction.measure.PADDED``), so that no frame compiles anything (the
+        composition's compilation alone took 0.4 s)."""
         h, w = self.size
         blank = np.zeros((h, w, 3), np.uint8)
         _, _, disparity = prepared_pair(blank, blank, self.size, self.K, self.calibration.baseline,
                                         match=self.depth == "sgbm")
         frame = _Previous(blank, blank, disparity, np.eye(4), np.eye(4), np.eye(4))
         window = self._window(frame, frame, np.eye(4))
-        for count in _PADDED:
+        for count in PADDED:
             self._correction_of(window, [Part("full")] * count)
         self._compose(frame, np.eye(4), np.zeros(6))
         if self.judge_size is not None:
             h, w = self.calibration.image_size
             full = np.zeros((h, w, 3), np.uint8)
             judged = _Previous(blank, blank, disparity, np.eye(4), np.eye(4), np.eye(4), (full, full))
-            for count in _PADDED:
+            for count in PADDED:
                 self._judged_deltas(judged, judged, np.eye(4), np.zeros((count, 6)))
 
     def _window(self, previous: _Previous, current: _Previous, prior_pose: np.ndarray) -> SequenceCache:
@@ -279,28 +268,9 @@ class LiveCorrector:
                                              self.calibration.baseline, self.disparity_offset)
         window = self._pair_cache((previous.judged, current.judged), self._judge_K,  # type: ignore[arg-type]
                                   np.stack([previous.raw, prior_pose]), {})
-        return self._deltas(window, window.stereo_depth, corrections, judged=True)
+        from dpc_jax.engine.predict import pair_batch
 
-    def _deltas(self, window: SequenceCache, stereo: Any, corrections: np.ndarray, judged: bool = False,
-                batch: Any = None) -> np.ndarray:
-        """Δ ``[K]`` of ``corrections`` ``[K, 6]`` on the window's pair (``batch``: its batch, when made),
-        with ``correct``'s measurement (``effects_step``: the stereo depth and no network, else the
-        network's depth; at the judge, the stereo depth), L(0) included. The corrections are padded to
-        a count of :data:`_PADDED`, which are compiled before the first frame."""
-        import jax.numpy as jnp
-
-        from dpc_jax.engine.predict import effects_step, pair_batch
-
-        batch = pair_batch(window, self._flow and not judged, stereo) if batch is None else batch
-        count = len(corrections)
-        padded = np.zeros((_padded(count), 1, 6))
-        padded[:count, 0] = corrections
-        candidates = jnp.asarray(padded, jnp.float32)
-        if judged or (stereo is not None and not self.run.config.learn_ssim_weight):
-            effects = effects_step(None, None, self._loss)(None, batch, candidates, None)
-        else:
-            effects = self._model.effects_step(self._loss)(self._model.leaves, batch, candidates, None)
-        return np.asarray(effects["delta"], np.float64)[:count, 0]
+        return pair_deltas(self.run, pair_batch(window, False, window.stereo_depth), corrections)
 
     def _correction_of(self, window: SequenceCache, parts: list[Part],
                        seconds: dict[str, float] | None = None) -> tuple[np.ndarray, dict[Part, float]]:
@@ -311,7 +281,7 @@ class LiveCorrector:
         The steps of ``correct`` on one pair, assembled and moved to the device once for both: the
         network's forward pass (``dpc_jax.engine.predict.xi_step``; ``correct``'s prediction also
         computes the training loss and Δ of the whole correction, which this does not need), then Δ of
-        the parts (:meth:`_deltas`).
+        the parts (``dpc_jax.correction.measure.pair_deltas``).
         """
         from dpc_jax.engine.predict import pair_batch, stereo_depth_of
 
@@ -324,7 +294,7 @@ class LiveCorrector:
         xi = np.asarray(self._model.xi_step(self.run.config.method)(self._model.leaves, batch), np.float64)[0]
         predicted = time.perf_counter()
         seconds["network"] = predicted - assembled
-        delta = self._deltas(window, stereo, self._vectors(xi, parts), batch=batch)
+        delta = pair_deltas(self.run, batch, self._vectors(xi, parts), model=self._model)
         seconds["measure"] = time.perf_counter() - predicted
         return xi, dict(zip(parts, delta.tolist(), strict=True))
 

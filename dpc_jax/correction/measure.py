@@ -9,6 +9,8 @@
 * :func:`judge_measurement`: on a *judge*, the same frames prepared at a larger size, with its
   StereoSGBM depth and no network. ξ is a pose, the same at every image size, and the photometric
   loss resolves rotations better with more pixels (``docs/method.md`` §8).
+* :func:`pair_deltas`: the same measurement on the one pair of a batch (the live corrector's, at the
+  network's size or the judge's).
 * :func:`remembered`: a measurement that measures each candidate once into a store kept by the caller,
   so one proposal decided with several options (``docs/method.md`` §8) measures nothing twice.
 """
@@ -25,7 +27,8 @@ import numpy as np
 from dpc_jax.correction.decision import Measure, judge_problem
 from dpc_jax.correction.inference import TrainedRun
 from dpc_jax.data.sequence_cache import SequenceCache, load_cache
-from dpc_jax.engine.predict import measure_effects, stereo_depth_of
+from dpc_jax.engine.predict import PreparedModel, effects_step, measure_effects, stereo_depth_of
+from dpc_jax.nn.batch import Batch
 from dpc_jax.runtime.progress import Progress
 
 
@@ -45,10 +48,44 @@ def measurement(
     The loss is the run's, with its learned SSIM weight if it learned one.
     """
     stereo = stereo_depth_of(cache, depth)
-    model_needed = stereo is None or run.config.learn_ssim_weight
-    model = (run.graphdef, run.state) if model_needed else None
+    model = (run.graphdef, run.state) if _model_needed(run, stereo) else None
     return _bound(cache, run.config.loss_config(), batch_size or run.config.batch_size, stereo, model,
                   run.use_flow, none, progress)
+
+
+def _model_needed(run: TrainedRun, stereo: object) -> bool:
+    """Whether measuring Δ runs the network: for its depth (``stereo`` None: no stereo depth), or with a
+    stereo depth for its learned SSIM weight."""
+    return stereo is None or run.config.learn_ssim_weight
+
+
+# The numbers of corrections one pair is measured for (:func:`pair_deltas` pads to the next): each is a
+# program of its own, compiled once; two for a whole part and its remainder, up to the rotation's axes
+# and their subset, and the judge's scales.
+PADDED = (2, 4, 8, 16)
+
+
+def pair_deltas(run: TrainedRun, batch: Batch, corrections: np.ndarray, *,
+                model: PreparedModel | None = None) -> np.ndarray:
+    """Δ ``[K]`` of ``corrections`` ``[K, 6]`` on the one pair of ``batch`` (``pair_batch``): the
+    measurement of :func:`measurement` (with ``model``, the run prepared, where it needs the network), or
+    of :func:`judge_measurement` without it (the batch's stereo depth and the loss config's SSIM weight).
+    The corrections are padded to a count of :data:`PADDED`."""
+    import jax.numpy as jnp
+
+    count = len(corrections)
+    fits = [n for n in PADDED if n >= count]
+    if not fits:
+        raise ValueError(f"{count} corrections to measure on one pair, more than the {PADDED[-1]} compiled")
+    padded = np.zeros((fits[0], 1, 6))
+    padded[:count, 0] = corrections
+    candidates = jnp.asarray(padded, jnp.float32)
+    config = run.config.loss_config()
+    if model is None or not _model_needed(run, batch.stereo_depth):
+        effects = effects_step(None, None, config)(None, batch, candidates, None)
+    else:
+        effects = model.effects_step(config)(model.leaves, batch, candidates, None)
+    return np.asarray(effects["delta"], np.float64)[:count, 0]
 
 
 def judge_cache(

@@ -66,7 +66,7 @@ class Acceptance:
     ``component``: ``full | rotation | rotation_<axes> | none``;
     ``remainder``: True when the correction's mean was removed (its per-step remainder is applied;
     the mean failed its own test), the mean a moving one over ``window`` pairs
-    (``dpc_jax.correction.decision.moving_mean``), centred or, with ``trailing``, of the pairs up to
+    (``dpc_jax.correction.parts.moving_mean``), centred or, with ``trailing``, of the pairs up to
     each one; ``scale``: the factor a judge chose (1 otherwise);
     ``mean``: ``[6]`` the overall mean of what was removed (``[ρ (m), φ (rad)]``), None when nothing
     was;

@@ -332,7 +332,7 @@ def test_cli_keeps_the_prior_when_no_epoch_beats_it_and_applies_with_force(
 def test_the_decision_follows_the_test_on_the_sequence(setup: dict, run) -> None:
     """Whatever the tests decide, the final trajectory is the prior with what they let through."""
     from dpc_jax.correction.corrector import correct_cache
-    from dpc_jax.correction.decision import applied_correction
+    from dpc_jax.correction.parts import applied_correction
     from dpc_jax.data.sequence_cache import load_cache
 
     cache = load_cache(setup["cache"] / "05")

@@ -15,17 +15,12 @@ import pytest
 from scipy import stats
 
 from dpc_jax.correction.acceptance import paired_test
-from dpc_jax.correction.decision import (
-    JUDGE_SCALES,
-    MEAN_TESTS,
+from dpc_jax.correction.decision import JUDGE_SCALES, MEAN_TESTS, Decision, MeanTest, Outcome, decide
+from dpc_jax.correction.parts import (
     MEAN_WINDOW,
-    Decision,
-    MeanTest,
-    Outcome,
     Part,
     applied_correction,
     component_mask,
-    decide,
     moving_mean,
     part_of,
     rotation_component,

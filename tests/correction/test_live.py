@@ -205,10 +205,10 @@ def test_the_judge_measures_what_corrects_judge_does_and_gates_what_is_applied(w
     measured on the pair at the judge's size, the same Δ as ``correct``'s judge on the same frames
     prepared there; it is applied only once the judge's own tests have accepted: never while the judge
     says it hurts, from the judge's acceptance on while it says it helps."""
-    from dpc_jax.correction.decision import part_of
     from dpc_jax.correction.inference import load_run
     from dpc_jax.correction.live import Calibration, LiveCorrector
     from dpc_jax.correction.measure import judge_measurement
+    from dpc_jax.correction.parts import part_of
     from dpc_jax.data.cache import prepare_sequence
     from dpc_jax.data.poses_io import read_mat
     from dpc_jax.data.sequence_cache import load_cache
