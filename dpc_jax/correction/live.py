@@ -143,7 +143,9 @@ class LiveCorrector:
     ``dpc-jax live`` and ``correct`` use by default (``dpc_jax.correction.judge.judge_rule``: a Stereo
     DPC run smaller than 240×376 is judged at 240×376, no larger than the camera's images), so that the
     API and the command line decide alike. Poses (``first_pose``, each prior) are ``[4, 4]`` or
-    ``[3, 4]`` (a KITTI row), rigid; a returned pose is ``[4, 4]``.
+    ``[3, 4]`` (a KITTI row), rigid; a returned pose is ``[4, 4]``. :attr:`decision` is the one decision
+    (``dpc_jax.correction.decision.Decision``, sequential, trailing mean), its tests by name in
+    ``decision.tests``.
     """
 
     def __init__(

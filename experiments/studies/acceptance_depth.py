@@ -66,7 +66,7 @@ def evaluate_folder(folder: Path) -> list[dict[str, Any]]:
             correction = correct_cache(run, cache, acceptance_depth=depth, held_out=pairs, force=False)
             assert correction.evaluation is not None  # the demo's test sequence has its ground truth
             estimates = correction.evaluation.estimates
-            applied = correction.applied
+            applied = correction.part
             row["decision"][depth] = applied if applied == "none" else (
                 f"{applied}: {_outcome(estimates['prior'], estimates['corrected'])}")
             row["truth"] = _outcome(estimates["prior"], estimates["network"])

@@ -253,7 +253,7 @@ def test_the_results_table_says_when_the_test_was_off() -> None:
     from dpc_jax.pipelines.protocol import applied_label
     from dpc_jax.results.acceptance import Acceptance
 
-    assert applied_label("trained", Acceptance(0.01, decision="full", forced=True)) == (
+    assert applied_label("trained", Acceptance(0.01, component="full", forced=True)) == (
         "trained (full, test off: forced)")
-    assert applied_label("adapted", Acceptance(0.01, decision="rotation")) == "adapted (rotation)"
+    assert applied_label("adapted", Acceptance(0.01, component="rotation")) == "adapted (rotation)"
     assert applied_label("prior", Acceptance(0.01)) == "prior"

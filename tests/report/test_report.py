@@ -112,8 +112,8 @@ def test_acceptance_and_choice_markdown() -> None:
     assert lines[6] == "| adapted − trained | 12 | -1.500e-03 | -2.000e-04 | 75.0 % | 10 | 0.0123 | no |"
     assert choice_markdown({"final": "prior", "reason": "r"}).count("|") == 0
     assert decision_label(acceptance) == "accepted (full 6-DoF)"
-    assert decision_label(Acceptance(0.05, decision="none")) == "rejected"
-    assert decision_label(Acceptance(0.05, decision="rotation", forced=True)) == "not tested (applied)"
+    assert decision_label(Acceptance(0.05, component="none")) == "rejected"
+    assert decision_label(Acceptance(0.05, component="rotation", forced=True)) == "not tested (applied)"
 
 
 def test_correction_report_without_ground_truth(tmp_path: Path) -> None:
