@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from dpc_jax._io import output_problem
+from dpc_jax._io import beside_problem, is_stream, output_problem, overlap_problem, report_stream
 from dpc_jax.cli._common import (
     Formatter,
     file_path_option,
@@ -22,8 +22,14 @@ from dpc_jax.cli._common import (
     path_option,
     restore_problem,
 )
+from dpc_jax.cli._live_options import (
+    add_correction_arguments,
+    beside_files,
+    correction_problem,
+    corrector,
+    run_size_problem,
+)
 from dpc_jax.cli._source import add_source_arguments, open_recording, source_inputs, source_problem
-from dpc_jax.cli.live import add_correction_arguments, correction_problem, run_size_problem
 from dpc_jax.runtime.progress import progress_mode
 
 HELP = ("Classical stereo visual odometry (libviso2-s-like): write the trajectory and a per-frame CSV; "
@@ -137,9 +143,6 @@ def prior_path(out: Path) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    from dpc_jax._io import beside_problem, is_stdout, is_stream, overlap_problem
-    from dpc_jax.cli.live import beside_files
-
     # Nothing is made beside a stream (/dev/stdout, /dev/null, a FIFO): only what was asked is
     # written, the trajectory and a --csv given, never /dev/stdout.csv.
     streamed = is_stream(args.out)
@@ -225,7 +228,7 @@ def run(args: argparse.Namespace) -> int:
 
     # With the trajectory (or the CSV) on standard output, the summary goes to stderr, so that what
     # reads standard output gets the file alone.
-    report = sys.stderr if any(is_stdout(path) for path in (args.out, csv_path) if path is not None) else None
+    report = report_stream(args.out, csv_path)
     rate = len(result.times) / result.times.sum()
     print(
         f"{sequence.name}: {len(result.poses)} frames, {rate:.1f} frames/s (VO only), "
@@ -259,23 +262,21 @@ def _correct_live(
     json_path: Path | None, prior_out: Path | None, prior_json: Path | None, beside: tuple[Path | None, ...],
 ) -> int:
     """``--correct``: the VO and the run's correction frame by frame, each pose written as it is made
-    (``dpc_jax.cli.live``); then, as without it, the VO's summary, the evaluation against ground truth
-    and the ``.json`` records. ``frames``: the source frames ``(START, STOP)`` of ``sequence``."""
+    (``dpc_jax.correction.stream``); then, as without it, the VO's summary, the evaluation against ground
+    truth and the ``.json`` records. ``frames``: the source frames ``(START, STOP)`` of ``sequence``."""
     import dataclasses
     from concurrent.futures import ThreadPoolExecutor
 
     import numpy as np
 
-    from dpc_jax.cli.live import (
+    from dpc_jax.correction.stream import (
         Arrived,
         Corrected,
-        LiveOutputs,
         LiveSummary,
         Pace,
         correct_frames,
-        corrector,
+        live_outputs,
         network_words,
-        report_stream,
         write_summary,
     )
     from dpc_jax.data.calibration import Calibration
@@ -338,8 +339,8 @@ def _correct_live(
 
     report = report_stream(args.out, csv_path, prior_out)
     try:
-        with decoder, LiveOutputs(args.out, prior_out, csv_path, (json_path, prior_json),
-                                  beside) as outputs:
+        with decoder, live_outputs(args.out, prior_out, csv_path, stale=(json_path, prior_json),
+                                   beside=beside) as outputs:
             correct_frames(arrivals(), step, outputs, live_summary)
     except KeyboardInterrupt:
         print(f"dpc-jax vo: interrupted after {live_summary.frames} frames; their poses in {args.out} are "
