@@ -15,7 +15,6 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -50,16 +49,17 @@ from dpc_jax.cli._source import add_source_arguments, open_recording, source_pro
 from dpc_jax.correction.stream import (
     CSV_COLUMNS,
     OWN_TIMES,
-    Arrived,
     Corrected,
     LiveSummary,
     Pace,
     correct_frames,
     live_outputs,
     network_words,
+    prior_arrivals,
     record_arrivals,
     write_summary,
 )
+from dpc_jax.data.calibration import Calibration, NoImageSize, holds_both_pairs, load_calibration
 from dpc_jax.data.records import (
     RECORD_SHAPE,
     Record,
@@ -68,9 +68,6 @@ from dpc_jax.data.records import (
     open_records,
     streamed_records,
 )
-
-if TYPE_CHECKING:
-    from dpc_jax.data.calibration import Calibration
 
 HELP = "Correct an external VO's poses live, each as its stereo pair and pose arrive (records on stdin)."
 # Restart with huge-page malloc (dpc_jax.runtime.hugepages): the network runs about a quarter faster.
@@ -107,13 +104,10 @@ A ROS recording (--bag REC) replaces the records: its stereo frames, its CameraI
 external VO's poses from --prior-topic (docs/formats.md, "Recordings")."""
 
 
-
 def _calibration(args: argparse.Namespace) -> Calibration:
     """The stereo calibration of ``--calib`` (``dpc_jax.data.calibration.load_calibration``: its colour
     pair, or the grey one with ``--grey``) for images of ``--image-size`` (or the file's ``S_rect_XX``);
     ``ValueError`` naming the file, :class:`_UsageError` where it gives no size and none is given."""
-    from dpc_jax.data.calibration import NoImageSize, holds_both_pairs, load_calibration
-
     # A KITTI file with both pairs: the records' images say which pair they are (_pair_problem).
     args.both_pairs = holds_both_pairs(args.calib)
     try:
@@ -127,27 +121,8 @@ def _recorded(args: argparse.Namespace) -> tuple[Calibration, str, np.ndarray]:
     """``--bag``: the recording's calibration (``dpc_jax.sources``: its CameraInfo, or ``--calib``), how
     messages name it and its frames' times ``[N]`` (s since the first stamp); the recording is opened
     here, before JAX starts, and its frames read later."""
-    from dpc_jax.data.calibration import Calibration
-
     sequence = open_recording(args).sequence
     return Calibration.of(sequence), f"--bag {args.bag}", sequence.times
-
-
-def _recording_arrivals(args: argparse.Namespace) -> Iterator[Arrived]:
-    """The frames of ``--bag``, each with its pose of ``--prior-topic``, read in order."""
-    recording = open_recording(args)
-    sequence, prior = recording.sequence, recording.prior
-    assert prior is not None, "_check asks for --prior-topic"
-    for frame in sequence.images.stream(sequence.image_size):
-        def load(frame: Any = frame) -> Loaded:
-            left, right = frame.decode()
-            return left, right, prior[frame.index]
-
-        yield Arrived(frame.index, float(sequence.times[frame.index]), frame.where, load)
-
-
-# One record's frame, loaded: the left and right images (uint8 RGB) and the VO's pose [4, 4].
-Loaded = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
 def _pair_problem(record: Record, where: str, *, args: argparse.Namespace) -> None:
@@ -275,9 +250,14 @@ def run(args: argparse.Namespace) -> int:
                                beside=[path for _, path in beside_files(args.out, args.csv, args.csv_path,
                                                                         args.json_path)])
 
-        arrivals = _recording_arrivals(args) if args.bag is not None else record_arrivals(records, name, size)
+        if args.bag is not None:
+            recording = open_recording(args)
+            assert recording.prior is not None, "_check asks for --prior-topic"
+            arrivals = prior_arrivals(recording.sequence, recording.prior)
+        else:
+            arrivals = record_arrivals(records, name, size)
 
-        def step(loaded: Loaded) -> Corrected:
+        def step(loaded: tuple[np.ndarray, np.ndarray, np.ndarray]) -> Corrected:
             return Corrected(live(loaded[0], loaded[1], loaded[2]))
 
         try:

@@ -1,8 +1,10 @@
 """The live correction of a stream of frames: each frame's corrected pose written the moment it is
 computed (``dpc-jax live`` and ``dpc-jax vo --correct``; docs/cli.md "Live correction").
 
-:func:`correct_frames` takes the frames one at a time from their source (:class:`Arrived`), corrects
-each with a step (a :class:`~dpc_jax.correction.live.LiveCorrector`, with or without our VO before it:
+:func:`correct_frames` takes the frames one at a time from their source (:class:`Arrived`: an external
+VO's records, :func:`record_arrivals`; a recording with its prior, :func:`prior_arrivals`; a sequence
+our VO runs on, :func:`sequence_arrivals`), corrects each with a step (a
+:class:`~dpc_jax.correction.live.LiveCorrector`, or our VO before it, :class:`VOStep`: a
 :class:`Corrected`) and writes it through :func:`live_outputs`, one line per output and frame, a line
 once written never changed:
 
@@ -22,6 +24,7 @@ gathers what the commands report at the end (states, latency percentiles, missed
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import functools
 import json
@@ -30,6 +33,7 @@ import time
 from array import array
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -42,6 +46,8 @@ from dpc_jax.data.records import Record, RecordError, record_image
 
 if TYPE_CHECKING:
     from dpc_jax.correction.live import LiveCorrector, LiveFrame
+    from dpc_jax.data.kitti import StereoSequence
+    from dpc_jax.vo import StereoVO, VOResult
 
 # The per-frame CSV. inliers, vo_status, disparity_offset_px and vo_ms are our VO's (empty for an
 # external VO, and inliers and status for frame 0, which has no pair); network_ms and measure_ms are
@@ -202,6 +208,83 @@ def record_arrivals(records: Iterable[Record], name: str, size: tuple[int, int])
                     record_image(record.right, size, where, "right"), record.pose)
 
         yield Arrived(k, record.time_s, where, load)
+
+
+def prior_arrivals(sequence: StereoSequence, prior: np.ndarray) -> Iterator[Arrived]:
+    """The frames of an opened ``sequence`` (a recording's) as they come, numbered by their index in it;
+    each loads its colour pair and its pose of an external VO's ``prior`` ``[N, 4, 4]``: ``(left, right,
+    pose [4, 4])``, as :func:`record_arrivals`."""
+    for frame in sequence.images.stream(sequence.image_size):
+        def load(frame: Any = frame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            left, right = frame.decode()
+            return left, right, prior[frame.index]
+
+        yield Arrived(frame.index, float(sequence.times[frame.index]), frame.where, load)
+
+
+def sequence_arrivals(sequence: StereoSequence, first: int, decoder: Executor) -> Iterator[Arrived]:
+    """The frames of an opened ``sequence`` whose frame 0 is the source's frame ``first``, as they come;
+    each loads its four images, decoded a pair at a time on ``decoder``: the colour pair (the network's)
+    and the grey one, decoded as ``dpc-jax vo`` decodes it, so that :class:`VOStep`'s prior is its
+    trajectory."""
+    for frame in sequence.images.stream(sequence.image_size):
+        def load(frame: Any = frame) -> list[np.ndarray]:
+            jobs = [decoder.submit(frame.decode, grey) for grey in (False, True)]
+            return [image for job in jobs for image in job.result()]
+
+        k = frame.index
+        yield Arrived(first + k, float(sequence.times[k]), f"{sequence.name} frame {first + k}", load)
+
+
+class VOStep:
+    """The step of a stream whose prior is our VO (``dpc-jax vo --correct``): per frame, the VO's pose
+    from the grey pair, then the ``live`` corrector's from the colour pair and that pose (the images of
+    :func:`sequence_arrivals`); the prior starts at ``start`` ``[4, 4]``. Keeps per pair what the VO's own
+    summary needs (:meth:`result`, as ``dpc_jax.vo.run_vo`` gives it) and per frame the corrected poses
+    (:attr:`corrected`)."""
+
+    def __init__(self, vo: StereoVO, live: LiveCorrector, start: np.ndarray) -> None:
+        self.vo, self.live, self.start = vo, live, start
+        self.kept: dict[str, list[Any]] = {k: [] for k in ("relative", "inliers", "status", "times", "offset",
+                                                           "prior", "corrected")}
+        self.first_s = 0.0  # the VO's time on frame 0, which has no pair
+
+    def __call__(self, images: list[np.ndarray]) -> Corrected:
+        kept, t = self.kept, time.perf_counter()
+        estimate = self.vo.process(images[2], images[3])
+        vo_s = time.perf_counter() - t
+        if estimate is None:
+            pose, columns = self.start, None
+            self.first_s = vo_s  # counted with the first pair, as `dpc-jax vo` does
+        else:
+            pose = kept["prior"][-1] @ np.linalg.inv(estimate.relative)
+            status = estimate.status.name.lower()
+            columns = (estimate.inliers, status, self.vo.disparity_offset)
+            for key, value in (("relative", estimate.relative), ("inliers", estimate.inliers),
+                               ("status", int(estimate.status)), ("offset", self.vo.disparity_offset),
+                               ("times", vo_s + (0.0 if kept["times"] else self.first_s))):
+                kept[key].append(value)
+        # The prior written is the VO's own chain of poses, as `dpc-jax vo` composes it: the corrector's
+        # prior, recomposed from its first pose, differs from it in the last digits (1e-13).
+        frame = dataclasses.replace(self.live(images[0], images[1], pose), prior=pose)
+        kept["prior"].append(pose)
+        kept["corrected"].append(frame.pose)
+        return Corrected(frame, columns, vo_s)
+
+    def result(self) -> VOResult:
+        """The VO's result over the frames stepped (its poses the prior's)."""
+        from dpc_jax.vo import VOResult
+
+        kept = self.kept
+        return VOResult(
+            poses=np.stack(kept["prior"]), relative=np.stack(kept["relative"]),
+            inliers=np.asarray(kept["inliers"], np.int64), status=np.asarray(kept["status"], np.int8),
+            times=np.asarray(kept["times"]), disparity_offset=np.asarray(kept["offset"]))
+
+    @property
+    def corrected(self) -> np.ndarray:
+        """``[N, 4, 4]`` the corrected poses of the frames stepped."""
+        return np.stack(self.kept["corrected"])
 
 
 def correct_frames(
