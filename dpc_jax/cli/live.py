@@ -49,6 +49,7 @@ from dpc_jax.cli._source import add_source_arguments, open_recording, source_pro
 from dpc_jax.correction.stream import (
     CSV_COLUMNS,
     OWN_TIMES,
+    Arrived,
     Corrected,
     LiveSummary,
     Pace,
@@ -123,6 +124,18 @@ def _recorded(args: argparse.Namespace) -> tuple[Calibration, str, np.ndarray]:
     here, before JAX starts, and its frames read later."""
     sequence = open_recording(args).sequence
     return Calibration.of(sequence), f"--bag {args.bag}", sequence.times
+
+
+def _arrivals(args: argparse.Namespace, records: Iterator[Record], name: str,
+              size: tuple[int, int]) -> Iterator[Arrived]:
+    """The frames to correct, read as they are corrected: the records', or those of ``--bag`` (opened
+    again) with their poses of ``--prior-topic``."""
+    if args.bag is None:
+        yield from record_arrivals(records, name, size)
+        return
+    recording = open_recording(args)
+    assert recording.prior is not None, "_check asks for --prior-topic"
+    yield from prior_arrivals(recording.sequence, recording.prior)
 
 
 def _pair_problem(record: Record, where: str, *, args: argparse.Namespace) -> None:
@@ -250,19 +263,12 @@ def run(args: argparse.Namespace) -> int:
                                beside=[path for _, path in beside_files(args.out, args.csv, args.csv_path,
                                                                         args.json_path)])
 
-        if args.bag is not None:
-            recording = open_recording(args)
-            assert recording.prior is not None, "_check asks for --prior-topic"
-            arrivals = prior_arrivals(recording.sequence, recording.prior)
-        else:
-            arrivals = record_arrivals(records, name, size)
-
         def step(loaded: tuple[np.ndarray, np.ndarray, np.ndarray]) -> Corrected:
             return Corrected(live(loaded[0], loaded[1], loaded[2]))
 
         try:
             with outputs:
-                correct_frames(arrivals, step, outputs, summary)
+                correct_frames(_arrivals(args, records, name, size), step, outputs, summary)
         except KeyboardInterrupt:
             print(f"dpc-jax live: interrupted after {summary.frames} frames; their poses in {args.out} are "
                   "whole lines", file=sys.stderr)
