@@ -35,13 +35,7 @@ from dpc_jax.cli._common import (
 )
 from dpc_jax.cli._source import add_source_arguments, open_recording, source_inputs, source_problem
 from dpc_jax.correction.decision import DEFAULT_MEAN_TEST, MEAN_TESTS
-from dpc_jax.correction.judge import (
-    JUDGE_SIZE,
-    judge_rule,
-    judge_size_problem,
-    smaller_than,
-    smaller_than_judge,
-)
+from dpc_jax.correction.judge import JUDGE_SIZE, Judge, JudgeRequest, judge_policy
 from dpc_jax.data.holdout import MIN_EVERY, adaptable_pairs, held_out_pairs
 from dpc_jax.data.poses_io import frames_path
 from dpc_jax.report.correction_report import applied_words
@@ -58,6 +52,7 @@ if TYPE_CHECKING:
     from dpc_jax.correction.inference import TrainedRun
     from dpc_jax.data.kitti import StereoSequence
     from dpc_jax.data.sequence_cache import SequenceCache
+    from dpc_jax.training.train_config import TrainConfig
 
 HELP = "Correct a VO trajectory with a trained network (T* = Exp(xi_corr) T_vo); evaluate it against GT."
 # Restart with huge-page malloc (dpc_jax.runtime.hugepages): the network runs about a quarter faster.
@@ -265,7 +260,7 @@ def _check_arguments(args: argparse.Namespace) -> str | None:
     if problem is not None:
         return problem
     if args.cache is not None:
-        problem = _cache_folders_problem(args)
+        problem = _cache_folders_problem(args, judged=args.judge_size is not None)
         if problem is not None:
             return problem
     if not (args.checkpoint / "checkpoints" / "config.json").is_file():
@@ -318,9 +313,9 @@ def _prior(args: argparse.Namespace) -> str | np.ndarray:
     return prior
 
 
-def _cache_folders_problem(args: argparse.Namespace) -> str | None:
+def _cache_folders_problem(args: argparse.Namespace, *, judged: bool) -> str | None:
     """Why a folder that preparing the raw inputs into ``--cache`` would replace (``CACHE/NAME``, and
-    ``CACHE/NAME_judge`` with ``--judge-size``, given or the default) is not a cache, or None. The
+    ``CACHE/NAME_judge`` when ``judged``) is not a cache, or None. The
     sequence is opened for its name (its files listed, no JAX); a sequence that cannot be opened is
     reported here."""
     from dpc_jax.data.sequence_cache import MANIFEST
@@ -329,62 +324,13 @@ def _cache_folders_problem(args: argparse.Namespace) -> str | None:
         name = _open_sequence(args).name
     except (OSError, ValueError, KeyError) as error:
         return str(error)
-    names = [name] + ([f"{name}_judge"] if args.judge_size is not None else [])
+    names = [name] + ([f"{name}_judge"] if judged else [])
     for folder in names:
         problem = foreign_folder_problem(args.cache / folder, f"--cache {args.cache}", marker=MANIFEST,
                                          made_by="a cache of `dpc-jax prepare`")
         if problem is not None:
             return problem
     return None
-
-
-def default_judge_size(
-    args: argparse.Namespace, method: str, size: tuple[int, int], source: tuple[int, int]
-) -> tuple[int, int] | None:
-    """The size raw inputs are judged at when ``--judge-size`` is not given: :data:`JUDGE_SIZE` for a
-    ``stereo_dpc`` run of image ``size`` smaller than it (no larger in either dimension), but no larger
-    than the ``source`` images (a judge upsampled from smaller images sees nothing they do not), and
-    only when that is still larger than the run's; unless ``--no-judge`` or ``--force`` (a forced
-    correction is not judged); None otherwise, and with ``--data`` (a cache has no larger frames to
-    judge at)."""
-    if args.data is not None or args.judge_size is not None or args.no_judge or args.force:
-        return None
-    return judge_rule(method, size, source)
-
-
-def _take_default_judge(args: argparse.Namespace) -> str | None:
-    """With raw inputs, check ``--judge-size`` against the run and the source images (a judge is never
-    smaller than the run's images nor larger than the source's); with no judge option, set
-    ``args.judge_size`` to :func:`default_judge_size` of the stored run (read without JAX) and mark it
-    ``args.default_judge``; then, with ``--cache``, why its ``NAME_judge`` folder cannot be replaced,
-    or None."""
-    from dpc_jax import config as config_lib
-    from dpc_jax.training.train_config import TrainConfig
-
-    args.default_judge = False
-    args.judge_limited = None
-    if args.data is not None:
-        return None
-    config = config_lib.load_file(args.checkpoint / "checkpoints" / "config.json", TrainConfig)
-    try:
-        height, width = _open_sequence(args).image_size
-    except (OSError, ValueError, KeyError) as error:
-        return str(error)
-    source = (int(height), int(width))
-    run_size = (int(config.resolved_image_size[0]), int(config.resolved_image_size[1]))
-    if args.judge_size is not None:
-        problem = judge_size_problem(args.judge_size, run_size, source)
-        if problem is None and args.cache is not None:
-            problem = _cache_folders_problem(args)
-        return problem
-    size = default_judge_size(args, config.method, run_size, source)
-    if size is None:
-        if (config.method == "stereo_dpc" and not (args.no_judge or args.force)
-                and smaller_than_judge(run_size) and not smaller_than(run_size, source)):
-            args.judge_limited = source
-        return None
-    args.judge_size, args.default_judge = size, True
-    return _cache_folders_problem(args) if args.cache is not None else None
 
 
 def _holdout_problem(args: argparse.Namespace, n_frames: int, where: Path | str) -> str | None:
@@ -405,32 +351,49 @@ def _holdout_problem(args: argparse.Namespace, n_frames: int, where: Path | str)
             f"least one kept out and one to adapt on{hint}")
 
 
-def _run_problem(args: argparse.Namespace, checked: SequenceCache | None) -> str | None:
+def _run_problem(args: argparse.Namespace, checked: SequenceCache | None) -> tuple[str | None, Judge]:
     """The first option or input that does not fit the run's stored config (its method, image size and
-    flow), or None; read without JAX, so such a mistake costs no JAX start-up. ``checked``: the
-    ``--data`` cache, loaded (None: raw inputs, prepared later at the run's size)."""
-    import numpy as np
-
+    flow), or None, and the judge (:func:`~dpc_jax.correction.judge.judge_policy`); read without JAX, so
+    such a mistake costs no JAX start-up. ``checked``: the ``--data`` cache, loaded (None: raw inputs,
+    prepared later at the run's size)."""
     from dpc_jax import config as config_lib
-    from dpc_jax.data.priors import prior_for_cache
-    from dpc_jax.data.sequence_cache import load_cache
     from dpc_jax.training.train_config import TrainConfig
 
     stored = args.checkpoint / "checkpoints" / "config.json"
     try:
         config = config_lib.load_file(stored, TrainConfig)
     except ValueError as error:
-        return f"--checkpoint {args.checkpoint}: {error}"
-    method = f"the run {args.checkpoint} is {config.method}, which has no stereo pair"
-    if config.method != "stereo_dpc":
-        if args.acceptance_depth == "sgbm":
-            return f"--acceptance-depth sgbm: StereoSGBM depth needs a stereo run (stereo_dpc); {method}"
-        judge = (f"--judge {args.judge}" if args.judge is not None
-                 else f"--judge-size {args.judge_size[0]}x{args.judge_size[1]}" if args.judge_size else None)
-        if judge is not None:
-            return f"{judge}: a judge measures Δ with stereo depth (stereo_dpc); {method}"
-    if checked is None:
-        return None
+        return f"--checkpoint {args.checkpoint}: {error}", Judge()
+    if config.method != "stereo_dpc" and args.acceptance_depth == "sgbm":
+        return (f"--acceptance-depth sgbm: StereoSGBM depth needs a stereo run (stereo_dpc); the run "
+                f"{args.checkpoint} is {config.method}, which has no stereo pair"), Judge()
+    try:
+        judge = _judge(args, config)
+    except (OSError, ValueError, KeyError) as error:
+        return str(error), Judge()
+    if judge.problem is not None or checked is None:
+        return judge.problem, judge
+    return _cache_problem(args, config, checked), judge
+
+
+def _judge(args: argparse.Namespace, config: TrainConfig) -> Judge:
+    """The judge of the options for the run's ``config``: raw inputs are judged on the source images
+    (the sequence opened for their size, no JAX), a ``--data`` cache only by ``--judge CACHE``."""
+    source = None if args.data is not None else _open_sequence(args).image_size
+    request = JudgeRequest(size=args.judge_size, cache=args.judge, off=args.no_judge, force=args.force)
+    run_size = (int(config.resolved_image_size[0]), int(config.resolved_image_size[1]))
+    return judge_policy(config.method, run_size, None if source is None else (int(source[0]), int(source[1])),
+                        request, f"the run {args.checkpoint}")
+
+
+def _cache_problem(args: argparse.Namespace, config: TrainConfig, checked: SequenceCache) -> str | None:
+    """Why the ``--data`` cache (``checked``), its ``--judge`` or the ``--prior`` replacing its own do not
+    fit the run's ``config`` or ``--format``, or None."""
+    import numpy as np
+
+    from dpc_jax.data.priors import prior_for_cache
+    from dpc_jax.data.sequence_cache import load_cache
+
     h, w = config.resolved_image_size
     if checked.image_size != (h, w):
         return (f"--data {args.data}: images are {checked.image_size[0]}x{checked.image_size[1]}, but the "
@@ -486,11 +449,11 @@ def run(args: argparse.Namespace) -> int:
         checked = load_cache(args.data, verify=args.verify) if args.data is not None else None
     except (OSError, ValueError) as error:
         return _error(str(error))
-    problem = _run_problem(args, checked)
+    problem, judge = _run_problem(args, checked)
     if problem is None and checked is not None:
         problem = _holdout_problem(args, len(checked), checked.path)
-    if problem is None:
-        problem = _take_default_judge(args)
+    if problem is None and judge.size is not None and args.cache is not None:
+        problem = _cache_folders_problem(args, judged=True)
     if problem is not None:
         return _error(problem)
     import_jax()
@@ -506,26 +469,27 @@ def run(args: argparse.Namespace) -> int:
                 run_ = load_run(args.checkpoint, args.select)
             except CheckpointError as error:
                 return _error(restore_problem(error.folder, error.__cause__ or error))
-            cache, prior, judge = _sequence(args, run_, checked, stack)
-            correction, adaptation, adapted = _correct(args, run_, cache, prior, judge)
+            cache, prior, judge_cache = _sequence(args, run_, checked, judge, stack)
+            correction, adaptation, adapted = _correct(args, run_, cache, prior, judge_cache)
         except (OSError, ValueError, KeyError) as error:
             return _error(str(error))
     written = _write_outputs(args, correction, adaptation, adapted)
     # With the trajectory on standard output, the summary goes to stderr, so that what reads standard
     # output gets the trajectory alone.
     with contextlib.redirect_stdout(sys.stderr) if is_stdout(args.out) else contextlib.nullcontext():
-        _print_summary(args, run_, correction, adaptation, written)
+        _print_summary(args, run_, correction, adaptation, written, judge)
     return 0
 
 
 def _sequence(
-    args: argparse.Namespace, run_: TrainedRun, checked: SequenceCache | None, stack: contextlib.ExitStack
+    args: argparse.Namespace, run_: TrainedRun, checked: SequenceCache | None, judge: Judge,
+    stack: contextlib.ExitStack,
 ) -> tuple[SequenceCache | Path, str | None, Path | None]:
     """The sequence to correct, the prior to correct instead of its own (None: the cache's) and the
     judge's cache (None: none).
 
     ``checked``: the ``--data`` cache, loaded; else the raw inputs are prepared at the run's image size
-    (and at ``--judge-size``) into ``--cache`` or a temporary folder that ``stack`` removes, with
+    (and at the ``judge``'s size) into ``--cache`` or a temporary folder that ``stack`` removes, with
     ``--prior`` as the cache's prior.
     """
     if checked is not None:
@@ -544,16 +508,16 @@ def _sequence(
               "progress": progress_mode(args.no_progress)}
     prior = _prior(args)
     cache = prepare_sequence(sequence, prior, cache_root, size=run_.image_size, flow=run_.use_flow, **common)
-    judge = None
-    if args.judge_size is not None:
-        judge = prepare_sequence(sequence, prior, cache_root, size=args.judge_size,
-                                 name=f"{sequence.name}_judge", **common)
+    judged = None
+    if judge.size is not None:
+        judged = prepare_sequence(sequence, prior, cache_root, size=judge.size, name=f"{sequence.name}_judge",
+                                  **common)
     from dpc_jax.data.sequence_cache import load_cache
 
     problem = _holdout_problem(args, len(load_cache(cache)), sequence.name)
     if problem is not None:
         raise ValueError(problem)
-    return cache, None, judge
+    return cache, None, judged
 
 
 def _correct(
@@ -640,7 +604,7 @@ def _write_recording(args: argparse.Namespace, outputs: OutputSet, kind: str, co
 
 def _print_summary(
     args: argparse.Namespace, run_: TrainedRun, correction: Correction, adaptation: Adaptation | None,
-    written: list[Path],
+    written: list[Path], judge: Judge,
 ) -> None:
     """Print what was applied and written, the metrics against ground truth and the adaptation's outcome."""
     from dpc_jax.report.evaluation_report import format_table
@@ -669,29 +633,7 @@ def _print_summary(
         print(f"adapted: {args.adapt} steps in {adaptation.seconds / 60:.1f} min on {correction.name}'s own "
               f"pairs, {adaptation.held_out.size} kept out for the test -> {adapted_path(args.out)}")
         print(f"final: {correction.choice['final']} ({correction.choice['reason']})")
-    _print_judge(args, run_)
+    if judge.note is not None:
+        print(judge.note)
     if args.report is not None:
         print(f"report: {args.report / 'report.md'}")
-
-
-def _print_judge(args: argparse.Namespace, run_: TrainedRun) -> None:
-    """One line on where the acceptance test was measured when that is not the obvious: at the default
-    judge's size, or (a stereo run smaller than :data:`JUDGE_SIZE` given a ``--data`` cache and no
-    ``--judge``) at the cache's size only, with how to get a judge."""
-    h, w = run_.image_size
-    if getattr(args, "default_judge", False):
-        jh, jw = args.judge_size
-        smaller = "" if (jh, jw) == JUDGE_SIZE else (f", the largest the {jh}x{jw} source images allow "
-                                                     f"of {JUDGE_SIZE[0]}x{JUDGE_SIZE[1]}")
-        print(f"acceptance test: measured at {jh}x{jw} (the default judge of a stereo run on raw inputs"
-              f"{smaller}; --no-judge: at the run's {h}x{w} only)")
-    elif getattr(args, "judge_limited", None) is not None:
-        sh, sw = args.judge_limited
-        print(f"note: the acceptance test was measured at the run's {h}x{w} only: the source images "
-              f"({sh}x{sw}) are no larger, and a judge is not upsampled")
-    elif (args.data is not None and args.judge is None and not args.no_judge and not args.force
-          and run_.config.method == "stereo_dpc" and smaller_than_judge((h, w))):
-        print(f"note: the acceptance test was measured at the cache's {h}x{w} only (a cache has no "
-              f"full-size images to judge at); to judge at {JUDGE_SIZE[0]}x{JUDGE_SIZE[1]}, prepare the same "
-              f"frames with `dpc-jax prepare ... --size {JUDGE_SIZE[0]}x{JUDGE_SIZE[1]}` and pass that cache "
-              "as --judge CACHE (or correct from the raw inputs, judged there by default)")
