@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 
 from dpc_jax.cli._common import image_size, input_problem
 from dpc_jax.correction.acceptance import DEFAULT_ALPHA
-from dpc_jax.correction.judge import JUDGE_SIZE
+from dpc_jax.correction.judge import JUDGE_SIZE, Judge, JudgeRequest, judge_policy
 from dpc_jax.correction.stream import MIN_RATE_HZ, OWN_TIMES
 from dpc_jax.training.train_config import SELECTIONS
 
@@ -80,42 +80,35 @@ def correction_problem(args: argparse.Namespace, run_option: str, run: Path | No
     return problem
 
 
-def run_size_problem(args: argparse.Namespace, run: Path, run_option: str, images: tuple[int, int],
-                     where: str) -> str | None:
+def run_problem(args: argparse.Namespace, run: Path, run_option: str, images: tuple[int, int],
+                where: str) -> tuple[str | None, Judge]:
     """Why the run's network cannot take the ``images`` (``(H, W)`` px) of ``where``, or None: its
     stored config unreadable, or its input larger than the images in either dimension (a frame is
-    resized to the network's size as ``prepare`` does, which never upsamples), or ``--judge-size`` not
-    between the two. Sets ``args.judge_size`` to the judge used (the default of ``correct``'s rule
-    when none is given; None with ``--no-judge`` or ``--force``). Read without JAX."""
+    resized to the network's size as ``prepare`` does, which never upsamples), or the judge asked of it
+    refused; and the judge of the options (``dpc_jax.correction.judge.judge_policy``, as ``correct``'s).
+    Read without JAX."""
     from dpc_jax import config as config_lib
-    from dpc_jax.correction.judge import judge_rule, judge_size_problem
     from dpc_jax.training.train_config import TrainConfig
 
     try:
         config = config_lib.load_file(run / "checkpoints" / "config.json", TrainConfig)
     except (OSError, ValueError) as error:
-        return f"{run_option} {run}: {error}"
+        return f"{run_option} {run}: {error}", Judge()
     h, w = (int(v) for v in config.resolved_image_size)
     if h > images[0] or w > images[1]:
         size = f"{images[0]}x{images[1]}"
         return (f"{run_option} {run}: the network takes {h}x{w} images, larger than the {size} images of "
-                f"{where}; a frame is never upsampled: use a run trained at {size} or smaller")
-    if args.no_judge or args.force:
-        args.judge_size = None
-    elif args.judge_size is None:
-        args.judge_size = judge_rule(config.method, (h, w), images)
-    elif config.method != "stereo_dpc":
-        return (f"--judge-size: a judge measures Δ with stereo depth; {run_option} {run} is a "
-                f"{config.method} run")
-    else:
-        return judge_size_problem(args.judge_size, (h, w), images)
-    return None
+                f"{where}; a frame is never upsampled: use a run trained at {size} or smaller"), Judge()
+    request = JudgeRequest(size=args.judge_size, off=args.no_judge, force=args.force)
+    judge = judge_policy(config.method, (h, w), images, request, f"{run_option} {run}")
+    return judge.problem, judge
 
 
-def corrector(args: argparse.Namespace, run: Path, calibration: Calibration, *,
+def corrector(args: argparse.Namespace, run: Path, calibration: Calibration, judge: Judge, *,
               disparity_offset: float = 0.0) -> LiveCorrector:
-    """The live corrector of the options (JAX imported; the network restored and compiled), its first
-    pose the prior's first; the corrector's own defaults for the options not given.
+    """The live corrector of the options and the ``judge`` (:func:`run_problem`; JAX imported, the network
+    restored and compiled), its first pose the prior's first; the corrector's own defaults for the
+    options not given.
     ``CheckpointError`` for a run that cannot be restored."""
     import logging
 
@@ -126,7 +119,7 @@ def corrector(args: argparse.Namespace, run: Path, calibration: Calibration, *,
     given = {name: value for name, value in (("select", args.select), ("alpha", args.alpha))
              if value is not None}
     return LiveCorrector(run, calibration, rotation_only=args.rotation_only, mean_test=not args.no_mean_test,
-                         force=args.force, disparity_offset=disparity_offset, judge_size=args.judge_size,
+                         force=args.force, disparity_offset=disparity_offset, judge_size=judge.size,
                          **given)
 
 

@@ -43,7 +43,7 @@ from dpc_jax.cli._live_options import (
     beside_files,
     correction_problem,
     corrector,
-    run_size_problem,
+    run_problem,
 )
 from dpc_jax.cli._source import add_source_arguments, open_recording, source_problem
 from dpc_jax.correction.stream import (
@@ -231,8 +231,8 @@ def run(args: argparse.Namespace) -> int:
     except (OSError, ValueError) as content:
         return error(str(content), 1)
     size = calibration.image_size
-    problem = (run_size_problem(args, args.checkpoint, "--checkpoint", size, where)
-               or offset_problem(args.disparity_offset, size[1], where))
+    problem, judge = run_problem(args, args.checkpoint, "--checkpoint", size, where)
+    problem = problem or offset_problem(args.disparity_offset, size[1], where)
     if problem is not None:
         return error(problem, 2)
     stream, name, regular = (None, str(args.bag), True) if args.bag is not None else open_records(
@@ -254,7 +254,8 @@ def run(args: argparse.Namespace) -> int:
 
         began = time.perf_counter()
         try:
-            live = corrector(args, args.checkpoint, calibration, disparity_offset=args.disparity_offset)
+            live = corrector(args, args.checkpoint, calibration, judge,
+                             disparity_offset=args.disparity_offset)
         except CheckpointError as failed:
             return error(restore_problem(failed.folder, failed.__cause__ or failed), 1)
         summary = LiveSummary(Pace.of(args.realtime, times), time.perf_counter() - began)

@@ -39,9 +39,10 @@ from dpc_jax.cli._live_options import (
     beside_files,
     correction_problem,
     corrector,
-    run_size_problem,
+    run_problem,
 )
 from dpc_jax.cli._source import add_source_arguments, open_recording, source_inputs, source_problem
+from dpc_jax.correction.judge import Judge
 from dpc_jax.correction.stream import (
     LiveSummary,
     Pace,
@@ -220,11 +221,11 @@ def run(args: argparse.Namespace) -> int:
 
     config = VOConfig(disparity_offset=args.disparity_offset, estimate_offset=not args.fixed_offset)
     if args.correct is not None:
-        problem = run_size_problem(args, args.correct, "--correct", sequence.image_size, sequence.name)
+        problem, judge = run_problem(args, args.correct, "--correct", sequence.image_size, sequence.name)
         if problem is not None:
             print(f"dpc-jax vo: error: {problem}", file=sys.stderr)
             return 2
-        return _correct_live(args, sequence, config, (first, stop), csv_path, json_path, prior_out,
+        return _correct_live(args, sequence, config, judge, (first, stop), csv_path, json_path, prior_out,
                              prior_json, tuple(path for _, path in beside))
     first_pose = sequence.poses[0] if args.start == "gt" else None
     try:
@@ -266,12 +267,14 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _correct_live(
-    args: argparse.Namespace, sequence: Any, config: Any, frames: tuple[int, int], csv_path: Path | None,
-    json_path: Path | None, prior_out: Path | None, prior_json: Path | None, beside: tuple[Path | None, ...],
+    args: argparse.Namespace, sequence: Any, config: Any, judge: Judge, frames: tuple[int, int],
+    csv_path: Path | None, json_path: Path | None, prior_out: Path | None, prior_json: Path | None,
+    beside: tuple[Path | None, ...],
 ) -> int:
     """``--correct``: the VO and the run's correction frame by frame, each pose written as it is made
     (``dpc_jax.correction.stream``); then, as without it, the VO's summary, the evaluation against ground
-    truth and the ``.json`` records. ``frames``: the source frames ``(START, STOP)`` of ``sequence``."""
+    truth and the ``.json`` records. ``judge``: :func:`~dpc_jax.cli._live_options.run_problem`'s;
+    ``frames``: the source frames ``(START, STOP)`` of ``sequence``."""
     from concurrent.futures import ThreadPoolExecutor
 
     from dpc_jax.data.calibration import Calibration
@@ -285,7 +288,7 @@ def _correct_live(
     first, stop = frames
     began = time.perf_counter()
     try:
-        live = corrector(args, args.correct, Calibration.of(sequence))
+        live = corrector(args, args.correct, Calibration.of(sequence), judge)
     except CheckpointError as failed:
         problem = restore_problem(failed.folder, failed.__cause__ or failed)
         print(f"dpc-jax vo: error: {problem}", file=sys.stderr)
