@@ -8,11 +8,11 @@ import csv
 import time
 from collections.abc import Callable
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from dpc_jax.correction.live import LiveFrame
 from dpc_jax.correction.stream import (
     CSV_COLUMNS,
     Arrived,
@@ -57,8 +57,10 @@ def _frames(n: int, fail_at: int | None = None, slow_at: int | None = None) -> l
 def _step(poses: np.ndarray, priors: np.ndarray) -> Callable[[int], Corrected]:
     def step(k: int) -> Corrected:
         state, events = ("start", ()) if k == 0 else ("prior", ("rotation accepted",) if k == 2 else ())
-        frame = LiveFrame(k, None, poses[k], priors[k], None, np.zeros(6), state, events, {"network": 1e-3})
-        return Corrected(frame)
+        # What the loop reads of a LiveFrame, without a network.
+        frame = SimpleNamespace(pose=poses[k], prior=priors[k], state=state, events=events,
+                                seconds={"network": 1e-3})
+        return Corrected(frame)  # type: ignore[arg-type]
 
     return step
 
