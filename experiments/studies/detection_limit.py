@@ -1,7 +1,8 @@
 """How small an error self-supervision can find: the detection limit by bias, pairs, steps and resolution.
 
-What runs and why: ``configs/detection_limit.py``; the grid, the cells and the tables:
-``dpc_jax.experiments.detection``. Per cell (bias scale s, training pairs N, the steps it trained for, input
+What runs and why: ``configs/detection_limit.py``; the grid and the cells: ``dpc_jax.experiments.detection``;
+what they answer, the rule among the options and the tables: ``detection_answer``, ``detection_rule`` and
+``detection_page`` beside it. Per cell (bias scale s, training pairs N, the steps it trained for, input
 resolution, world) the table gives the fraction of the planted bias removed on the held-out test sequences,
 prior → final, from the mean per-axis rotation error per step and from the rotational segment error; the
 same for the network's proposal applied whatever its tests said and for the earlier decision (the mean not
@@ -27,6 +28,9 @@ from pathlib import Path
 
 from dpc_jax._io import atomic_write
 from dpc_jax.experiments import detection as D
+from dpc_jax.experiments.detection_answer import cell_mean
+from dpc_jax.experiments.detection_page import CSV_COLUMNS, figure, long_rows, markdown
+from dpc_jax.experiments.detection_rule import CHECKING_WORLD, CHOOSING_WORLDS, OPTION_COLUMNS
 from dpc_jax.experiments.records import Records
 from dpc_jax.experiments.script import (
     DATA,
@@ -122,9 +126,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         measured = D.run_cell(study, workdir, roots[size, scale], cell, made, done)
         record = cells.write(D.cell_key(*cell), measured)
         finals = ", ".join(f"{x['decision']} {x['final_r_change_pct']:+.1f} %" for x in record["tests"])
-        clock.say(f"{record['key']}: removed (axis) network {D.cell_mean(record, 'found_axis_network'):.2f}, "
-                  f"final {D.cell_mean(record, 'found_axis_final'):.2f}, earlier "
-                  f"{D.cell_mean(record, 'found_axis_earlier'):.2f}; {finals}")
+        clock.say(f"{record['key']}: removed (axis) network {cell_mean(record, 'found_axis_network'):.2f}, "
+                  f"final {cell_mean(record, 'found_axis_final'):.2f}, earlier "
+                  f"{cell_mean(record, 'found_axis_earlier'):.2f}; {finals}")
     found = [c for d in (workdir, *args.include) for c in Records(d / "cells").all()]
     # A cell measured with another correction (outside --pairs/--sizes/--scales here) is not comparable.
     tabulated = [c for c in found if c.get("correction") == study.correction]
@@ -136,15 +140,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     expected = {} if args.quick else {
         world: {D.cell_key(*cell) for cell in D.load_study(CONFIG, "cpu" if world == 0 else "worlds", False,
                                                            world)[0].cells()}
-        for world in (*D.CHOOSING_WORLDS, D.CHECKING_WORLD)}
-    text = D.markdown(tabulated, reference, paper_pairs, clock.minutes, args.quick, expected)
+        for world in (*CHOOSING_WORLDS, CHECKING_WORLD)}
+    text = markdown(tabulated, reference, paper_pairs, clock.minutes, args.quick, expected)
     atomic_write(workdir / "detection_limit.md", text)
     atomic_write(workdir / "detection_limit.csv",
-                 csv_text((*D.CSV_COLUMNS, *D.OPTION_COLUMNS), D.long_rows(tabulated)))
-    D.figure(tabulated, reference, workdir / "detection_limit.png")
+                 csv_text((*CSV_COLUMNS, *OPTION_COLUMNS), long_rows(tabulated)))
+    figure(tabulated, reference, workdir / "detection_limit.png")
     if args.results_page is not None:
         # The page links the figure by the same name, beside it.
-        D.figure(tabulated, reference, args.results_page.with_name("detection_limit.png"))
+        figure(tabulated, reference, args.results_page.with_name("detection_limit.png"))
     publish(text, args.results_page, __file__)
     return 0
 
