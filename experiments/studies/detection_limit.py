@@ -33,10 +33,11 @@ from dpc_jax.experiments.detection_page import CSV_COLUMNS, figure, long_rows, m
 from dpc_jax.experiments.detection_rule import CHECKING_WORLD, CHOOSING_WORLDS, OPTION_COLUMNS
 from dpc_jax.experiments.records import Records
 from dpc_jax.experiments.script import (
-    DATA,
     Clock,
+    add_data_option,
     add_results_page,
     claim,
+    data_given,
     interruptible,
     new_parser,
     publish,
@@ -68,9 +69,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="render another world (K >= 1; each world in a work folder of its own, "
                         "tabulated together with --include)")
     parser.add_argument("--quick", action="store_true", help="the tiny grid that checks the wiring")
-    parser.add_argument("--libviso2", type=path_argument, default=DATA / "kitti-libviso2", metavar="DIR",
-                        help="folder of libviso2-s's stereo_*.mat with ground truth (the reference ×1); not "
-                        "read when WORKDIR/reference.json exists")
+    add_data_option(parser, "--libviso2", "kitti-libviso2", metavar="DIR",
+                    help="folder of libviso2-s's stereo_*.mat with ground truth (the reference ×1); not read "
+                    "when WORKDIR/reference.json exists")
     parser.add_argument("--pairs", type=int, nargs="+", metavar="N",
                         help="run only the cells of these N of the grid (e.g. in two work folders side by "
                         "side, tabulated together with --include)")
@@ -108,7 +109,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         assert workdir is not None
         reference_path = workdir / "reference.json"
         if not reference_path.is_file():
-            atomic_write(reference_path, json.dumps(D.libviso2_reference(args.libviso2), indent=1))
+            measured = D.libviso2_reference(data_given(args.libviso2, "--libviso2"))
+            atomic_write(reference_path, json.dumps(measured, indent=1))
         reference = json.loads(reference_path.read_text())
     except (OSError, ValueError) as error:
         return refuse("detection_limit", error)
