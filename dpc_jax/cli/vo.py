@@ -94,8 +94,6 @@ was due. Ctrl-C: exit status 130, every line written so far whole.
       --correct runs/drive_0005 --realtime 10 --out live.txt"""
 
 
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = EPILOG
     parser.formatter_class = Formatter
