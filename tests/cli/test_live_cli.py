@@ -34,8 +34,8 @@ COLUMNS = 17
 
 @pytest.fixture(scope="module")
 def world(tmp_path_factory: pytest.TempPathFactory) -> dict:
-    """The sequence, its records (the ground truth as an external VO's poses), the run, and copies of the
-    run whose stored config says 64×96 (larger than the images) or ss_dpc (only their config is read)."""
+    """The sequence, its records (the ground truth as an external VO's poses), the run, and a copy of the
+    run whose stored config says 64×96 (larger than the images; only its config is read)."""
     from support import write_stored_run
 
     from dpc_jax.data.kitti import open_odometry
@@ -53,17 +53,14 @@ def world(tmp_path_factory: pytest.TempPathFactory) -> dict:
     record = json.loads(stored.read_text())
     record["image_size"] = [64, 96]
     stored.write_text(json.dumps(record))
-    shutil.copytree(tmp / "run", tmp / "ss_run")  # an ss_dpc run, of which only the config is read
-    stored = tmp / "ss_run" / "checkpoints" / "config.json"
-    stored.write_text(json.dumps({**json.loads(stored.read_text()), "method": "ss_dpc"}))
     files = sequence.images
     records = [f"{t:.3f} {left} {right} " + " ".join(f"{v:.17g}" for v in pose[:3].ravel()) + "\n"
                for t, left, right, pose in zip(written["times"], files.left_paths, files.right_paths,
                                                written["poses"], strict=True)]
     (tmp / "records.txt").write_text("".join(records))
     return {"tmp": tmp, "kitti": tmp / "kitti", "sequence": sequence, "run": tmp / "run",
-            "big_run": tmp / "big_run", "ss_run": tmp / "ss_run", "records": records,
-            "poses": written["poses"], "calib": tmp / "kitti" / "sequences" / "00" / "calib.txt"}
+            "big_run": tmp / "big_run", "records": records, "poses": written["poses"],
+            "calib": tmp / "kitti" / "sequences" / "00" / "calib.txt"}
 
 
 def _live_args(world: dict, out: Path, *more: object) -> list[str]:
@@ -403,9 +400,6 @@ BAD = {
                                        ["--judge-size 64x96", "larger than the source images (48x72)"]),
     "a judge smaller than the network's images": (lambda w: {"--judge-size": "24x40"}, 2,
                                                   ["--judge-size 24x40", "smaller than the run's images"]),
-    "a judge of a run without a stereo pair (correct's judge policy)": (
-        lambda w: {"--checkpoint": w["ss_run"], "--judge-size": "48x72"}, 2,
-        ["--judge-size 48x72: a judge measures Δ with stereo depth (stereo_dpc)", "ss_run is ss_dpc"]),
 }
 
 
