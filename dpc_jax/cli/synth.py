@@ -6,6 +6,7 @@ import argparse
 import shutil
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from dpc_jax._io import output_problem
 from dpc_jax.cli._common import (
@@ -17,6 +18,9 @@ from dpc_jax.cli._common import (
     size_problem,
 )
 from dpc_jax.runtime.progress import progress_mode
+
+if TYPE_CHECKING:
+    from dpc_jax.synth import SynthConfig
 
 HELP = ("Render synthetic stereo driving sequences (KITTI odometry layout, exact depth and poses; or as "
         "ROS recordings).")
@@ -128,7 +132,7 @@ def _recording_problem(args: argparse.Namespace) -> str | None:
     return None
 
 
-def _write_recordings(args: argparse.Namespace, config: object) -> list[Path]:
+def _write_recordings(args: argparse.Namespace, config: SynthConfig) -> list[Path]:
     """Render the sequences into a temporary layout inside ``--out`` and write each as a recording, all or
     nothing; the layout is removed."""
     import numpy as np
