@@ -124,28 +124,30 @@ def write_stereo(
     poses: dict[str, np.ndarray] | None = None, world_frame: str = "world",
 ) -> None:
     """The stereo frames of image files ``left``/``right`` (``N`` each) as a new recording at ``path``:
-    on :data:`LEFT`/:data:`RIGHT` the images at ``stamps`` (int ns ``[N]``), raw (``rgb8``, or ``mono8``
-    for a grey file) or ``compressed`` (the very files' bytes as ``CompressedImage``: their pixels
-    without a decoding and encoding between), each camera's ``CameraInfo`` (rectified, ``P`` from
-    ``projections``) beside them, and each of ``poses`` (topic → camera-to-world ``[N, 4, 4]``) as
-    ``nav_msgs/Odometry`` of the left camera in ``world_frame``."""
+    on :data:`LEFT`/:data:`RIGHT` the images at ``stamps`` (int ns, ``[N]``, or ``[N, 2]``: each
+    camera's), raw (``rgb8``, or ``mono8`` for a grey file) or ``compressed`` (the very files' bytes as
+    ``CompressedImage``: their pixels without a decoding and encoding between), each camera's
+    ``CameraInfo`` (rectified, ``P`` from ``projections``) beside them, and each of ``poses`` (topic →
+    camera-to-world ``[N, 4, 4]``) as ``nav_msgs/Odometry`` of the left camera in ``world_frame`` at the
+    left image's stamp."""
     sides = ((LEFT, LEFT_FRAME, left, projections[0]), (RIGHT, RIGHT_FRAME, right, projections[1]))
+    pairs = np.asarray(stamps, np.int64).reshape(len(left), -1)[:, [0, -1]].tolist()
     with RecordingWriter(path, kind) as bag:
-        for k, stamp in enumerate(np.asarray(stamps, np.int64).tolist()):
-            for topic, frame_id, files, P in sides:
+        for k, (stamp, right_stamp) in enumerate(pairs):
+            for (topic, frame_id, files, P), at in zip(sides, (stamp, right_stamp), strict=True):
                 file = files[k]
                 image = cv2.imread(str(file), cv2.IMREAD_UNCHANGED)
                 if image is None or image.dtype != np.uint8:
                     raise ValueError(f"{file}: cannot decode an 8-bit image")
                 size = (int(image.shape[0]), int(image.shape[1]))
-                info = bag.camera_info(stamp, frame_id, size, P)
-                bag.write(topic.rsplit("/", 1)[0] + "/camera_info", stamp, info)
+                info = bag.camera_info(at, frame_id, size, P)
+                bag.write(topic.rsplit("/", 1)[0] + "/camera_info", at, info)
                 if compressed:
                     form = "png" if file.suffix.lower() == ".png" else "jpeg"
                     data = file.read_bytes()
-                    bag.write(topic + "/compressed", stamp, bag.compressed(stamp, frame_id, data, form))
+                    bag.write(topic + "/compressed", at, bag.compressed(at, frame_id, data, form))
                 else:
                     rgb = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
-                    bag.write(topic, stamp, bag.image(stamp, frame_id, rgb))
+                    bag.write(topic, at, bag.image(at, frame_id, rgb))
             for topic, trajectory in (poses or {}).items():
                 bag.write(topic, stamp, bag.odometry(stamp, world_frame, LEFT_FRAME, trajectory[k]))
