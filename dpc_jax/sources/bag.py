@@ -1,13 +1,13 @@
 """A ROS recording as a stereo sequence: a ROS 1 ``.bag``, a ROS 2 bag folder (sqlite3 or MCAP storage),
 a plain ``.mcap`` or ``.db3`` file, read with ``rosbags`` (docs/formats.md, "Recordings").
 
-:func:`open_bag` makes the *index pass*: it reads the two image topics, the ``CameraInfo`` beside them, the
-pose topics asked for and ``/tf_static``, and keeps of each image its header stamp (of a raw image also
-its size and encoding); no image is decoded there but the first of a compressed topic (for its size).
-The *frames pass* (:class:`BagFrames`) reads the image topics again, in order, and decodes each image
-once, when it is used, so that memory does not grow with the recording's length. ``rosbags`` reads a
-message whole (a header cannot be read without its payload), so the image messages' bytes come from
-storage in both passes; docs/formats.md says what each pass costs.
+:func:`open_bag` makes the *index pass*: it reads the two image topics, the ``CameraInfo`` beside them,
+the pose topics asked for, ``/tf_static`` and ``/tf``, and keeps of each image its header stamp (of a raw
+image also its size and encoding); no image is decoded there but the first of a compressed topic (for
+its size). The *frames pass* (:class:`BagFrames`) reads the image topics again, in order, and decodes
+each image once, when it is used, so that memory does not grow with the recording's length.
+``rosbags`` reads a message whole (a header cannot be read without its payload), so the image messages'
+bytes come from storage in both passes; docs/formats.md says what each pass costs.
 
 * **Topics.** Left and right are ``--left-topic``/``--right-topic``, or chosen when the recording holds
   exactly one pair of image topics whose names differ only by ``left``/``right`` or ``0``/``1``.
@@ -19,8 +19,9 @@ storage in both passes; docs/formats.md says what each pass costs.
   (``dpc_jax.sources.bag_calibration``).
 * **Poses.** A prior or ground-truth topic gives one pose per frame, the one nearest the left image's
   stamp within ``tolerance``. Poses describe the left camera: the pose's own frame (an odometry's or a
-  transform's child frame, or ``pose_frame``) is the camera's frame id, or ``/tf_static`` links them and
-  the pose is moved onto the camera, or ``pose_frame`` is the camera's frame id (they coincide).
+  transform's child frame, or ``pose_frame``) is the camera's frame id, or ``/tf_static`` and ``/tf`` link
+  them and the pose is moved onto the camera (the chain at the frame's stamp), or ``pose_frame`` is the
+  camera's frame id (they coincide).
 
 Every problem is a ``ValueError`` of one line that names the recording, the topic and what was expected.
 """
@@ -48,7 +49,7 @@ from dpc_jax.sources.recording import Recording, Source
 # Left and right images further apart than this are not one frame; also how far a pose may be from its
 # frame. KITTI's grey pair is up to 3.5 ms apart; a rig without a hardware trigger is further.
 DEFAULT_TOLERANCE = 0.01
-TF_STATIC = "/tf_static"
+TF_STATIC, TF_MOVING = "/tf_static", "/tf"
 
 
 @dataclass(frozen=True)
@@ -157,21 +158,14 @@ class _Camera:
     first: tuple[str, Any] | None = None  # the first message, for the size of a compressed one
 
 
-def _nearest(stamps: np.ndarray, of: np.ndarray) -> np.ndarray:
-    """Per stamp of ``of``, the index of the nearest of the increasing ``stamps`` (on a tie the earlier)."""
-    after = np.clip(np.searchsorted(stamps, of), 0, stamps.size - 1)
-    before = np.clip(after - 1, 0, stamps.size - 1)
-    return np.where(np.abs(stamps[before] - of) <= np.abs(stamps[after] - of), before, after)
-
-
 def _pairs(left: np.ndarray, right: np.ndarray, tolerance_ns: int) -> np.ndarray:
     """int64 ``[N, 2]`` message numbers of the left and right images paired by nearest stamp: mutual
     nearest neighbours within ``tolerance_ns`` (both stamp arrays increasing)."""
     if left.size == 0 or right.size == 0:
         return np.zeros((0, 2), np.int64)
 
-    to_right = _nearest(right, left)
-    to_left = _nearest(left, right)
+    to_right = bag_poses.nearest(right, left)
+    to_left = bag_poses.nearest(left, right)
     k = np.arange(left.size)
     keep = (to_left[to_right] == k) & (np.abs(right[to_right] - left) <= tolerance_ns)
     return np.stack([k[keep], to_right[keep]], axis=1).astype(np.int64)
@@ -191,7 +185,7 @@ def _increasing(path: Path, camera: _Camera) -> np.ndarray:
 def _pose_topic(
     path: Path, option: str, topic: str, samples: list[bag_poses.PoseSample], msgtype: str,
     stamps: np.ndarray, tolerance_ns: int, camera_frame: str, pose_frame: str | None,
-    static: dict[tuple[str, str], np.ndarray],
+    static: dict[bag_poses.Edge, np.ndarray], moving: dict[bag_poses.Edge, list[tuple[int, np.ndarray]]],
 ) -> tuple[np.ndarray, str]:
     """The poses of ``topic`` at the frames' left ``stamps`` as camera-to-world ``[N, 4, 4]``, and the world
     frame's id."""
@@ -208,25 +202,22 @@ def _pose_topic(
     body = body or samples[0].child
     if body is None:
         raise _Error(f"{where}: {msgtype} names no frame for its poses; pass --pose-frame {camera_frame} if "
-                     "they are the left camera's poses (or the frame /tf_static links to it)")
-    link = np.eye(4)
-    if body != camera_frame:
-        found = bag_poses.static_link(static, body, camera_frame)
-        if found is None:
-            raise _Error(f"{where}: poses of frame {body!r}, images of frame {camera_frame!r}, and "
-                         f"{TF_STATIC} does not link them; pass --pose-frame {camera_frame} if the two "
-                         "coincide")
-        link = found
+                     "they are the left camera's poses (or the frame /tf_static and /tf link to it)")
+    link = bag_poses.link(static, moving, body, camera_frame, stamps, tolerance_ns, where)
+    if link is None:
+        raise _Error(f"{where}: poses of frame {body!r}, images of frame {camera_frame!r}, and neither "
+                     f"{TF_STATIC} nor {TF_MOVING} links them; pass --pose-frame {camera_frame} if the two "
+                     "coincide")
     order = np.argsort([s.stamp for s in samples], kind="stable")
     pose_stamps = np.asarray([samples[i].stamp for i in order], np.int64)
-    nearest = _nearest(pose_stamps, stamps)
+    nearest = bag_poses.nearest(pose_stamps, stamps)
     far = np.flatnonzero(np.abs(pose_stamps[nearest] - stamps) > tolerance_ns)
     if far.size:
         k = int(far[0])
         raise _Error(f"{where}: no pose within {tolerance_ns / 1e6:g} ms of frame {k} (stamp "
                      f"{stamps[k] / 1e9:.9f} s); the topic holds {pose_stamps.size} poses for {stamps.size} "
                      "frames, expected one per frame")
-    poses = np.stack([samples[order[i]].matrix @ link for i in nearest])
+    poses = np.stack([samples[order[i]].matrix @ link[k] for k, i in enumerate(nearest)])
     return validate_poses(poses, where), samples[0].parent
 
 
@@ -262,11 +253,11 @@ def open_bag(options: BagOptions) -> Recording:
             pose_topics[option] = topic
         wanted = {left_topic, right_topic, *pose_topics.values(),
                   *(t for t in info_topics.values() if t is not None)}
-        if pose_topics and TF_STATIC in topics:
-            wanted.add(TF_STATIC)
+        wanted |= {t for t in (TF_STATIC, TF_MOVING) if pose_topics and topics.get(t) == bag_poses.TF}
         infos: dict[str, tuple[str, Any]] = {}
         samples: dict[str, list[bag_poses.PoseSample]] = {t: [] for t in pose_topics.values()}
-        static: dict[tuple[str, str], np.ndarray] = {}
+        static: dict[bag_poses.Edge, np.ndarray] = {}
+        moving: dict[bag_poses.Edge, list[tuple[int, np.ndarray]]] = {}
         connections = [c for c in reader.connections if c.topic in wanted]
         for connection, number, msg in _messages(reader, path, connections):
             topic, msgtype = connection.topic, connection.msgtype
@@ -278,9 +269,12 @@ def open_bag(options: BagOptions) -> Recording:
                     infos[image_topic] = (topic, msg)
             if topic in samples:
                 samples[topic].extend(bag_poses.samples(msgtype, msg, f"{path}: {topic}"))
-            if topic == TF_STATIC:
-                for s in bag_poses.samples(msgtype, msg, f"{path}: {topic}"):
+            tf = topic in (TF_STATIC, TF_MOVING)
+            for s in bag_poses.samples(msgtype, msg, f"{path}: {topic}") if tf else []:
+                if topic == TF_STATIC:
                     static[(s.parent, s.child or "")] = s.matrix
+                else:
+                    moving.setdefault((s.parent, s.child or ""), []).append((s.stamp, s.matrix))
     for camera in cameras:
         if not camera.stamps:
             raise _Error(f"{path}: {camera.topic}: no image; expected the images of one camera of the pair")
@@ -308,7 +302,7 @@ def open_bag(options: BagOptions) -> Recording:
     for option, topic in pose_topics.items():
         poses[option], parent = _pose_topic(
             path, option, topic, samples[topic], topics[topic], stamps, tolerance_ns, camera_frame,
-            options.pose_frame, static)
+            options.pose_frame, static, moving)
         if option == "--prior-topic":
             world_frame = parent
     pair_stamps = np.stack([stamps, right_stamps[pairs[:, 1]]], axis=1)
