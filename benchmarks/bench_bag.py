@@ -26,8 +26,7 @@ import numpy as np
 from dpc_jax.data.frames import ImageFiles
 from dpc_jax.data.kitti import StereoSequence
 from dpc_jax.runtime.machine import this_cpu
-from dpc_jax.sources import Source, open_source
-from dpc_jax.sources.bag import BagOptions
+from dpc_jax.sources import BagOptions, Source, open_source
 from dpc_jax.sources.bag_writer import write_stereo
 
 EXCERPT = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti-raw"

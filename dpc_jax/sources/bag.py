@@ -44,26 +44,9 @@ from dpc_jax.data.kitti import StereoSequence
 from dpc_jax.data.poses_io import validate_poses
 from dpc_jax.sources import bag_images, bag_poses
 from dpc_jax.sources.bag_calibration import calibration, info_topic
-from dpc_jax.sources.recording import Recording, Source
+from dpc_jax.sources.recording import BagOptions, Recording, Source
 
-# Left and right images further apart than this are not one frame; also how far a pose may be from its
-# frame. KITTI's grey pair is up to 3.5 ms apart; a rig without a hardware trigger is further.
-DEFAULT_TOLERANCE = 0.01
 TF_STATIC, TF_MOVING = "/tf_static", "/tf"
-
-
-@dataclass(frozen=True)
-class BagOptions:
-    """What to read from a recording (the command line's ``--bag`` options)."""
-
-    path: Path
-    left_topic: str | None = None
-    right_topic: str | None = None
-    tolerance: float = DEFAULT_TOLERANCE
-    calib: Path | None = None
-    prior_topic: str | None = None
-    gt_topic: str | None = None
-    pose_frame: str | None = None
 
 
 class _Error(ValueError):

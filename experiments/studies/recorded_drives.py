@@ -52,8 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = kit.new_parser(__doc__)
     parser.add_argument("--workdir", type=path_argument, required=True, metavar="DIR",
                         help="work folder (recordings, trajectories, caches)")
-    parser.add_argument("--kitti-raw", type=path_argument, default=kit.DATA / "kitti-raw", metavar="ROOT",
-                        help="raw root holding DATE/ and libviso2/")
+    kit.add_kitti_raw_option(parser)
     parser.add_argument("--drive", nargs="+", default=list(DRIVES), metavar="NNNN", help="drives of DATE")
     parser.add_argument("--frames", type=int, metavar="N", help="only the first N frames of each drive")
     kit.add_results_page(parser)
@@ -177,6 +176,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.frames is not None and args.frames < 2:
             raise ValueError(f"--frames {args.frames}: expected at least 2")
+        args.kitti_raw = kit.data_given(args.kitti_raw, "--kitti-raw")
         kit.claim(args.workdir, [("--kitti-raw", args.kitti_raw)], script=__file__, page=args.results_page)
         text = study(args)
     except (OSError, ValueError, RuntimeError) as error:

@@ -21,7 +21,8 @@ from support import in_one_process, write_odometry
 from dpc_jax.cli import main
 from dpc_jax.data.frames import png_grey
 from dpc_jax.data.kitti import open_odometry, read_ground_truth
-from dpc_jax.sources.bag import BagOptions, open_bag
+from dpc_jax.sources import BagOptions
+from dpc_jax.sources.bag import open_bag
 
 SUFFIX = {"ros1": ".bag", "mcap": ".mcap", "sqlite3": "", "mcap-folder": ""}
 
