@@ -57,3 +57,6 @@ def test_a_synthetic_recording_gives_what_the_kitti_layout_gives(
     # A recording is never replaced; nothing is rendered.
     assert main([*SYNTH, "--out", str(tmp_path), "--format", form]) == 2
     assert f"{rec} exists" in capsys.readouterr().err
+    assert main([*SYNTH, "--out", str(tmp_path / "other"), "--format", form, "--overwrite"]) == 2
+    assert "a recording is never replaced" in capsys.readouterr().err
+    assert not (tmp_path / "other").exists()
