@@ -9,7 +9,6 @@ repeats what the file's own summary holds, so the file alone is the recording.
 from __future__ import annotations
 
 import shutil
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -17,6 +16,8 @@ from typing import Any
 import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
+
+from dpc_jax._io import remove_stale, temp_name
 
 KINDS = ("mcap", "ros1", "rosbag2")
 ODOMETRY = "nav_msgs/msg/Odometry"
@@ -45,7 +46,10 @@ class RecordingWriter:
             from rosbags.rosbag2 import StoragePlugin, Writer
 
             if kind == "mcap":
-                self._folder = Path(tempfile.mkdtemp(prefix=".dpc-mcap-", dir=self.path.parent)) / "bag"
+                # Named for this process, so that a later writer removes what a killed one left.
+                remove_stale(self.path.parent, ".dpc-mcap-")
+                self._folder = self.path.parent / temp_name(".dpc-mcap-") / "bag"
+                self._folder.parent.mkdir()
             self._writer = Writer(self._folder, version=9, storage_plugin=StoragePlugin.MCAP)
 
     def __enter__(self) -> RecordingWriter:
