@@ -124,8 +124,7 @@ def test_every_command_on_a_recording_gives_what_the_kitti_layout_gives(
 
     with _counted(monkeypatch) as counts:
         assert main(["prepare", *bag, "--prior", str(world["poses_file"]), "--gt", str(world["poses_file"]),
-                     "--out", str(tmp_path / "cache"),
-                     "--size", "24x36", "--no-progress"]) == 0
+                     "--out", str(tmp_path / "cache"), "--size", "24x36", "--no-progress"]) == 0
     assert counts == {"read": twice, "decoded": once}
     ours, theirs = tmp_path / "cache" / rec.stem, layout / "cache" / "00"
     arrays = sorted(p.name for p in theirs.glob("*.npy"))
@@ -176,7 +175,8 @@ def _image_topics(rec: Path) -> list[str]:
     from rosbags.highlevel import AnyReader
 
     with AnyReader([rec]) as reader:
-        return [c.topic for c in reader.connections if "image" in c.topic]
+        return [c.topic for c in reader.connections
+                if c.msgtype in ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")]
 
 
 
