@@ -6,10 +6,10 @@ import argparse
 import shutil
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from dpc_jax._io import output_problem
 from dpc_jax.cli._common import (
+    MAX_PIXELS,
     Formatter,
     finite_problem,
     image_size,
@@ -18,9 +18,7 @@ from dpc_jax.cli._common import (
     size_problem,
 )
 from dpc_jax.runtime.progress import progress_mode
-
-if TYPE_CHECKING:
-    from dpc_jax.synth import SynthConfig
+from dpc_jax.synth.sequence import SynthConfig
 
 HELP = ("Render synthetic stereo driving sequences (KITTI odometry layout, exact depth and poses; or as "
         "ROS recordings).")
@@ -30,13 +28,13 @@ GROUND_TRUTH_TOPIC = "/ground_truth"
 # Restart with huge-page malloc (dpc_jax.runtime.hugepages): rendering is about a sixth faster.
 HUGE_PAGES = True
 
-EPILOG = """examples:
+EPILOG = f"""examples:
   dpc-jax synth --out data/synth --sequences 4 --frames 200 --seed 0
   dpc-jax synth --out data/hard --sequences 2 --frames 300 --size 120x188 --moving-objects 3 \\
       --illumination-drift 0.3 --noise 2
-Writes OUT/sequences/XX/{image_2,image_3,depth_2,depth_3,moving_2,moving_3}/NNNNNN.*, calib.txt,
+Writes OUT/sequences/XX/{{image_2,image_3,depth_2,depth_3,moving_2,moving_3}}/NNNNNN.*, calib.txt,
 times.txt, synth.json and OUT/poses/XX.txt; read them with --kitti-odometry OUT in the other commands.
-The same command gives byte-identical files. Images above 4 megapixels need --allow-large.
+The same command gives byte-identical files. Images above {MAX_PIXELS / 1e6:g} megapixels need --allow-large.
 --format mcap|rosbag1|rosbag2 writes sequence XX as a recording instead, OUT/XX.mcap, OUT/XX.bag or the
 ROS 2 bag folder OUT/XX (MCAP storage): the PNG images as CompressedImage, CameraInfo and the ground truth
 on /ground_truth, stamped with times.txt's times (docs/formats.md); read it with --bag OUT/XX.mcap."""
@@ -44,24 +42,28 @@ on /ground_truth, stamped with times.txt's times (docs/formats.md); read it with
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = EPILOG
+    # The rendering's defaults are SynthConfig's.
+    default = SynthConfig()
     parser.formatter_class = Formatter
     parser.add_argument("--out", required=True, type=path_option, metavar="DIR",
                         help="output root (receives sequences/XX and poses/XX.txt)")
     parser.add_argument("--sequences", type=int, default=4, metavar="N",
                         help="number of sequences (named 00, 01, ...)")
-    parser.add_argument("--frames", type=int, default=200, metavar="N", help="frames per sequence (10 Hz)")
-    parser.add_argument("--seed", type=int, default=0, metavar="N",
+    parser.add_argument("--frames", type=int, default=default.frames, metavar="N",
+                        help=f"frames per sequence ({default.fps:g} Hz)")
+    parser.add_argument("--seed", type=int, default=default.seed, metavar="N",
                         help="seed of sequence 00; sequence i uses seed + i")
-    parser.add_argument("--size", type=image_size, default=(240, 376), metavar="HxW",
-                        help="image size HEIGHTxWIDTH (default: 240x376)")
+    parser.add_argument("--size", type=image_size, default=(default.height, default.width), metavar="HxW",
+                        help=f"image size HEIGHTxWIDTH (default: {default.height}x{default.width})")
     parser.add_argument("--allow-large", action="store_true",
-                        help="accept a --size above 4 megapixels per image")
-    parser.add_argument("--moving-objects", type=int, default=0, metavar="N", help="moving cars per sequence")
-    parser.add_argument("--illumination-drift", type=float, default=0.0, metavar="X",
+                        help=f"accept a --size above {MAX_PIXELS / 1e6:g} megapixels per image")
+    parser.add_argument("--moving-objects", type=int, default=default.moving_objects, metavar="N",
+                        help="moving cars per sequence")
+    parser.add_argument("--illumination-drift", type=float, default=default.illumination_drift, metavar="X",
                         help="amplitude X of the slow global gain (1±X) and gamma (1±X/2) drift")
-    parser.add_argument("--noise", type=float, default=0.0, metavar="SIGMA",
+    parser.add_argument("--noise", type=float, default=default.noise, metavar="SIGMA",
                         help="Gaussian image noise std, 0..255 units")
-    parser.add_argument("--disparity-offset", type=float, default=0.0, metavar="PX",
+    parser.add_argument("--disparity-offset", type=float, default=default.disparity_offset, metavar="PX",
                         help="stereo calibration residual: every disparity measured with the written "
                         "calib.txt is PX larger than fu·B/Z (KITTI's colour pair: about -1.2 px at 1242 px)")
     parser.add_argument("--format", choices=("kitti", *RECORDINGS), default="kitti",
@@ -179,7 +181,7 @@ def run(args: argparse.Namespace) -> int:
                                  disparity_offset=args.disparity_offset))
     if problem is not None:
         return _error(problem)
-    from dpc_jax.synth import SynthConfig, write_sequences  # the renderer imports JAX when it starts
+    from dpc_jax.synth import write_sequences  # the renderer imports JAX when it starts
     from dpc_jax.synth.writer import check_sequences_free
 
     try:

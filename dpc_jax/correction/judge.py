@@ -4,14 +4,21 @@ A judge is the same frames prepared at a larger size, with StereoSGBM depth and 
 (``dpc_jax.correction.measure.judge_measurement``); what passes at the network's size must pass there
 too. :func:`judge_policy` decides a command's judge from the user's options (``correct``, ``vo
 --correct`` and ``live`` alike): the default (:func:`judge_rule`), the check of a given size
-(:func:`judge_size_problem`) and the line saying where the test was measured. Pure Python: the command
-line decides it before JAX starts.
+(:func:`judge_size_problem`) and the line saying where the test was measured;
+:func:`judge_frames_problem` checks a judge given as a cache. Python and numpy: the command line
+decides it before JAX starts.
 """
 
 from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from dpc_jax.data.sequence_cache import SequenceCache
 
 # The size a stereo_dpc run smaller than it is judged at by default (the papers' input size): the
 # photometric loss at 64x96 resolves rotations too coarsely to tell a helpful correction from a harmful
@@ -98,6 +105,22 @@ def judge_policy(
         return Judge(note=f"note: the acceptance test was measured at the run's {h}x{w} only: the source "
                      f"images ({source[0]}x{source[1]}) are no larger, and a judge is not upsampled")
     return Judge()
+
+
+def judge_frames_problem(judge: SequenceCache, cache: SequenceCache, judge_label: str, cache_label: str
+                         ) -> str | None:
+    """Why the cache ``judge`` cannot judge the corrections of ``cache`` (named ``judge_label`` and
+    ``cache_label`` in the line), or None: it must hold the same frames of the same sequence, at least
+    as large as ``cache``'s."""
+    same = judge.manifest.get("sequence") == cache.manifest.get("sequence")
+    if not same or not np.array_equal(np.asarray(judge.indices), np.asarray(cache.indices)):
+        return (f"{judge_label}: holds frames other than those of {cache_label}; a judge must be the same "
+                "frames prepared at another size")
+    (jh, jw), (ch, cw) = judge.image_size, cache.image_size
+    if jh < ch or jw < cw:
+        return (f"{judge_label}: images are {jh}x{jw}, smaller than those of {cache_label} ({ch}x{cw}); a "
+                "judge measures Δ on more pixels than the network saw, not fewer")
+    return None
 
 
 def judge_size_problem(

@@ -3,6 +3,9 @@ and ``live`` take from the user's options, checked against sizes worked out by h
 
 from __future__ import annotations
 
+from typing import Any
+
+import numpy as np
 import pytest
 
 from dpc_jax.correction.judge import Judge, JudgeRequest, judge_policy
@@ -83,3 +86,24 @@ def test_a_cache_is_judged_only_by_a_judge_cache() -> None:
     assert judge_policy("stereo_dpc", (64, 96), None, JudgeRequest(cache="cache/05_big"), RUN) == Judge()
     assert judge_policy("stereo_dpc", (64, 96), None, JudgeRequest(force=True), RUN) == Judge()
     assert judge_policy("stereo_dpc", (240, 376), None, JudgeRequest(), RUN) == Judge()
+
+
+def test_a_judge_cache_holds_the_same_frames_at_least_as_large() -> None:
+    """``judge_frames_problem`` reads what a cache records: its sequence, its frames, its size."""
+    from types import SimpleNamespace
+
+    from dpc_jax.correction.judge import judge_frames_problem
+
+    def cache(sequence: str, indices: list[int], size: tuple[int, int]) -> Any:
+        return SimpleNamespace(manifest={"sequence": sequence}, indices=np.asarray(indices), image_size=size)
+
+    network = cache("05", [0, 2, 3], (64, 96))
+    assert judge_frames_problem(cache("05", [0, 2, 3], (240, 376)), network, "j", "c") is None
+    assert judge_frames_problem(cache("05", [0, 2, 3], (64, 96)), network, "j", "c") is None
+    other = ("j: holds frames other than those of c; a judge must be the same frames prepared at another "
+             "size")
+    assert judge_frames_problem(cache("06", [0, 2, 3], (240, 376)), network, "j", "c") == other
+    assert judge_frames_problem(cache("05", [0, 1, 2], (240, 376)), network, "j", "c") == other
+    assert judge_frames_problem(cache("05", [0, 2, 3], (240, 90)), network, "j", "c") == (
+        "j: images are 240x90, smaller than those of c (64x96); a judge measures Δ on more pixels than the "
+        "network saw, not fewer")
