@@ -5,9 +5,9 @@
 The first ``--frames`` frames of the KITTI excerpt's drive 0001 (colour, 1242×375) are written, with
 ``rosbags``' writers, as a plain MCAP file of raw ``rgb8`` images, one of the PNG files as
 ``CompressedImage``, and a ROS 1 bag of raw images (into a temporary folder, not timed). Timed: opening
-each source (``dpc_jax.sources``: a recording's index pass reads every message once) and decoding every
-stereo pair to colour as ``prepare`` does, the median of ``--repeats`` runs, against the same frames
-read from the PNG files. A recording is no bottleneck of ``prepare`` or ``live`` when its rate is at
+each source (``dpc_jax.sources``: a recording's index pass, timed alone too) and decoding every stereo
+pair to colour as ``prepare`` does, the median of ``--repeats`` runs, against the same frames read from
+the PNG files. A recording is no bottleneck of ``prepare`` or ``live`` when its rate is at
 least the PNG files'.
 """
 
@@ -23,81 +23,41 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from dpc_jax.data.frames import ImageFiles
+from dpc_jax.data.kitti import StereoSequence
 from dpc_jax.runtime.machine import this_cpu
-from dpc_jax.sources import Source, open_source
-from dpc_jax.sources.bag import BagOptions
+from dpc_jax.sources import BagOptions, Source, open_source
+from dpc_jax.sources.bag_writer import write_stereo
 
 EXCERPT = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti-raw"
 DATE, DRIVE = "2011_09_26", "0001"
 
 
-def _write(path: Path, kind: str, compressed: bool, sequence: object, stamps: list[int]) -> Path:
+def _write(path: Path, kind: str, compressed: bool, sequence: StereoSequence, stamps: list[int]) -> Path:
     """The frames of ``sequence`` (image files) as a recording of ``kind`` (``mcap`` or ``ros1``)."""
-    from rosbags.typesys import Stores, get_typestore
-
-    ros1 = kind == "ros1"
-    store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.LATEST)
-    if ros1:
-        from rosbags.rosbag1 import Writer as Writer1
-
-        writer = Writer1(path)
-    else:
-        from rosbags.rosbag2 import StoragePlugin, Writer
-
-        writer = Writer(path.with_suffix(""), version=9, storage_plugin=StoragePlugin.MCAP)
-    types = store.types
-    K, baseline = sequence.K, sequence.baseline  # type: ignore[attr-defined]
-    h, w = sequence.image_size  # type: ignore[attr-defined]
-    msgtype = "sensor_msgs/msg/CompressedImage" if compressed else "sensor_msgs/msg/Image"
-    with writer:
-        connections = {}
-        for side in ("left", "right"):
-            connections[side] = writer.add_connection(f"/{side}/image", msgtype, typestore=store)
-            connections[f"{side}_info"] = writer.add_connection(f"/{side}/camera_info",
-                                                                "sensor_msgs/msg/CameraInfo", typestore=store)
-        files = sequence.images  # type: ignore[attr-defined]
-        for stamp, left, right in zip(stamps, files.left_paths, files.right_paths, strict=True):
-            sec, nanosec = divmod(stamp, 1_000_000_000)
-            time_msg = types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
-            header = (types["std_msgs/msg/Header"](seq=0, stamp=time_msg, frame_id="cam") if ros1
-                      else types["std_msgs/msg/Header"](stamp=time_msg, frame_id="cam"))
-            for side, file, tx in (("left", left, 0.0), ("right", right, -K[0, 0] * baseline)):
-                P = np.hstack([K, [[tx], [0.0], [0.0]]])
-                names = ("D", "K", "R", "P") if ros1 else ("d", "k", "r", "p")
-                values = (np.zeros(5), K.ravel(), np.eye(3).ravel(), P.ravel())
-                matrices = dict(zip(names, values, strict=True))
-                roi = types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
-                                                                  do_rectify=False)
-                info = types["sensor_msgs/msg/CameraInfo"](header=header, height=h, width=w,
-                                                           distortion_model="plumb_bob", binning_x=0,
-                                                           binning_y=0, roi=roi, **matrices)
-                if compressed:
-                    image = types[msgtype](header=header, format="png",
-                                           data=np.frombuffer(file.read_bytes(), np.uint8))
-                else:
-                    rgb = np.ascontiguousarray(cv2.cvtColor(cv2.imread(str(file)), cv2.COLOR_BGR2RGB))
-                    image = types[msgtype](header=header, height=h, width=w, encoding="rgb8", is_bigendian=0,
-                                           step=3 * w, data=rgb.reshape(-1))
-                serialize = store.serialize_ros1 if ros1 else store.serialize_cdr
-                info_bytes = serialize(info, "sensor_msgs/msg/CameraInfo")
-                writer.write(connections[f"{side}_info"], stamp, info_bytes)
-                writer.write(connections[side], stamp, serialize(image, msgtype))
-    if ros1:
-        return path
-    (inner,) = path.with_suffix("").glob("*.mcap")
-    inner.rename(path)
+    K, baseline = sequence.K, sequence.baseline
+    left = np.hstack([K, np.zeros((3, 1))])
+    right = left.copy()
+    right[0, 3] = -K[0, 0] * baseline
+    files = sequence.images
+    assert isinstance(files, ImageFiles)
+    write_stereo(path, kind, files.left_paths, files.right_paths, np.asarray(stamps, np.int64), (left, right),
+                 compressed=compressed)
     return path
 
 
-def _rate(source: Source, repeats: int) -> tuple[float, int]:
-    """Median frames/s of opening ``source`` and decoding every pair to colour, and the frame count."""
-    rates = []
+def _rate(source: Source, repeats: int) -> tuple[float, float, int]:
+    """Median frames/s of opening ``source`` and decoding every pair to colour, of opening it alone (a
+    recording's index pass), and the frame count."""
+    rates, opening = [], []
     for _ in range(repeats):
         start = time.perf_counter()
         sequence = open_source(source).sequence
+        opened = time.perf_counter()
         n = sum(1 for frame in sequence.images.stream(sequence.image_size) if frame.decode() is not None)
         rates.append(n / (time.perf_counter() - start))
-    return statistics.median(rates), n
+        opening.append(n / (opened - start))
+    return statistics.median(rates), statistics.median(opening), n
 
 
 def main() -> None:
@@ -118,18 +78,19 @@ def main() -> None:
     print(f"device: {this_cpu()}, OpenCV {cv2.__version__}, load average "
           f"{' '.join(f'{v:.1f}' for v in os.getloadavg())}")
     # The files' rate is over the whole drive (opening lists its files and reads the first image).
-    rows = [("KITTI PNG files", _rate(files, args.repeats)[0], 0)]
+    rows = [("KITTI PNG files", *_rate(files, args.repeats)[:2], 0)]
     with tempfile.TemporaryDirectory() as tmp:
         for name, kind, compressed, suffix in (("MCAP, rgb8", "mcap", False, ".mcap"),
                                                ("MCAP, PNG-compressed", "mcap", True, ".mcap"),
                                                ("ROS 1 bag, rgb8", "ros1", False, ".bag")):
             path = _write(Path(tmp) / f"{kind}-{compressed}{suffix}", kind, compressed, sequence, stamps)
-            rate, n = _rate(Source("bag", path, bag=BagOptions(path)), args.repeats)
+            rate, index, n = _rate(Source("bag", path, bag=BagOptions(path)), args.repeats)
             assert n == len(sequence)
-            rows.append((name, rate, path.stat().st_size))
-    print(f"| {'source':<22} | {'frames/s':>8} | {'MB':>6} |")
-    for name, rate, size in rows:
-        print(f"| {name:<22} | {rate:>8.1f} | {size / 1e6 if size else float('nan'):>6.0f} |")
+            rows.append((name, rate, index, path.stat().st_size))
+    print(f"| {'source':<22} | {'frames/s':>8} | {'opening alone, frames/s':>23} | {'MB':>6} |")
+    for name, rate, index, size in rows:
+        megabytes = size / 1e6 if size else float("nan")
+        print(f"| {name:<22} | {rate:>8.1f} | {index:>23.1f} | {megabytes:>6.0f} |")
 
 
 if __name__ == "__main__":

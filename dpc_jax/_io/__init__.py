@@ -23,7 +23,8 @@ output-path checks, and the removal of temporary folders that killed runs left b
   path and by inode); a folder a command would replace must be one it made; an empty path is
   refused. Outputs named after another (a ``.csv`` beside a trajectory) are not made beside a
   stream (:func:`is_stream`). A command whose standard output is a file it reads is refused
-  (:func:`stdout_problem`).
+  (:func:`stdout_problem`); a command with an output on standard output prints its own lines to
+  standard error (:func:`report_stream`).
 * :func:`foreign_files_problem`, :func:`record_own_files`: files written into a folder that may hold
   other files (a report, an export) replace only the files a command recorded there as its own, and a
   report folder holds one command's results. :func:`beside_problem`, :func:`record_beside`: the same for
@@ -35,22 +36,29 @@ output-path checks, and the removal of temporary folders that killed runs left b
   another script writes into it only where it is documented to share it with one of them.
 * :func:`output_lock`: one writer per output; a lock file beside a cache being built, a training
   run or a work folder holds the writer's process id, and a stale one is reported, never taken.
+* :class:`LiveOutputs`, :func:`whole_lines`: outputs written in place as they grow (the live
+  correction's poses and rows), one whole line per write with Ctrl-C held back until a step's lines are
+  all out, so that an interrupted command leaves whole lines; opened with the first line, so that a run
+  that writes none leaves every file as it was.
 
 This module holds :class:`InputWarning` and the output checks (:func:`writable`,
 :func:`output_problem`, the overlap rule); the writers live in :mod:`dpc_jax._io._atomic_write` (output
 targets, the atomic writer, streams, :func:`install_folder`), :mod:`dpc_jax._io._output_set` (output
-sets), :mod:`dpc_jax._io._temporaries` (temporary names, stale removal) and :mod:`dpc_jax._io._lock`
-(output locks), and are imported from here.
+sets), :mod:`dpc_jax._io._temporaries` (temporary names, stale removal), :mod:`dpc_jax._io._lock`
+(output locks) and :mod:`dpc_jax._io._lines` (outputs written as they grow), and are imported from here.
 """
 
 from __future__ import annotations
 
 import os
+import sys
 import tempfile
 from pathlib import Path
+from typing import IO
 
 from dpc_jax._io._atomic_write import OutputKind, atomic_write, install_folder, output_target, stream_write
 from dpc_jax._io._claim import claim_folder, claim_problem
+from dpc_jax._io._lines import LiveOutputs, whole_lines
 from dpc_jax._io._lock import LockError, lock_holder, lock_path, output_lock
 from dpc_jax._io._output_set import STAGING_PREFIX, OutputSet, new_folders_removed_on_failure
 from dpc_jax._io._own_files import (
@@ -68,6 +76,7 @@ __all__ = [
     "OWN_FILES",
     "STAGING_PREFIX",
     "InputWarning",
+    "LiveOutputs",
     "LockError",
     "Named",
     "OutputKind",
@@ -92,9 +101,11 @@ __all__ = [
     "record_beside",
     "record_own_files",
     "remove_stale",
+    "report_stream",
     "stdout_problem",
     "stream_write",
     "temp_name",
+    "whole_lines",
     "writable",
 ]
 
@@ -229,6 +240,13 @@ def is_stdout(path: str | os.PathLike[str]) -> bool:
         return os.path.samestat(os.stat(path), os.fstat(1))
     except OSError:
         return False
+
+
+def report_stream(*paths: str | os.PathLike[str] | None) -> IO[str] | None:
+    """Where a command's own lines go: standard error when one of its outputs ``paths`` (None: not
+    written) is standard output (:func:`is_stdout`), so that what reads it gets the output alone; else
+    standard output (None: ``print``'s default)."""
+    return sys.stderr if any(is_stdout(path) for path in paths if path is not None) else None
 
 
 def overlap_problem(inputs: list[Named], outputs: list[Named]) -> str | None:

@@ -76,28 +76,35 @@ def stream_write(path: str | os.PathLike[str], data: str | bytes) -> None:
     mode; a FIFO blocks until a reader opens it, as for any writer.
     """
     payload = data.encode("utf-8") if isinstance(data, str) else data
+    standard = standard_fd(path)
+    if standard is not None:
+        with _naming(path):
+            write_all(standard, payload)
+        return
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_NOCTTY)
+    try:
+        with _naming(path):
+            write_all(fd, payload)
+    finally:
+        os.close(fd)
+
+
+def standard_fd(path: str | os.PathLike[str]) -> int | None:
+    """The descriptor (1 or 2) of this process's standard output or error when the stream ``path`` is
+    the same file, else None; both are flushed first, so that what the process printed there stays
+    before what is written through the descriptor."""
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(OSError, ValueError, AttributeError):
             stream.flush()
     status = os.stat(path)
     for fd in (1, 2):
-        try:
-            same = os.path.samestat(status, os.fstat(fd))
-        except OSError:
-            continue
-        if same:
-            with _naming(path):
-                _write_all(fd, payload)
-            return
-    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_NOCTTY)
-    try:
-        with _naming(path):
-            _write_all(fd, payload)
-    finally:
-        os.close(fd)
+        with contextlib.suppress(OSError):
+            if os.path.samestat(status, os.fstat(fd)):
+                return fd
+    return None
 
 
-def _write_all(fd: int, payload: bytes) -> None:
+def write_all(fd: int, payload: bytes) -> None:
     view = memoryview(payload)
     while view:
         view = view[os.write(fd, view):]

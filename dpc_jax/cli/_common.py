@@ -1,6 +1,7 @@
 """What the subcommands share (not a subcommand itself): the help formatter, argument types, the
-input- and output-path checks, the import of JAX that ends the checks, progress modes, and the
-one-line report of a checkpoint that cannot be read.
+input- and output-path checks, the checks of a run folder, a cache folder and pose files, the import
+of JAX that ends the checks, progress modes, and the one-line report of a checkpoint that cannot be
+read.
 
 Output paths follow one rule in every command (``dpc_jax._io``): missing parent folders are
 created when the outputs are written, the nearest existing folder must be writable, no output may
@@ -20,8 +21,15 @@ import signal
 import sys
 import threading
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from dpc_jax._io import nonempty_path
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from dpc_jax.data.kitti import StereoSequence
+    from dpc_jax.training.train_config import TrainConfig
 
 # The largest --disparity-offset, as a share of the image width (SynthConfig's bound too).
 MAX_OFFSET_SHARE = 0.05
@@ -205,3 +213,59 @@ def restore_problem(folder: Path, error: BaseException) -> str:
     reason = f"{type(error).__name__}: {first}" if first else type(error).__name__
     return (f"{folder}: cannot restore the checkpoint ({reason}); it is damaged or incomplete, "
             "or was written by another version of the model code")
+
+
+def stored_config(run: Path, option: str) -> TrainConfig:
+    """The training config stored in the run folder ``run`` given to ``option``, read without JAX;
+    ``ValueError`` with the one line to report when ``run`` is not a training run or its config cannot
+    be read."""
+    from dpc_jax import config as config_lib
+    from dpc_jax.training.train_config import TrainConfig
+
+    stored = run / "checkpoints" / "config.json"
+    if not stored.is_file():
+        raise ValueError(f"{option} {run}: not a training run (expected {stored}, written by `dpc-jax "
+                         "train`)")
+    try:
+        return config_lib.load_file(stored, TrainConfig)
+    except (OSError, ValueError) as error:
+        raise ValueError(f"{option} {run}: {error}") from None
+
+
+def cache_folder_problem(path: Path, option: str) -> str | None:
+    """Why the folder ``path`` given to ``option`` is not one prepared sequence cache, or None; a
+    folder holding caches is told to name one of them."""
+    from dpc_jax.data.sequence_cache import MANIFEST
+
+    if not path.is_dir():
+        return f"{option} {path}: not a folder (expected a cache prepared by `dpc-jax prepare`)"
+    if (path / MANIFEST).is_file():
+        return None
+    caches = sorted(p.name for p in path.iterdir() if (p / MANIFEST).is_file())
+    if caches:
+        more = ", ..." if len(caches) > 5 else ""
+        return (f"{option} {path}: a folder of caches ({', '.join(caches[:5])}{more}), not one; give one of "
+                f"them, e.g. {option} {path / caches[0]}")
+    return f"{option} {path}: not a prepared cache (no {MANIFEST}); run `dpc-jax prepare`"
+
+
+def poses_problem(sequence: StereoSequence, prior: str | np.ndarray, prior_format: str | None,
+                  frames: tuple[int, int] | None, gt: str | None) -> str | None:
+    """Why the prior (``--prior``) or the ``--gt`` file does not hold one rigid pose per frame of
+    ``sequence`` (``frames``: the range the prior covers, if given), or None: read before JAX starts, as
+    preparing the sequence reads them again."""
+    from dpc_jax.data.kitti import read_ground_truth
+    from dpc_jax.data.priors import load_prior
+
+    try:
+        load_prior(prior, len(sequence), prior_format, frames=frames)
+    except (OSError, ValueError) as error:
+        return f"--prior {error}"
+    try:
+        poses = None if gt is None else read_ground_truth(gt)
+    except (OSError, ValueError) as error:
+        return f"--gt {error}"
+    if poses is not None and poses.shape[0] != len(sequence):
+        return (f"--gt {gt}: {poses.shape[0]} ground-truth poses for the {len(sequence)} frames of "
+                f"{sequence.name}; expected one per frame")
+    return None

@@ -125,8 +125,7 @@ def open_recording(args: argparse.Namespace, key: str | None = None, gt: Path | 
     opened: dict[str | None, Recording] = args.__dict__.setdefault("_opened_sources", {})
     if key in opened:
         return opened[key]
-    from dpc_jax.sources import Source, open_source
-    from dpc_jax.sources.bag import DEFAULT_TOLERANCE, BagOptions
+    from dpc_jax.sources import DEFAULT_TOLERANCE, BagOptions, Source, open_source
 
     given = source_option(args)
     assert given is not None, "open_recording needs a source option"

@@ -1,73 +1,53 @@
-"""``dpc-jax correct``: correct a VO trajectory with a trained DPC network and evaluate it."""
+"""``dpc-jax correct``: correct a VO trajectory with a trained DPC network and evaluate it.
+
+The options and inputs are checked before JAX starts; then the library does the work: the raw inputs
+prepared (``dpc_jax.correction.raw_inputs``) with the judge of ``dpc_jax.correction.judge.judge_policy``,
+the correction (``dpc_jax.correction.corrector.correct_sequence``) and its outputs
+(``dpc_jax.correction.outputs.write_corrected``).
+"""
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import logging
-import os
 import sys
-import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from dpc_jax._io import (
-    beside_problem,
-    foreign_files_problem,
-    foreign_folder_problem,
-    is_stdout,
-    is_stream,
-    output_problem,
-    overlap_problem,
-    stdout_problem,
-)
+from dpc_jax._io import is_stdout
 from dpc_jax.cli._common import (
     Formatter,
     file_path_option,
     frame_range,
-    frames_problem,
     image_size,
     import_jax,
-    input_problem,
     path_option,
     path_text,
     restore_problem,
 )
-from dpc_jax.cli._source import add_source_arguments, open_recording, source_inputs, source_problem
+from dpc_jax.cli._correct_checks import arguments_problem, holdout_every, inputs_problem, raw_prior
+from dpc_jax.cli._source import add_source_arguments, open_recording
+from dpc_jax.correction.acceptance import DEFAULT_ALPHA
 from dpc_jax.correction.decision import DEFAULT_MEAN_TEST, MEAN_TESTS
-from dpc_jax.correction.judge import (
-    JUDGE_SIZE,
-    judge_rule,
-    judge_size_problem,
-    smaller_than,
-    smaller_than_judge,
-)
-from dpc_jax.data.holdout import MIN_EVERY, adaptable_pairs, held_out_pairs
-from dpc_jax.data.poses_io import frames_path
+from dpc_jax.correction.judge import JUDGE_SIZE, Judge
+from dpc_jax.correction.outputs import CorrectionOutputs, adapted_path
+from dpc_jax.data.holdout import DEFAULT_EVERY, MIN_EVERY, holdout_problem
+from dpc_jax.data.poses_io import FORMATS, WRITE_FORMATS
 from dpc_jax.report.correction_report import applied_words
-from dpc_jax.report.evaluation_report import REPORT_FILES as EVALUATION_FILES
 from dpc_jax.runtime.progress import progress_mode
 from dpc_jax.sources.odometry_out import recording_kind
+from dpc_jax.training.train_config import ACCEPTANCE_DEPTHS, DEFAULT_SELECTION, SELECTIONS
 
 if TYPE_CHECKING:
-    import numpy as np
-
-    from dpc_jax._io import OutputSet
-    from dpc_jax.correction.adapt import Adaptation
-    from dpc_jax.correction.corrector import Correction
+    from dpc_jax.correction.corrector import CorrectedSequence
     from dpc_jax.correction.inference import TrainedRun
-    from dpc_jax.data.kitti import StereoSequence
     from dpc_jax.data.sequence_cache import SequenceCache
 
 HELP = "Correct a VO trajectory with a trained network (T* = Exp(xi_corr) T_vo); evaluate it against GT."
 # Restart with huge-page malloc (dpc_jax.runtime.hugepages): the network runs about a quarter faster.
 HUGE_PAGES = True
-# --holdout-every when not given (AdaptConfig's default): the option has no argparse default, so that
-# giving it without --adapt can be refused.
-HOLDOUT_EVERY = 5
-# Every file --report may write (dpc_jax.report.correction_report.write_correction_report): with ground
-# truth the evaluation's report and metrics.json, and always report.md and summary.json.
-REPORT_FILES = (*EVALUATION_FILES, "metrics.json", "summary.json")
 
 EPILOG = """The sequence (--data, one of):
   a prepared cache   --data cache/05   (from `dpc-jax prepare`; corrects its own prior unless --prior)
@@ -97,14 +77,12 @@ OUT.mcap, OUT.bag or --format rosbag2 write the corrected trajectory and the pri
 (/dpc/odometry, /dpc/prior) at the frames' stamps."""
 
 
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = EPILOG
     parser.formatter_class = Formatter
     parser.add_argument("--checkpoint", required=True, type=path_option, metavar="WORKDIR",
                         help="training run folder (dpc-jax train --workdir)")
-    parser.add_argument("--select", choices=("delta", "gradient", "loop", "last"), default="delta",
+    parser.add_argument("--select", choices=tuple(SELECTIONS), default=DEFAULT_SELECTION,
                         help="epoch: most negative validation Δ (none if no epoch beats no correction), best "
                         "validation gradient loss, most loop closures, or the newest")
     data = parser.add_mutually_exclusive_group(required=True)
@@ -113,7 +91,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--prior", type=path_text, metavar="FILE",
                         help="VO estimate to correct (KITTI/TUM text or .mat); required with raw inputs (a "
                         "recording: or --prior-topic)")
-    parser.add_argument("--prior-format", choices=("kitti", "tum", "mat"), help="override the extension")
+    parser.add_argument("--prior-format", choices=FORMATS, help="override the extension")
     parser.add_argument("--gt", type=path_text, metavar="FILE",
                         help="raw inputs: ground-truth pose file (KITTI/TUM/.mat)")
     parser.add_argument("--cache", type=path_option, metavar="DIR",
@@ -128,24 +106,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="corrected trajectory; OUT.mcap (an MCAP file), OUT.bag (a ROS 1 bag) or "
                         "--format rosbag2 (a ROS 2 bag folder): nav_msgs/Odometry per frame, the prior "
                         "beside it")
-    parser.add_argument("--format", choices=("kitti", "tum", "rosbag2"), default="kitti",
+    parser.add_argument("--format", choices=(*WRITE_FORMATS, "rosbag2"), default=WRITE_FORMATS[0],
                         help="format of --out (a name ending in .mcap or .bag: that recording)")
     parser.add_argument("--rotation-only", action=argparse.BooleanOptionalAction, default=None,
                         help="apply only the rotation of the correction (default: the run's rotation_only)")
     parser.add_argument("--batch-size", type=int, metavar="N", help="inference batch (default: the run's)")
     parser.add_argument("--force", action="store_true",
                         help="apply the correction even when the acceptance test rejects it")
-    parser.add_argument("--alpha", type=float, default=0.01, metavar="P",
+    parser.add_argument("--alpha", type=float, default=DEFAULT_ALPHA, metavar="P",
                         help="level of the one-sided acceptance tests on Δ")
     parser.add_argument("--no-mean-test", action="store_true",
                         help="do not test the correction's mean over the sequence on its own (the earlier "
                         "decision: a correction that passes as a whole is applied whole)")
     parser.add_argument("--decision", choices=tuple(MEAN_TESTS), default=DEFAULT_MEAN_TEST,
                         help="where and how the correction's mean is tested (docs/method.md §8): "
-                        "mean-at-network (at both sizes, the default), mean-at-judge (with a judge, at its "
+                        "mean-at-network (at both sizes), mean-at-judge (with a judge, at its "
                         "size only), mean-at-judge-a05 (the same at level 0.05), mean-noninferior (the same, "
                         "passing unless it costs 5 %% of the whole's gain or more)")
-    parser.add_argument("--acceptance-depth", choices=("network", "sgbm"),
+    parser.add_argument("--acceptance-depth", choices=ACCEPTANCE_DEPTHS,
                         help="depth Δ is measured with: sgbm, StereoSGBM on the cached pair (default for a "
                         "stereo run), or network, the network's own depth")
     judge = parser.add_mutually_exclusive_group()
@@ -166,8 +144,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "network as trained on the kept-out pairs; the adapted network and its log go to "
                         "OUT's stem + '.adapted/'")
     parser.add_argument("--holdout-every", type=int, metavar="K",
-                        help="with --adapt: every K-th frame pair (K >= 4) is kept out of adaptation with "
-                        f"every pair that touches its frames, for the test (default: {HOLDOUT_EVERY})")
+                        help=f"with --adapt: every K-th frame pair (K >= {MIN_EVERY}) is kept out of "
+                        "adaptation with every pair that touches its frames, for the test (default: "
+                        f"{DEFAULT_EVERY})")
     parser.add_argument("--adapt-lr", type=float, metavar="LR",
                         help="with --adapt: learning rate (default: the run's)")
     parser.add_argument("--report", type=path_option, metavar="DIR",
@@ -185,298 +164,8 @@ def _error(message: str) -> int:
     return 2
 
 
-def _check_arguments(args: argparse.Namespace) -> str | None:
-    """The first problem of the options, input paths and outputs (all checked without JAX), or None."""
-    raw_only = {"--gt": args.gt, "--cache": args.cache, "--frames": args.frames,
-                "--remove-static": args.remove_static or None, "--mono-rescale": args.mono_rescale or None,
-                "--grey": args.grey or None}
-    problem = source_problem(args)
-    if problem is not None:
-        return problem
-    if args.data is not None:
-        given = [name for name, value in raw_only.items() if value is not None]
-        if given or args.sequence or args.date or args.drive:
-            extra = given + [o for o, v in (("--sequence", args.sequence), ("--date", args.date),
-                                            ("--drive", args.drive)) if v]
-            return (f"{', '.join(extra)} only apply to raw inputs (--kitti-odometry/--kitti-raw/--bag), not "
-                    "--data")
-        if not args.data.is_dir():
-            return f"--data {args.data}: not a folder (expected a cache prepared by `dpc-jax prepare`)"
-        if not (args.data / "manifest.json").is_file():
-            caches = sorted(p.name for p in args.data.iterdir() if (p / "manifest.json").is_file())
-            if caches:
-                return (f"--data {args.data}: a folder of caches ({', '.join(caches[:5])}"
-                        f"{', ...' if len(caches) > 5 else ''}), not one; give one of them, e.g. --data "
-                        f"{args.data / caches[0]}")
-            return f"--data {args.data}: not a prepared cache (no manifest.json); run `dpc-jax prepare`"
-        if args.no_judge:
-            return ("--no-judge goes with raw inputs (--kitti-odometry/--kitti-raw), whose default judge it "
-                    "turns off; a --data cache is judged only with --judge CACHE")
-    if args.data is None and args.prior is None and args.prior_topic is None:
-        return ("--prior FILE is required with raw inputs (the VO estimate to correct; a recording: or "
-                "--prior-topic TOPIC)")
-    if args.prior is not None and args.prior_topic is not None:
-        return "--prior and --prior-topic: give one prior"
-    if args.format == "tum" and recording_kind(args.out) is not None:
-        return f"--format tum: --out {args.out} is named as a recording; give a text file's name"
-    if args.batch_size is not None and args.batch_size < 1:
-        return f"--batch-size must be >= 1, got {args.batch_size}"
-    if not 0.0 < args.alpha < 1.0:
-        return f"--alpha must be in (0, 1), got {args.alpha}"
-    adapt_options = (("--holdout-every", args.holdout_every), ("--adapt-lr", args.adapt_lr))
-    adapt_only = [f"{option} {value}" for option, value in adapt_options if value is not None]
-    if adapt_only and not args.adapt:
-        return (f"{', '.join(adapt_only)}: only used with --adapt STEPS (fine-tuning on the sequence), "
-                "which is not given")
-    if args.adapt < 0:
-        return f"--adapt {args.adapt}: expected 0 (no adaptation) or more steps"
-    if _holdout_every(args) < MIN_EVERY:
-        return f"--holdout-every {args.holdout_every}: expected {MIN_EVERY} or more"
-    if args.judge is not None and args.data is None:
-        return "--judge CACHE goes with --data (raw inputs: --judge-size HxW)"
-    if args.judge_size is not None and args.data is not None:
-        return "--judge-size goes with raw inputs (with --data: --judge CACHE)"
-    if args.adapt_lr is not None and not args.adapt_lr > 0:
-        return f"--adapt-lr must be > 0, got {args.adapt_lr}"
-    problem = (input_problem(args.judge, "--judge", folder=True)
-               or input_problem(args.prior, "--prior") or input_problem(args.gt, "--gt")
-               or output_problem(args.out, "--out") or output_problem(args.report, "--report", folder=True)
-               or output_problem(args.cache, "--cache", folder=True)
-               or (output_problem(adapted_path(args.out), "--adapt", folder=True) if args.adapt else None))
-    if problem is not None:
-        return problem
-    if args.adapt and is_stream(args.out):
-        return (f"--adapt: the adapted network goes beside --out (OUT's stem + '.adapted/'), and --out "
-                f"{args.out} is a stream; give --out a file")
-    inputs = [("--checkpoint", args.checkpoint), ("--data", args.data), ("--judge", args.judge),
-              *source_inputs(args), ("--prior", args.prior), ("--gt", args.gt)]
-    outputs = [("--out", args.out), ("--report", args.report), ("--cache", args.cache),
-               ("--adapt", adapted_path(args.out) if args.adapt else None)]
-    problem = (overlap_problem(inputs, outputs)
-               or stdout_problem(inputs)
-               or (foreign_files_problem(args.report, REPORT_FILES, f"--report {args.report}",
-                                         writer="correct --report") if args.report is not None else None)
-               or (beside_problem([(f"--out {args.out} (its frame list)", frames_path(args.out))])
-                   if not is_stream(args.out) else None)
-               or (foreign_folder_problem(adapted_path(args.out), f"--adapt (beside --out {args.out})",
-                                          marker="checkpoints/config.json",
-                                          made_by="an adapted network (`correct --adapt`)")
-                   if args.adapt else None))
-    if problem is not None:
-        return problem
-    if args.cache is not None:
-        problem = _cache_folders_problem(args)
-        if problem is not None:
-            return problem
-    if not (args.checkpoint / "checkpoints" / "config.json").is_file():
-        return (f"--checkpoint {args.checkpoint}: not a training run (expected "
-                f"{args.checkpoint / 'checkpoints' / 'config.json'}, written by `dpc-jax train`)")
-    return _raw_inputs_problem(args) if args.data is None else None
-
-
-def _raw_inputs_problem(args: argparse.Namespace) -> str | None:
-    """Why ``--frames``, ``--prior`` or ``--gt`` do not fit the raw inputs' sequence (its frame count, one
-    rigid pose per frame), or None: read before JAX starts, as ``prepare`` reads them, so that such a
-    mistake costs no JAX start-up."""
-    from dpc_jax.data.kitti import read_ground_truth
-    from dpc_jax.data.priors import load_prior
-
-    try:
-        recording = open_recording(args, args.sequence or args.drive)
-    except (OSError, ValueError, KeyError) as error:
-        return str(error)
-    sequence = recording.sequence
-    problem = frames_problem(args.frames, len(sequence), sequence.name)
-    if problem is not None:
-        return problem
-    try:
-        load_prior(_prior(args), len(sequence), args.prior_format, frames=args.frames)
-    except (OSError, ValueError) as error:
-        return f"--prior {error}"
-    try:
-        poses = None if args.gt is None else read_ground_truth(args.gt)
-    except (OSError, ValueError) as error:
-        return f"--gt {error}"
-    if poses is not None and poses.shape[0] != len(sequence):
-        return (f"--gt {args.gt}: {poses.shape[0]} ground-truth poses for the {len(sequence)} frames of "
-                f"{sequence.name}; expected one per frame")
-    return None
-
-
-def _open_sequence(args: argparse.Namespace) -> StereoSequence:
-    """The sequence of the raw inputs (``--kitti-odometry``, ``--kitti-raw`` or ``--bag``), opened once
-    (no JAX)."""
-    return open_recording(args, args.sequence or args.drive).sequence
-
-
-def _prior(args: argparse.Namespace) -> str | np.ndarray:
-    """The prior of the raw inputs: ``--prior FILE``, or the recording's ``--prior-topic``."""
-    if args.prior is not None:
-        return str(args.prior)
-    prior = open_recording(args, None).prior
-    assert prior is not None, "_check_arguments asks for a prior"
-    return prior
-
-
-def _cache_folders_problem(args: argparse.Namespace) -> str | None:
-    """Why a folder that preparing the raw inputs into ``--cache`` would replace (``CACHE/NAME``, and
-    ``CACHE/NAME_judge`` with ``--judge-size``, given or the default) is not a cache, or None. The
-    sequence is opened for its name (its files listed, no JAX); a sequence that cannot be opened is
-    reported here."""
-    from dpc_jax.data.sequence_cache import MANIFEST
-
-    try:
-        name = _open_sequence(args).name
-    except (OSError, ValueError, KeyError) as error:
-        return str(error)
-    names = [name] + ([f"{name}_judge"] if args.judge_size is not None else [])
-    for folder in names:
-        problem = foreign_folder_problem(args.cache / folder, f"--cache {args.cache}", marker=MANIFEST,
-                                         made_by="a cache of `dpc-jax prepare`")
-        if problem is not None:
-            return problem
-    return None
-
-
-def default_judge_size(
-    args: argparse.Namespace, method: str, size: tuple[int, int], source: tuple[int, int]
-) -> tuple[int, int] | None:
-    """The size raw inputs are judged at when ``--judge-size`` is not given: :data:`JUDGE_SIZE` for a
-    ``stereo_dpc`` run of image ``size`` smaller than it (no larger in either dimension), but no larger
-    than the ``source`` images (a judge upsampled from smaller images sees nothing they do not), and
-    only when that is still larger than the run's; unless ``--no-judge`` or ``--force`` (a forced
-    correction is not judged); None otherwise, and with ``--data`` (a cache has no larger frames to
-    judge at)."""
-    if args.data is not None or args.judge_size is not None or args.no_judge or args.force:
-        return None
-    return judge_rule(method, size, source)
-
-
-def _take_default_judge(args: argparse.Namespace) -> str | None:
-    """With raw inputs, check ``--judge-size`` against the run and the source images (a judge is never
-    smaller than the run's images nor larger than the source's); with no judge option, set
-    ``args.judge_size`` to :func:`default_judge_size` of the stored run (read without JAX) and mark it
-    ``args.default_judge``; then, with ``--cache``, why its ``NAME_judge`` folder cannot be replaced,
-    or None."""
-    from dpc_jax import config as config_lib
-    from dpc_jax.training.train_config import TrainConfig
-
-    args.default_judge = False
-    args.judge_limited = None
-    if args.data is not None:
-        return None
-    config = config_lib.load_file(args.checkpoint / "checkpoints" / "config.json", TrainConfig)
-    try:
-        height, width = _open_sequence(args).image_size
-    except (OSError, ValueError, KeyError) as error:
-        return str(error)
-    source = (int(height), int(width))
-    run_size = (int(config.resolved_image_size[0]), int(config.resolved_image_size[1]))
-    if args.judge_size is not None:
-        problem = judge_size_problem(args.judge_size, run_size, source)
-        if problem is None and args.cache is not None:
-            problem = _cache_folders_problem(args)
-        return problem
-    size = default_judge_size(args, config.method, run_size, source)
-    if size is None:
-        if (config.method == "stereo_dpc" and not (args.no_judge or args.force)
-                and smaller_than_judge(run_size) and not smaller_than(run_size, source)):
-            args.judge_limited = source
-        return None
-    args.judge_size, args.default_judge = size, True
-    return _cache_folders_problem(args) if args.cache is not None else None
-
-
-def _holdout_problem(args: argparse.Namespace, n_frames: int, where: Path | str) -> str | None:
-    """Why ``--adapt`` cannot keep pairs of the ``n_frames`` frames of ``where`` out for its test, or
-    None (``dpc_jax.data.holdout``): the test needs one pair kept out, adaptation one that touches
-    none of its frames."""
-    if not args.adapt:
-        return None
-    every, n_pairs = _holdout_every(args), n_frames - 1
-    held, adaptable = held_out_pairs(n_pairs, every).size, adaptable_pairs(n_pairs, every).size
-    if held and adaptable:
-        return None
-    fits = [k for k in range(MIN_EVERY, 2 * n_pairs + 1)
-            if held_out_pairs(n_pairs, k).size and adaptable_pairs(n_pairs, k).size]
-    hint = f"; use --holdout-every {max(fits)} or less" if fits else f"; {where} is too short to adapt on"
-    return (f"--holdout-every {every}: keeps {held} of the {n_pairs} frame pairs of {where} out of "
-            f"adaptation and leaves {adaptable} that touch none of their frames, but its test needs at "
-            f"least one kept out and one to adapt on{hint}")
-
-
-def _run_problem(args: argparse.Namespace, checked: SequenceCache | None) -> str | None:
-    """The first option or input that does not fit the run's stored config (its method, image size and
-    flow), or None; read without JAX, so such a mistake costs no JAX start-up. ``checked``: the
-    ``--data`` cache, loaded (None: raw inputs, prepared later at the run's size)."""
-    import numpy as np
-
-    from dpc_jax import config as config_lib
-    from dpc_jax.data.priors import prior_for_cache
-    from dpc_jax.data.sequence_cache import load_cache
-    from dpc_jax.training.train_config import TrainConfig
-
-    stored = args.checkpoint / "checkpoints" / "config.json"
-    try:
-        config = config_lib.load_file(stored, TrainConfig)
-    except ValueError as error:
-        return f"--checkpoint {args.checkpoint}: {error}"
-    method = f"the run {args.checkpoint} is {config.method}, which has no stereo pair"
-    if config.method != "stereo_dpc":
-        if args.acceptance_depth == "sgbm":
-            return f"--acceptance-depth sgbm: StereoSGBM depth needs a stereo run (stereo_dpc); {method}"
-        judge = (f"--judge {args.judge}" if args.judge is not None
-                 else f"--judge-size {args.judge_size[0]}x{args.judge_size[1]}" if args.judge_size else None)
-        if judge is not None:
-            return f"{judge}: a judge measures Δ with stereo depth (stereo_dpc); {method}"
-    if checked is None:
-        return None
-    h, w = config.resolved_image_size
-    if checked.image_size != (h, w):
-        return (f"--data {args.data}: images are {checked.image_size[0]}x{checked.image_size[1]}, but the "
-                f"run {args.checkpoint} was trained at {h}x{w}; prepare the sequence with --size {h}x{w}")
-    if config.use_flow and "forward" not in checked.flows:
-        return (f"--data {args.data}: no forward flow in the cache, which the network of {args.checkpoint} "
-                f"({config.method}) reads; prepare it with `dpc-jax prepare ... --flow`")
-    if args.judge is not None:
-        try:
-            judged = load_cache(args.judge, verify=args.verify)
-        except (OSError, ValueError) as error:
-            return f"--judge {error}"
-        same = judged.manifest.get("sequence") == checked.manifest.get("sequence")
-        if not same or not np.array_equal(np.asarray(judged.indices), np.asarray(checked.indices)):
-            return (f"--judge {args.judge}: holds frames other than those of --data {args.data}; a judge "
-                    "must be the same frames prepared at another size")
-        (jh, jw), (ch, cw) = judged.image_size, checked.image_size
-        if jh < ch or jw < cw:
-            return (f"--judge {args.judge}: images are {jh}x{jw}, smaller than those of --data {args.data} "
-                    f"({ch}x{cw}); a judge measures Δ on more pixels than the network saw, not fewer")
-    if args.prior is not None:
-        try:
-            prior_for_cache(checked, args.prior, args.prior_format)
-        except (OSError, ValueError) as error:
-            return f"--prior {error}"
-    back = np.flatnonzero(np.diff(np.asarray(checked.times)) <= 0)
-    if args.format == "tum" and back.size:  # write_tum refuses them, as read_tum would
-        k = int(back[0]) + 1
-        return (f"--format tum: the frame times of --data {args.data} do not increase at cached frame {k} "
-                f"({checked.times[k]:.15g} s after {checked.times[k - 1]:.15g} s); a TUM file needs "
-                "increasing times: use --format kitti")
-    return None
-
-
-def _holdout_every(args: argparse.Namespace) -> int:
-    """``--holdout-every``, or its default when not given."""
-    return HOLDOUT_EVERY if args.holdout_every is None else int(args.holdout_every)
-
-
-def adapted_path(out: Path) -> Path:
-    """Where ``--adapt`` puts the adapted network: ``corrected.txt`` → ``corrected.adapted/``."""
-    return out.with_name(f"{out.stem}.adapted")
-
-
 def run(args: argparse.Namespace) -> int:
-    problem = _check_arguments(args)
+    problem = arguments_problem(args)
     if problem is not None:
         return _error(problem)
     from dpc_jax.data.sequence_cache import load_cache
@@ -486,165 +175,82 @@ def run(args: argparse.Namespace) -> int:
         checked = load_cache(args.data, verify=args.verify) if args.data is not None else None
     except (OSError, ValueError) as error:
         return _error(str(error))
-    problem = _run_problem(args, checked)
-    if problem is None and checked is not None:
-        problem = _holdout_problem(args, len(checked), checked.path)
-    if problem is None:
-        problem = _take_default_judge(args)
+    problem, judge = inputs_problem(args, checked)
     if problem is not None:
         return _error(problem)
     import_jax()
     # Orbax logs a warning per read-only checkpoint manager; they say nothing useful here.
     logging.getLogger("absl").setLevel(logging.ERROR)
     from dpc_jax.correction.inference import load_run
+    from dpc_jax.correction.outputs import write_corrected
     from dpc_jax.training.checkpoints import CheckpointError
 
+    try:
+        run_ = load_run(args.checkpoint, args.select)
+    except CheckpointError as error:
+        return _error(restore_problem(error.folder, error.__cause__ or error))
+    except (OSError, ValueError, KeyError) as error:
+        return _error(str(error))
     # The stack holds the temporary cache of raw inputs, removed before the outputs are written.
     with contextlib.ExitStack() as stack:
         try:
-            try:
-                run_ = load_run(args.checkpoint, args.select)
-            except CheckpointError as error:
-                return _error(restore_problem(error.folder, error.__cause__ or error))
-            cache, prior, judge = _sequence(args, run_, checked, stack)
-            correction, adaptation, adapted = _correct(args, run_, cache, prior, judge)
+            done = _correct(args, run_, checked, judge, stack)
         except (OSError, ValueError, KeyError) as error:
             return _error(str(error))
-    written = _write_outputs(args, correction, adaptation, adapted)
+    written = write_corrected(done, _outputs(args))
     # With the trajectory on standard output, the summary goes to stderr, so that what reads standard
     # output gets the trajectory alone.
     with contextlib.redirect_stdout(sys.stderr) if is_stdout(args.out) else contextlib.nullcontext():
-        _print_summary(args, run_, correction, adaptation, written)
+        _print_summary(args, run_, done, written, judge)
     return 0
 
 
-def _sequence(
-    args: argparse.Namespace, run_: TrainedRun, checked: SequenceCache | None, stack: contextlib.ExitStack
-) -> tuple[SequenceCache | Path, str | None, Path | None]:
-    """The sequence to correct, the prior to correct instead of its own (None: the cache's) and the
-    judge's cache (None: none).
+def _outputs(args: argparse.Namespace) -> CorrectionOutputs:
+    """Where the outputs go; a recording written from raw inputs takes their stamps and frame names."""
+    to = CorrectionOutputs(args.out, args.format, args.report, adapted_path(args.out) if args.adapt else None)
+    if args.data is None and (recording_kind(args.out) or args.format == "rosbag2"):
+        source = open_recording(args, args.sequence or args.drive)
+        to = dataclasses.replace(to, first_stamp=source.first_stamp,
+                                 frame_ids=(source.world_frame, source.camera_frame))
+    return to
 
-    ``checked``: the ``--data`` cache, loaded; else the raw inputs are prepared at the run's image size
-    (and at ``--judge-size``) into ``--cache`` or a temporary folder that ``stack`` removes, with
-    ``--prior`` as the cache's prior.
-    """
-    if checked is not None:
-        return checked, args.prior, args.judge
-    from dpc_jax._io import remove_stale
-    from dpc_jax.data.cache import prepare_sequence
 
-    sequence = _open_sequence(args)
-    # The pid in the name lets a later run remove the folder of a killed one.
-    remove_stale(tempfile.gettempdir(), "dpc-correct-")
-    cache_root = args.cache or Path(
-        stack.enter_context(tempfile.TemporaryDirectory(prefix=f"dpc-correct-{os.getpid()}-"))
-    )
-    common = {"remove_static": args.remove_static, "mono_rescale": args.mono_rescale, "frames": args.frames,
-              "prior_format": args.prior_format, "ground_truth": args.gt, "verify": args.verify,
-              "progress": progress_mode(args.no_progress)}
-    prior = _prior(args)
-    cache = prepare_sequence(sequence, prior, cache_root, size=run_.image_size, flow=run_.use_flow, **common)
-    judge = None
-    if args.judge_size is not None:
-        judge = prepare_sequence(sequence, prior, cache_root, size=args.judge_size,
-                                 name=f"{sequence.name}_judge", **common)
+def _correct(args: argparse.Namespace, run_: TrainedRun, checked: SequenceCache | None, judge: Judge,
+             stack: contextlib.ExitStack) -> CorrectedSequence:
+    """Correct the ``--data`` cache (``checked``) or the raw inputs, prepared at the run's image size
+    (and at the ``judge``'s) into ``--cache`` or a temporary folder that ``stack`` removes."""
+    from dpc_jax.correction.adapt import AdaptConfig
+    from dpc_jax.correction.corrector import correct_sequence
+    from dpc_jax.correction.raw_inputs import prepared_inputs
     from dpc_jax.data.sequence_cache import load_cache
 
-    problem = _holdout_problem(args, len(load_cache(cache)), sequence.name)
-    if problem is not None:
-        raise ValueError(problem)
-    return cache, None, judge
-
-
-def _correct(
-    args: argparse.Namespace, run_: TrainedRun, cache: SequenceCache | Path, prior: str | None,
-    judge: Path | None,
-) -> tuple[Correction, Adaptation | None, Correction | None]:
-    """The correction to write, with ``--adapt`` also the adaptation and the adapted network's correction
-    (the one written only if :func:`~dpc_jax.correction.corrector.choose` prefers it to the trained
-    network's)."""
-    from dpc_jax.correction.corrector import correct_sequence
-
     show = progress_mode(args.no_progress)
-    options = {"rotation_only": args.rotation_only, "batch_size": args.batch_size,
-               "acceptance_depth": args.acceptance_depth, "alpha": args.alpha, "force": args.force,
-               "mean_test": not args.no_mean_test, "mean": MEAN_TESTS[args.decision], "judge": judge}
-    how = None
-    if args.adapt:
-        from dpc_jax.correction.adapt import AdaptConfig
-
-        how = AdaptConfig(args.adapt, holdout_every=_holdout_every(args), learning_rate=args.adapt_lr)
-    done = correct_sequence(run_, cache, prior, adapt=how, prior_format=args.prior_format, progress=show,
-                            **options)
-    return done.result, done.adaptation, done.adapted
-
-
-def _write_outputs(
-    args: argparse.Namespace, correction: Correction, adaptation: Adaptation | None,
-    adapted: Correction | None,
-) -> list[Path]:
-    """Write ``--out`` (and its frame list), ``--report`` and the adapted network; the trajectory files."""
-    from dpc_jax._io import OutputSet, record_beside, record_own_files
-    from dpc_jax.correction.corrector import write_trajectory
-    from dpc_jax.report.correction_report import write_correction_report
-
-    # The corrected trajectory (with its frame list) and the report are written all or nothing.
-    with OutputSet() as outputs:
-        kind = recording_kind(args.out) or ("rosbag2" if args.format == "rosbag2" else None)
-        if kind is not None:
-            staged = [_write_recording(args, outputs, kind, correction)]
-        else:
-            staged = write_trajectory(outputs.file(args.out), correction, args.format)
-            if not is_stream(args.out):
-                record_beside([args.out.parent / path.name for path in staged[1:]], outputs)
-        if args.report is not None:
-            title = f"DPC correction: {correction.name}"
-            folder = outputs.folder(args.report)
-            reported = write_correction_report(folder, correction, title)
-            record_own_files(folder, args.report, [path.name for path in reported], writer="correct --report")
-        if adaptation is not None and adapted is not None:
-            from dpc_jax.correction.adapt import save_adapted
-
-            save_adapted(outputs.folder(adapted_path(args.out)), adaptation,
-                         {"delta": adapted.acceptance.mean_delta})
-        outputs.commit()
-    if is_stream(args.out):
-        # A stream takes the trajectory only; the frame list staged beside it is not made.
-        return [args.out]
-    return [args.out.parent / path.name for path in staged]
+    cache, prior, judged = checked, args.prior, args.judge
+    if cache is None:
+        sequence = open_recording(args, args.sequence or args.drive).sequence
+        prepared, judged = stack.enter_context(prepared_inputs(
+            sequence, raw_prior(args), args.cache, size=run_.image_size, flow=run_.use_flow,
+            judge_size=judge.size, remove_static=args.remove_static, mono_rescale=args.mono_rescale,
+            frames=args.frames, prior_format=args.prior_format, ground_truth=args.gt, verify=args.verify,
+            progress=show))
+        cache, prior = load_cache(prepared), None
+        problem = holdout_problem(len(cache), holdout_every(args), sequence.name) if args.adapt else None
+        if problem is not None:
+            raise ValueError(problem)
+    how = (AdaptConfig(args.adapt, holdout_every=holdout_every(args), learning_rate=args.adapt_lr)
+           if args.adapt else None)
+    return correct_sequence(run_, cache, prior, adapt=how, prior_format=args.prior_format, progress=show,
+                            rotation_only=args.rotation_only, batch_size=args.batch_size,
+                            acceptance_depth=args.acceptance_depth, alpha=args.alpha, force=args.force,
+                            mean_test=not args.no_mean_test, mean=MEAN_TESTS[args.decision], judge=judged)
 
 
-def _write_recording(args: argparse.Namespace, outputs: OutputSet, kind: str, correction: Correction) -> Path:
-    """Stage ``--out`` as a recording of the corrected trajectory and the prior (``nav_msgs/Odometry`` at
-    the frames' stamps: a recording's own, else the frame times); return its final path."""
-    import numpy as np
-
-    from dpc_jax.sources.odometry_out import CORRECTED, PRIOR, write_odometry
-
-    source = open_recording(args, args.sequence or args.drive) if args.data is None else None
-    first = source.first_stamp if source is not None else 0
-    frames = (source.world_frame, source.camera_frame) if source is not None else ("world", "camera")
-    stamps = first + np.round(np.asarray(correction.times, np.float64) * 1e9).astype(np.int64)
-    trajectories = {CORRECTED: correction.corrected, PRIOR: correction.prior}
-    if kind == "rosbag2":
-        folder = outputs.folder(args.out)
-        staged = folder / ".rosbag2"
-        write_odometry(staged, kind, stamps, *frames, trajectories)
-        for item in staged.iterdir():
-            item.rename(folder / item.name)
-        staged.rmdir()
-    else:
-        write_odometry(outputs.file(args.out), kind, stamps, *frames, trajectories)
-    return Path(args.out)
-
-
-def _print_summary(
-    args: argparse.Namespace, run_: TrainedRun, correction: Correction, adaptation: Adaptation | None,
-    written: list[Path],
-) -> None:
+def _print_summary(args: argparse.Namespace, run_: TrainedRun, done: CorrectedSequence, written: list[Path],
+                   judge: Judge) -> None:
     """Print what was applied and written, the metrics against ground truth and the adaptation's outcome."""
     from dpc_jax.report.evaluation_report import format_table
 
+    correction, adaptation = done.result, done.adaptation
     criterion = {"delta": "most negative validation Δ", "gradient": "best gradient loss",
                  "loop": "most loop closures", "last": "newest"}[args.select]
     if args.select == "delta" and not run_.improves_on_prior:
@@ -669,29 +275,7 @@ def _print_summary(
         print(f"adapted: {args.adapt} steps in {adaptation.seconds / 60:.1f} min on {correction.name}'s own "
               f"pairs, {adaptation.held_out.size} kept out for the test -> {adapted_path(args.out)}")
         print(f"final: {correction.choice['final']} ({correction.choice['reason']})")
-    _print_judge(args, run_)
+    if judge.note is not None:
+        print(judge.note)
     if args.report is not None:
         print(f"report: {args.report / 'report.md'}")
-
-
-def _print_judge(args: argparse.Namespace, run_: TrainedRun) -> None:
-    """One line on where the acceptance test was measured when that is not the obvious: at the default
-    judge's size, or (a stereo run smaller than :data:`JUDGE_SIZE` given a ``--data`` cache and no
-    ``--judge``) at the cache's size only, with how to get a judge."""
-    h, w = run_.image_size
-    if getattr(args, "default_judge", False):
-        jh, jw = args.judge_size
-        smaller = "" if (jh, jw) == JUDGE_SIZE else (f", the largest the {jh}x{jw} source images allow "
-                                                     f"of {JUDGE_SIZE[0]}x{JUDGE_SIZE[1]}")
-        print(f"acceptance test: measured at {jh}x{jw} (the default judge of a stereo run on raw inputs"
-              f"{smaller}; --no-judge: at the run's {h}x{w} only)")
-    elif getattr(args, "judge_limited", None) is not None:
-        sh, sw = args.judge_limited
-        print(f"note: the acceptance test was measured at the run's {h}x{w} only: the source images "
-              f"({sh}x{sw}) are no larger, and a judge is not upsampled")
-    elif (args.data is not None and args.judge is None and not args.no_judge and not args.force
-          and run_.config.method == "stereo_dpc" and smaller_than_judge((h, w))):
-        print(f"note: the acceptance test was measured at the cache's {h}x{w} only (a cache has no "
-              f"full-size images to judge at); to judge at {JUDGE_SIZE[0]}x{JUDGE_SIZE[1]}, prepare the same "
-              f"frames with `dpc-jax prepare ... --size {JUDGE_SIZE[0]}x{JUDGE_SIZE[1]}` and pass that cache "
-              "as --judge CACHE (or correct from the raw inputs, judged there by default)")

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 
 from dpc_jax._io import foreign_files_problem, is_stdout, output_problem, overlap_problem, stdout_problem
 from dpc_jax.cli._common import Formatter, file_path_text, import_jax, input_problem, path_option
+from dpc_jax.data.poses_io import FORMATS
 
 if TYPE_CHECKING:
     import numpy as np
@@ -56,7 +57,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="label of each --est, in order (default: the file name without extension)",
     )
     parser.add_argument(
-        "--format", choices=("kitti", "tum", "mat"), default=None,
+        "--format", choices=FORMATS, default=None,
         help="format of --gt/--est files (default: from the extension or the column count)",
     )
     parser.add_argument(

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 
 from dpc_jax._io import foreign_folder_problem, output_problem, overlap_problem
 from dpc_jax.cli._common import (
+    MAX_PIXELS,
     Formatter,
     finite_problem,
     frame_range,
@@ -29,6 +30,7 @@ from dpc_jax.cli._source import (
     source_keys,
     source_problem,
 )
+from dpc_jax.data.poses_io import FORMATS
 from dpc_jax.runtime.progress import progress_mode
 
 if TYPE_CHECKING:
@@ -65,7 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--prior", type=path_text, metavar="FILE",
                         help="VO estimate per frame (KITTI/TUM text or .mat); '{seq}' = sequence name; a "
                         "recording's own prior: --prior-topic")
-    parser.add_argument("--prior-format", choices=("kitti", "tum", "mat"),
+    parser.add_argument("--prior-format", choices=FORMATS,
                         help="format of --prior (default: from the extension or the column count)")
     parser.add_argument("--gt", type=path_text, metavar="FILE",
                         help="ground-truth pose file (KITTI/TUM/.mat); '{seq}' allowed")
@@ -74,7 +76,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--size", type=image_size, default=(240, 376), metavar="HxW",
                         help="stored image size (default: 240x376)")
     parser.add_argument("--allow-large", action="store_true",
-                        help="accept a --size above 4 megapixels per image")
+                        help=f"accept a --size above {MAX_PIXELS / 1e6:g} megapixels per image")
     parser.add_argument("--frames", type=frame_range, metavar="START:STOP",
                         help="keep only these source frames")
     parser.add_argument("--remove-static", action="store_true", help="drop static frames (ss-DPC-Net rule)")

@@ -9,7 +9,19 @@ import time
 from pathlib import Path
 from typing import Any
 
-from dpc_jax._io import output_problem
+import numpy as np
+
+from dpc_jax._io import (
+    OutputSet,
+    atomic_write,
+    beside_problem,
+    is_stream,
+    output_problem,
+    output_target,
+    overlap_problem,
+    record_beside,
+    report_stream,
+)
 from dpc_jax.cli._common import (
     Formatter,
     file_path_option,
@@ -22,9 +34,27 @@ from dpc_jax.cli._common import (
     path_option,
     restore_problem,
 )
+from dpc_jax.cli._live_options import (
+    add_correction_arguments,
+    beside_files,
+    correction_problem,
+    corrector,
+    run_problem,
+)
 from dpc_jax.cli._source import add_source_arguments, open_recording, source_inputs, source_problem
-from dpc_jax.cli.live import add_correction_arguments, correction_problem, run_size_problem
+from dpc_jax.correction.judge import Judge
+from dpc_jax.correction.stream import (
+    LiveSummary,
+    Pace,
+    VOStep,
+    correct_frames,
+    live_outputs,
+    network_words,
+    sequence_arrivals,
+    write_summary,
+)
 from dpc_jax.runtime.progress import progress_mode
+from dpc_jax.vo import VOConfig
 
 HELP = ("Classical stereo visual odometry (libviso2-s-like): write the trajectory and a per-frame CSV; "
         "with --correct RUN, each pose corrected live by a trained network as it is made.")
@@ -64,8 +94,6 @@ was due. Ctrl-C: exit status 130, every line written so far whole.
       --correct runs/drive_0005 --realtime 10 --out live.txt"""
 
 
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = EPILOG
     parser.formatter_class = Formatter
@@ -81,7 +109,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frames", type=frame_range, metavar="START:STOP",
                         help="use only these frames (the trajectory then holds their poses only, and its "
                         ".json and CSV say which: `prepare`/`correct` take it for frames in this range only)")
-    parser.add_argument("--disparity-offset", type=float, default=0.0, metavar="PX",
+    parser.add_argument("--disparity-offset", type=float, default=VOConfig.disparity_offset, metavar="PX",
                         help="disparity offset (px added to measured disparities); the starting value "
                              "of the online estimate unless --fixed-offset")
     parser.add_argument("--fixed-offset", action="store_true",
@@ -115,8 +143,6 @@ def _same_file_problem(out: Path, csv_path: Path | None, json_path: Path | None)
     too, this says which name to change. None paths (beside a stream) are not written."""
     if json_path is None or csv_path is None:
         return None
-    from dpc_jax._io import output_target
-
     targets = {name: output_target(path) for name, path in (("--out", out), ("csv", csv_path),
                                                              ("json", json_path))}
     if targets["--out"][0] != "stream" and targets["--out"][1] == targets["json"][1]:
@@ -137,9 +163,6 @@ def prior_path(out: Path) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    from dpc_jax._io import beside_problem, is_stdout, is_stream, overlap_problem
-    from dpc_jax.cli.live import beside_files
-
     # Nothing is made beside a stream (/dev/stdout, /dev/null, a FIFO): only what was asked is
     # written, the trajectory and a --csv given, never /dev/stdout.csv.
     streamed = is_stream(args.out)
@@ -170,12 +193,9 @@ def run(args: argparse.Namespace) -> int:
     if problem is not None:
         print(f"dpc-jax vo: error: {problem}", file=sys.stderr)
         return 2
-    import numpy as np
-
-    from dpc_jax._io import OutputSet, atomic_write, record_beside
     from dpc_jax.data.poses_io import write_kitti_poses
     from dpc_jax.data.priors import FRAMES_KEY
-    from dpc_jax.vo import VOConfig, run_vo
+    from dpc_jax.vo import run_vo
     from dpc_jax.vo.odometry import per_frame_table, summary
 
     try:
@@ -199,11 +219,11 @@ def run(args: argparse.Namespace) -> int:
 
     config = VOConfig(disparity_offset=args.disparity_offset, estimate_offset=not args.fixed_offset)
     if args.correct is not None:
-        problem = run_size_problem(args, args.correct, "--correct", sequence.image_size, sequence.name)
+        problem, judge = run_problem(args, args.correct, "--correct", sequence.image_size, sequence.name)
         if problem is not None:
             print(f"dpc-jax vo: error: {problem}", file=sys.stderr)
             return 2
-        return _correct_live(args, sequence, config, (first, stop), csv_path, json_path, prior_out,
+        return _correct_live(args, sequence, config, judge, (first, stop), csv_path, json_path, prior_out,
                              prior_json, tuple(path for _, path in beside))
     first_pose = sequence.poses[0] if args.start == "gt" else None
     try:
@@ -225,7 +245,7 @@ def run(args: argparse.Namespace) -> int:
 
     # With the trajectory (or the CSV) on standard output, the summary goes to stderr, so that what
     # reads standard output gets the file alone.
-    report = sys.stderr if any(is_stdout(path) for path in (args.out, csv_path) if path is not None) else None
+    report = report_stream(args.out, csv_path)
     rate = len(result.times) / result.times.sum()
     print(
         f"{sequence.name}: {len(result.poses)} frames, {rate:.1f} frames/s (VO only), "
@@ -238,109 +258,47 @@ def run(args: argparse.Namespace) -> int:
         print(f"dpc-jax vo: warning: {sequence.name}: {counts['warning']}", file=sys.stderr)
     if sequence.poses is not None:
         import_jax()  # the VO itself runs without JAX; the metric is jitted
-        from dpc_jax.eval.metrics import m_ate
-
-        gt = sequence.poses
-        est = gt[0] @ np.linalg.inv(result.poses[0]) @ result.poses
-        trans, rot = m_ate(gt, est)
-        final = float(np.linalg.norm(est[-1, :3, 3] - gt[-1, :3, 3]))
-        print(
-            f"vs ground truth: m-ATE {float(trans):.3f} m / {float(rot):.3f} deg, "
-            f"final-position error {final:.3f} m",
-            file=report,
-        )
+        print(f"vs ground truth: {_versus(sequence.poses, result.poses)}", file=report)
     written = [str(path) for path in (args.out, csv_path, json_path) if path is not None]
     print(f"wrote {', '.join(written)}", file=report)
     return 0
 
 
 def _correct_live(
-    args: argparse.Namespace, sequence: Any, config: Any, frames: tuple[int, int], csv_path: Path | None,
-    json_path: Path | None, prior_out: Path | None, prior_json: Path | None, beside: tuple[Path | None, ...],
+    args: argparse.Namespace, sequence: Any, config: Any, judge: Judge, frames: tuple[int, int],
+    csv_path: Path | None, json_path: Path | None, prior_out: Path | None, prior_json: Path | None,
+    beside: tuple[Path | None, ...],
 ) -> int:
     """``--correct``: the VO and the run's correction frame by frame, each pose written as it is made
-    (``dpc_jax.cli.live``); then, as without it, the VO's summary, the evaluation against ground truth
-    and the ``.json`` records. ``frames``: the source frames ``(START, STOP)`` of ``sequence``."""
-    import dataclasses
+    (``dpc_jax.correction.stream``); then, as without it, the VO's summary, the evaluation against ground
+    truth and the ``.json`` records. ``judge``: :func:`~dpc_jax.cli._live_options.run_problem`'s;
+    ``frames``: the source frames ``(START, STOP)`` of ``sequence``."""
     from concurrent.futures import ThreadPoolExecutor
 
-    import numpy as np
-
-    from dpc_jax.cli.live import (
-        Arrived,
-        Corrected,
-        LiveOutputs,
-        LiveSummary,
-        Pace,
-        correct_frames,
-        corrector,
-        network_words,
-        report_stream,
-        write_summary,
-    )
     from dpc_jax.data.calibration import Calibration
     from dpc_jax.data.priors import FRAMES_KEY
-    from dpc_jax.vo import StereoVO, VOResult
+    from dpc_jax.vo import StereoVO
     from dpc_jax.vo.odometry import summary
 
     import_jax()
     from dpc_jax.training.checkpoints import CheckpointError
 
     first, stop = frames
-    start = sequence.poses[0] if args.start == "gt" else np.eye(4)
     began = time.perf_counter()
     try:
-        live = corrector(args, args.correct, Calibration.of(sequence))
+        live = corrector(args, args.correct, Calibration.of(sequence), judge)
     except CheckpointError as failed:
         problem = restore_problem(failed.folder, failed.__cause__ or failed)
         print(f"dpc-jax vo: error: {problem}", file=sys.stderr)
         return 1
     live_summary = LiveSummary(Pace.of(args.realtime, sequence.times), time.perf_counter() - began)
-    vo = StereoVO(sequence.K, sequence.baseline, config)
-    # Per pair, for the VO's own summary and record; per frame, both trajectories for the evaluation.
-    kept: dict[str, list[Any]] = {k: [] for k in ("relative", "inliers", "status", "times", "offset", "prior",
-                                                   "corrected")}
-    first_s = [0.0]  # the VO's time on frame 0, which has no pair
-    # The four images of a frame (colour for the network, grey decoded as `dpc-jax vo` decodes it, so that
-    # the prior is its trajectory) are decoded a pair at a time.
-    decoder = ThreadPoolExecutor(2)
-
-    def arrivals() -> Any:
-        for frame in sequence.images.stream(sequence.image_size):
-            def load(frame: Any = frame) -> list[np.ndarray]:
-                jobs = [decoder.submit(frame.decode, grey) for grey in (False, True)]
-                return [image for job in jobs for image in job.result()]
-
-            k = frame.index
-            yield Arrived(first + k, float(sequence.times[k]), f"{sequence.name} frame {first + k}", load)
-
-    def step(images: list[np.ndarray]) -> Corrected:
-        t = time.perf_counter()
-        estimate = vo.process(images[2], images[3])
-        vo_s = time.perf_counter() - t
-        if estimate is None:
-            pose, columns = start, None
-            first_s[0] = vo_s  # counted with the first pair, as `dpc-jax vo` does
-        else:
-            pose = kept["prior"][-1] @ np.linalg.inv(estimate.relative)
-            status = estimate.status.name.lower()
-            columns = (estimate.inliers, status, vo.disparity_offset)
-            for key, value in (("relative", estimate.relative), ("inliers", estimate.inliers),
-                               ("status", int(estimate.status)), ("offset", vo.disparity_offset),
-                               ("times", vo_s + (0.0 if kept["times"] else first_s[0]))):
-                kept[key].append(value)
-        # The prior written is the VO's own chain of poses, as `dpc-jax vo` composes it: the corrector's
-        # prior, recomposed from its first pose, differs from it in the last digits (1e-13).
-        frame = dataclasses.replace(live(images[0], images[1], pose), prior=pose)
-        kept["prior"].append(pose)
-        kept["corrected"].append(frame.pose)
-        return Corrected(frame, columns, vo_s)
-
+    step = VOStep(StereoVO(sequence.K, sequence.baseline, config), live,
+                  sequence.poses[0] if args.start == "gt" else np.eye(4))
     report = report_stream(args.out, csv_path, prior_out)
+    outputs = live_outputs(args.out, prior_out, csv_path, stale=(json_path, prior_json), beside=beside)
     try:
-        with decoder, LiveOutputs(args.out, prior_out, csv_path, (json_path, prior_json),
-                                  beside) as outputs:
-            correct_frames(arrivals(), step, outputs, live_summary)
+        with ThreadPoolExecutor(2) as decoder, outputs:
+            correct_frames(sequence_arrivals(sequence, first, decoder), step, outputs, live_summary)
     except KeyboardInterrupt:
         print(f"dpc-jax vo: interrupted after {live_summary.frames} frames; their poses in {args.out} are "
               "whole lines", file=sys.stderr)
@@ -350,10 +308,7 @@ def _correct_live(
               file=sys.stderr)
         return 1
 
-    result = VOResult(
-        poses=np.stack(kept["prior"]), relative=np.stack(kept["relative"]),
-        inliers=np.asarray(kept["inliers"], np.int64), status=np.asarray(kept["status"], np.int8),
-        times=np.asarray(kept["times"]), disparity_offset=np.asarray(kept["offset"]))
+    result = step.result()
     counts = summary(result)
     write_summary(prior_json, {"sequence": sequence.name, FRAMES_KEY: [first, stop], **counts})
     write_summary(json_path, {"sequence": sequence.name, FRAMES_KEY: [first, stop],
@@ -372,15 +327,19 @@ def _correct_live(
     if counts["warning"] is not None:
         print(f"dpc-jax vo: warning: {sequence.name}: {counts['warning']}", file=sys.stderr)
     if sequence.poses is not None:
-        from dpc_jax.eval.metrics import m_ate
-
-        gt = sequence.poses
-        for name, poses in (("prior", result.poses), ("corrected", np.stack(kept["corrected"]))):
-            est = gt[0] @ np.linalg.inv(poses[0]) @ poses
-            trans, rot = m_ate(gt, est)
-            final = float(np.linalg.norm(est[-1, :3, 3] - gt[-1, :3, 3]))
-            print(f"vs ground truth, {name}: m-ATE {float(trans):.3f} m / {float(rot):.3f} deg, "
-                  f"final-position error {final:.3f} m", file=report)
+        for name, poses in (("prior", result.poses), ("corrected", step.corrected)):
+            print(f"vs ground truth, {name}: {_versus(sequence.poses, poses)}", file=report)
     written = [path for path in (args.out, prior_out, csv_path, json_path, prior_json) if path is not None]
     print(f"wrote {', '.join(map(str, written))}", file=report)
     return 0
+
+
+def _versus(gt: np.ndarray, poses: np.ndarray) -> str:
+    """The m-ATE and final-position error of ``poses`` ``[N, 4, 4]`` (aligned at the first pose) against
+    the ground truth ``gt`` ``[N, 4, 4]``, in words (JAX imported: the metric is jitted)."""
+    from dpc_jax.eval.metrics import m_ate
+
+    est = gt[0] @ np.linalg.inv(poses[0]) @ poses
+    trans, rot = m_ate(gt, est)
+    final = float(np.linalg.norm(est[-1, :3, 3] - gt[-1, :3, 3]))
+    return f"m-ATE {float(trans):.3f} m / {float(rot):.3f} deg, final-position error {final:.3f} m"

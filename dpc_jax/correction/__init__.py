@@ -12,6 +12,8 @@
   decide, compose the trajectory, choose between the trained and the adapted network, write it.
 * ``adapt``: self-supervised adaptation of a trained network to the sequence it corrects.
 * ``live``: each pose corrected as its stereo pair arrives, decided by sequential tests.
+* ``stream``: the loop of the live commands around it: the frames from their source, replayed at a
+  pace, each pose written the moment it is made, and the summary.
 
 Above training, the engine, eval and the reports; below the pipelines and the command line. Of
 the training package it reads only the run's config and checkpoint format (``pyproject.toml``'s

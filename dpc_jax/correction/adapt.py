@@ -35,7 +35,7 @@ from flax import nnx
 
 from dpc_jax._io import atomic_write
 from dpc_jax.correction.inference import TrainedRun
-from dpc_jax.data.holdout import MIN_EVERY, held_out_pairs
+from dpc_jax.data.holdout import DEFAULT_EVERY, MIN_EVERY, held_out_pairs
 from dpc_jax.data.pipeline import TrainLoader
 from dpc_jax.data.sequence_cache import SequenceCache
 from dpc_jax.engine.driver import drive, step_key
@@ -61,7 +61,7 @@ class AdaptConfig:
     """
 
     steps: int
-    holdout_every: int = 5
+    holdout_every: int = DEFAULT_EVERY
     batch_size: int | None = None
     learning_rate: float | None = None
     pose_warmup_steps: int = 0

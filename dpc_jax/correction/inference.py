@@ -27,7 +27,7 @@ from flax import nnx
 from dpc_jax.data.sequence_cache import SequenceCache, load_cache
 from dpc_jax.engine.predict import SequencePrediction, predict_sequence, stereo_depth_of
 from dpc_jax.runtime.progress import Progress
-from dpc_jax.training.train_config import SELECTIONS, TrainConfig
+from dpc_jax.training.train_config import DEFAULT_SELECTION, SELECTIONS, TrainConfig
 
 
 @dataclass(frozen=True)
@@ -58,7 +58,7 @@ class TrainedRun:
         return self.config.use_flow
 
 
-def load_run(workdir: str | os.PathLike, select: str = "delta") -> TrainedRun:
+def load_run(workdir: str | os.PathLike, select: str = DEFAULT_SELECTION) -> TrainedRun:
     """Restore the run in ``workdir`` (written by ``dpc-jax train``) at the epoch chosen by ``select``.
 
     ``select``: ``delta`` (most negative validation Δ; no epoch if none is below 0), ``gradient``

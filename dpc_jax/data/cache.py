@@ -91,9 +91,10 @@ from dpc_jax.data.sequence_cache import (
     FLOW_FILES,
     MANIFEST,
     CacheError,
+    NewerCacheError,
     flow_step,
     load_cache,
-    newer_cache_problem,
+    read_manifest,
 )
 from dpc_jax.data.stereo_depth import sgbm_fits
 from dpc_jax.geometry.poses import remove_static_frames
@@ -132,18 +133,6 @@ def input_hash(
     for text in sequence.images.identity():
         h.update(text.encode())
     return h.hexdigest()
-
-
-def read_manifest(cache_dir: str | Path) -> dict | None:
-    """The manifest of a complete cache folder, or None when there is none (or it is unreadable)."""
-    path = Path(cache_dir) / MANIFEST
-    if not path.is_file():
-        return None
-    try:
-        manifest = json.loads(path.read_text())
-    except (UnicodeDecodeError, json.JSONDecodeError):
-        return None
-    return manifest if isinstance(manifest, dict) else None
 
 
 def prepare_sequence(
@@ -227,10 +216,12 @@ def prepare_sequence(
     digest = input_hash(inputs.sequence, prior, parameters, extra)
     target = out_dir / name
     with output_lock(target, name):
-        newer = newer_cache_problem(target)
-        if newer is not None:
-            raise CacheError(newer)
-        existing = read_manifest(target)
+        try:
+            existing = read_manifest(target)
+        except NewerCacheError:
+            raise
+        except (FileNotFoundError, CacheError):  # none there, or one this dpc_jax does not read: built
+            existing = None
         if not force and existing is not None and existing.get("input_hash") == digest:
             # Same inputs; reused only if every file still reads as the manifest says (what train and
             # correct check), else rebuilt: a truncated or edited file is not "up to date".
@@ -256,7 +247,7 @@ def _build(
     install it (module docstring); the arguments are :func:`prepare_sequence`'s."""
     name = target.name
     kept = _kept_frames(inputs, remove_static)
-    K = _resized_intrinsics(inputs.sequence, size, half_pixel_intrinsics)
+    K = resized_intrinsics(inputs.sequence.K, inputs.sequence.image_size, size, half_pixel_intrinsics)
     tmp = _new_temp_folder(target.parent, name)
     try:
         kinds = tuple(FLOW_FILES) if flow_augment else ("forward",) if flow else ()
@@ -383,11 +374,6 @@ def _write_arrays(
         tmp, ordered_map(frame, frames, workers), kept.size, size, depth=depth,
         flow_kinds=flow_kinds, flow_step=flow_step(size), label=label, workers=workers, progress=progress,
     )
-
-
-def _resized_intrinsics(sequence: StereoSequence, size: tuple[int, int], half_pixel: bool) -> np.ndarray:
-    """float64 ``[3, 3]`` intrinsics of ``sequence``'s images resized to ``size = (H, W)`` px."""
-    return resized_intrinsics(sequence.K, sequence.image_size, size, half_pixel)
 
 
 def _write_poses_and_calibration(

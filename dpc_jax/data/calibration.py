@@ -54,6 +54,14 @@ def pair_keys(entries: dict[str, tuple[int, str]], grey: bool) -> tuple[str, str
     return next((pair for pair in PAIR_KEYS[grey] if all(key in entries for key in pair)), None)
 
 
+def holds_both_pairs(path: Path | str) -> bool:
+    """Whether a KITTI calibration file holds both the grey and the colour pair (whose baselines differ):
+    the images must then say which pair they are. ``OSError``, ``ValueError`` for a file that cannot be
+    read."""
+    entries = read_calibration(Path(path))
+    return all(pair_keys(entries, grey) is not None for grey in (True, False))
+
+
 def load_calibration(path: Path | str, *, grey: bool = False,
                      image_size: tuple[int, int] | None = None) -> Calibration:
     """The stereo calibration in a KITTI calibration file.

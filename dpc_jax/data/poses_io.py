@@ -391,11 +391,15 @@ def _check_writable(path: str | os.PathLike[str], poses: np.ndarray) -> np.ndarr
     return arr
 
 
+def kitti_line(pose: np.ndarray) -> str:
+    """One pose ``[4, 4]`` (or ``[3, 4]``) as a line of KITTI text: its top 3×4 block, row by row, to full
+    float64 precision (the live outputs write a trajectory a line at a time)."""
+    return " ".join(f"{v:.17g}" for v in np.asarray(pose, np.float64)[:3].ravel()) + "\n"
+
+
 def write_kitti_poses(path: str | os.PathLike[str], poses: np.ndarray) -> None:
-    """Write ``[N, 4, 4]`` (or ``[N, 3, 4]``) poses as KITTI text, atomically, to full float64 precision."""
-    arr = _check_writable(path, poses)
-    rows = arr[:, :3, :].reshape(-1, 12)
-    atomic_write(path, "".join(" ".join(f"{v:.17g}" for v in row) + "\n" for row in rows))
+    """Write ``[N, 4, 4]`` (or ``[N, 3, 4]``) poses as KITTI text (:func:`kitti_line`), atomically."""
+    atomic_write(path, "".join(map(kitti_line, _check_writable(path, poses))))
 
 
 def write_tum(

@@ -210,30 +210,23 @@ _MANIFEST_KEYS = {"name": str, "n_frames": int, "image_size": list, "has_gt": bo
                   "arrays": dict}
 
 
-def newer_cache_problem(folder: str | os.PathLike[str]) -> str | None:
-    """Why a writer must not replace the cache ``folder``, written by a newer dpc_jax
-    (:func:`newer_version_problem`), or None: also when it holds no readable manifest."""
+class NewerCacheError(CacheError):
+    """A cache written by a newer dpc_jax: neither read nor rebuilt over (the dpc_jax that wrote it reads
+    it)."""
+
+
+def read_manifest(folder: str | os.PathLike[str]) -> dict:
+    """The manifest of the cache ``folder``, checked: the one reader of ``manifest.json``, for the caches'
+    reader (:func:`load_cache`), their writer (which reuses a cache of the same input hash and never
+    replaces a newer one) and the command line (:func:`newer_cache_problem`).
+
+    Valid JSON, an object, of this format version, with the fields every reader needs. Raises
+    ``FileNotFoundError`` when ``folder`` has no manifest (not a cache, or an interrupted prepare),
+    :class:`NewerCacheError` for a cache of a newer format and :class:`CacheError` otherwise, naming
+    the file."""
     path = Path(folder) / MANIFEST
-    try:
-        manifest = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-        return None
-    return newer_version_problem(manifest, path) if isinstance(manifest, dict) else None
-
-
-def newer_version_problem(manifest: dict, path: str | os.PathLike[str]) -> str | None:
-    """Why the cache whose manifest (at ``path``) is ``manifest`` is of a newer format than this
-    dpc_jax reads, or None. Such a cache is neither read nor rebuilt over: the dpc_jax that wrote it
-    reads it."""
-    version = manifest.get("version")
-    if not isinstance(version, int) or isinstance(version, bool) or version <= CACHE_VERSION:
-        return None
-    return (f"{path}: this cache was written by a newer dpc_jax (cache format version {version}; this one "
-            f"reads version {CACHE_VERSION} and does not replace it); use that dpc_jax, or prepare "
-            "into another folder")
-
-
-def _read_manifest(path: Path) -> dict:
+    if not path.is_file():
+        raise FileNotFoundError(f"{folder}: not a prepared cache (no {MANIFEST}); run `dpc-jax prepare`")
     try:
         manifest = json.loads(path.read_text())
     except UnicodeDecodeError:
@@ -242,12 +235,15 @@ def _read_manifest(path: Path) -> dict:
         raise CacheError(f"{path}: not valid JSON ({error}); prepare the cache again") from None
     if not isinstance(manifest, dict):
         raise CacheError(f"{path}: expected a JSON object, got {type(manifest).__name__}")
-    newer = newer_version_problem(manifest, path)
-    if newer is not None:
-        raise CacheError(newer)
-    if manifest.get("version") != CACHE_VERSION:
+    version = manifest.get("version")
+    if isinstance(version, int) and not isinstance(version, bool) and version > CACHE_VERSION:
+        raise NewerCacheError(
+            f"{path}: this cache was written by a newer dpc_jax (cache format version {version}; this one "
+            f"reads version {CACHE_VERSION} and does not replace it); use that dpc_jax, or prepare into "
+            "another folder")
+    if version != CACHE_VERSION:
         raise CacheError(
-            f"{path}: cache format version {manifest.get('version')}, this dpc_jax reads version "
+            f"{path}: cache format version {version}, this dpc_jax reads version "
             f"{CACHE_VERSION}; run the same `dpc-jax prepare` again to rebuild it"
         )
     if manifest.get("flows") and not (isinstance(manifest.get("flow_step"), float)
@@ -268,6 +264,19 @@ def _read_manifest(path: Path) -> dict:
     if unknown:
         raise CacheError(f"{path}: unknown flow kind(s) {unknown}; expected some of {list(FLOW_FILES)}")
     return manifest
+
+
+def newer_cache_problem(folder: str | os.PathLike[str]) -> str | None:
+    """Why a writer must not replace the cache ``folder``, written by a newer dpc_jax
+    (:class:`NewerCacheError`), or None: also when it holds no manifest, or one this dpc_jax cannot read
+    (such a folder is rebuilt)."""
+    try:
+        read_manifest(folder)
+    except NewerCacheError as error:
+        return str(error)
+    except (OSError, CacheError):
+        return None
+    return None
 
 
 def _load_array(
@@ -331,8 +340,8 @@ def _check_finite_poses(path: Path, poses: np.ndarray) -> None:
 def load_cache(path: str | os.PathLike[str], *, verify: bool = False) -> SequenceCache:
     """Memory-map the cache folder ``path`` written by :func:`~dpc_jax.data.cache.prepare_sequence`.
 
-    Everything is checked against ``manifest.json`` before it is used: the manifest itself (valid
-    JSON with the expected fields, of this format version), the shape and dtype of every array (a
+    Everything is checked against ``manifest.json`` before it is used: the manifest itself
+    (:func:`read_manifest`), the shape and dtype of every array (a
     truncated ``.npy`` does not load), finite and rigid prior and ground-truth poses, finite
     intrinsics, baseline and times, and then every file's bytes: its size and the digest of its
     sample, or with ``verify`` of every byte (module docstring). Raises ``FileNotFoundError`` when
@@ -341,9 +350,7 @@ def load_cache(path: str | os.PathLike[str], *, verify: bool = False) -> Sequenc
     """
     path = Path(path)
     manifest_path = path / MANIFEST
-    if not manifest_path.is_file():
-        raise FileNotFoundError(f"{path}: not a prepared cache (no {MANIFEST}); run `dpc-jax prepare`")
-    manifest = _read_manifest(manifest_path)
+    manifest = read_manifest(path)
     n = manifest["n_frames"]
     h, w = manifest["image_size"]
 

@@ -14,7 +14,9 @@ What every script shares:
 
 What a protocol and a study share, or a study too large for a thin main holds: ``drives`` (the cross-drive
 protocol on two real KITTI raw drives), ``comparison`` (the supervised comparison's table), ``scale`` (the
-papers' scale on a synthetic stand-in), ``steps`` (a trajectory's steps checked against the images).
+papers' scale on a synthetic stand-in), ``steps`` (a trajectory's steps checked against the images), and the
+detection-limit study: ``detection`` (its grid and cells), ``detection_answer`` (what they answer),
+``detection_rule`` (where the mean is tested: the options and the rule) and ``detection_page`` (its page).
 
 Nothing else in ``dpc_jax`` imports this package; it builds on the pipelines and everything below them
 (``pyproject.toml``'s layers contract).

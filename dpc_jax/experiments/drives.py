@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from dpc_jax.experiments.folds import Context, FoldRun, Plan, Tables, Test, add_protocol_arguments
-from dpc_jax.experiments.script import DATA, new_parser
+from dpc_jax.experiments.script import add_kitti_raw_option, data_given, new_parser
 from dpc_jax.pipelines import protocol as P
 from dpc_jax.report.tables import EMPTY, csv_text, number, table
 from dpc_jax.results.fold import FoldResult
@@ -31,8 +31,7 @@ PRIOR_NAMES = {"vo": "our VO", "libviso2": "libviso2-s"}
 def build_parser(doc: str | None, config: Path) -> argparse.ArgumentParser:
     """The protocol's options (``config``: the default ``--config``)."""
     parser = new_parser(doc)
-    parser.add_argument("--kitti-raw", type=P.path_argument, default=DATA / "kitti-raw", metavar="ROOT",
-                        help="raw root holding DATE/ and libviso2/")
+    add_kitti_raw_option(parser)
     parser.add_argument("--test-drives", nargs="+", metavar="NNNN",
                         help="only these test drives (default: both; e.g. two work folders run side by side)")
     add_protocol_arguments(parser, config)
@@ -53,17 +52,18 @@ def plan(context: Context) -> Plan:
     unknown = [d for d in args.test_drives or () if d not in drives]
     if unknown:
         raise ValueError(f"--test-drives {unknown[0]}: not a drive of {args.config} ({', '.join(drives)})")
+    raw = data_given(args.kitti_raw, "--kitti-raw")
     sequences, libviso2 = {}, {}
     for drive, spec in drives.items():
-        mat = args.kitti_raw / spec.libviso2
+        mat = raw / spec.libviso2
         gt_all, est_all = (read_trajectory(mat, mat_key=key) for key in ("poses_gt", "poses_est"))
-        n = len(open_raw(args.kitti_raw, protocol.date, drive))
+        n = len(open_raw(raw, protocol.date, drive))
         if gt_all.shape[0] < n:
             raise ValueError(f"{mat}: {gt_all.shape[0]} poses for the {n} frames of drive {drive}")
         # The .mat may cover the whole drive; its first n poses belong to the images (the data README).
-        sequences[drive] = open_raw(args.kitti_raw, protocol.date, drive, poses=gt_all[:n])
+        sequences[drive] = open_raw(raw, protocol.date, drive, poses=gt_all[:n])
         libviso2[drive] = est_all[:n]
-    context.claim([("--kitti-raw", args.kitti_raw)])
+    context.claim([("--kitti-raw", raw)])
     root, progress = context.cache_root, context.progress
     config0 = P.fold_config(context.base, P.Fold("prepare", ("x",), "y", ()), root, context.overrides)
     offsets = {}

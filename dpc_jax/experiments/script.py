@@ -15,10 +15,51 @@ from dpc_jax.report.pages import check_results_page, read_block, replace_block, 
 from dpc_jax.report.tables import row, table
 from dpc_jax.runtime.progress import Progress, progress_mode
 
-# The checkout the scripts run from (the package is installed from it in editable mode), and the real
-# data beside it: KITTI raw drives (``kitti-raw/``) and the libviso2 estimates (``kitti-libviso2/``).
-CHECKOUT = Path(__file__).resolve().parents[2]
-DATA = CHECKOUT.parent / "shared" / "data"
+# The environment variable naming the folder of the real data: KITTI raw drives (``kitti-raw/``) and the
+# libviso2 estimates (``kitti-libviso2/``); the tests read it from the same variable.
+DATA_VARIABLE = "DPC_JAX_DATA"
+
+
+def data_default(folder: str) -> Path | None:
+    """The real data's ``folder`` (``kitti-raw``, ``kitti-libviso2``): in ``$DPC_JAX_DATA`` when it is set,
+    else in ``../shared/data`` beside the checkout this package runs from, when it runs from one (an
+    editable install); None where that holds no such folder."""
+    named = os.environ.get(DATA_VARIABLE)
+    if named:
+        root = Path(named)
+    else:
+        checkout = Path(__file__).resolve().parents[2]
+        if not (checkout / "pyproject.toml").is_file():  # installed: no checkout, no data beside it
+            return None
+        root = checkout.parent / "shared" / "data"
+    return root / folder if (root / folder).is_dir() else None
+
+
+def add_data_option(parser: argparse.ArgumentParser, option: str, folder: str, *, metavar: str,
+                    help: str) -> None:
+    """``option DIR``: the real data's ``folder``, by default :func:`data_default`'s (None when there is
+    none: :func:`data_given` refuses it where the script needs it)."""
+    found = data_default(folder)
+    where = "none found, so give it" if found is None else str(found).replace("%", "%%")
+    parser.add_argument(option, type=path_argument, default=found, metavar=metavar,
+                        help=f"{help} (default: {folder}/ in ${DATA_VARIABLE}, else in ../shared/data beside "
+                        f"the checkout: {where})")
+
+
+def add_kitti_raw_option(parser: argparse.ArgumentParser) -> None:
+    """``--kitti-raw ROOT``: the KITTI raw root (:func:`add_data_option`)."""
+    add_data_option(parser, "--kitti-raw", "kitti-raw", metavar="ROOT",
+                    help="raw root holding DATE/ and libviso2/")
+
+
+def data_given(path: Path | None, option: str) -> Path:
+    """``path``, the value of a data option (:func:`add_data_option`); ``ValueError`` naming ``option``
+    when it was not given and has no default."""
+    if path is None:
+        raise ValueError(f"{option}: not given, and no default found (in ${DATA_VARIABLE} when it is set, "
+                         "else in ../shared/data beside the checkout); pass "
+                         f"{option} DIR or set {DATA_VARIABLE}=DIR")
+    return path
 
 
 def new_parser(doc: str | None) -> argparse.ArgumentParser:

@@ -8,8 +8,8 @@ import datetime
 import platform
 import subprocess
 import sys
+from pathlib import Path
 
-from dpc_jax.experiments.script import CHECKOUT
 from dpc_jax.report.pages import commit
 from dpc_jax.runtime.machine import this_cpu
 from dpc_jax.runtime.versions import versions_line
@@ -28,8 +28,9 @@ def machine() -> str:
 
 
 def stamp() -> dict[str, str]:
-    """``{"machine", "commit", "date", "python", "libraries"}`` of this process and checkout (``git
-    describe --dirty``, the date in UTC, ``dpc_jax.runtime.versions.versions_line``)."""
-    return {"machine": machine(), "commit": commit(CHECKOUT),
+    """``{"machine", "commit", "date", "python", "libraries"}`` of this process: the commit of the checkout
+    the package runs from (``git describe --dirty``; ``unknown`` when it is installed outside one), the
+    date in UTC, and ``dpc_jax.runtime.versions.versions_line``."""
+    return {"machine": machine(), "commit": commit(Path(__file__).parent),
             "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d"),
             "python": platform.python_version(), "libraries": versions_line()}

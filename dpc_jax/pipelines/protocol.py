@@ -289,8 +289,9 @@ def correct_and_evaluate(
     if it passes, else the prior). ``judge``: the same frames prepared at a larger size, where every
     acceptance test is measured too (``dpc_jax.correction.corrector.correct_sequence``). Writes the
     final trajectory, the reports and (adapting) the adapted network."""
-    from dpc_jax.correction.corrector import correct_sequence, decided_again, write_trajectory
+    from dpc_jax.correction.corrector import correct_sequence, decided_again
     from dpc_jax.correction.inference import load_run
+    from dpc_jax.correction.outputs import CorrectionOutputs, write_corrected
     from dpc_jax.data.sequence_cache import load_cache
     from dpc_jax.report.correction_report import write_correction_report
 
@@ -300,7 +301,7 @@ def correct_and_evaluate(
     steps = protocol.adapt_steps if adapt_steps is None else adapt_steps
     how = None
     if steps:
-        from dpc_jax.correction.adapt import AdaptConfig, save_adapted
+        from dpc_jax.correction.adapt import AdaptConfig
 
         how = AdaptConfig(steps, holdout_every=protocol.holdout_every)
     loaded, judged = load_cache(cache), None if judge is None else load_cache(judge)
@@ -308,9 +309,6 @@ def correct_and_evaluate(
                                "judge": judged}
     done = correct_sequence(run, loaded, adapt=how, mean_test=protocol.mean_test, progress=progress,
                             **options)
-    if done.adaptation is not None and done.adapted is not None:
-        save_adapted(out_root / "adapted" / fold / name, done.adaptation,
-                     {"delta": done.adapted.acceptance.mean_delta})
     final, correction, corrections = done.final, done.result, done.corrections
     earlier = None
     if protocol.earlier_decision and protocol.acceptance and protocol.mean_test:
@@ -319,8 +317,8 @@ def correct_and_evaluate(
         earlier = Final(applied, _estimates(again.result)["corrected"])
     if correction.evaluation is None:
         raise ValueError(f"{cache}: no ground truth; the experiment needs it to evaluate")
-    (out_root / "corrected" / fold).mkdir(parents=True, exist_ok=True)
-    write_trajectory(out_root / "corrected" / fold / f"{name}.txt", correction)
+    write_corrected(done, CorrectionOutputs(out_root / "corrected" / fold / f"{name}.txt",
+                                            adapted=out_root / "adapted" / fold / name))
     for label, c in corrections.items():
         write_correction_report(
             out_root / "reports" / fold / name / label, c,

@@ -195,9 +195,10 @@ def _correct_test(config: DemoConfig, out: Path, seconds: dict[str, float], prog
                   say: ProgressFn) -> _TestCorrections:
     """Correct the test sequence with the network as trained and, unless ``adapt_steps`` is 0, adapted to
     it; choose the final correction and write it to ``corrected.txt``."""
-    from dpc_jax.correction.adapt import AdaptConfig, save_adapted
-    from dpc_jax.correction.corrector import correct_sequence, write_trajectory
+    from dpc_jax.correction.adapt import AdaptConfig
+    from dpc_jax.correction.corrector import correct_sequence
     from dpc_jax.correction.inference import load_run
+    from dpc_jax.correction.outputs import CorrectionOutputs, write_corrected
     from dpc_jax.data.sequence_cache import load_cache
 
     t = time.perf_counter()
@@ -214,13 +215,12 @@ def _correct_test(config: DemoConfig, out: Path, seconds: dict[str, float], prog
     say(f"network as trained (epoch {run.epoch}): {decision_label(done.trained.acceptance)} on the test "
         "sequence")
     if done.adapted is not None and done.adaptation is not None:
-        save_adapted(out / "adapted", done.adaptation, {"delta": done.adapted.acceptance.mean_delta})
         say(f"adapted ({config.adapt_steps} steps): {decision_label(done.adapted.acceptance)} on held-out "
             "pairs")
     final, result = done.final, done.result
     corrections = {"trained": done.trained, **({"adapted": done.adapted} if done.adapted is not None else {})}
     adaptation = done.adaptation
-    write_trajectory(out / "corrected.txt", result)
+    write_corrected(done, CorrectionOutputs(out / "corrected.txt", adapted=out / "adapted"))
     return _TestCorrections(run.epoch, test_cache, corrections, adaptation, final, result)
 
 

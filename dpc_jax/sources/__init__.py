@@ -18,11 +18,11 @@ from __future__ import annotations
 
 import importlib
 
-from dpc_jax.sources.recording import Recording, Source
+from dpc_jax.sources.recording import DEFAULT_TOLERANCE, BagOptions, Recording, Source
 
 KINDS = {"kitti-odometry": "kitti_odometry", "kitti-raw": "kitti_raw", "bag": "bag"}
 
-__all__ = ["KINDS", "Recording", "Source", "open_source"]
+__all__ = ["DEFAULT_TOLERANCE", "KINDS", "BagOptions", "Recording", "Source", "open_source"]
 
 
 def open_source(source: Source) -> Recording:

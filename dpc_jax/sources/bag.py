@@ -1,10 +1,13 @@
 """A ROS recording as a stereo sequence: a ROS 1 ``.bag``, a ROS 2 bag folder (sqlite3 or MCAP storage),
 a plain ``.mcap`` or ``.db3`` file, read with ``rosbags`` (docs/formats.md, "Recordings").
 
-:func:`open_bag` reads the recording once for its index: the stamps and sizes of the two image topics,
-the first ``CameraInfo`` of each camera, the pose topics asked for and ``/tf_static``; the images
-themselves are read again, in order, when they are used (:class:`BagFrames`), so memory does not grow
-with the recording's length.
+:func:`open_bag` makes the *index pass*: it reads the two image topics, the ``CameraInfo`` beside them,
+the pose topics asked for, ``/tf_static`` and ``/tf``, and keeps of each image its header stamp (of a raw
+image also its size and encoding); no image is decoded there but the first of a compressed topic (for
+its size). The *frames pass* (:class:`BagFrames`) reads the image topics again, in order, and decodes
+each image once, when it is used, so that memory does not grow with the recording's length.
+``rosbags`` reads a message whole (a header cannot be read without its payload), so the image messages'
+bytes come from storage in both passes; docs/formats.md says what each pass costs.
 
 * **Topics.** Left and right are ``--left-topic``/``--right-topic``, or chosen when the recording holds
   exactly one pair of image topics whose names differ only by ``left``/``right`` or ``0``/``1``.
@@ -12,16 +15,13 @@ with the recording's length.
   one when they are within ``tolerance`` seconds of each other and each is the other's nearest; an
   image without a partner is skipped and counted. Stamps that do not increase on a topic are refused.
   The sequence's times are the left stamps in seconds since the first pair's.
-* **Calibration.** From the ``camera_info`` topic beside each image topic: with all-zero ``D`` the
-  images are taken as rectified and ``P`` as it is (a note when ``R`` is not the identity); with
-  distortion (``plumb_bob``, ``rational_polynomial``) every image is rectified with OpenCV from ``D``,
-  ``K``, ``R`` and ``P``, as ROS's ``image_proc`` does. Else ``--calib FILE`` (KITTI ``calib.txt``:
-  ``P2``/``P3``, or ``P0``/``P1`` when the file has no ``P2``). ``K`` and the baseline come from the two
-  ``P`` (:func:`~dpc_jax.data.kitti.rectified_pair`).
+* **Calibration.** From the ``camera_info`` topic beside each image topic, else ``--calib FILE``
+  (``dpc_jax.sources.bag_calibration``).
 * **Poses.** A prior or ground-truth topic gives one pose per frame, the one nearest the left image's
   stamp within ``tolerance``. Poses describe the left camera: the pose's own frame (an odometry's or a
-  transform's child frame, or ``pose_frame``) is the camera's frame id, or ``/tf_static`` links them and
-  the pose is moved onto the camera, or ``pose_frame`` is the camera's frame id (they coincide).
+  transform's child frame, or ``pose_frame``) is the camera's frame id, or ``/tf_static`` and ``/tf`` link
+  them and the pose is moved onto the camera (the chain at the frame's stamp), or ``pose_frame`` is the
+  camera's frame id (they coincide).
 
 Every problem is a ``ValueError`` of one line that names the recording, the topic and what was expected.
 """
@@ -40,31 +40,13 @@ import cv2
 import numpy as np
 
 from dpc_jax.data.frames import StereoFrame, checked_size
-from dpc_jax.data.kitti import StereoSequence, read_calibration, rectified_pair, stereo_calibration
+from dpc_jax.data.kitti import StereoSequence
 from dpc_jax.data.poses_io import validate_poses
 from dpc_jax.sources import bag_images, bag_poses
-from dpc_jax.sources.recording import Recording, Source
+from dpc_jax.sources.bag_calibration import calibration, info_topic
+from dpc_jax.sources.recording import BagOptions, Recording, Source
 
-# Left and right images further apart than this are not one frame; also how far a pose may be from its
-# frame. KITTI's grey pair is up to 3.5 ms apart; a rig without a hardware trigger is further.
-DEFAULT_TOLERANCE = 0.01
-CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
-TF_STATIC = "/tf_static"
-_DISTORTION_MODELS = ("plumb_bob", "rational_polynomial")
-
-
-@dataclass(frozen=True)
-class BagOptions:
-    """What to read from a recording (the command line's ``--bag`` options)."""
-
-    path: Path
-    left_topic: str | None = None
-    right_topic: str | None = None
-    tolerance: float = DEFAULT_TOLERANCE
-    calib: Path | None = None
-    prior_topic: str | None = None
-    gt_topic: str | None = None
-    pose_frame: str | None = None
+TF_STATIC, TF_MOVING = "/tf_static", "/tf"
 
 
 class _Error(ValueError):
@@ -148,17 +130,6 @@ def _image_topics(path: Path, topics: dict[str, str], options: BagOptions) -> tu
     return pairs[0]
 
 
-def _info_topic(image_topic: str, topics: dict[str, str]) -> str | None:
-    """The ``camera_info`` beside an image topic (``/cam/image_raw`` → ``/cam/camera_info``, also for
-    ``/cam/image_raw/compressed``)."""
-    parts = image_topic.rstrip("/").split("/")
-    for cut in (1, 2):
-        topic = "/".join([*parts[:-cut], "camera_info"])
-        if topics.get(topic) == CAMERA_INFO:
-            return topic
-    return None
-
-
 @dataclass
 class _Camera:
     """What the index pass keeps of one image topic."""
@@ -170,79 +141,14 @@ class _Camera:
     first: tuple[str, Any] | None = None  # the first message, for the size of a compressed one
 
 
-def _field(msg: Any, name: str) -> np.ndarray:
-    """A ``CameraInfo`` matrix field (ROS 2: ``k``; ROS 1: ``K``) as float64."""
-    value = getattr(msg, name, None)
-    return np.asarray(value if value is not None else getattr(msg, name.upper()), np.float64)
-
-
-def _calibration(
-    path: Path, infos: dict[str, Any], cameras: tuple[_Camera, _Camera], size: tuple[int, int],
-    options: BagOptions, notes: list[str],
-) -> tuple[np.ndarray, float, tuple[Any, Any] | None, tuple[Path, ...]]:
-    """``(K, baseline, rectification maps or None, calibration files read)``."""
-    if options.calib is not None:
-        entries = read_calibration(options.calib)
-        keys = ("P2", "P3") if "P2" in entries else ("P0", "P1")
-        K, baseline = stereo_calibration(options.calib, *keys, size)
-        return K, baseline, None, (options.calib,)
-    missing = [camera.topic for camera in cameras if camera.topic not in infos]
-    if missing:
-        raise _Error(f"{path}: no CameraInfo beside {missing[0]} (expected a camera_info topic in its "
-                     "namespace) and no --calib FILE; pass --calib with the pair's P matrices")
-    h, w = size
-    projections: list[np.ndarray] = []
-    maps: list[Any] = []
-    distorted = False
-    for camera in cameras:
-        topic, msg = infos[camera.topic]
-        where = f"{path}: {topic}"
-        if (int(msg.height), int(msg.width)) != (h, w):
-            raise _Error(f"{where}: CameraInfo is for {msg.height}x{msg.width} images, but {camera.topic} "
-                         f"holds {h}x{w}; expected the images' size")
-        d, k, r, p = (_field(msg, name) for name in ("d", "k", "r", "p"))
-        finite = np.all(np.isfinite(np.concatenate([d, k, r, p])))
-        if k.size != 9 or r.size != 9 or p.size != 12 or not finite:
-            raise _Error(f"{where}: CameraInfo with K, R, P of {k.size}, {r.size}, {p.size} numbers; "
-                         "expected 9, 9 and 12 finite numbers")
-        P = p.reshape(3, 4)
-        if np.any(d != 0):
-            if msg.distortion_model not in _DISTORTION_MODELS:
-                raise _Error(f"{where}: distortion model {msg.distortion_model!r}; expected one of "
-                             f"{', '.join(_DISTORTION_MODELS)} or rectified images (all-zero D)")
-            distorted = True
-            maps.append(cv2.initUndistortRectifyMap(k.reshape(3, 3), d, r.reshape(3, 3), P[:, :3], (w, h),
-                                                    cv2.CV_32FC1))
-        else:
-            maps.append(None)
-            if not np.allclose(r.reshape(3, 3), np.eye(3)):
-                notes.append(f"{where}: D is all zero, so the images are taken as rectified and P used as it "
-                             "is, but R is not the identity")
-        projections.append(P)
-    K, baseline = rectified_pair(projections[0], projections[1], size,
-                                 *(f"{path}: {infos[camera.topic][0]} P" for camera in cameras))
-    if distorted:
-        identity = (None, None)
-        maps = [m if m is not None else identity for m in maps]
-        return K, baseline, (maps[0], maps[1]), ()
-    return K, baseline, None, ()
-
-
-def _nearest(stamps: np.ndarray, of: np.ndarray) -> np.ndarray:
-    """Per stamp of ``of``, the index of the nearest of the increasing ``stamps`` (on a tie the earlier)."""
-    after = np.clip(np.searchsorted(stamps, of), 0, stamps.size - 1)
-    before = np.clip(after - 1, 0, stamps.size - 1)
-    return np.where(np.abs(stamps[before] - of) <= np.abs(stamps[after] - of), before, after)
-
-
 def _pairs(left: np.ndarray, right: np.ndarray, tolerance_ns: int) -> np.ndarray:
     """int64 ``[N, 2]`` message numbers of the left and right images paired by nearest stamp: mutual
     nearest neighbours within ``tolerance_ns`` (both stamp arrays increasing)."""
     if left.size == 0 or right.size == 0:
         return np.zeros((0, 2), np.int64)
 
-    to_right = _nearest(right, left)
-    to_left = _nearest(left, right)
+    to_right = bag_poses.nearest(right, left)
+    to_left = bag_poses.nearest(left, right)
     k = np.arange(left.size)
     keep = (to_left[to_right] == k) & (np.abs(right[to_right] - left) <= tolerance_ns)
     return np.stack([k[keep], to_right[keep]], axis=1).astype(np.int64)
@@ -262,7 +168,7 @@ def _increasing(path: Path, camera: _Camera) -> np.ndarray:
 def _pose_topic(
     path: Path, option: str, topic: str, samples: list[bag_poses.PoseSample], msgtype: str,
     stamps: np.ndarray, tolerance_ns: int, camera_frame: str, pose_frame: str | None,
-    static: dict[tuple[str, str], np.ndarray],
+    static: dict[bag_poses.Edge, np.ndarray], moving: dict[bag_poses.Edge, list[tuple[int, np.ndarray]]],
 ) -> tuple[np.ndarray, str]:
     """The poses of ``topic`` at the frames' left ``stamps`` as camera-to-world ``[N, 4, 4]``, and the world
     frame's id."""
@@ -279,25 +185,22 @@ def _pose_topic(
     body = body or samples[0].child
     if body is None:
         raise _Error(f"{where}: {msgtype} names no frame for its poses; pass --pose-frame {camera_frame} if "
-                     "they are the left camera's poses (or the frame /tf_static links to it)")
-    link = np.eye(4)
-    if body != camera_frame:
-        found = bag_poses.static_link(static, body, camera_frame)
-        if found is None:
-            raise _Error(f"{where}: poses of frame {body!r}, images of frame {camera_frame!r}, and "
-                         f"{TF_STATIC} does not link them; pass --pose-frame {camera_frame} if the two "
-                         "coincide")
-        link = found
+                     "they are the left camera's poses (or the frame /tf_static and /tf link to it)")
+    link = bag_poses.link(static, moving, body, camera_frame, stamps, tolerance_ns, where)
+    if link is None:
+        raise _Error(f"{where}: poses of frame {body!r}, images of frame {camera_frame!r}, and neither "
+                     f"{TF_STATIC} nor {TF_MOVING} links them; pass --pose-frame {camera_frame} if the two "
+                     "coincide")
     order = np.argsort([s.stamp for s in samples], kind="stable")
     pose_stamps = np.asarray([samples[i].stamp for i in order], np.int64)
-    nearest = _nearest(pose_stamps, stamps)
+    nearest = bag_poses.nearest(pose_stamps, stamps)
     far = np.flatnonzero(np.abs(pose_stamps[nearest] - stamps) > tolerance_ns)
     if far.size:
         k = int(far[0])
         raise _Error(f"{where}: no pose within {tolerance_ns / 1e6:g} ms of frame {k} (stamp "
                      f"{stamps[k] / 1e9:.9f} s); the topic holds {pose_stamps.size} poses for {stamps.size} "
                      "frames, expected one per frame")
-    poses = np.stack([samples[order[i]].matrix @ link for i in nearest])
+    poses = np.stack([samples[order[i]].matrix @ link[k] for k, i in enumerate(nearest)])
     return validate_poses(poses, where), samples[0].parent
 
 
@@ -320,7 +223,7 @@ def open_bag(options: BagOptions) -> Recording:
         by_topic = {camera.topic: camera for camera in cameras}
         info_topics = {}
         if options.calib is None:
-            info_topics = {t: _info_topic(t, topics) for t in (left_topic, right_topic)}
+            info_topics = {t: info_topic(t, topics) for t in (left_topic, right_topic)}
         pose_topics = {}
         for option, topic in (("--prior-topic", options.prior_topic), ("--gt-topic", options.gt_topic)):
             if topic is None:
@@ -333,25 +236,28 @@ def open_bag(options: BagOptions) -> Recording:
             pose_topics[option] = topic
         wanted = {left_topic, right_topic, *pose_topics.values(),
                   *(t for t in info_topics.values() if t is not None)}
-        if pose_topics and TF_STATIC in topics:
-            wanted.add(TF_STATIC)
+        wanted |= {t for t in (TF_STATIC, TF_MOVING) if pose_topics and topics.get(t) == bag_poses.TF}
         infos: dict[str, tuple[str, Any]] = {}
         samples: dict[str, list[bag_poses.PoseSample]] = {t: [] for t in pose_topics.values()}
-        static: dict[tuple[str, str], np.ndarray] = {}
+        static: dict[bag_poses.Edge, np.ndarray] = {}
+        moving: dict[bag_poses.Edge, list[tuple[int, np.ndarray]]] = {}
         connections = [c for c in reader.connections if c.topic in wanted]
         for connection, number, msg in _messages(reader, path, connections):
             topic, msgtype = connection.topic, connection.msgtype
             camera = by_topic.get(topic)
             if camera is not None:
                 _index_image(path, camera, number, msgtype, msg)
-            for image_topic, info_topic in info_topics.items():
-                if topic == info_topic and image_topic not in infos:
+            for image_topic, beside in info_topics.items():
+                if topic == beside and image_topic not in infos:
                     infos[image_topic] = (topic, msg)
             if topic in samples:
                 samples[topic].extend(bag_poses.samples(msgtype, msg, f"{path}: {topic}"))
-            if topic == TF_STATIC:
-                for s in bag_poses.samples(msgtype, msg, f"{path}: {topic}"):
+            tf = topic in (TF_STATIC, TF_MOVING)
+            for s in bag_poses.samples(msgtype, msg, f"{path}: {topic}") if tf else []:
+                if topic == TF_STATIC:
                     static[(s.parent, s.child or "")] = s.matrix
+                else:
+                    moving.setdefault((s.parent, s.child or ""), []).append((s.stamp, s.matrix))
     for camera in cameras:
         if not camera.stamps:
             raise _Error(f"{path}: {camera.topic}: no image; expected the images of one camera of the pair")
@@ -370,7 +276,8 @@ def open_bag(options: BagOptions) -> Recording:
     if pairs.shape[0] < 2:
         raise _Error(f"{path}: {pairs.shape[0]} stereo frames of {left_topic} and {right_topic} within "
                      f"{tolerance_ns / 1e6:g} ms of each other; expected at least 2 (--stamp-tolerance)")
-    K, baseline, maps, calib_files = _calibration(path, infos, cameras, size, options, notes)
+    K, baseline, maps, calib_files = calibration(path, infos, (left_topic, right_topic), size,
+                                                 options.calib, notes)
     stamps = left_stamps[pairs[:, 0]]
     camera_frame = cameras[0].frame_id
     poses: dict[str, np.ndarray] = {}
@@ -378,7 +285,7 @@ def open_bag(options: BagOptions) -> Recording:
     for option, topic in pose_topics.items():
         poses[option], parent = _pose_topic(
             path, option, topic, samples[topic], topics[topic], stamps, tolerance_ns, camera_frame,
-            options.pose_frame, static)
+            options.pose_frame, static, moving)
         if option == "--prior-topic":
             world_frame = parent
     pair_stamps = np.stack([stamps, right_stamps[pairs[:, 1]]], axis=1)

@@ -1,7 +1,7 @@
 """Poses in a recording: ``nav_msgs/Odometry``, ``geometry_msgs/PoseStamped``,
 ``PoseWithCovarianceStamped`` and the transforms of ``tf2_msgs/TFMessage`` (``/tf``, ``/tf_static``), as
 float64 ``[4, 4]`` matrices (the pose of a child frame in its parent frame: x_parent = T · x_child), and
-the static transform between two frames from ``/tf_static``.
+the transform between two frames at given stamps through ``/tf_static`` and ``/tf`` (:func:`link`).
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ POSE = "geometry_msgs/msg/PoseStamped"
 POSE_COVARIANCE = "geometry_msgs/msg/PoseWithCovarianceStamped"
 TF = "tf2_msgs/msg/TFMessage"
 POSE_TYPES = (ODOMETRY, POSE, POSE_COVARIANCE, TF)
+Edge = tuple[str, str]  # (parent frame, child frame) of a transform
 
 
 class PoseSample(NamedTuple):
@@ -58,21 +59,59 @@ def samples(msgtype: str, msg: Any, where: str) -> list[PoseSample]:
                        _matrix(pose.position, pose.orientation, where))]
 
 
-def static_link(edges: dict[tuple[str, str], np.ndarray], source: str, target: str) -> np.ndarray | None:
-    """``T_source_target`` (x_source = T · x_target) through the static transforms ``edges``
-    (``{(parent, child): T_parent_child}``), followed either way; None when they do not link the frames."""
-    links: dict[str, list[tuple[str, np.ndarray]]] = {}
-    for (parent, child), matrix in edges.items():
-        links.setdefault(parent, []).append((child, matrix))
-        links.setdefault(child, []).append((parent, np.linalg.inv(matrix)))
-    found = {source: np.eye(4)}
+def nearest(stamps: np.ndarray, of: np.ndarray) -> np.ndarray:
+    """Per stamp of ``of``, the index of the nearest of the increasing ``stamps`` (on a tie the earlier)."""
+    after = np.clip(np.searchsorted(stamps, of), 0, stamps.size - 1)
+    before = np.clip(after - 1, 0, stamps.size - 1)
+    return np.where(np.abs(stamps[before] - of) <= np.abs(stamps[after] - of), before, after)
+
+
+def _route(edges: set[Edge], source: str, target: str) -> list[tuple[Edge, bool]] | None:
+    """The edges from ``source`` to ``target`` through ``edges`` (``(parent, child)``, followed either way;
+    True: against its direction), fewest first; None when they do not link the frames."""
+    links: dict[str, list[tuple[str, Edge, bool]]] = {}
+    for parent, child in sorted(edges):
+        links.setdefault(parent, []).append((child, (parent, child), False))
+        links.setdefault(child, []).append((parent, (parent, child), True))
+    found: dict[str, list[tuple[Edge, bool]]] = {source: []}
     queue = deque([source])
     while queue:
         frame = queue.popleft()
         if frame == target:
             return found[frame]
-        for other, matrix in links.get(frame, []):
+        for other, edge, backwards in links.get(frame, []):
             if other not in found:
-                found[other] = found[frame] @ matrix
+                found[other] = [*found[frame], (edge, backwards)]
                 queue.append(other)
     return None
+
+
+def link(
+    static: dict[Edge, np.ndarray], moving: dict[Edge, list[tuple[int, np.ndarray]]],
+    source: str, target: str, stamps: np.ndarray, tolerance_ns: int, where: str,
+) -> np.ndarray | None:
+    """``T_source_target`` ``[N, 4, 4]`` (x_source = T · x_target) at each of ``stamps`` (int ns ``[N]``)
+    through the static transforms ``static`` (``{(parent, child): T_parent_child}``, ``/tf_static``) and the
+    moving ones ``moving`` (``{(parent, child): [(stamp, T_parent_child), ...]}``, ``/tf``: at each stamp
+    the transform nearest it, within ``tolerance_ns``, else ``ValueError`` naming ``where``, the edge and
+    the stamp); None when they do not link the frames."""
+    route = _route(set(static) | set(moving), source, target)
+    if route is None:
+        return None
+    chain = np.tile(np.eye(4), (stamps.size, 1, 1))
+    for edge, backwards in route:
+        if edge in static:
+            step = np.broadcast_to(static[edge], chain.shape)
+        else:
+            order = sorted(moving[edge], key=lambda sample: sample[0])
+            known = np.asarray([stamp for stamp, _ in order], np.int64)
+            chosen = nearest(known, stamps)
+            far = np.flatnonzero(np.abs(known[chosen] - stamps) > tolerance_ns)
+            if far.size:
+                k = int(far[0])
+                raise ValueError(f"{where}: /tf has no transform {edge[0]} → {edge[1]} within "
+                                 f"{tolerance_ns / 1e6:g} ms of frame {k} (stamp {stamps[k] / 1e9:.9f} s); "
+                                 "expected the chain to the camera at every frame")
+            step = np.stack([order[i][1] for i in chosen])
+        chain = chain @ (np.linalg.inv(step) if backwards else step)
+    return chain

@@ -1,17 +1,32 @@
-"""What every source gives a command: the opened sequence, with what a recording adds to it."""
+"""What a command asks of a source (:class:`Source`, with a recording's :class:`BagOptions`) and what every
+source gives it: the opened sequence, with what a recording adds to it (:class:`Recording`)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from dpc_jax.data.kitti import StereoSequence
 
-if TYPE_CHECKING:
-    from dpc_jax.sources.bag import BagOptions
+# Left and right images further apart than this are not one frame; also how far a pose may be from its
+# frame. KITTI's grey pair is up to 3.5 ms apart; a rig without a hardware trigger is further.
+DEFAULT_TOLERANCE = 0.01
+
+
+@dataclass(frozen=True)
+class BagOptions:
+    """What to read from a recording (the command line's ``--bag`` options; ``dpc_jax.sources.bag``)."""
+
+    path: Path
+    left_topic: str | None = None
+    right_topic: str | None = None
+    tolerance: float = DEFAULT_TOLERANCE
+    calib: Path | None = None
+    prior_topic: str | None = None
+    gt_topic: str | None = None
+    pose_frame: str | None = None
 
 
 @dataclass(frozen=True)
@@ -21,7 +36,7 @@ class Source:
     * ``kind``: ``kitti-odometry``, ``kitti-raw`` or ``bag``; ``path``: its root folder or recording;
     * ``key``: the odometry sequence or the raw drive (None for a recording); ``date``: the raw drive's;
     * ``grey``: the KITTI layouts' grey pair; ``gt``: a raw drive's ground-truth file;
-    * ``bag``: what to read from a recording (:class:`~dpc_jax.sources.bag.BagOptions`).
+    * ``bag``: what to read from a recording (:class:`BagOptions`).
     """
 
     kind: str

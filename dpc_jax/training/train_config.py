@@ -67,6 +67,7 @@ SUPERVISIONS = ("self", "supervised")
 SELECTIONS = {
     "delta": "best_delta", "gradient": "best_gradient_loss", "loop": "best_loop_closures", "last": "epochs",
 }
+DEFAULT_SELECTION = "delta"  # the epoch that lowered the validation Δ most (none if none lowered it)
 
 # The published choices of the correction head (see the module docstring).
 REFERENCE: dict[str, Any] = {

@@ -11,7 +11,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from dpc_jax.experiments.folds import Context, FoldRun, Plan, Test, add_protocol_arguments, run_protocol
-from dpc_jax.experiments.script import DATA, interruptible, new_parser
+from dpc_jax.experiments.script import add_kitti_raw_option, data_given, interruptible, new_parser
 from dpc_jax.pipelines import protocol as P
 from dpc_jax.runtime.hugepages import reexec_with_huge_pages
 
@@ -20,8 +20,7 @@ CONFIG = Path(__file__).resolve().parent / "configs" / "kitti_raw_excerpt.py"
 
 def build_parser() -> argparse.ArgumentParser:
     parser = new_parser(__doc__)
-    parser.add_argument("--kitti-raw", type=P.path_argument, default=DATA / "kitti-raw", metavar="ROOT",
-                        help="raw root holding DATE/ and libviso2/")
+    add_kitti_raw_option(parser)
     add_protocol_arguments(parser, CONFIG)
     return parser
 
@@ -35,9 +34,10 @@ def plan(context: Context) -> Plan:
     if protocol.train_frames is None or protocol.validation_frames is None:
         raise ValueError(f"{args.config}: PROTOCOL names no train_frames or validation_frames")
     (t0, t1), (v0, v1) = protocol.train_frames, protocol.validation_frames
-    libviso2 = args.kitti_raw / protocol.libviso2
-    sequence = open_raw(args.kitti_raw, protocol.date, protocol.drive, poses=libviso2)
-    context.claim([("--kitti-raw", args.kitti_raw)])
+    raw = data_given(args.kitti_raw, "--kitti-raw")
+    libviso2 = raw / protocol.libviso2
+    sequence = open_raw(raw, protocol.date, protocol.drive, poses=libviso2)
+    context.claim([("--kitti-raw", raw)])
     base = context.base
     fold = P.Fold("excerpt", tuple(base.train_sequences), base.validation_sequences[0],
                   tuple(base.test_sequences))

@@ -1,7 +1,8 @@
 """How small an error self-supervision can find: the detection limit by bias, pairs, steps and resolution.
 
-What runs and why: ``configs/detection_limit.py``; the grid, the cells and the tables:
-``dpc_jax.experiments.detection``. Per cell (bias scale s, training pairs N, the steps it trained for, input
+What runs and why: ``configs/detection_limit.py``; the grid and the cells: ``dpc_jax.experiments.detection``;
+what they answer, the rule among the options and the tables: ``detection_answer``, ``detection_rule`` and
+``detection_page`` beside it. Per cell (bias scale s, training pairs N, the steps it trained for, input
 resolution, world) the table gives the fraction of the planted bias removed on the held-out test sequences,
 prior → final, from the mean per-axis rotation error per step and from the rotational segment error; the
 same for the network's proposal applied whatever its tests said and for the earlier decision (the mean not
@@ -27,12 +28,16 @@ from pathlib import Path
 
 from dpc_jax._io import atomic_write
 from dpc_jax.experiments import detection as D
+from dpc_jax.experiments.detection_answer import cell_mean
+from dpc_jax.experiments.detection_page import CSV_COLUMNS, figure, long_rows, markdown
+from dpc_jax.experiments.detection_rule import CHECKING_WORLD, CHOOSING_WORLDS, OPTION_COLUMNS
 from dpc_jax.experiments.records import Records
 from dpc_jax.experiments.script import (
-    DATA,
     Clock,
+    add_data_option,
     add_results_page,
     claim,
+    data_given,
     interruptible,
     new_parser,
     publish,
@@ -64,9 +69,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="render another world (K >= 1; each world in a work folder of its own, "
                         "tabulated together with --include)")
     parser.add_argument("--quick", action="store_true", help="the tiny grid that checks the wiring")
-    parser.add_argument("--libviso2", type=path_argument, default=DATA / "kitti-libviso2", metavar="DIR",
-                        help="folder of libviso2-s's stereo_*.mat with ground truth (the reference ×1); not "
-                        "read when WORKDIR/reference.json exists")
+    add_data_option(parser, "--libviso2", "kitti-libviso2", metavar="DIR",
+                    help="folder of libviso2-s's stereo_*.mat with ground truth (the reference ×1); not read "
+                    "when WORKDIR/reference.json exists")
     parser.add_argument("--pairs", type=int, nargs="+", metavar="N",
                         help="run only the cells of these N of the grid (e.g. in two work folders side by "
                         "side, tabulated together with --include)")
@@ -104,7 +109,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         assert workdir is not None
         reference_path = workdir / "reference.json"
         if not reference_path.is_file():
-            atomic_write(reference_path, json.dumps(D.libviso2_reference(args.libviso2), indent=1))
+            measured = D.libviso2_reference(data_given(args.libviso2, "--libviso2"))
+            atomic_write(reference_path, json.dumps(measured, indent=1))
         reference = json.loads(reference_path.read_text())
     except (OSError, ValueError) as error:
         return refuse("detection_limit", error)
@@ -122,9 +128,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         measured = D.run_cell(study, workdir, roots[size, scale], cell, made, done)
         record = cells.write(D.cell_key(*cell), measured)
         finals = ", ".join(f"{x['decision']} {x['final_r_change_pct']:+.1f} %" for x in record["tests"])
-        clock.say(f"{record['key']}: removed (axis) network {D.cell_mean(record, 'found_axis_network'):.2f}, "
-                  f"final {D.cell_mean(record, 'found_axis_final'):.2f}, earlier "
-                  f"{D.cell_mean(record, 'found_axis_earlier'):.2f}; {finals}")
+        clock.say(f"{record['key']}: removed (axis) network {cell_mean(record, 'found_axis_network'):.2f}, "
+                  f"final {cell_mean(record, 'found_axis_final'):.2f}, earlier "
+                  f"{cell_mean(record, 'found_axis_earlier'):.2f}; {finals}")
     found = [c for d in (workdir, *args.include) for c in Records(d / "cells").all()]
     # A cell measured with another correction (outside --pairs/--sizes/--scales here) is not comparable.
     tabulated = [c for c in found if c.get("correction") == study.correction]
@@ -136,15 +142,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     expected = {} if args.quick else {
         world: {D.cell_key(*cell) for cell in D.load_study(CONFIG, "cpu" if world == 0 else "worlds", False,
                                                            world)[0].cells()}
-        for world in (*D.CHOOSING_WORLDS, D.CHECKING_WORLD)}
-    text = D.markdown(tabulated, reference, paper_pairs, clock.minutes, args.quick, expected)
+        for world in (*CHOOSING_WORLDS, CHECKING_WORLD)}
+    text = markdown(tabulated, reference, paper_pairs, clock.minutes, args.quick, expected)
     atomic_write(workdir / "detection_limit.md", text)
     atomic_write(workdir / "detection_limit.csv",
-                 csv_text((*D.CSV_COLUMNS, *D.OPTION_COLUMNS), D.long_rows(tabulated)))
-    D.figure(tabulated, reference, workdir / "detection_limit.png")
+                 csv_text((*CSV_COLUMNS, *OPTION_COLUMNS), long_rows(tabulated)))
+    figure(tabulated, reference, workdir / "detection_limit.png")
     if args.results_page is not None:
         # The page links the figure by the same name, beside it.
-        D.figure(tabulated, reference, args.results_page.with_name("detection_limit.png"))
+        figure(tabulated, reference, args.results_page.with_name("detection_limit.png"))
     publish(text, args.results_page, __file__)
     return 0
 

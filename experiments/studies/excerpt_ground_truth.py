@@ -46,8 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = kit.new_parser(__doc__)
     parser.add_argument("--workdir", type=path_argument, required=True,
                         help="output folder (priors/vo.txt is reused: kitti_raw_excerpt.py's work folder)")
-    parser.add_argument("--kitti-raw", type=path_argument, default=kit.DATA / "kitti-raw", metavar="ROOT",
-                        help="raw root holding DATE/ and libviso2/")
+    kit.add_kitti_raw_option(parser)
     kit.add_no_progress(parser)
     kit.add_results_page(parser)
     return parser
@@ -80,9 +79,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     progress = kit.progress_flag(args.no_progress)
     try:
-        sequence = open_raw(args.kitti_raw, DATE, DRIVE, poses=args.kitti_raw / LIBVISO2)
-        gt, libviso2 = read_mat(args.kitti_raw / LIBVISO2)
-        kit.claim(args.workdir, [("--kitti-raw", args.kitti_raw)], script=__file__, page=args.results_page)
+        raw = kit.data_given(args.kitti_raw, "--kitti-raw")
+        sequence = open_raw(raw, DATE, DRIVE, poses=raw / LIBVISO2)
+        gt, libviso2 = read_mat(raw / LIBVISO2)
+        kit.claim(args.workdir, [("--kitti-raw", raw)], script=__file__, page=args.results_page)
         record = vo_prior(sequence, args.workdir / "priors" / "vo.txt", progress)
         vo = read_trajectory(record["path"])
     except (OSError, ValueError, KeyError) as error:

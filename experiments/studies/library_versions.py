@@ -71,8 +71,7 @@ def build_parser() -> argparse.ArgumentParser:
                       help="measure in this environment into DIR (a work folder of its own)")
     task.add_argument("--compare", type=path_argument, nargs=2, metavar=("DIR_A", "DIR_B"),
                       help="compare two measured folders (B against A)")
-    parser.add_argument("--kitti-raw", type=path_argument, default=kit.DATA / "kitti-raw", metavar="ROOT",
-                        help="raw root holding DATE/ and libviso2/")
+    kit.add_kitti_raw_option(parser)
     parser.add_argument("--smoke", action="store_true", help="one frame at 64×96, VO over 20 frames")
     kit.add_no_progress(parser)
     kit.add_results_page(parser)
@@ -98,8 +97,9 @@ def measure(args: argparse.Namespace) -> int:
     try:
         if args.results_page is not None:
             raise ValueError("--results-page: only with --compare (a measurement writes its folder)")
-        sequence = open_raw(args.kitti_raw, DATE, DRIVE, poses=args.kitti_raw / LIBVISO2)
-        kit.claim(args.out, [("--kitti-raw", args.kitti_raw)], script=__file__, option="--out")
+        raw = kit.data_given(args.kitti_raw, "--kitti-raw")
+        sequence = open_raw(raw, DATE, DRIVE, poses=raw / LIBVISO2)
+        kit.claim(args.out, [("--kitti-raw", raw)], script=__file__, option="--out")
     except (OSError, ValueError, KeyError) as error:
         return kit.refuse("library_versions", error)
     clock = kit.Clock()

@@ -52,8 +52,8 @@ TITLES = ("seg. t (%)", "seg. r (°/100 m)", "m-ATE (m)", "m-ATE (°)")
 
 def build_parser() -> argparse.ArgumentParser:
     parser = kit.new_parser(__doc__)
-    parser.add_argument("--data", type=path_argument, default=kit.DATA / "kitti-libviso2", metavar="DIR",
-                        help="folder with stereo_XX.mat (and mono_XX.mat) (default: %(default)s)")
+    kit.add_data_option(parser, "--data", "kitti-libviso2", metavar="DIR",
+                        help="folder with stereo_XX.mat (and mono_XX.mat)")
     parser.add_argument("--mono", action="store_true", help="also libviso2-m (translation rescaled per step "
                         "to the ground-truth step length, the ss-DPC-Net protocol)")
     parser.add_argument("--translation", action="store_true",
@@ -165,8 +165,12 @@ def main(argv: list[str] | None = None) -> int:
         print(demo_table(args.demo))
         return 0
     kinds = ("stereo", "mono") if args.mono else ("stereo",)
-    missing = [str(args.data / f"{k}_{s}.mat") for k in kinds for s in SEQUENCES
-               if not (args.data / f"{k}_{s}.mat").is_file()]
+    try:
+        data = kit.data_given(args.data, "--data")
+    except ValueError as error:
+        return kit.refuse("linear_baseline", error)
+    missing = [str(data / f"{k}_{s}.mat") for k in kinds for s in SEQUENCES
+               if not (data / f"{k}_{s}.mat").is_file()]
     if missing:
         return kit.refuse("linear_baseline", f"{missing[0]} not found (need {{stereo,mono}}_XX.mat for XX "
                           f"in {' '.join(SEQUENCES)} under --data)")
@@ -175,7 +179,7 @@ def main(argv: list[str] | None = None) -> int:
     fell, sections = 0, []
     for kind in kinds:
         try:
-            sequences = load(args.data, kind)
+            sequences = load(data, kind)
         except (ValueError, OSError) as error:
             return kit.refuse("linear_baseline", error)
         results = held_out_linear_metrics(sequences, rotation_only)

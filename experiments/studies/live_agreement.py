@@ -30,8 +30,10 @@ import numpy as np
 
 from dpc_jax.experiments.script import (
     Clock,
+    add_kitti_raw_option,
     add_results_page,
     claim,
+    data_given,
     interruptible,
     new_parser,
     publish,
@@ -41,7 +43,6 @@ from dpc_jax.pipelines.protocol import path_argument
 from dpc_jax.results.demo import SUMMARY
 
 HERE = Path(__file__).resolve().parent
-DEFAULT_ROOT = HERE.parents[2] / "shared" / "data" / "kitti-raw"
 DATE = "2011_09_26"
 MATS = {"0001": "libviso2/stereo_2011_09_26_drive_0001.mat",
         "0005": "libviso2/stereo_2011_09_26_drive_0005.mat"}
@@ -152,7 +153,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--demo", type=path_argument, required=True, help="a finished demo folder")
     parser.add_argument("--drives", type=path_argument, required=True,
                         help="a finished kitti_raw_drives folder")
-    parser.add_argument("--kitti-raw", type=path_argument, default=DEFAULT_ROOT, metavar="ROOT")
+    add_kitti_raw_option(parser)
     parser.add_argument("--workdir", type=path_argument, required=True, help="caches and the table go here")
     parser.add_argument("--no-judge", action="store_true",
                         help="decide at the network's size alone, offline and live (no judge)")
@@ -167,9 +168,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                 ("--drives", args.drives, "results.json", "a finished kitti_raw_drives.py work folder")):
             if not (folder / marker).is_file():
                 raise ValueError(f"{option} {folder}: not {what} (no {marker})")
-        todo = cases(args.demo, args.drives, args.kitti_raw)
+        raw = data_given(args.kitti_raw, "--kitti-raw")
+        todo = cases(args.demo, args.drives, raw)
         workdir = claim(args.workdir, [("--demo", args.demo), ("--drives", args.drives),
-                                       ("--kitti-raw", args.kitti_raw)], script=__file__,
+                                       ("--kitti-raw", raw)], script=__file__,
                         page=args.results_page)
         assert workdir is not None
     except (OSError, ValueError, KeyError) as error:

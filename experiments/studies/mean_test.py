@@ -35,8 +35,10 @@ import numpy as np
 
 from dpc_jax.experiments.script import (
     Clock,
+    add_kitti_raw_option,
     add_results_page,
     claim,
+    data_given,
     interruptible,
     new_parser,
     publish,
@@ -48,7 +50,6 @@ if TYPE_CHECKING:
     from dpc_jax.data.sequence_cache import SequenceCache
 
 HERE = Path(__file__).resolve().parent
-DEFAULT_ROOT = HERE.parents[2] / "shared" / "data" / "kitti-raw"
 DATE = "2011_09_26"
 DRIVES = {"0001": "libviso2/stereo_2011_09_26_drive_0001.mat",
           "0005": "libviso2/stereo_2011_09_26_drive_0005.mat"}
@@ -122,8 +123,7 @@ def markdown(rows: list[dict[str, Any]], trials: int, minutes: float) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = new_parser(__doc__)
     parser.add_argument("--workdir", type=path_argument, required=True, help="caches go here")
-    parser.add_argument("--kitti-raw", type=path_argument, default=DEFAULT_ROOT, metavar="ROOT",
-                        help="raw root holding DATE/ and libviso2/")
+    add_kitti_raw_option(parser)
     parser.add_argument("--trials", type=int, default=40, metavar="N", help="trials per row")
     add_results_page(parser)
     args = parser.parse_args(argv)
@@ -132,7 +132,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.trials < 1:
             raise ValueError(f"--trials {args.trials}: expected 1 or more")
-        workdir = claim(args.workdir, [("--kitti-raw", args.kitti_raw)], script=__file__,
+        raw = data_given(args.kitti_raw, "--kitti-raw")
+        workdir = claim(args.workdir, [("--kitti-raw", raw)], script=__file__,
                         page=args.results_page)
         assert workdir is not None
         from dpc_jax.data.cache import prepare_sequence
@@ -142,8 +143,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         caches = {}
         for drive, mat in DRIVES.items():
-            sequence = open_raw(args.kitti_raw, DATE, drive)
-            prior = read_trajectory(args.kitti_raw / mat, mat_key="poses_est")[:len(sequence)]
+            sequence = open_raw(raw, DATE, drive)
+            prior = read_trajectory(raw / mat, mat_key="poses_est")[:len(sequence)]
             for size in SIZES:
                 path = prepare_sequence(sequence, prior, workdir / "cache" / f"{size[0]}x{size[1]}",
                                         size=size, progress=False)

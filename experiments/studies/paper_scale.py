@@ -29,7 +29,7 @@ from dpc_jax.experiments.script import interruptible
 from dpc_jax.pipelines.protocol import path_argument
 
 CONFIG = Path(__file__).resolve().parent / "configs" / "paper_scale.py"
-DOCS = kit.CHECKOUT / "docs" / "performance.md"
+DOCS = Path(__file__).resolve().parents[2] / "docs" / "performance.md"
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -112,8 +112,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--skip-drives", action="store_true", help="the demo seeds only")
     parser.add_argument("--config", type=path_argument, default=CONFIG, metavar="FILE",
                         help="comparison config")
-    parser.add_argument("--kitti-raw", type=path_argument, default=kit.DATA / "kitti-raw", metavar="ROOT",
-                        help="raw root holding DATE/ and libviso2/")
+    kit.add_kitti_raw_option(parser)
     parser.add_argument("--smoke", action="store_true", help="wiring check: tiny demo (the config's "
                         "SMOKE_DEMO) and kitti_raw_drives.py --smoke")
     kit.add_no_progress(parser)
@@ -124,7 +123,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except Exception as error:  # the config file's own code failed
         return kit.refuse("supervised_comparison", f"{args.config}: {type(error).__name__}: {error}")
     try:
-        if not args.skip_drives and not (args.kitti_raw / "libviso2").is_dir():
+        if not args.skip_drives and not (kit.data_given(args.kitti_raw, "--kitti-raw") / "libviso2").is_dir():
             raise ValueError(f"--kitti-raw {args.kitti_raw}: no libviso2/ folder (or give --skip-drives)")
         kit.claim(args.workdir, [("--config", args.config), ("--kitti-raw", None if args.skip_drives
                                                               else args.kitti_raw)], script=__file__,

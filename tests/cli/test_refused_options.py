@@ -129,6 +129,10 @@ def test_options_that_cannot_take_effect_are_refused_before_jax(
         "vo: error: --disparity-offset 1e+06: the images of 00 are 64 px wide": [
             "vo", "--kitti-odometry", inputs["kitti"], "--sequence", "00", "--out", out / "vo.txt",
             "--disparity-offset", "1e6"],
+        "vo: error: --judge-size 20x32: a judge measures Δ with stereo depth (stereo_dpc); --correct "
+        "{r}/ss_run is ss_dpc": [  # correct's judge policy
+            "vo", "--kitti-odometry", inputs["kitti"], "--sequence", "00", "--out", out / "vo.txt",
+            "--correct", inputs["ss_run"], "--judge-size", "20x32"],
         "--seed must be >= 0, got -5": ["synth", "--out", out / "s", "--seed", "-5"],
         "--noise must be >= 0, got -1.0": ["synth", "--out", out / "s", "--noise", "-1"],
     }

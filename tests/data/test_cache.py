@@ -20,7 +20,17 @@ from support import write_odometry
 from dpc_jax.cli import main
 from dpc_jax.data.cache import prepare_sequence
 from dpc_jax.data.kitti import open_odometry, open_raw
-from dpc_jax.data.sequence_cache import MANIFEST, CacheError, flow_step, load_cache, training_sequences
+from dpc_jax.data.sequence_cache import (
+    CACHE_VERSION,
+    MANIFEST,
+    CacheError,
+    NewerCacheError,
+    flow_step,
+    load_cache,
+    newer_cache_problem,
+    read_manifest,
+    training_sequences,
+)
 from dpc_jax.geometry.warp import stereo_warp
 
 RAW = DATA / "kitti-raw"
@@ -312,6 +322,46 @@ def test_a_cache_of_another_format_version_is_refused_in_one_line(tmp_path: Path
     with pytest.raises(CacheError, match=re.escape(newer)):
         prepare_sequence(seq, seq.poses, tmp_path / "out", size=(10, 16), progress=False, force=True)
     assert {p.name: p.read_bytes() for p in path.iterdir()} == files
+
+
+def test_every_user_of_a_manifest_reads_it_the_same(tmp_path: Path) -> None:
+    """The manifest `prepare` writes is what the one reader, the caches' reader and `prepare`'s reuse all
+    read; a damaged one is refused by the readers in the same words and rebuilt by `prepare`; a newer one
+    is refused by every user in the same words and left alone."""
+    write_odometry(tmp_path / "kitti", n=5)
+    seq = open_odometry(tmp_path / "kitti", "00")
+
+    def prepare(**options: bool) -> Path:
+        return prepare_sequence(seq, seq.poses, tmp_path / "out", size=(10, 16), progress=False, **options)
+
+    path = prepare()
+    written = json.loads((path / MANIFEST).read_text())
+    assert read_manifest(path) == written == load_cache(path).manifest
+    assert newer_cache_problem(path) is None
+    inode = (path / MANIFEST).stat().st_ino
+    assert prepare() == path and (path / MANIFEST).stat().st_ino == inode  # reused, not rebuilt
+    for text, said in (("{", "not valid JSON"), ("[]", "expected a JSON object"),
+                       (json.dumps({**written, "n_frames": "5"}), "field 'n_frames' is missing or not")):
+        (path / MANIFEST).write_text(text)
+        with pytest.raises(CacheError, match=said) as read:
+            read_manifest(path)
+        with pytest.raises(CacheError) as loaded:
+            load_cache(path)
+        assert str(loaded.value) == str(read.value) and newer_cache_problem(path) is None
+        assert prepare() == path and read_manifest(path) == written  # rebuilt as it was
+    (path / MANIFEST).write_text(json.dumps({**written, "version": CACHE_VERSION + 1}))
+    with pytest.raises(NewerCacheError, match="written by a newer dpc_jax") as read:
+        read_manifest(path)
+    assert newer_cache_problem(path) == str(read.value)
+    for user in (lambda: load_cache(path), lambda: prepare(force=True)):
+        with pytest.raises(NewerCacheError) as refused:
+            user()
+        assert str(refused.value) == str(read.value)
+    assert json.loads((path / MANIFEST).read_text())["version"] == CACHE_VERSION + 1
+    (path / MANIFEST).unlink()
+    with pytest.raises(FileNotFoundError, match=re.escape(f"{path}: not a prepared cache (no {MANIFEST})")):
+        read_manifest(path)
+    assert newer_cache_problem(path) is None
 
 
 @pytest.mark.parametrize("damage", ["truncate", "nan_prior"])

@@ -116,6 +116,41 @@ def test_a_script_claims_its_outputs_says_one_line_and_publishes(tmp_path: Path,
     assert "the table" in page.read_text() and "Written by `ablation.py`" in page.read_text()
 
 
+def test_the_real_data_comes_from_the_variable_else_from_beside_a_checkout(tmp_path: Path,
+                                                                            monkeypatch) -> None:
+    """A data option's default: ``$DPC_JAX_DATA``'s folder when the variable is set, else ``../shared/data``
+    beside the checkout the package runs from, and only from a checkout (a ``pyproject.toml`` two levels
+    above the kit), never beside an installed package; without one, the script names the option."""
+    import argparse
+    import importlib.util
+
+    (tmp_path / "data" / "kitti-raw").mkdir(parents=True)
+    monkeypatch.setenv(script.DATA_VARIABLE, str(tmp_path / "data"))
+    assert script.data_default("kitti-raw") == tmp_path / "data" / "kitti-raw"
+    assert script.data_default("kitti-libviso2") is None
+    parser = argparse.ArgumentParser()
+    script.add_data_option(parser, "--libviso2", "kitti-libviso2", metavar="DIR", help="the .mat files")
+    refusal = ("--libviso2: not given, and no default found (in $DPC_JAX_DATA when it is set, else in "
+               "../shared/data beside the checkout); pass --libviso2 DIR or set DPC_JAX_DATA=DIR")
+    with pytest.raises(ValueError, match=f"^{re.escape(refusal)}$"):
+        script.data_given(parser.parse_args([]).libviso2, "--libviso2")
+    assert script.data_given(parser.parse_args(["--libviso2", "m"]).libviso2, "--libviso2") == Path("m")
+    # The same kit in a folder laid out as an installed package beside a shared/data/kitti-raw: found only
+    # once that folder is a checkout.
+    monkeypatch.delenv(script.DATA_VARIABLE)
+    copy = tmp_path / "site" / "lib" / "dpc_jax" / "experiments" / "script.py"
+    copy.parent.mkdir(parents=True)
+    copy.write_text(Path(script.__file__).read_text())
+    (tmp_path / "site" / "shared" / "data" / "kitti-raw").mkdir(parents=True)
+    spec = importlib.util.spec_from_file_location("installed_script", copy)
+    assert spec is not None and spec.loader is not None
+    installed = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(installed)
+    assert installed.data_default("kitti-raw") is None
+    (tmp_path / "site" / "lib" / "pyproject.toml").write_text("")
+    assert installed.data_default("kitti-raw") == tmp_path / "site" / "shared" / "data" / "kitti-raw"
+
+
 def test_every_script_ends_on_ctrl_c_in_one_line_with_130(capsys) -> None:
     """``interruptible``: a KeyboardInterrupt is one line and exit status 130 (as the commands), not a
     traceback; every script's ``__main__`` goes through it."""

@@ -21,7 +21,8 @@ from support import in_one_process, write_odometry
 from dpc_jax.cli import main
 from dpc_jax.data.frames import png_grey
 from dpc_jax.data.kitti import open_odometry, read_ground_truth
-from dpc_jax.sources.bag import BagOptions, open_bag
+from dpc_jax.sources import BagOptions
+from dpc_jax.sources.bag import open_bag
 
 SUFFIX = {"ros1": ".bag", "mcap": ".mcap", "sqlite3": "", "mcap-folder": ""}
 
@@ -200,6 +201,40 @@ def test_tf_static_moves_the_prior_onto_the_camera(kitti: dict, tmp_path: Path) 
         open_bag(BagOptions(unlinked, prior_topic="/odom"))
     same = open_bag(BagOptions(unlinked, prior_topic="/odom", pose_frame=CAMERA_FRAME))
     np.testing.assert_allclose(same.prior, poses, atol=1e-12)
+
+
+def test_a_moving_tf_chain_moves_the_prior_onto_the_camera(kitti: dict, tmp_path: Path) -> None:
+    """Odometry of base_link; /tf holds base_link → gimbal, turning from frame to frame (stamped 2 ms after
+    each frame, within the tolerance), and /tf_static gimbal → cam_left: the prior is T_world_base ·
+    T_base_gimbal(frame) · T_gimbal_cam. A frame without a transform of the chain is one line naming it."""
+    from scipy.spatial.transform import Rotation
+
+    poses = kitti["poses"]
+    mount = np.eye(4)
+    mount[:3, :3] = Rotation.from_euler("xyz", [-90, 0, -90], degrees=True).as_matrix()
+    mount[:3, 3] = [0.1, 0.0, 0.05]
+    turns = np.tile(np.eye(4), (len(poses), 1, 1))
+    for k in range(len(poses)):
+        turns[k, :3, :3] = Rotation.from_euler("z", 5.0 * k, degrees=True).as_matrix()
+        turns[k, :3, 3] = [0.3, 0.0, 1.2 + 0.01 * k]
+
+    def chain(missing: int | None):
+        def extra(bag: Bag, k: int, stamp: int) -> None:
+            bag.write("/odom", stamp, bag.odometry(stamp, "map", "base_link", poses[k]))
+            if k != missing:
+                bag.write("/tf", stamp + 2_000_000, bag.transform(stamp + 2_000_000, "base_link", "gimbal",
+                                                                  turns[k]))
+            if k == 0:
+                bag.write("/tf_static", stamp, bag.transform(stamp, "gimbal", CAMERA_FRAME, mount))
+        return extra
+
+    path = write_recording(tmp_path / "moving.mcap", kitti["random"], frames=chain(None))
+    prior = open_bag(BagOptions(path, prior_topic="/odom")).prior
+    expected = np.stack([poses[k] @ turns[k] @ mount for k in range(len(poses))])
+    np.testing.assert_allclose(prior, expected, atol=1e-12)
+    gap = write_recording(tmp_path / "gap", kitti["random"], kind="sqlite3", frames=chain(3))
+    with pytest.raises(ValueError, match=r"/tf has no transform base_link → gimbal within 10 ms of frame 3"):
+        open_bag(BagOptions(gap, prior_topic="/odom"))
 
 
 @pytest.mark.parametrize("kind,compressed", [("ros1", False), ("mcap", True)])
