@@ -102,32 +102,6 @@ MEAN_TESTS = {
 DEFAULT_MEAN_TEST = "mean-at-network"
 
 
-def judge_problem(method: str, run_size: tuple[int, int], judge_size: tuple[int, int],
-                  camera_size: tuple[int, int] | None = None, fu: float | None = None,
-                  baseline: float | None = None) -> str | None:
-    """Why a judge of ``judge_size`` cannot judge a ``method`` run of ``run_size`` (``(H, W)`` px), or
-    None: the one check of a judge (``correct``'s judge cache, the live corrector's judge size, the
-    command line before JAX starts). A judge measures Δ with StereoSGBM depth (a stereo run), on at
-    least the network's pixels and no more than the camera gives (``camera_size``, when known); with
-    ``fu`` (px, at the judge's size) and ``baseline`` (m), its images must leave StereoSGBM room to
-    match. The sentence names the size, not the option or file: the caller prefixes it."""
-    from dpc_jax.data.stereo_depth import sgbm_fits
-
-    (h, w), (nh, nw) = judge_size, run_size
-    if method != "stereo_dpc":
-        return f"a judge measures Δ with stereo depth; the run is {method}"
-    if h < nh or w < nw:
-        return (f"a judge of {h}x{w} is smaller than the run's images ({nh}x{nw}); a judge measures Δ on "
-                "more pixels than the network saw, not fewer")
-    if camera_size is not None and (h > camera_size[0] or w > camera_size[1]):
-        ch, cw = camera_size
-        return (f"a judge of {h}x{w} is larger than the camera's images ({ch}x{cw}); a judge upsampled "
-                "from smaller images sees nothing they do not")
-    if fu is not None and baseline is not None and not sgbm_fits(w, fu, baseline):
-        return f"a judge of {h}x{w} is too narrow for StereoSGBM to match the camera's disparities"
-    return None
-
-
 NETWORK, JUDGE = "network", "judge"  # the sizes a part is measured at
 
 

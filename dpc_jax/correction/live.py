@@ -45,9 +45,9 @@ import numpy as np
 
 from dpc_jax.correction.acceptance import DEFAULT_ALPHA
 from dpc_jax.correction.corrector import default_acceptance_depth
-from dpc_jax.correction.decision import COMPONENTS, JUDGE, NETWORK, Decision, judge_problem
+from dpc_jax.correction.decision import COMPONENTS, JUDGE, NETWORK, Decision
 from dpc_jax.correction.inference import TrainedRun, load_run
-from dpc_jax.correction.judge import judge_rule
+from dpc_jax.correction.judge import judge_rule, judge_size_problem
 from dpc_jax.correction.measure import PADDED, pair_deltas
 from dpc_jax.correction.parts import MEAN_WINDOW, Part
 from dpc_jax.data.calibration import Calibration
@@ -201,12 +201,20 @@ class LiveCorrector:
         self._compile()
 
     def _checked_judge(self, size: tuple[int, int]) -> tuple[int, int]:
+        """``size`` checked as ``dpc-jax live`` checks ``--judge-size``
+        (``dpc_jax.correction.judge.judge_size_problem``), and wide enough for StereoSGBM."""
+        from dpc_jax.data.stereo_depth import sgbm_fits
+
         h, w = (int(x) for x in size)
-        K = resized_intrinsics(self.calibration.K, self.calibration.image_size, (h, w))
-        problem = judge_problem(self.run.config.method, self.size, (h, w), self.calibration.image_size,
-                                float(K[0, 0]), self.calibration.baseline)
+        if self.run.config.method != "stereo_dpc":
+            raise ValueError(f"judge {h}x{w}: a judge measures Δ with stereo depth; the run is "
+                             f"{self.run.config.method}")
+        problem = judge_size_problem((h, w), self.size, self.calibration.image_size)
         if problem is not None:
-            raise ValueError(f"judge {h}x{w}: {problem}")
+            raise ValueError(problem)
+        K = resized_intrinsics(self.calibration.K, self.calibration.image_size, (h, w))
+        if not sgbm_fits(w, float(K[0, 0]), self.calibration.baseline):
+            raise ValueError(f"judge {h}x{w}: too narrow for StereoSGBM to match the camera's disparities")
         self._judge_K = K
         return h, w
 

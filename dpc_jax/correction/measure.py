@@ -24,8 +24,9 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from dpc_jax.correction.decision import Measure, judge_problem
+from dpc_jax.correction.decision import Measure
 from dpc_jax.correction.inference import TrainedRun
+from dpc_jax.correction.judge import judge_frames_problem
 from dpc_jax.data.sequence_cache import SequenceCache, load_cache
 from dpc_jax.engine.predict import PreparedModel, effects_step, measure_effects, stereo_depth_of
 from dpc_jax.nn.batch import Batch
@@ -91,13 +92,16 @@ def pair_deltas(run: TrainedRun, batch: Batch, corrections: np.ndarray, *,
 def judge_cache(
     run: TrainedRun, cache: SequenceCache, judge: SequenceCache | str | os.PathLike
 ) -> SequenceCache:
-    """The judge of ``cache`` for ``run`` (a cache or its folder), checked: the same frames, and
-    ``dpc_jax.correction.decision.judge_problem``'s check (the one of every judge); its prior is
-    replaced by ``cache``'s (Δ is measured around the prior being corrected)."""
+    """The judge of ``cache`` for ``run`` (a cache or its folder), checked: a stereo run, and the same
+    frames at least as large (``dpc_jax.correction.judge.judge_frames_problem``, the command line's
+    check); its prior is replaced by ``cache``'s (Δ is measured around the prior being corrected)."""
     judged = judge if isinstance(judge, SequenceCache) else load_cache(judge)
-    problem = judge_problem(run.config.method, cache.image_size, judged.image_size)
+    if run.config.method != "stereo_dpc":
+        raise ValueError(f"{judged.path}: a judge measures Δ with stereo depth; the run is "
+                         f"{run.config.method}")
+    problem = judge_frames_problem(judged, cache, str(judged.path), str(cache.path))
     if problem is not None:
-        raise ValueError(f"{judged.path}: {problem}")
+        raise ValueError(problem)
     same_sequence = judged.manifest.get("sequence") == cache.manifest.get("sequence")
     if not same_sequence or not np.array_equal(np.asarray(judged.indices), np.asarray(cache.indices)):
         raise ValueError(f"{judged.path}: holds frames other than those of {cache.path}; a judge must be "

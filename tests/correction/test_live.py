@@ -216,7 +216,7 @@ def test_the_judge_measures_what_corrects_judge_does_and_gates_what_is_applied(w
     run = load_run(world["run"], "delta")
     gt, prior = read_mat(world["priors"] / "stereo_05.mat")
     calibration = Calibration.of(world["sequence"])
-    with pytest.raises(ValueError, match=r"larger than the camera's images \(48x72\)"):
+    with pytest.raises(ValueError, match=r"larger than the source images \(48x72\)"):
         LiveCorrector(run, calibration, judge_size=(64, 96))
 
     def favoured(live: LiveCorrector) -> LiveCorrector:
