@@ -99,7 +99,8 @@ class LiveFrame:
     events: tuple[str, ...] = ()
     seconds: dict[str, float] = field(default_factory=dict)
 
-    # The names ``cli/live.py`` reads until it reads ``part`` and ``correction``.
+    # The names the live loop's table and summary (``dpc_jax.correction.stream``) read until they read
+    # ``part`` and ``correction``.
     @property
     def state(self) -> str:
         """``start``, ``forced``, ``prior`` (nothing applied) or :attr:`part`."""

@@ -32,7 +32,7 @@ def _done(frames: list[int]) -> CorrectedSequence:
     poses[:, :3, 3] = rng.normal(0, 5.0, (n, 3))
     prior = np.tile(np.eye(4), (n, 1, 1))
     correction = Correction("05", np.asarray(frames), np.arange(n) * 0.1, prior, poses, poses, None,
-                            np.zeros((n - 1, 6)), False, Acceptance(0.01, decision="full"), 3, None)
+                            np.zeros((n - 1, 6)), False, Acceptance(0.01, component="full"), 3, None)
     return CorrectedSequence(correction, None, None, "trained", correction)
 
 
