@@ -256,7 +256,7 @@ def _print_summary(args: argparse.Namespace, run_: TrainedRun, done: CorrectedSe
     if args.select == "delta" and not run_.improves_on_prior:
         # load_run fell back to the newest epoch: the run holds no best-Δ checkpoint.
         criterion = "the newest epoch, as the run holds no best-Δ checkpoint (best_delta/)"
-    if correction.applied == "none":
+    if correction.part == "none":
         print(f"{correction.name}: correction NOT applied, the prior is written unchanged; --force applies "
               "it anyway")
     print(f"{correction.name}: {correction.corrected.shape[0]} poses, correction applied: "

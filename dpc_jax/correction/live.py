@@ -99,20 +99,6 @@ class LiveFrame:
     events: tuple[str, ...] = ()
     seconds: dict[str, float] = field(default_factory=dict)
 
-    # The names the live loop's table and summary (``dpc_jax.correction.stream``) read until they read
-    # ``part`` and ``correction``.
-    @property
-    def state(self) -> str:
-        """``start``, ``forced``, ``prior`` (nothing applied) or :attr:`part`."""
-        if self.index == 0:
-            return "start"
-        return "forced" if self.forced else "prior" if self.part == "none" else self.part
-
-    @property
-    def applied(self) -> np.ndarray:
-        """:attr:`correction`."""
-        return self.correction
-
 
 @dataclass
 class _Previous:

@@ -140,7 +140,7 @@ class LiveSummary:
     def add(self, number: int, corrected: Corrected, read_s: float, latency_s: float, missed: bool) -> None:
         frame = corrected.frame
         self.frames += 1
-        self.states[frame.state] += 1
+        self.states[frame_state(frame)] += 1
         self.events += [(number, event) for event in frame.events]
         self.seconds["latency"].append(latency_s)
         self.seconds["read"].append(read_s)
@@ -327,6 +327,14 @@ def correct_frames(
             summary.add(arrived.number, corrected, read_s, written - arrival, written > due)
 
 
+def frame_state(frame: LiveFrame) -> str:
+    """The ``state`` column of the live table: ``start`` (the first frame), ``forced``, ``prior`` (nothing
+    applied) or the part applied (``frame.part``)."""
+    if frame.index == 0:
+        return "start"
+    return "forced" if frame.forced else "prior" if frame.part == "none" else frame.part
+
+
 def _row(arrived: Arrived, corrected: Corrected, read_s: float, arrival_s: float, started: float, due: float,
          paced: bool, written: float) -> str:
     """The CSV row (:data:`CSV_COLUMNS`) of a frame that arrived ``arrival_s`` s after the first,
@@ -334,7 +342,7 @@ def _row(arrived: Arrived, corrected: Corrected, read_s: float, arrival_s: float
     (``paced``: under a pace, which gives the ``missed`` column)."""
     frame = corrected.frame
     inliers, status, offset = corrected.vo if corrected.vo is not None else ("", "", None)
-    cells = [arrived.number, "" if arrived.time_s is None else f"{arrived.time_s:.6f}", frame.state,
+    cells = [arrived.number, "" if arrived.time_s is None else f"{arrived.time_s:.6f}", frame_state(frame),
              ";".join(frame.events), inliers, status, "" if offset is None else f"{offset:.4f}", _ms(read_s),
              _ms(corrected.vo_s), *(_ms(frame.seconds.get(stage)) for stage in CORRECTION_STAGES),
              _ms(written - started - arrival_s), f"{arrival_s:.6f}", f"{written - started:.6f}",

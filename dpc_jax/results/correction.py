@@ -66,11 +66,6 @@ class Correction:
         return self.acceptance.part
 
     @property
-    def applied(self) -> str:
-        """:attr:`part`, by the name ``dpc-jax correct`` reads until it reads :attr:`part`."""
-        return self.part
-
-    @property
     def all_source_frames(self) -> bool:
         """Whether the trajectory has every frame ``0 … N-1`` of its source sequence."""
         return bool(np.array_equal(self.frames, np.arange(self.frames.size)))

@@ -19,7 +19,6 @@ the offline tests refuse there).
 
 from __future__ import annotations
 
-import json
 import sys
 from collections import Counter
 from collections.abc import Sequence
@@ -28,6 +27,8 @@ from typing import Any
 
 import numpy as np
 
+from dpc_jax.correction.stream import frame_state
+from dpc_jax.data.sequence_cache import read_manifest
 from dpc_jax.experiments.script import (
     Clock,
     add_kitti_raw_option,
@@ -54,13 +55,13 @@ def cases(demo: Path, drives: Path, raw: Path) -> list[dict[str, Any]]:
     from dpc_jax.data.kitti import open_odometry, open_raw
     from dpc_jax.data.poses_io import read_kitti_poses, read_trajectory
 
-    def offset(manifest: Path) -> float:
-        return float(json.loads(manifest.read_text())["parameters"]["disparity_offset"])
+    def offset(cache: Path) -> float:
+        return float(read_manifest(cache)["parameters"]["disparity_offset"])
 
     test = open_odometry(demo / "data", "test")
     out = [{"name": "demo test sequence, demo network", "run": demo / "run", "sequence": test,
             "prior": read_kitti_poses(demo / "vo" / "test.txt"), "gt": test.poses,
-            "offset": offset(demo / "cache" / "test" / "manifest.json"), "rotation_only": None}]
+            "offset": offset(demo / "cache" / "test"), "rotation_only": None}]
     for drive, other in (("0001", "0005"), ("0005", "0001")):
         sequence = open_raw(raw, DATE, drive)
         n = len(sequence)
@@ -105,11 +106,10 @@ def run_case(case: dict[str, Any], cache: Path, judged: bool) -> dict[str, Any]:
               for k, (left, right) in enumerate(zip(files.left_paths, files.right_paths, strict=True))]
     poses = np.stack([f.pose for f in frames])
     summary = evaluate(gt, {"prior": offline.prior, "offline": offline.corrected, "live": poses}).estimates
-    states = Counter(f.state for f in frames[1:])
-    applied = [f.state not in ("prior", "start") for f in frames]
+    states = Counter(frame_state(f) for f in frames[1:])
+    applied = [frame_state(f) not in ("prior", "start") for f in frames]
     longest = max((len(r) for r in "".join("1" if a else "0" for a in applied).split("0")), default=0)
-    differed = [f.index for f in frames[1:] if (f.state.split(" ")[0] if f.state != "prior" else "none")
-                != (offline.acceptance.decision if offline.acceptance.decision != "none" else "none")]
+    differed = [f.index for f in frames[1:] if f.part.split(" ")[0] != offline.acceptance.component]
     judge_ms = [1e3 * f.seconds["judge"] for f in frames if "judge" in f.seconds]
     return {"case": case["name"], "frames": len(frames),
             "judge": "none" if judge_size is None else "{}x{}".format(*judge_size),

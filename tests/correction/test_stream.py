@@ -56,10 +56,10 @@ def _frames(n: int, fail_at: int | None = None, slow_at: int | None = None) -> l
 
 def _step(poses: np.ndarray, priors: np.ndarray) -> Callable[[int], Corrected]:
     def step(k: int) -> Corrected:
-        state, events = ("start", ()) if k == 0 else ("prior", ("rotation accepted",) if k == 2 else ())
-        # What the loop reads of a LiveFrame, without a network.
-        frame = SimpleNamespace(pose=poses[k], prior=priors[k], state=state, events=events,
-                                seconds={"network": 1e-3})
+        events = ("rotation accepted",) if k == 2 else ()
+        # What the loop reads of a LiveFrame, without a network: nothing applied yet.
+        frame = SimpleNamespace(index=k, pose=poses[k], prior=priors[k], part="none", forced=False,
+                                events=events, seconds={"network": 1e-3})
         return Corrected(frame)  # type: ignore[arg-type]
 
     return step
