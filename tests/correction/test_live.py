@@ -75,8 +75,9 @@ def test_forced_live_gives_the_poses_of_forced_correct(world: dict) -> None:
     assert frames[0].part == "none" and {f.part for f in frames[1:]} == {"full"}
     assert all(f.forced for f in frames)
     # The tests' own decision, on nine pairs: no sequential test can accept so early (2^9 < 1 / α), so
-    # every pose is the prior's, composed from the same first pose.
-    tested = LiveCorrector(run, calibration, first_pose=gt[0])
+    # every pose is the prior's, composed from the same first pose. Without a judge, which would compile
+    # its own programs (the judge is tested below).
+    tested = LiveCorrector(run, calibration, first_pose=gt[0], judge_size=None)
     frames = [tested(left, right, prior[k]) for k, (left, right) in enumerate(_frames(world["sequence"]))]
     np.testing.assert_allclose(np.stack([f.pose for f in frames]), offline.prior, atol=1e-9)
     assert {f.part for f in frames[1:]} == {"none"}
