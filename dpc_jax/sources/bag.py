@@ -193,10 +193,8 @@ def _pose_topic(
                      "coincide")
     order = np.argsort([s.stamp for s in samples], kind="stable")
     pose_stamps = np.asarray([samples[i].stamp for i in order], np.int64)
-    nearest = bag_poses.nearest(pose_stamps, stamps)
-    far = np.flatnonzero(np.abs(pose_stamps[nearest] - stamps) > tolerance_ns)
-    if far.size:
-        k = int(far[0])
+    nearest, k = bag_poses.nearest_within(pose_stamps, stamps, tolerance_ns)
+    if k is not None:
         raise _Error(f"{where}: no pose within {tolerance_ns / 1e6:g} ms of frame {k} (stamp "
                      f"{stamps[k] / 1e9:.9f} s); the topic holds {pose_stamps.size} poses for {stamps.size} "
                      "frames, expected one per frame")

@@ -66,6 +66,14 @@ def nearest(stamps: np.ndarray, of: np.ndarray) -> np.ndarray:
     return np.where(np.abs(stamps[before] - of) <= np.abs(stamps[after] - of), before, after)
 
 
+def nearest_within(stamps: np.ndarray, of: np.ndarray, tolerance_ns: int) -> tuple[np.ndarray, int | None]:
+    """:func:`nearest`, and the first position in ``of`` whose nearest stamp is further than
+    ``tolerance_ns`` (None: every one is within it)."""
+    chosen = nearest(stamps, of)
+    far = np.flatnonzero(np.abs(stamps[chosen] - of) > tolerance_ns)
+    return chosen, int(far[0]) if far.size else None
+
+
 def _route(edges: set[Edge], source: str, target: str) -> list[tuple[Edge, bool]] | None:
     """The edges from ``source`` to ``target`` through ``edges`` (``(parent, child)``, followed either way;
     True: against its direction), fewest first; None when they do not link the frames."""
@@ -105,10 +113,8 @@ def link(
         else:
             order = sorted(moving[edge], key=lambda sample: sample[0])
             known = np.asarray([stamp for stamp, _ in order], np.int64)
-            chosen = nearest(known, stamps)
-            far = np.flatnonzero(np.abs(known[chosen] - stamps) > tolerance_ns)
-            if far.size:
-                k = int(far[0])
+            chosen, k = nearest_within(known, stamps, tolerance_ns)
+            if k is not None:
                 raise ValueError(f"{where}: /tf has no transform {edge[0]} → {edge[1]} within "
                                  f"{tolerance_ns / 1e6:g} ms of frame {k} (stamp {stamps[k] / 1e9:.9f} s); "
                                  "expected the chain to the camera at every frame")
