@@ -5,6 +5,7 @@ the corrected pose.
     python benchmarks/bench_live.py --quick              # the small preset at 64x96, 16 frames: a check
     python benchmarks/bench_live.py --write-docs         # and the rows into docs/performance.md ("Live")
     python benchmarks/bench_live.py --profile            # and a cProfile of the first configuration's frames
+    python benchmarks/bench_live.py --realtime 10        # paced at 10 Hz, the tests measured behind the poses
 
 Each frame of the real drive (KITTI raw 2011_09_26, drive 0001, 1242×375 colour pairs, from
 ``../shared/data/kitti-raw``; ``--frames`` beyond its 108 play it back and forth; synthetic frames of
@@ -21,6 +22,15 @@ the same size with ``--synthetic`` or without the drive) is timed in four ways, 
 * **from PNG**: decoding the pair's four images (colour for the network, grey for the VO, two at a time,
   as ``dpc-jax vo --correct`` does) and both.
 
+With ``--realtime HZ`` the frames come at HZ (frame k due k/HZ s after the first) and the corrector
+measures the tests' Δ behind the poses, skipping the pairs that come while it is busy (``dpc-jax vo
+--correct … --realtime``): our VO runs as the prior's function while the pair is prepared on the other
+core, so **VO** is its own time, **VO + correction** the call (VO and preparation side by side, the
+network, the composed pose), **correction** what the call adds to the VO, **from PNG** the latency from
+the frame's due time to its pose (decoding included), and the row says how many pairs were measured
+and how many frames missed their deadline (a pose after the next frame is due); ``measure`` is then
+the measurement's own time, off the pose's path.
+
 p50, p99 and max are over the frames after ``--warmup`` frames; the compile time (the corrector's
 construction: the network restored for the backend and compiled, before the first frame) is apart.
 The networks are untrained, the method's model of ``--preset`` initialised from a seed as
@@ -36,6 +46,7 @@ import argparse
 import cProfile
 import datetime
 import io
+import math
 import os
 import pstats
 import sys
@@ -62,11 +73,13 @@ METHODS = ("stereo_dpc", "ss_dpc")
 NAMES = {"stereo_dpc": "Stereo DPC", "ss_dpc": "ss-DPC-Net"}
 TIMED = ("vo", "correction", "both", "png")
 STAGES = ("prepare", "network", "measure")
-HEADER = ("method", "size", "preset", "compile s", "VO ms p50 / p99 / max", "correction", "VO + correction",
-          "from PNG", "correction's stages, p50 ms: prepare / network / measure", "command", "machine",
-          "libraries", "commit", "date")
+HEADER = ("method", "size", "preset", "tests measured", "compile s", "VO ms p50 / p99 / max", "correction",
+          "VO + correction", "from PNG", "correction's stages, p50 ms: prepare / network / measure",
+          "command", "machine", "libraries", "commit", "date")
 # The libraries column came on 2026-12-07: a row of an older table says so.
 UNRECORDED = "not recorded"
+# Before --realtime every row measured the tests' Δ in the frame's own call.
+INLINE = "inline"
 
 
 @dataclass(frozen=True)
@@ -157,49 +170,79 @@ class Result:
     size: tuple[int, int]
     compile_s: float
     seconds: dict[str, list[float]]
+    mode: str = INLINE
 
     def ms(self, name: str) -> tuple[float, float, float]:
         values = 1e3 * np.asarray(self.seconds[name])
+        values = values[np.isfinite(values)]  # behind, a frame whose pair's measurement was not fed
+        if not len(values):
+            return math.nan, math.nan, math.nan
         p50, p99 = np.percentile(values, [50, 99])
         return float(p50), float(p99), float(values.max())
 
 
 def measure(where: Frames, method: str, preset: str, size: tuple[int, int], count: int, warmup: int,
-            profile: cProfile.Profile | None) -> Result:
-    """Time ``count`` frames of one configuration (the module docstring), the first ``warmup`` apart."""
+            profile: cProfile.Profile | None, hz: float | None = None) -> Result:
+    """Time ``count`` frames of one configuration (the module docstring), the first ``warmup`` apart;
+    ``hz``: paced, measured behind the poses."""
     from dpc_jax.correction.live import Calibration, LiveCorrector
     from dpc_jax.vo import StereoVO
 
     run = untrained_run(method, preset, size)
     began = time.perf_counter()
     # Forced, so that every pair composes a corrected pose; the tests run as they would anyway.
-    live = LiveCorrector(run, Calibration(where.K, where.baseline, where.image_size), force=True)
+    live = LiveCorrector(run, Calibration(where.K, where.baseline, where.image_size), force=True,
+                         behind=hz is not None, skip=hz is not None)
     compile_s = time.perf_counter() - began
     vo = StereoVO(where.K, where.baseline)
     texture = _texture(where.image_size)
     seconds: dict[str, list[float]] = {name: [] for name in (*TIMED, *STAGES)}
     pose = np.eye(4)
+    late = measured = pairs = 0
+    started = time.perf_counter()
     with ThreadPoolExecutor(2) as pool:
         for k, (index, paths) in enumerate(frames(where, count)):
             timed = k >= warmup
+            if k == warmup:  # paced from the first timed frame: the warm-up's compilation is not a deadline
+                started = time.perf_counter() - k / (hz or 1.0)
+            due = started + k / hz if hz is not None else time.perf_counter()
+            time.sleep(max(0.0, due - time.perf_counter()))
             t0 = time.perf_counter()
             left, right, grey_left, grey_right = decode(pool, where, index, paths, texture)
             if timed and profile is not None:  # the VO and the correction, not the decoding threads
                 profile.enable()
-            t1 = time.perf_counter()
-            estimate = vo.process(grey_left, grey_right)
-            if estimate is not None:
-                pose = pose @ np.linalg.inv(estimate.relative)
-            t2 = time.perf_counter()
-            frame = live(left, right, pose)
+            if hz is None:
+                t1 = time.perf_counter()
+                estimate = vo.process(grey_left, grey_right)
+                if estimate is not None:
+                    pose = pose @ np.linalg.inv(estimate.relative)
+                t2 = time.perf_counter()
+                frame = live(left, right, pose)
+            else:
+                def prior(pair: tuple[np.ndarray, np.ndarray] = (grey_left, grey_right)) -> np.ndarray:
+                    nonlocal pose
+                    estimate = vo.process(*pair)
+                    pose = pose if estimate is None else pose @ np.linalg.inv(estimate.relative)
+                    return pose
+
+                t1 = time.perf_counter()
+                frame = live(left, right, prior)
+                t2 = t1 + frame.seconds["vo"]
+                t0 = due
             t3 = time.perf_counter()
             if profile is not None:
                 profile.disable()
             if timed and frame.proposal is not None:
+                pairs += 1
+                measured += frame.measured
+                late += hz is not None and t3 > started + (k + 1) / hz
                 for name, value in (("vo", t2 - t1), ("correction", t3 - t2), ("both", t3 - t1),
-                                    ("png", t3 - t0), *((stage, frame.seconds[stage]) for stage in STAGES)):
+                                    ("png", t3 - t0),
+                                    *((stage, frame.seconds.get(stage, np.nan)) for stage in STAGES)):
                     seconds[name].append(value)
-    return Result(method, size, compile_s, seconds)
+    mode = INLINE if hz is None else (f"behind, {hz:g} Hz: {measured} of {pairs} pairs measured, {late} "
+                                      "missed")
+    return Result(method, size, compile_s, seconds, mode)
 
 
 def _three(values: tuple[float, float, float]) -> str:
@@ -212,7 +255,7 @@ def rows(results: Sequence[Result], preset: str, command: str, machine: str, com
     out = []
     for r in results:
         stages = " / ".join(f"{r.ms(stage)[0]:.1f}" for stage in STAGES)
-        out.append([NAMES[r.method], f"{r.size[0]}×{r.size[1]}", preset, f"{r.compile_s:.1f}",
+        out.append([NAMES[r.method], f"{r.size[0]}×{r.size[1]}", preset, r.mode, f"{r.compile_s:.1f}",
                     *(_three(r.ms(name)) for name in TIMED), stages, f"`{command}`", machine, versions_line(),
                     commit, date])
     return out
@@ -238,9 +281,12 @@ def parse_table(text: str) -> list[list[str]]:
         if not line.startswith("|"):
             continue
         cells = [c.strip().replace("\\|", "|") for c in line.strip().strip("|").split(" | ")]
-        if len(cells) == len(HEADER) - 1:  # a table from before the libraries column
-            at = HEADER.index("libraries")
+        if len(cells) == len(HEADER) - 2:  # a table from before the libraries and tests columns
+            at = HEADER.index("libraries") - 1
             cells = [*cells[:at], UNRECORDED, *cells[at:]]
+        if len(cells) == len(HEADER) - 1:  # a table from before the tests column
+            at = HEADER.index("tests measured")
+            cells = [*cells[:at], INLINE, *cells[at:]]
         if len(cells) == len(HEADER) and cells[0] != HEADER[0] and set(cells[0]) != {"-"}:
             found.append(cells)
     return found
@@ -249,7 +295,7 @@ def parse_table(text: str) -> list[list[str]]:
 def merge(previous: Sequence[list[str]], measured: Sequence[list[str]]) -> list[list[str]]:
     """The measured rows, and the previous rows of other machines, methods, sizes or presets."""
     def key(row: Sequence[str]) -> tuple[str, ...]:
-        return row[0], row[1], row[2], row[HEADER.index("machine")]
+        return row[0], row[1], row[2], row[3], row[HEADER.index("machine")]
 
     fresh = {key(row) for row in measured}
     return [*[row for row in previous if key(row) not in fresh], *measured]
@@ -293,6 +339,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--warmup", type=int, default=None,
                         help="frames before the timed ones (default: 8; --quick: 4)")
     parser.add_argument("--synthetic", action="store_true", help="synthetic frames instead of the drive")
+    parser.add_argument("--realtime", type=float, default=None, metavar="HZ",
+                        help="frames paced at HZ, the tests measured behind the poses (module docstring)")
     parser.add_argument("--profile", action="store_true",
                         help="cProfile the timed frames of the first configuration; print what took the time")
     parser.add_argument("--write-docs", action="store_true",
@@ -328,7 +376,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         for size in shapes:
             first = not results
             results.append(measure(where, method, preset, size, count + warmup, warmup,
-                                   profile if first else None))
+                                   profile if first else None, args.realtime))
             if first and profile is not None:
                 print_profile(profile, results[0])
             r = results[-1]

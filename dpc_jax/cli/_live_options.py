@@ -50,7 +50,10 @@ def add_correction_arguments(parser: argparse.ArgumentParser, *, requires: str |
     parser.add_argument("--realtime", type=float, nargs="?", const=OWN_TIMES, metavar="HZ",
                         help=f"{but}replay at the camera's rate: frame k is due k/HZ s after the first; "
                         "without HZ at the frames' own times (a recording's header stamps); report the "
-                        "frames whose pose is written after the next one is due")
+                        "frames whose pose is written after the next one is due. The tests' measurement "
+                        "then runs behind the poses: a pose is corrected with the decision of the pairs "
+                        "measured before it, and a pair that comes while the measurement is busy is not "
+                        "measured")
 
 
 def correction_problem(args: argparse.Namespace, run_option: str, run: Path | None) -> str | None:
@@ -108,7 +111,7 @@ def corrector(args: argparse.Namespace, run: Path, calibration: Calibration, jud
               disparity_offset: float = 0.0) -> LiveCorrector:
     """The live corrector of the options and the ``judge`` (:func:`run_problem`; JAX imported, the network
     restored and compiled), its first pose the prior's first; the corrector's own defaults for the
-    options not given.
+    options not given; under ``--realtime`` measured behind the poses.
     ``CheckpointError`` for a run that cannot be restored."""
     import logging
 
@@ -118,9 +121,14 @@ def corrector(args: argparse.Namespace, run: Path, calibration: Calibration, jud
     logging.getLogger("absl").setLevel(logging.ERROR)
     given = {name: value for name, value in (("select", args.select), ("alpha", args.alpha))
              if value is not None}
+    # Under a pace the tests' measurement runs behind the poses and skips the pairs it cannot keep up with,
+    # so that every pose can meet its deadline, and every program is compiled before the first frame
+    # (dpc_jax.correction.live); replayed as fast as possible, the decision is the synchronous one and a
+    # measurement program is compiled when a pair first needs it.
+    paced = args.realtime is not None
     return LiveCorrector(run, calibration, rotation_only=args.rotation_only, mean_test=not args.no_mean_test,
                          force=args.force, disparity_offset=disparity_offset, judge_size=judge.size,
-                         **given)
+                         behind=paced, skip=paced, ahead=paced, **given)
 
 
 def beside_files(out: Path, csv: Path | None, csv_path: Path | None,

@@ -5,12 +5,9 @@ takes one stereo pair as the camera gives it (full size, uint8, grey or colour) 
 of that frame, or no prior and it runs dpc_jax's own stereo VO, and returns the frame's corrected
 pose (:class:`LiveFrame`). Per frame:
 
-1. The pair is prepared exactly as ``dpc-jax prepare`` prepares a frame
-   (``dpc_jax.data.preparation``): resized, matched with StereoSGBM.
-2. The previous frame and this one form a two-frame sequence held in memory, on which the network
-   predicts ξ for the pair and the measurement gives Δ of its parts, through the same functions as
-   ``dpc-jax correct`` (``dpc_jax.engine.predict``): the network was compiled for it before the first
-   frame.
+1. The pair is prepared as ``dpc-jax prepare`` prepares a frame (``dpc_jax.data.preparation``).
+2. The previous frame and this one form a two-frame sequence in memory, on which the network predicts
+   ξ for the pair and the measurement gives Δ of its parts, through ``correct``'s functions.
 3. The one decision of ``correct`` (``dpc_jax.correction.decision.Decision``), sequential: the parts
    of ξ it consults (in its order: the full correction and its rotation, each whole with its mean
    tested apart or without its trailing mean over the last pairs; a rotation narrowed to the axes
@@ -22,13 +19,20 @@ pose (:class:`LiveFrame`). Per frame:
    depth, no network), the parts the decision consults there (what the network's size would apply,
    its mean, its scales) are measured on the pair at the judge's size: a part is applied only once its
    tests there have accepted too (at 64×96 the images of a real drive can favour a rotation the
-   ground truth does not, ``docs/method.md`` §8), at the judge's scale. The judge's work is done only
-   while a part is accepted at the network's size.
+   ground truth does not, ``docs/method.md`` §8), at the judge's scale.
 5. ``T_w_k = T_w_{k-1} · inv(Exp(ξ_applied) · T_vo_{k,k-1})``: a pose once returned is never changed.
 
-What is kept between frames is what the next frame needs: the previous prepared frame and poses, the
-tests' running statistics and the corrections of the last pairs (for the trailing mean), and with a judge
-the previous pair at full size; memory does not grow with the frames.
+With ``behind`` the measurement of steps 3–4 leaves the pose's path, so that both cores serve the pose:
+the pair is prepared on a worker thread while the prior's pose is computed (our VO, or the function
+given as the prior), the pose is corrected with the decision of the pairs measured before it, and the
+pair's own Δ are measured on the worker after the pose is returned; they inform the next frames (fed
+to the decision when the next frame arrives). With ``skip`` a pair that arrives while the measurement
+of an earlier one is still running is not measured: the sequential tests are valid on any subset of
+pairs chosen without their Δ, so the guarantee holds on the pairs measured; without ``skip`` each frame
+waits for the previous pair's measurement, and the decision is the synchronous one shifted by one pair.
+
+Kept between frames: the previous prepared frame and poses, the tests' running statistics, the last
+pairs' corrections (the trailing mean), with a judge the previous pair at full size: no more.
 """
 
 from __future__ import annotations
@@ -36,9 +40,9 @@ from __future__ import annotations
 import os
 import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
@@ -51,15 +55,12 @@ from dpc_jax.correction.judge import judge_rule, judge_size_problem
 from dpc_jax.correction.measure import PADDED, pair_deltas
 from dpc_jax.correction.parts import MEAN_WINDOW, Part
 from dpc_jax.data.calibration import Calibration
-from dpc_jax.data.preparation import as_rgb, prepared_pair, resized_intrinsics
-from dpc_jax.data.sequence_cache import (
-    SequenceCache,
-    decode_flow,
-    encode_flow,
-    flow_step,
-    stereo_depth_views,
-)
+from dpc_jax.data.preparation import as_rgb, pair_cache, prepared_pair, resized_intrinsics
+from dpc_jax.data.sequence_cache import SequenceCache
 from dpc_jax.geometry.poses import validate_poses
+
+# A frame's prior: its pose ``[4, 4]`` (or ``[3, 4]``), a function that gives it, or None (our VO).
+Prior = np.ndarray | Callable[[], np.ndarray] | None
 
 
 def _rigid(pose: Any, source: str) -> np.ndarray:
@@ -98,6 +99,7 @@ class LiveFrame:
     forced: bool = False
     events: tuple[str, ...] = ()
     seconds: dict[str, float] = field(default_factory=dict)
+    measured: bool = True
 
 
 @dataclass
@@ -112,6 +114,16 @@ class _Previous:
     pose: np.ndarray  # the corrected one
     full: tuple[np.ndarray, np.ndarray] | None = None  # the pair as given, kept only for a judge
     judged: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None  # prepared at the judge's size
+
+
+@dataclass(frozen=True)
+class _Measured:
+    """Δ of a pair's parts at the network's size and at the judge's, and the seconds they took
+    (``measure``, ``judge``)."""
+
+    network: dict[Part, float]
+    judge: dict[Part, float]
+    seconds: dict[str, float]
 
 
 class LiveCorrector:
@@ -129,7 +141,11 @@ class LiveCorrector:
     and no larger than the camera's), None: no judge, or ``"rule"`` (the default): the judge
     ``dpc-jax live`` and ``correct`` use by default (``dpc_jax.correction.judge.judge_rule``: a Stereo
     DPC run smaller than 240×376 is judged at 240×376, no larger than the camera's images), so that the
-    API and the command line decide alike. Poses (``first_pose``, each prior) are ``[4, 4]`` or
+    API and the command line decide alike; ``behind``, ``skip``: the measurement off the pose's path,
+    and pairs skipped while it is busy (module docstring; :attr:`skipped` counts them, :meth:`finish`
+    feeds the last pair's Δ); ``ahead``: every program compiled before the first frame (False: the
+    measurement's programs when a pair first needs them, which delays that pair: a replay without
+    deadlines). Poses (``first_pose``, each prior) are ``[4, 4]`` or
     ``[3, 4]`` (a KITTI row), rigid; a returned pose is ``[4, 4]``. :attr:`decision` is the one decision
     (``dpc_jax.correction.decision.Decision``, sequential, trailing mean), its tests by name in
     ``decision.tests``.
@@ -149,6 +165,9 @@ class LiveCorrector:
         disparity_offset: float = 0.0,
         vo: Any = None,
         judge_size: tuple[int, int] | Literal["rule"] | None = "rule",
+        behind: bool = False,
+        skip: bool = False,
+        ahead: bool = True,
     ) -> None:
         from dpc_jax.engine.predict import PreparedModel
 
@@ -183,6 +202,12 @@ class LiveCorrector:
         self._pairs = 0
         self._loss = self.run.config.loss_config()
         self._flow = self.run.use_flow
+        self.behind, self.skip = bool(behind), bool(skip)
+        # Behind: one worker prepares the pair while the prior is computed, one measures.
+        self._pool = ThreadPoolExecutor(2, thread_name_prefix="live") if self.behind else None
+        self._pending: Future[_Measured] | None = None
+        self.skipped = 0
+        self.ahead = bool(ahead)
         # Prepared for the backend once; compiled below, before the first frame.
         self._model = PreparedModel(self.run.graphdef, self.run.state)
         self._compile()
@@ -207,17 +232,20 @@ class LiveCorrector:
 
     def _compile(self) -> None:
         """Predict, measure and compose once on a blank pair, for every number of parts a pair can
-        measure (``dpc_jax.correction.measure.PADDED``), so that no frame compiles anything (the
-        composition's compilation alone took 0.4 s)."""
+        measure (``dpc_jax.correction.measure.PADDED``; forced, the first component and its remainder
+        only), so that no frame compiles anything (the composition's compilation alone took 0.4 s);
+        not ``ahead``, the prediction and the composition only."""
         h, w = self.size
         blank = np.zeros((h, w, 3), np.uint8)
         _, _, disparity = prepared_pair(blank, blank, self.size, self.K, self.calibration.baseline,
                                         match=self.depth == "sgbm")
         frame = _Previous(blank, blank, disparity, np.eye(4), np.eye(4), np.eye(4))
-        window = self._window(frame, frame, np.eye(4))
-        for count in PADDED:
-            self._correction_of(window, [Part("full")] * count)
+        _, batch = self._predict(self._window(frame, frame, np.eye(4)), {})
         self._compose(frame, np.eye(4), np.zeros(6))
+        if not self.ahead:
+            return
+        for count in PADDED[:1] if self.force else PADDED:
+            pair_deltas(self.run, batch, np.zeros((count, 6)), model=self._model)
         if self.judge_size is not None:
             h, w = self.calibration.image_size
             full = np.zeros((h, w, 3), np.uint8)
@@ -226,32 +254,10 @@ class LiveCorrector:
                 self._judged_deltas(judged, judged, np.eye(4), np.zeros((count, 6)))
 
     def _window(self, previous: _Previous, current: _Previous, prior_pose: np.ndarray) -> SequenceCache:
-        """The two frames as a cache in memory: what prediction and measurement read."""
-        flows: dict[str, Any] = {}
-        if self._flow:
-            from dpc_jax.data.cache_products import farneback_flow, grey
-
-            step = flow_step(self.size)
-            pair = np.stack([farneback_flow(grey(a), grey(b)) for a, b in
-                             ((previous.left, current.left), (previous.right, current.right))])
-            flows["forward"] = decode_flow(encode_flow(pair, step)[None], step)
-        return self._pair_cache(((previous.left, previous.right, previous.disparity),
-                                 (current.left, current.right, current.disparity)),
-                                self.K, np.stack([previous.raw, prior_pose]), flows)
-
-    def _pair_cache(self, frames: tuple[tuple[np.ndarray, np.ndarray, np.ndarray | None], ...],
-                    K: np.ndarray, prior: np.ndarray, flows: dict[str, Any]) -> SequenceCache:
-        """Two prepared frames ``(left, right, disparity)`` at the size of ``K``, with the prior's poses
-        ``[2, 4, 4]``, as a cache in memory."""
-        (left0, right0, disparity0), (left1, right1, disparity1) = frames
-        depth = None
-        if disparity0 is not None and disparity1 is not None:
-            depth = stereo_depth_views(np.stack([disparity0, disparity1]),
-                                       float(K[0, 0]) * self.calibration.baseline)
-        return SequenceCache(
-            path=Path("<live>"), name="live", left=np.stack([left0, left1]), right=np.stack([right0, right1]),
-            prior=prior, gt=None, K=K, baseline=self.calibration.baseline, indices=np.arange(2),
-            times=np.zeros(2), flows=flows, manifest={}, stereo_depth=depth)
+        """The two frames as a cache in memory (with their optical flow, for a network that reads it)."""
+        return pair_cache(((previous.left, previous.right, previous.disparity),
+                           (current.left, current.right, current.disparity)), self.K,
+                          self.calibration.baseline, np.stack([previous.raw, prior_pose]), flow=self._flow)
 
     def _judged_deltas(self, previous: _Previous, current: _Previous, prior_pose: np.ndarray,
                        corrections: np.ndarray) -> np.ndarray:
@@ -263,37 +269,59 @@ class LiveCorrector:
                 assert frame.full is not None
                 frame.judged = prepared_pair(*frame.full, self.judge_size, self._judge_K,
                                              self.calibration.baseline, self.disparity_offset)
-        window = self._pair_cache((previous.judged, current.judged), self._judge_K,  # type: ignore[arg-type]
-                                  np.stack([previous.raw, prior_pose]), {})
+        window = pair_cache((previous.judged, current.judged), self._judge_K,  # type: ignore[arg-type]
+                            self.calibration.baseline, np.stack([previous.raw, prior_pose]))
         from dpc_jax.engine.predict import pair_batch
 
         return pair_deltas(self.run, pair_batch(window, False, window.stereo_depth), corrections)
 
-    def _correction_of(self, window: SequenceCache, parts: list[Part],
-                       seconds: dict[str, float] | None = None) -> tuple[np.ndarray, dict[Part, float]]:
-        """ξ ``[6]`` of the window's pair and Δ of ``parts`` of it → ``(ξ, Δ by part)``; ``seconds`` gets
-        the time of the batch's assembly and transfer (added to ``prepare``), of the network
-        (``network``) and of the measurement (``measure``).
-
-        The steps of ``correct`` on one pair, assembled and moved to the device once for both: the
-        network's forward pass (``dpc_jax.engine.predict.xi_step``; ``correct``'s prediction also
-        computes the training loss and Δ of the whole correction, which this does not need), then Δ of
-        the parts (``dpc_jax.correction.measure.pair_deltas``).
-        """
+    def _predict(self, window: SequenceCache, seconds: dict[str, float]) -> tuple[np.ndarray, Any]:
+        """ξ ``[6]`` of the window's pair (``dpc_jax.engine.predict.xi_step``: the forward pass alone) and
+        the pair as a batch on the device, assembled once for the network and the measurement →
+        ``(ξ, batch)``; ``seconds`` gets the batch's time (added to ``prepare``) and ``network``."""
         from dpc_jax.engine.predict import pair_batch, stereo_depth_of
 
-        seconds = {} if seconds is None else seconds
         began = time.perf_counter()
         stereo = stereo_depth_of(window, self.depth)
         batch = pair_batch(window, self._flow, stereo)
         assembled = time.perf_counter()
         seconds["prepare"] = seconds.get("prepare", 0.0) + assembled - began
         xi = np.asarray(self._model.xi_step(self.run.config.method)(self._model.leaves, batch), np.float64)[0]
-        predicted = time.perf_counter()
-        seconds["network"] = predicted - assembled
-        delta = pair_deltas(self.run, batch, self._vectors(xi, parts), model=self._model)
-        seconds["measure"] = time.perf_counter() - predicted
-        return xi, dict(zip(parts, delta.tolist(), strict=True))
+        seconds["network"] = time.perf_counter() - assembled
+        return xi, batch
+
+    def _measure(self, previous: _Previous, current: _Previous, prior_pose: np.ndarray, batch: Any,
+                 needs: Sequence[tuple[str, Part]], vectors: np.ndarray) -> _Measured:
+        """Δ of the parts ``needs`` (``(size, part)``), ``vectors`` ``[K, 6]`` of this pair, at the network's
+        size on ``batch`` (``dpc_jax.correction.measure.pair_deltas``) and at the judge's."""
+        seconds: dict[str, float] = {}
+        found: dict[str, dict[Part, float]] = {NETWORK: {}, JUDGE: {}}
+        for size, stage in ((NETWORK, "measure"), (JUDGE, "judge")):
+            chosen = [k for k, (s, _) in enumerate(needs) if s == size]
+            if not chosen:
+                continue
+            t = time.perf_counter()
+            delta = (pair_deltas(self.run, batch, vectors[chosen], model=self._model) if size == NETWORK
+                     else self._judged_deltas(previous, current, prior_pose, vectors[chosen]))
+            found[size] = {needs[k][1]: float(d) for k, d in zip(chosen, delta, strict=True)}
+            seconds[stage] = time.perf_counter() - t
+        return _Measured(found[NETWORK], found[JUDGE], seconds)
+
+    def _collect(self, wait: bool, seconds: dict[str, float]) -> tuple[str, ...]:
+        """Behind: the pending pair's Δ fed to the decision once measured (``wait``: waiting for it) →
+        the tests accepted or withdrawn; its ``measure`` and ``judge`` seconds into ``seconds``."""
+        pending = self._pending
+        if pending is None or not (wait or pending.done()):
+            return ()
+        self._pending = None
+        measured = pending.result()
+        seconds.update(measured.seconds)
+        return self.decision.update(measured.network, measured.judge)
+
+    def finish(self) -> tuple[str, ...]:
+        """Behind: wait for the last pair's measurement and feed it to the decision (what the tests say
+        after every pair measured, :attr:`decision`) → the tests accepted or withdrawn there."""
+        return self._collect(True, {})
 
     def _vectors(self, xi: np.ndarray, parts: Sequence[Part | None]) -> np.ndarray:
         """``parts`` of this pair's ``xi`` ``[6]`` (a remainder without the trailing mean of the last
@@ -302,15 +330,16 @@ class LiveCorrector:
         return np.stack([np.zeros(6) if p is None else p.of(recent)[-1] for p in parts]).reshape(-1, 6)
 
     def __call__(
-        self, left: np.ndarray, right: np.ndarray, prior: np.ndarray | None = None, *,
-        time_s: float | None = None, grey: tuple[np.ndarray, np.ndarray] | None = None,
+        self, left: np.ndarray, right: np.ndarray, prior: Prior = None, *, time_s: float | None = None,
+        grey: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> LiveFrame:
         """Correct the next frame (module docstring).
 
         ``left``, ``right``: the stereo pair at the calibration's size (uint8, ``[H, W]`` grey or
-        ``[H, W, 3]`` RGB); ``prior``: ``[4, 4]`` the prior VO's camera-to-world pose of this frame,
-        or None to run our VO (on ``grey``, the pair as grey images, when given: e.g. decoded in
-        grey as ``dpc-jax vo`` does; else converted here); ``time_s``: the frame's time, reported.
+        ``[H, W, 3]`` RGB); ``prior``: ``[4, 4]`` the prior VO's camera-to-world pose of this frame, a
+        function that gives it (called once; behind, while the pair is prepared), or None to run our VO
+        (on ``grey``, the pair as grey images, when given: e.g. decoded in grey as ``dpc-jax vo`` does;
+        else converted here); ``time_s``: the frame's time, reported.
         """
         began = time.perf_counter()
         seconds: dict[str, float] = {}
@@ -320,16 +349,8 @@ class LiveCorrector:
             index = self._pairs + (self._previous is not None)
             raise ValueError(f"frame {index}: images of {left.shape[:2]} and {right.shape[:2]}, expected "
                              f"both {h}x{w} (the calibration's)")
-        t = time.perf_counter()
-        prior_pose = self._prior_pose(left, right, prior, grey)
-        seconds["vo"] = time.perf_counter() - t
-        t = time.perf_counter()
-        small_left, small_right, disparity = prepared_pair(
-            left, right, self.size, self.K, self.calibration.baseline, self.disparity_offset,
-            match=self.depth == "sgbm")
-        current = _Previous(small_left, small_right, disparity, prior_pose, prior_pose, prior_pose,
-                            (left, right) if self.judge_size is not None else None)
-        seconds["prepare"] = time.perf_counter() - t
+        current = self._arrived(left, right, prior, grey, seconds)
+        prior_pose = current.raw
         previous = self._previous
         if previous is None:
             start = prior_pose if self.first_pose is None else self.first_pose
@@ -343,16 +364,24 @@ class LiveCorrector:
         seconds["prepare"] += time.perf_counter() - t
         # What is measured is chosen from the tests of the pairs before this one (a choice made after
         # seeing this pair's Δ would select the pairs that favour it).
-        needs = self.decision.needs()
-        xi, delta = self._correction_of(window, [p for size, p in needs if size == NETWORK], seconds)
-        judged = [p for size, p in needs if size == JUDGE]
-        at_judge: dict[Part, float] = {}
-        if judged:
-            t = time.perf_counter()
-            values = self._judged_deltas(previous, current, prior_pose, self._vectors(xi, judged))
-            at_judge = dict(zip(judged, values.tolist(), strict=True))
-            seconds["judge"] = time.perf_counter() - t
-        events = self.decision.update(delta, at_judge)
+        measured = True
+        if self._pool is not None:
+            events = self._collect(not self.skip, seconds)
+            xi, batch = self._predict(window, seconds)
+            if self._pending is None:
+                needs = self.decision.needs()
+                self._pending = self._pool.submit(self._measure, previous, current, prior_pose, batch, needs,
+                                                  self._vectors(xi, [p for _, p in needs]))
+            else:
+                measured = False
+                self.skipped += 1
+        else:
+            needs = self.decision.needs()
+            xi, batch = self._predict(window, seconds)
+            done = self._measure(previous, current, prior_pose, batch, needs,
+                                 self._vectors(xi, [p for _, p in needs]))
+            seconds.update(done.seconds)
+            events = self.decision.update(done.network, done.judge)
         part = self.decision.outcome.part
         correction = self._vectors(xi, [part])[0]
         self._recent.append(xi)
@@ -361,12 +390,36 @@ class LiveCorrector:
         self._previous = current
         seconds["total"] = time.perf_counter() - began
         return LiveFrame(self._pairs, time_s, current.pose.copy(), current.prior.copy(), xi, correction,
-                         "none" if part is None else part.name, self.force, events, seconds)
+                         "none" if part is None else part.name, self.force, events, seconds, measured)
 
-    def _prior_pose(self, left: np.ndarray, right: np.ndarray, prior: np.ndarray | None,
+    def _arrived(self, left: np.ndarray, right: np.ndarray, prior: Prior,
+                 grey: tuple[np.ndarray, np.ndarray] | None, seconds: dict[str, float]) -> _Previous:
+        """This frame: the pair prepared at the network's size, with the prior's pose (``raw``); behind,
+        the pair is prepared on a worker while the prior's pose is computed. ``seconds`` gets ``vo`` and
+        ``prepare``."""
+        def prepare() -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+            t = time.perf_counter()
+            prepared = prepared_pair(left, right, self.size, self.K, self.calibration.baseline,
+                                     self.disparity_offset, match=self.depth == "sgbm")
+            seconds["prepare"] = time.perf_counter() - t
+            return prepared
+
+        aside = self._pool is not None and (prior is None or callable(prior))
+        job = self._pool.submit(prepare) if aside and self._pool is not None else None
+        t = time.perf_counter()
+        prior_pose = self._prior_pose(left, right, prior, grey)
+        seconds["vo"] = time.perf_counter() - t
+        small_left, small_right, disparity = prepare() if job is None else job.result()
+        return _Previous(small_left, small_right, disparity, prior_pose, prior_pose, prior_pose,
+                         (left, right) if self.judge_size is not None else None)
+
+    def _prior_pose(self, left: np.ndarray, right: np.ndarray, prior: Prior,
                     grey: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
-        """The prior's pose of this frame: given (checked rigid), or our VO's from the previous one."""
+        """The prior's pose of this frame: given (or by the function given; checked rigid), or our VO's
+        from the previous one."""
         index = self._pairs + (self._previous is not None)
+        if callable(prior):
+            prior = prior()
         if prior is not None:
             return _rigid(prior, f"prior pose of frame {index}")
         import cv2

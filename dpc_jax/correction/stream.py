@@ -51,10 +51,12 @@ if TYPE_CHECKING:
 
 # The per-frame CSV. inliers, vo_status, disparity_offset_px and vo_ms are our VO's (empty for an
 # external VO, and inliers and status for frame 0, which has no pair); network_ms and measure_ms are
-# empty for frame 0, judge_ms where the judge did not work; missed is 1 or 0 under a pace, else empty.
+# empty for frame 0, judge_ms where the judge did not work; missed is 1 or 0 under a pace, else empty;
+# measured: 1 when the pair's Δ are measured for the tests, 0 when skipped (behind, under a pace), empty
+# for frame 0. Measured behind the poses, measure_ms and judge_ms are those of the pair fed at the frame.
 CSV_COLUMNS = ("frame", "time_s", "state", "events", "inliers", "vo_status", "disparity_offset_px", "read_ms",
                "vo_ms", "prepare_ms", "network_ms", "measure_ms", "judge_ms", "latency_ms", "arrival_s",
-               "written_s", "missed")
+               "written_s", "missed", "measured")
 # The corrector's stages in the CSV (LiveFrame.seconds), and the times per frame the summary gives.
 CORRECTION_STAGES = ("prepare", "network", "measure", "judge")
 SUMMARY_STAGES = ("latency", "read", "vo", "network", "measure", "judge")
@@ -135,6 +137,7 @@ class LiveSummary:
     events: list[tuple[int, str]] = field(default_factory=list)
     seconds: dict[str, array] = field(default_factory=lambda: {k: array("d") for k in SUMMARY_STAGES})
     missed: list[int] = field(default_factory=list)
+    skipped: list[int] = field(default_factory=list)
     frames: int = 0
 
     def add(self, number: int, corrected: Corrected, read_s: float, latency_s: float, missed: bool) -> None:
@@ -151,6 +154,8 @@ class LiveSummary:
                 self.seconds[stage].append(frame.seconds[stage])
         if missed:
             self.missed.append(number)
+        if not frame.measured:
+            self.skipped.append(number)
 
     def percentiles(self, name: str) -> dict[str, float] | None:
         """``{"p50", "p99", "max"}`` in ms of a stage (``latency``, ``read``, ``vo``, ``network``,
@@ -170,6 +175,7 @@ class LiveSummary:
             "realtime_hz": None if self.pace is None else self.pace.hz,
             "realtime_stamps": self.pace is not None and self.pace.hz is None,
             "missed_deadlines": self.missed if self.pace is not None else None,
+            "skipped_pairs": self.skipped,
         }
 
     def lines(self) -> list[str]:
@@ -187,13 +193,21 @@ class LiveSummary:
                          f"network restored and compiled in {self.compile_s:.1f} s before the first frame")
         if self.pace is not None:
             if self.missed:
-                shown = ", ".join(map(str, self.missed[:10])) + (", ..." if len(self.missed) > 10 else "")
                 lines.append(f"realtime {self.pace.words()}: {len(self.missed)} of {self.frames} frames "
-                             f"missed their deadline (frames {shown})")
+                             f"missed their deadline (frames {_listed(self.missed)})")
             else:
                 lines.append(f"realtime {self.pace.words()}: every one of the {self.frames} frames met its "
                              "deadline")
+            pairs = max(self.frames - 1, 0)
+            skipped = f" (skipped: {_listed(self.skipped)})" if self.skipped else ""
+            lines.append(f"the tests measured {pairs - len(self.skipped)} of the {pairs} pairs, behind the "
+                         f"poses{skipped}")
         return lines
+
+
+def _listed(numbers: Sequence[int]) -> str:
+    """The first ten ``numbers``, then ``...``."""
+    return ", ".join(map(str, numbers[:10])) + (", ..." if len(numbers) > 10 else "")
 
 
 def record_arrivals(records: Iterable[Record], name: str, size: tuple[int, int]) -> Iterator[Arrived]:
@@ -250,26 +264,32 @@ class VOStep:
         self.first_s = 0.0  # the VO's time on frame 0, which has no pair
 
     def __call__(self, images: list[np.ndarray]) -> Corrected:
-        kept, t = self.kept, time.perf_counter()
-        estimate = self.vo.process(images[2], images[3])
-        vo_s = time.perf_counter() - t
-        if estimate is None:
-            pose, columns = self.start, None
-            self.first_s = vo_s  # counted with the first pair, as `dpc-jax vo` does
-        else:
-            pose = kept["prior"][-1] @ np.linalg.inv(estimate.relative)
-            status = estimate.status.name.lower()
-            columns = (estimate.inliers, status, self.vo.disparity_offset)
+        kept = self.kept
+        vo: dict[str, Any] = {}
+
+        def prior() -> np.ndarray:  # called by the corrector (behind, while it prepares the pair)
+            t = time.perf_counter()
+            estimate = self.vo.process(images[2], images[3])
+            vo["s"] = time.perf_counter() - t
+            if estimate is None:
+                vo["pose"], vo["columns"] = self.start, None
+                self.first_s = vo["s"]  # counted with the first pair, as `dpc-jax vo` does
+                return self.start
+            vo["pose"] = kept["prior"][-1] @ np.linalg.inv(estimate.relative)
+            vo["columns"] = (estimate.inliers, estimate.status.name.lower(), self.vo.disparity_offset)
             for key, value in (("relative", estimate.relative), ("inliers", estimate.inliers),
                                ("status", int(estimate.status)), ("offset", self.vo.disparity_offset),
-                               ("times", vo_s + (0.0 if kept["times"] else self.first_s))):
+                               ("times", vo["s"] + (0.0 if kept["times"] else self.first_s))):
                 kept[key].append(value)
+            return vo["pose"]
+
         # The prior written is the VO's own chain of poses, as `dpc-jax vo` composes it: the corrector's
         # prior, recomposed from its first pose, differs from it in the last digits (1e-13).
-        frame = dataclasses.replace(self.live(images[0], images[1], pose), prior=pose)
-        kept["prior"].append(pose)
+        frame = self.live(images[0], images[1], prior)
+        frame = dataclasses.replace(frame, prior=vo["pose"])
+        kept["prior"].append(vo["pose"])
         kept["corrected"].append(frame.pose)
-        return Corrected(frame, columns, vo_s)
+        return Corrected(frame, vo["columns"], vo["s"])
 
     def result(self) -> VOResult:
         """The VO's result over the frames stepped (its poses the prior's)."""
@@ -346,7 +366,7 @@ def _row(arrived: Arrived, corrected: Corrected, read_s: float, arrival_s: float
              ";".join(frame.events), inliers, status, "" if offset is None else f"{offset:.4f}", _ms(read_s),
              _ms(corrected.vo_s), *(_ms(frame.seconds.get(stage)) for stage in CORRECTION_STAGES),
              _ms(written - started - arrival_s), f"{arrival_s:.6f}", f"{written - started:.6f}",
-             "" if not paced else int(written > due)]
+             "" if not paced else int(written > due), "" if frame.index == 0 else int(frame.measured)]
     return ",".join(map(str, cells)) + "\n"
 
 

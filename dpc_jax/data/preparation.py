@@ -9,10 +9,20 @@ resampled by the rig's disparity calibration residual, and matched with StereoSG
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import jax
 import numpy as np
 
+from dpc_jax.data.sequence_cache import (
+    Frames,
+    SequenceCache,
+    decode_flow,
+    encode_flow,
+    flow_step,
+    stereo_depth_views,
+)
 from dpc_jax.data.stereo_depth import sgbm_disparity, sgbm_fits
 from dpc_jax.geometry.camera import scale_intrinsics
 
@@ -69,3 +79,26 @@ def prepared_pair(
     if match and sgbm_fits(size[1], fu, baseline):
         disparity = sgbm_disparity(small_left, small_right, fu, baseline)
     return small_left, small_right, disparity
+
+
+def pair_cache(frames: tuple[tuple[np.ndarray, np.ndarray, np.ndarray | None], ...], K: np.ndarray,
+               baseline: float, prior: np.ndarray, *, flow: bool = False) -> SequenceCache:
+    """Two prepared frames ``(left [H, W, 3] uint8, right, disparity [H, W] px or None)`` at the size of
+    ``K`` ``[3, 3]``, with the prior's poses ``[2, 4, 4]``, as a cache in memory (what prediction and
+    measurement read: the live correction's pair); ``flow``: with the optical flow between them, quantised
+    as ``prepare`` stores it (``dpc_jax.data.sequence_cache.encode_flow``)."""
+    from dpc_jax.data.cache_products import farneback_flow, grey
+
+    (left0, right0, disparity0), (left1, right1, disparity1) = frames
+    flows: dict[str, Frames] = {}
+    if flow:
+        step = flow_step((left0.shape[0], left0.shape[1]))
+        pair = np.stack([farneback_flow(grey(a), grey(b)) for a, b in ((left0, left1), (right0, right1))])
+        flows["forward"] = decode_flow(encode_flow(pair, step)[None], step)
+    depth = None
+    if disparity0 is not None and disparity1 is not None:
+        depth = stereo_depth_views(np.stack([disparity0, disparity1]), float(K[0, 0]) * baseline)
+    return SequenceCache(
+        path=Path("<live>"), name="live", left=np.stack([left0, left1]), right=np.stack([right0, right1]),
+        prior=prior, gt=None, K=K, baseline=baseline, indices=np.arange(2), times=np.zeros(2), flows=flows,
+        manifest={}, stereo_depth=depth)

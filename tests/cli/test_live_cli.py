@@ -29,7 +29,7 @@ from dpc_jax.cli import main
 from dpc_jax.pipelines import protocol as dpc_protocol
 
 FRAMES = 6
-COLUMNS = 17
+COLUMNS = 18
 
 
 @pytest.fixture(scope="module")

@@ -3,6 +3,7 @@ test against the guarantees it states (false acceptances, withdrawal, memory).""
 
 from __future__ import annotations
 
+import dataclasses
 import gc
 import math
 import sys
@@ -77,13 +78,84 @@ def test_forced_live_gives_the_poses_of_forced_correct(world: dict) -> None:
     # The tests' own decision, on nine pairs: no sequential test can accept so early (2^9 < 1 / α), so
     # every pose is the prior's, composed from the same first pose. Without a judge, which would compile
     # its own programs (the judge is tested below).
-    tested = LiveCorrector(run, calibration, first_pose=gt[0], judge_size=None)
+    tested = LiveCorrector(run, calibration, first_pose=gt[0], judge_size=None, ahead=False)
     frames = [tested(left, right, prior[k]) for k, (left, right) in enumerate(_frames(world["sequence"]))]
     np.testing.assert_allclose(np.stack([f.pose for f in frames]), offline.prior, atol=1e-9)
     assert {f.part for f in frames[1:]} == {"none"}
     np.testing.assert_allclose(np.stack([f.prior for f in frames]), offline.prior, atol=1e-9)
     with pytest.raises(ValueError, match="expected both 48x72"):
         tested(np.zeros((40, 72), np.uint8), np.zeros((40, 72), np.uint8), prior[0])
+
+
+def _scripted(live, record: list | None = None):
+    """``live`` with its measurement replaced by Δ that depend only on the pair's parts (the same in
+    every mode): the rotation and its remainder help, the full correction hurts; ``record`` gets each
+    measured pair's ``(pair, Δ at the network's size)``."""
+    from dpc_jax.correction.live import _Measured
+
+    def measure(previous, current, prior_pose, batch, needs, vectors):
+        wobble = 1.5 + np.sin(1e4 * vectors.sum(axis=1))
+        network = {p: float(w * (1.0 if p.component == "full" else -0.5 if p.remainder else -1.0))
+                   for (_, p), w in zip(needs, wobble, strict=True)}
+        if record is not None:
+            record.append(network)
+        return _Measured(network, {}, {})
+
+    live._measure = measure
+    return live
+
+
+def test_measured_behind_the_poses_the_decision_is_the_synchronous_one_a_pair_later(world: dict) -> None:
+    """Behind without skipping, each frame is corrected with the decision of the pairs before it: the
+    synchronous corrector's states and tests' events one frame later, on the same measurements; forced,
+    the same poses. Skipping while the measurement is busy, the tests are fed exactly the pairs measured
+    (``LiveFrame.measured``), whatever they are."""
+    import time
+
+    from dpc_jax.correction.decision import Decision
+    from dpc_jax.correction.inference import load_run
+    from dpc_jax.correction.live import Calibration, LiveCorrector
+    from dpc_jax.data.poses_io import read_mat
+
+    run = load_run(world["run"], "delta")
+    _, prior = read_mat(world["priors"] / "stereo_05.mat")
+    calibration = Calibration.of(world["sequence"])
+    pairs = list(_frames(world["sequence"]))
+    n = 6 * FRAMES
+
+    def played(live):
+        return [live(*pairs[k % FRAMES], prior[k % FRAMES]) for k in range(n)]
+
+    options = {"judge_size": None, "ahead": False}
+    synchronous = played(_scripted(LiveCorrector(run, calibration, **options)))
+    behind = played(_scripted(LiveCorrector(run, calibration, behind=True, **options)))
+    assert {f.part for f in synchronous} > {"none"}  # a part is accepted: the shift can show
+    assert [f.part for f in behind[1:]] == [f.part for f in synchronous[:-1]]
+    assert [f.events for f in behind[2:]] == [f.events for f in synchronous[1:-1]]
+    assert all(f.measured for f in behind)
+    forced = [played(LiveCorrector(run, calibration, force=True, behind=b, skip=b, **options))
+              for b in (False, True)]
+    np.testing.assert_allclose(np.stack([f.pose for f in forced[1]]), np.stack([f.pose for f in forced[0]]),
+                               atol=1e-12)
+
+    fed: list[dict] = []
+    slow = _scripted(LiveCorrector(run, calibration, behind=True, skip=True, **options), fed)
+    quick = slow._measure
+
+    def busy(*args):
+        time.sleep(0.05)
+        return quick(*args)
+
+    slow._measure = busy
+    frames = [slow(*pairs[k % FRAMES], prior[k % FRAMES]) for k in range(n)]
+    slow.finish()
+    skipped = [f.index for f in frames[1:] if not f.measured]
+    assert 0 < len(skipped) == slow.skipped < n - 1 and len(fed) == n - 1 - len(skipped)
+    reference = Decision(components=slow.components, sequential=True, trailing=True, judge=False)
+    for network in fed:
+        reference.update(network)
+    assert {name: (t.pairs, t.mean) for name, t in slow.decision.tests.items()} == {
+        name: (t.pairs, t.mean) for name, t in reference.tests.items()}
 
 
 def test_the_api_decides_as_the_command_line_and_takes_one_pose_shape_from_frame_0(world: dict) -> None:
@@ -99,14 +171,15 @@ def test_the_api_decides_as_the_command_line_and_takes_one_pose_shape_from_frame
     run = load_run(world["run"], "delta")
     _, prior = read_mat(world["priors"] / "stereo_05.mat")
     calibration = Calibration.of(world["sequence"])
-    assert LiveCorrector(run, calibration).judge_size == judge_rule("stereo_dpc", SIZE, (48, 72)) == (48, 72)
+    judged = LiveCorrector(run, calibration, ahead=False).judge_size
+    assert judged == judge_rule("stereo_dpc", SIZE, (48, 72)) == (48, 72)
     pairs = list(_frames(world["sequence"]))[:3]
     rows, full = (LiveCorrector(run, calibration, force=True) for _ in range(2))
     by_rows = [rows(left, right, prior[k][:3]) for k, (left, right) in enumerate(pairs)]
     by_full = [full(left, right, prior[k]) for k, (left, right) in enumerate(pairs)]
     assert all(f.pose.shape == f.prior.shape == (4, 4) for f in by_rows)
     np.testing.assert_array_equal(np.stack([f.pose for f in by_rows]), np.stack([f.pose for f in by_full]))
-    tested = LiveCorrector(run, calibration, judge_size=None)
+    tested = LiveCorrector(run, calibration, judge_size=None, ahead=False)
     assert tested.judge_size is None
     with pytest.raises(ValueError, match=r"prior pose of frame 0: expected poses of shape \[N, 4, 4\] or"):
         tested(*pairs[0], prior[0][:2])
@@ -141,7 +214,7 @@ def test_memory_does_not_grow_with_the_frames(world: dict) -> None:
     objects alive in the process are as many."""
     from dpc_jax.correction.live import Calibration, LiveCorrector
 
-    live = LiveCorrector(world["run"], Calibration.of(world["sequence"]))
+    live = LiveCorrector(world["run"], Calibration.of(world["sequence"]), ahead=False)
     frames = list(_frames(world["sequence"]))
     step = np.eye(4)
     step[2, 3] = 1.0
@@ -223,17 +296,18 @@ def test_the_judge_measures_what_corrects_judge_does_and_gates_what_is_applied(w
     def favoured(live: LiveCorrector) -> LiveCorrector:
         """The network's size measures the rotation helping (its mean too) and the full correction
         hurting, whatever the images say."""
-        measured = live._correction_of
+        measured = live._measure
 
-        def correction_of(window, parts, seconds=None):
-            xi, _ = measured(window, parts, seconds)
-            return xi, {p: 1.0 if p.component == "full" else -0.5 if p.remainder else -1.0 for p in parts}
+        def measure(*args):
+            done = measured(*args)
+            return dataclasses.replace(done, network={p: 1.0 if p.component == "full" else -0.5 if p.remainder
+                                                      else -1.0 for p in done.network})
 
-        live._correction_of = correction_of  # type: ignore[method-assign]
+        live._measure = measure  # type: ignore[method-assign]
         return live
 
     frames_list = list(_frames(world["sequence"]))
-    live = favoured(LiveCorrector(run, calibration, first_pose=gt[0], judge_size=(48, 72)))
+    live = favoured(LiveCorrector(run, calibration, first_pose=gt[0], judge_size=(48, 72), ahead=False))
     judged: list[tuple[int, float]] = []
     at_judge = live._judged_deltas
 
@@ -258,7 +332,7 @@ def test_the_judge_measures_what_corrects_judge_does_and_gates_what_is_applied(w
     step[2, 3] = 1.0
 
     def parts(sign: float) -> list[str]:
-        gated = favoured(LiveCorrector(run, calibration, judge_size=(48, 72)))
+        gated = favoured(LiveCorrector(run, calibration, judge_size=(48, 72), ahead=False))
         gated._judged_deltas = lambda *a: sign * 1e-3 * np.where(  # type: ignore[method-assign]
             np.arange(len(a[3])) == 1, 0.5, 1.0)  # its remainder helps half as much: the mean helps too
         pose, out = np.eye(4), []

@@ -57,9 +57,9 @@ def _frames(n: int, fail_at: int | None = None, slow_at: int | None = None) -> l
 def _step(poses: np.ndarray, priors: np.ndarray) -> Callable[[int], Corrected]:
     def step(k: int) -> Corrected:
         events = ("rotation accepted",) if k == 2 else ()
-        # What the loop reads of a LiveFrame, without a network: nothing applied yet.
+        # What the loop reads of a LiveFrame, without a network: nothing applied yet; pair 3 not measured.
         frame = SimpleNamespace(index=k, pose=poses[k], prior=priors[k], part="none", forced=False,
-                                events=events, seconds={"network": 1e-3})
+                                events=events, seconds={"network": 1e-3}, measured=k != 3)
         return Corrected(frame)  # type: ignore[arg-type]
 
     return step
@@ -77,13 +77,13 @@ def test_each_frame_is_written_whole_with_its_row_and_counted(tmp_path: Path) ->
     with table.open(newline="") as handle:
         rows = list(csv.DictReader(handle))
     assert tuple(rows[0]) == CSV_COLUMNS
-    columns = ("frame", "time_s", "state", "events", "network_ms", "missed")
+    columns = ("frame", "time_s", "state", "events", "network_ms", "missed", "measured")
     assert [tuple(r[c] for c in columns) for r in rows] == [
         (str(10 + k), f"{0.1 * k:.6f}", "start" if k == 0 else "prior", "rotation accepted" if k == 2 else "",
-         "1.000", "") for k in range(5)]
+         "1.000", "", "" if k == 0 else str(int(k != 3))) for k in range(5)]
     assert summary.frames == 5 and dict(summary.states) == {"start": 1, "prior": 4}
     assert summary.events == [(12, "rotation accepted")]
-    assert summary.record()["missed_deadlines"] is None
+    assert summary.record()["missed_deadlines"] is None and summary.record()["skipped_pairs"] == [13]
 
 
 def test_a_frame_that_cannot_be_loaded_ends_the_run_after_the_frames_before_it(tmp_path: Path) -> None:
@@ -109,7 +109,8 @@ def test_a_paced_frame_written_after_the_next_one_is_due_misses_its_deadline(tmp
     rows = list(csv.DictReader(table.open(newline="")))
     assert [float(r["arrival_s"]) for r in rows] == pytest.approx([0.0, 0.2, 0.4], abs=0.02)
     assert rows[1]["missed"] == "1"
-    assert summary.lines()[-1].startswith(f"realtime 5 Hz: {len(summary.missed)} of 3 frames missed")
+    assert summary.lines()[-2].startswith(f"realtime 5 Hz: {len(summary.missed)} of 3 frames missed")
+    assert summary.lines()[-1] == "the tests measured 2 of the 2 pairs, behind the poses"
 
 
 def test_a_pace_of_own_times_is_due_at_each_frames_time_and_the_last_never() -> None:
