@@ -269,7 +269,7 @@ def run(args: argparse.Namespace) -> int:
 
         try:
             with outputs:
-                correct_frames(_arrivals(args, records, name, size), step, outputs, summary)
+                correct_frames(_arrivals(args, records, name, size), step, outputs, summary, live.hold)
         except KeyboardInterrupt:
             print(f"dpc-jax live: interrupted after {summary.frames} frames; their poses in {args.out} are "
                   "whole lines", file=sys.stderr)

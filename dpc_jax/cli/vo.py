@@ -298,7 +298,8 @@ def _correct_live(
     outputs = live_outputs(args.out, prior_out, csv_path, stale=(json_path, prior_json), beside=beside)
     try:
         with ThreadPoolExecutor(2) as decoder, outputs:
-            correct_frames(sequence_arrivals(sequence, first, decoder), step, outputs, live_summary)
+            correct_frames(sequence_arrivals(sequence, first, decoder), step, outputs, live_summary,
+                           live.hold)
     except KeyboardInterrupt:
         print(f"dpc-jax vo: interrupted after {live_summary.frames} frames; their poses in {args.out} are "
               "whole lines", file=sys.stderr)

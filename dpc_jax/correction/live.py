@@ -49,14 +49,14 @@ import numpy as np
 
 from dpc_jax.correction.acceptance import DEFAULT_ALPHA
 from dpc_jax.correction.corrector import default_acceptance_depth
-from dpc_jax.correction.decision import COMPONENTS, JUDGE, NETWORK, Decision
+from dpc_jax.correction.decision import COMPONENTS, Decision
 from dpc_jax.correction.inference import TrainedRun, load_run
 from dpc_jax.correction.judge import judge_rule, judge_size_problem
-from dpc_jax.correction.measure import PADDED, pair_deltas
+from dpc_jax.correction.live_measure import ChildMeasure, Frame, Measured, PairMeasure
+from dpc_jax.correction.measure import PADDED
 from dpc_jax.correction.parts import MEAN_WINDOW, Part
 from dpc_jax.data.calibration import Calibration
-from dpc_jax.data.preparation import as_rgb, pair_cache, prepared_pair, resized_intrinsics
-from dpc_jax.data.sequence_cache import SequenceCache
+from dpc_jax.data.preparation import as_rgb, prepared_pair, resized_intrinsics
 from dpc_jax.geometry.poses import validate_poses
 
 # A frame's prior: its pose ``[4, 4]`` (or ``[3, 4]``), a function that gives it, or None (our VO).
@@ -106,24 +106,10 @@ class LiveFrame:
 class _Previous:
     """What the next frame needs of this one."""
 
-    left: np.ndarray
-    right: np.ndarray
-    disparity: np.ndarray | None
+    frame: Frame  # prepared (with the pair as given only for a judge)
     raw: np.ndarray  # the prior's camera-to-world pose as given (or as our VO composed it)
     prior: np.ndarray  # the prior's pose composed from the first pose
     pose: np.ndarray  # the corrected one
-    full: tuple[np.ndarray, np.ndarray] | None = None  # the pair as given, kept only for a judge
-    judged: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None  # prepared at the judge's size
-
-
-@dataclass(frozen=True)
-class _Measured:
-    """Δ of a pair's parts at the network's size and at the judge's, and the seconds they took
-    (``measure``, ``judge``)."""
-
-    network: dict[Part, float]
-    judge: dict[Part, float]
-    seconds: dict[str, float]
 
 
 class LiveCorrector:
@@ -169,8 +155,6 @@ class LiveCorrector:
         skip: bool = False,
         ahead: bool = True,
     ) -> None:
-        from dpc_jax.engine.predict import PreparedModel
-
         self.run = run if isinstance(run, TrainedRun) else load_run(run, select)
         self.calibration = calibration
         rotation_only = self.run.config.rotation_only if rotation_only is None else bool(rotation_only)
@@ -200,16 +184,17 @@ class LiveCorrector:
         # The corrections of the last pairs: the trailing mean a remainder removes (its window as offline).
         self._recent: deque[np.ndarray] = deque(maxlen=MEAN_WINDOW - 1)
         self._pairs = 0
-        self._loss = self.run.config.loss_config()
-        self._flow = self.run.use_flow
-        self.behind, self.skip = bool(behind), bool(skip)
-        # Behind: one worker prepares the pair while the prior is computed, one measures.
-        self._pool = ThreadPoolExecutor(2, thread_name_prefix="live") if self.behind else None
-        self._pending: Future[_Measured] | None = None
+        self.behind, self.skip, self.ahead = bool(behind), bool(skip), bool(ahead)
+        self._measure = PairMeasure(self.run, self.K, calibration.baseline, depth=self.depth,
+                                    flow=self.run.use_flow, judge_size=self.judge_size, judge_K=self._judge_K,
+                                    disparity_offset=self.disparity_offset)
+        # Behind: threads prepare the pair (a camera's matching each) while the prior is computed; the
+        # measurement runs on a thread, or skipping on a CPU in a child process at the lowest priority
+        # (live_measure).
+        self._pool = ThreadPoolExecutor(3, thread_name_prefix="live") if self.behind else None
+        self._child: ChildMeasure | None = None
+        self._pending: Future[Measured] | None = None
         self.skipped = 0
-        self.ahead = bool(ahead)
-        # Prepared for the backend once; compiled below, before the first frame.
-        self._model = PreparedModel(self.run.graphdef, self.run.state)
         self._compile()
 
     def _checked_judge(self, size: tuple[int, int]) -> tuple[int, int]:
@@ -234,78 +219,38 @@ class LiveCorrector:
         """Predict, measure and compose once on a blank pair, for every number of parts a pair can
         measure (``dpc_jax.correction.measure.PADDED``; forced, the first component and its remainder
         only), so that no frame compiles anything (the composition's compilation alone took 0.4 s);
-        not ``ahead``, the prediction and the composition only."""
+        not ``ahead``, the prediction and the composition only. A child process compiles its own."""
+        import jax
+
         h, w = self.size
         blank = np.zeros((h, w, 3), np.uint8)
         _, _, disparity = prepared_pair(blank, blank, self.size, self.K, self.calibration.baseline,
                                         match=self.depth == "sgbm")
-        frame = _Previous(blank, blank, disparity, np.eye(4), np.eye(4), np.eye(4))
-        _, batch = self._predict(self._window(frame, frame, np.eye(4)), {})
-        self._compose(frame, np.eye(4), np.zeros(6))
-        if not self.ahead:
-            return
-        for count in PADDED[:1] if self.force else PADDED:
-            pair_deltas(self.run, batch, np.zeros((count, 6)), model=self._model)
-        if self.judge_size is not None:
-            h, w = self.calibration.image_size
-            full = np.zeros((h, w, 3), np.uint8)
-            judged = _Previous(blank, blank, disparity, np.eye(4), np.eye(4), np.eye(4), (full, full))
-            for count in PADDED:
-                self._judged_deltas(judged, judged, np.eye(4), np.zeros((count, 6)))
+        full = (np.zeros((*self.calibration.image_size, 3), np.uint8),) * 2 if self.judge_size else None
+        frame = Frame(0, blank, blank, disparity, full)
+        self._predict((frame, frame), np.stack([np.eye(4)] * 2), {})
+        self._compose(_Previous(frame, np.eye(4), np.eye(4), np.eye(4)), np.eye(4), np.zeros(6))
+        counts = PADDED[:1] if self.force else PADDED
+        if self.skip and self.behind and jax.default_backend() == "cpu":
+            self._child = ChildMeasure(self._measure, frame, counts if self.ahead else ())
+            if self.ahead:
+                self._child.ready(frame)
+        elif self.ahead:
+            self._measure.compile(frame, counts)
 
-    def _window(self, previous: _Previous, current: _Previous, prior_pose: np.ndarray) -> SequenceCache:
-        """The two frames as a cache in memory (with their optical flow, for a network that reads it)."""
-        return pair_cache(((previous.left, previous.right, previous.disparity),
-                           (current.left, current.right, current.disparity)), self.K,
-                          self.calibration.baseline, np.stack([previous.raw, prior_pose]), flow=self._flow)
-
-    def _judged_deltas(self, previous: _Previous, current: _Previous, prior_pose: np.ndarray,
-                       corrections: np.ndarray) -> np.ndarray:
-        """Δ ``[K]`` of ``corrections`` ``[K, 6]`` on the pair at the judge's size (each frame prepared
-        there once)."""
-        assert self.judge_size is not None
-        for frame in (previous, current):
-            if frame.judged is None:
-                assert frame.full is not None
-                frame.judged = prepared_pair(*frame.full, self.judge_size, self._judge_K,
-                                             self.calibration.baseline, self.disparity_offset)
-        window = pair_cache((previous.judged, current.judged), self._judge_K,  # type: ignore[arg-type]
-                            self.calibration.baseline, np.stack([previous.raw, prior_pose]))
-        from dpc_jax.engine.predict import pair_batch
-
-        return pair_deltas(self.run, pair_batch(window, False, window.stereo_depth), corrections)
-
-    def _predict(self, window: SequenceCache, seconds: dict[str, float]) -> tuple[np.ndarray, Any]:
-        """ξ ``[6]`` of the window's pair (``dpc_jax.engine.predict.xi_step``: the forward pass alone) and
-        the pair as a batch on the device, assembled once for the network and the measurement →
-        ``(ξ, batch)``; ``seconds`` gets the batch's time (added to ``prepare``) and ``network``."""
-        from dpc_jax.engine.predict import pair_batch, stereo_depth_of
-
+    def _predict(self, frames: tuple[Frame, Frame], prior: np.ndarray,
+                 seconds: dict[str, float]) -> tuple[np.ndarray, Any]:
+        """ξ ``[6]`` of the pair (``dpc_jax.engine.predict.xi_step``: the forward pass alone) and the pair
+        as a batch on the device, assembled once for the network and the measurement → ``(ξ, batch)``;
+        ``seconds`` gets the batch's time (with its optical flow, added to ``prepare``) and ``network``."""
         began = time.perf_counter()
-        stereo = stereo_depth_of(window, self.depth)
-        batch = pair_batch(window, self._flow, stereo)
+        batch = self._measure.batch(frames, prior)
         assembled = time.perf_counter()
         seconds["prepare"] = seconds.get("prepare", 0.0) + assembled - began
-        xi = np.asarray(self._model.xi_step(self.run.config.method)(self._model.leaves, batch), np.float64)[0]
+        model = self._measure.model
+        xi = np.asarray(model.xi_step(self.run.config.method)(model.leaves, batch), np.float64)[0]
         seconds["network"] = time.perf_counter() - assembled
         return xi, batch
-
-    def _measure(self, previous: _Previous, current: _Previous, prior_pose: np.ndarray, batch: Any,
-                 needs: Sequence[tuple[str, Part]], vectors: np.ndarray) -> _Measured:
-        """Δ of the parts ``needs`` (``(size, part)``), ``vectors`` ``[K, 6]`` of this pair, at the network's
-        size on ``batch`` (``dpc_jax.correction.measure.pair_deltas``) and at the judge's."""
-        seconds: dict[str, float] = {}
-        found: dict[str, dict[Part, float]] = {NETWORK: {}, JUDGE: {}}
-        for size, stage in ((NETWORK, "measure"), (JUDGE, "judge")):
-            chosen = [k for k, (s, _) in enumerate(needs) if s == size]
-            if not chosen:
-                continue
-            t = time.perf_counter()
-            delta = (pair_deltas(self.run, batch, vectors[chosen], model=self._model) if size == NETWORK
-                     else self._judged_deltas(previous, current, prior_pose, vectors[chosen]))
-            found[size] = {needs[k][1]: float(d) for k, d in zip(chosen, delta, strict=True)}
-            seconds[stage] = time.perf_counter() - t
-        return _Measured(found[NETWORK], found[JUDGE], seconds)
 
     def _collect(self, wait: bool, seconds: dict[str, float]) -> tuple[str, ...]:
         """Behind: the pending pair's Δ fed to the decision once measured (``wait``: waiting for it) →
@@ -317,6 +262,13 @@ class LiveCorrector:
         measured = pending.result()
         seconds.update(measured.seconds)
         return self.decision.update(measured.network, measured.judge)
+
+    def hold(self) -> None:
+        """A frame has arrived: the measurement in a child process stops until this frame's pose is
+        given (:class:`~dpc_jax.correction.live_measure.ChildMeasure`), so that the frame's work,
+        reading its images included, has both cores. :meth:`__call__` holds it too."""
+        if self._child is not None:
+            self._child.hold()
 
     def finish(self) -> tuple[str, ...]:
         """Behind: wait for the last pair's measurement and feed it to the decision (what the tests say
@@ -342,6 +294,15 @@ class LiveCorrector:
         else converted here); ``time_s``: the frame's time, reported.
         """
         began = time.perf_counter()
+        self.hold()
+        try:
+            return self._corrected(left, right, prior, time_s, grey, began)
+        finally:
+            if self._child is not None:
+                self._child.release()
+
+    def _corrected(self, left: np.ndarray, right: np.ndarray, prior: Prior, time_s: float | None,
+                   grey: tuple[np.ndarray, np.ndarray] | None, began: float) -> LiveFrame:
         seconds: dict[str, float] = {}
         left, right = as_rgb(left, "left"), as_rgb(right, "right")
         if left.shape[:2] != tuple(self.calibration.image_size) or right.shape != left.shape:
@@ -359,27 +320,26 @@ class LiveCorrector:
             seconds["total"] = time.perf_counter() - began
             return LiveFrame(0, time_s, start.copy(), current.prior.copy(), None, np.zeros(6), "none",
                              self.force, (), seconds)
-        t = time.perf_counter()
-        window = self._window(previous, current, prior_pose)  # with its optical flow, for ss-DPC-Net
-        seconds["prepare"] += time.perf_counter() - t
+        frames, poses = (previous.frame, current.frame), np.stack([previous.raw, prior_pose])
         # What is measured is chosen from the tests of the pairs before this one (a choice made after
         # seeing this pair's Δ would select the pairs that favour it).
         measured = True
         if self._pool is not None:
             events = self._collect(not self.skip, seconds)
-            xi, batch = self._predict(window, seconds)
+            xi, batch = self._predict(frames, poses, seconds)
             if self._pending is None:
                 needs = self.decision.needs()
-                self._pending = self._pool.submit(self._measure, previous, current, prior_pose, batch, needs,
-                                                  self._vectors(xi, [p for _, p in needs]))
+                vectors = self._vectors(xi, [p for _, p in needs])
+                self._pending = (
+                    self._child.submit(frames, poses, needs, vectors) if self._child is not None
+                    else self._pool.submit(self._measure.deltas, frames, poses, needs, vectors, batch))
             else:
                 measured = False
                 self.skipped += 1
         else:
             needs = self.decision.needs()
-            xi, batch = self._predict(window, seconds)
-            done = self._measure(previous, current, prior_pose, batch, needs,
-                                 self._vectors(xi, [p for _, p in needs]))
+            xi, batch = self._predict(frames, poses, seconds)
+            done = self._measure.deltas(frames, poses, needs, self._vectors(xi, [p for _, p in needs]), batch)
             seconds.update(done.seconds)
             events = self.decision.update(done.network, done.judge)
         part = self.decision.outcome.part
@@ -400,7 +360,7 @@ class LiveCorrector:
         def prepare() -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
             t = time.perf_counter()
             prepared = prepared_pair(left, right, self.size, self.K, self.calibration.baseline,
-                                     self.disparity_offset, match=self.depth == "sgbm")
+                                     self.disparity_offset, match=self.depth == "sgbm", pool=self._pool)
             seconds["prepare"] = time.perf_counter() - t
             return prepared
 
@@ -410,8 +370,9 @@ class LiveCorrector:
         prior_pose = self._prior_pose(left, right, prior, grey)
         seconds["vo"] = time.perf_counter() - t
         small_left, small_right, disparity = prepare() if job is None else job.result()
-        return _Previous(small_left, small_right, disparity, prior_pose, prior_pose, prior_pose,
-                         (left, right) if self.judge_size is not None else None)
+        frame = Frame(self._pairs + (self._previous is not None), small_left, small_right, disparity,
+                      (left, right) if self.judge_size is not None else None)
+        return _Previous(frame, prior_pose, prior_pose, prior_pose)
 
     def _prior_pose(self, left: np.ndarray, right: np.ndarray, prior: Prior,
                     grey: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:

@@ -309,6 +309,7 @@ class VOStep:
 
 def correct_frames(
     frames: Iterator[Arrived], step: Callable[[Any], Corrected], outputs: LiveOutputs, summary: LiveSummary,
+    on_arrival: Callable[[], None] | None = None,
 ) -> None:
     """Correct each frame as it arrives and write it (module docstring).
 
@@ -317,7 +318,8 @@ def correct_frames(
     is due ``pace.due(k)`` s after the first arrived (the command sleeps until then) and misses its
     deadline when its pose is written after frame k+1 is due; else it arrives when the source gives it. A
     frame that cannot be loaded or corrected (``ValueError``, ``OSError``) raises :class:`RecordError`
-    with the frame's name (``where``) in front.
+    with the frame's name (``where``) in front. ``on_arrival``: called the moment a frame arrives, before its
+    images are read (``LiveCorrector.hold``: the measurement behind the poses stops for the frame).
     """
     started: float | None = None
     for k, arrived in enumerate(frames):
@@ -329,6 +331,8 @@ def correct_frames(
             arrival = started + pace.due(k)
             if now < arrival:
                 time.sleep(arrival - now)
+        if on_arrival is not None:
+            on_arrival()
         try:
             began = time.perf_counter()
             loaded = arrived.load()

@@ -9,6 +9,7 @@ resampled by the rig's disparity calibration residual, and matched with StereoSG
 
 from __future__ import annotations
 
+from concurrent.futures import Executor
 from pathlib import Path
 
 import cv2
@@ -65,19 +66,20 @@ def resized_intrinsics(K: np.ndarray, source: tuple[int, int], size: tuple[int, 
 
 def prepared_pair(
     left: np.ndarray, right: np.ndarray, size: tuple[int, int], K: np.ndarray, baseline: float,
-    disparity_offset: float = 0.0, match: bool = True,
+    disparity_offset: float = 0.0, match: bool = True, pool: Executor | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """One frame as the cache stores it → ``(left, right, disparity)``: the images uint8 ``[H, W, 3]``
     at ``size``, the right one resampled by ``disparity_offset`` (px at the source resolution) first,
     and StereoSGBM's fixed-point disparity of both cameras (int16 ``[2, H, W]``), None when the images
     are too narrow to match or ``match`` is False. ``K``: the intrinsics at ``size``; ``baseline``:
-    metres."""
+    metres; ``pool``: the right camera's matched on one of its threads
+    (``dpc_jax.data.stereo_depth.sgbm_disparity``)."""
     small_left = resized_image(left, size)
     small_right = resized_image(right, size, float(disparity_offset))
     fu = float(K[0, 0])
     disparity = None
     if match and sgbm_fits(size[1], fu, baseline):
-        disparity = sgbm_disparity(small_left, small_right, fu, baseline)
+        disparity = sgbm_disparity(small_left, small_right, fu, baseline, pool=pool)
     return small_left, small_right, disparity
 
 

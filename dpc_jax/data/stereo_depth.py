@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import os
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, ThreadPoolExecutor
 
 import cv2
 import numpy as np
@@ -47,7 +47,8 @@ def sgbm_fits(width: int, fu: float, baseline: float, block: int = 5) -> bool:
 
 
 def sgbm_disparity(
-    left: np.ndarray, right: np.ndarray, fu: float, baseline: float, block: int = 5
+    left: np.ndarray, right: np.ndarray, fu: float, baseline: float, block: int = 5,
+    pool: Executor | None = None,
 ) -> np.ndarray:
     """StereoSGBM disparity of both cameras of one rectified pair, in SGBM's own fixed point.
 
@@ -56,17 +57,24 @@ def sgbm_disparity(
     (``DISPARITY_UNITS``), ≤ 0 where there is no match (occluded, or nearer than
     :data:`MIN_DEPTH`): exactly what OpenCV computes, 2 bytes a pixel, which is what a cache
     stores. The right camera's disparity is computed by matching the mirrored pair (the right
-    image becomes the reference).
+    image becomes the reference); with ``pool`` on one of its threads, beside the left camera's (the
+    same numbers: a matcher each, OpenCV releases the interpreter while it matches).
     """
     if left.shape != right.shape or left.dtype != np.uint8:
         raise ValueError(f"need two uint8 images of one size, got {left.dtype} {left.shape}, {right.shape}")
     if not (fu > 0 and baseline > 0):
         raise ValueError(f"fu and baseline must be positive, got {fu}, {baseline}")
-    matcher = _matcher(float(fu) * float(baseline) / MIN_DEPTH, block)
+    search = float(fu) * float(baseline) / MIN_DEPTH
     grey_l, grey_r = _grey(left), _grey(right)
+    mirrored = (grey_r[:, ::-1].copy(), grey_l[:, ::-1].copy())
+
+    def matched(reference: np.ndarray, other: np.ndarray) -> np.ndarray:
+        return _matcher(search, block).compute(reference, other)
+
+    right_job = None if pool is None else pool.submit(matched, *mirrored)
     out = np.empty((2, *grey_l.shape), np.int16)
-    out[0] = matcher.compute(grey_l, grey_r)
-    out[1] = matcher.compute(grey_r[:, ::-1].copy(), grey_l[:, ::-1].copy())[:, ::-1]
+    out[0] = matched(grey_l, grey_r)
+    out[1] = (matched(*mirrored) if right_job is None else right_job.result())[:, ::-1]
     return out
 
 

@@ -91,17 +91,17 @@ def _scripted(live, record: list | None = None):
     """``live`` with its measurement replaced by Δ that depend only on the pair's parts (the same in
     every mode): the rotation and its remainder help, the full correction hurts; ``record`` gets each
     measured pair's ``(pair, Δ at the network's size)``."""
-    from dpc_jax.correction.live import _Measured
+    from dpc_jax.correction.live_measure import Measured
 
-    def measure(previous, current, prior_pose, batch, needs, vectors):
+    def measure(frames, prior, needs, vectors, batch=None):
         wobble = 1.5 + np.sin(1e4 * vectors.sum(axis=1))
         network = {p: float(w * (1.0 if p.component == "full" else -0.5 if p.remainder else -1.0))
                    for (_, p), w in zip(needs, wobble, strict=True)}
         if record is not None:
             record.append(network)
-        return _Measured(network, {}, {})
+        return Measured(network, {}, {})
 
-    live._measure = measure
+    live._measure.deltas = measure
     return live
 
 
@@ -109,10 +109,7 @@ def test_measured_behind_the_poses_the_decision_is_the_synchronous_one_a_pair_la
     """Behind without skipping, each frame is corrected with the decision of the pairs before it: the
     synchronous corrector's states and tests' events one frame later, on the same measurements; forced,
     the same poses. Skipping while the measurement is busy, the tests are fed exactly the pairs measured
-    (``LiveFrame.measured``), whatever they are."""
-    import time
-
-    from dpc_jax.correction.decision import Decision
+    (``LiveFrame.measured``)."""
     from dpc_jax.correction.inference import load_run
     from dpc_jax.correction.live import Calibration, LiveCorrector
     from dpc_jax.data.poses_io import read_mat
@@ -138,24 +135,21 @@ def test_measured_behind_the_poses_the_decision_is_the_synchronous_one_a_pair_la
     np.testing.assert_allclose(np.stack([f.pose for f in forced[1]]), np.stack([f.pose for f in forced[0]]),
                                atol=1e-12)
 
-    fed: list[dict] = []
-    slow = _scripted(LiveCorrector(run, calibration, behind=True, skip=True, **options), fed)
-    quick = slow._measure
-
-    def busy(*args):
-        time.sleep(0.05)
-        return quick(*args)
-
-    slow._measure = busy
-    frames = [slow(*pairs[k % FRAMES], prior[k % FRAMES]) for k in range(n)]
-    slow.finish()
-    skipped = [f.index for f in frames[1:] if not f.measured]
-    assert 0 < len(skipped) == slow.skipped < n - 1 and len(fed) == n - 1 - len(skipped)
-    reference = Decision(components=slow.components, sequential=True, trailing=True, judge=False)
-    for network in fed:
-        reference.update(network)
-    assert {name: (t.pairs, t.mean) for name, t in slow.decision.tests.items()} == {
-        name: (t.pairs, t.mean) for name, t in reference.tests.items()}
+    # Skipping, on a CPU the measurement runs in a child process: its tests are fed exactly the pairs it
+    # measured (the first while it compiles, then those it keeps up with), with the Δ the corrector
+    # measures itself on those pairs (float32 programs compiled apart: to 1e-3).
+    inline = LiveCorrector(run, calibration, force=True, **options)
+    own, measure = [], inline._measure.deltas
+    inline._measure.deltas = lambda *a: own.append(measure(*a)) or own[-1]
+    played(inline)
+    child = LiveCorrector(run, calibration, force=True, behind=True, skip=True, **options)
+    frames = played(child)
+    child.finish()
+    measured = [f.index for f in frames[1:] if f.measured]
+    assert measured[0] == 1 and child.skipped == n - 1 - len(measured) > 0
+    test = child.decision.tests["full"]
+    expected = [next(v for p, v in own[k - 1].network.items() if p.name == "full") for k in measured]
+    assert test.pairs == len(measured) and test.mean == pytest.approx(np.mean(expected), rel=1e-3)
 
 
 def test_the_api_decides_as_the_command_line_and_takes_one_pose_shape_from_frame_0(world: dict) -> None:
@@ -296,27 +290,27 @@ def test_the_judge_measures_what_corrects_judge_does_and_gates_what_is_applied(w
     def favoured(live: LiveCorrector) -> LiveCorrector:
         """The network's size measures the rotation helping (its mean too) and the full correction
         hurting, whatever the images say."""
-        measured = live._measure
+        measured = live._measure.deltas
 
         def measure(*args):
             done = measured(*args)
             return dataclasses.replace(done, network={p: 1.0 if p.component == "full" else -0.5 if p.remainder
                                                       else -1.0 for p in done.network})
 
-        live._measure = measure  # type: ignore[method-assign]
+        live._measure.deltas = measure  # type: ignore[method-assign]
         return live
 
     frames_list = list(_frames(world["sequence"]))
     live = favoured(LiveCorrector(run, calibration, first_pose=gt[0], judge_size=(48, 72), ahead=False))
     judged: list[tuple[int, float]] = []
-    at_judge = live._judged_deltas
+    at_judge = live._measure._at_judge
 
-    def recorded(previous, current, prior_pose, corrections):
-        values = at_judge(previous, current, prior_pose, corrections)
+    def recorded(frames, prior, corrections):
+        values = at_judge(frames, prior, corrections)
         judged.append((live._pairs, float(values[0])))  # the first part consulted there: the rotation
         return values
 
-    live._judged_deltas = recorded  # type: ignore[method-assign]
+    live._measure._at_judge = recorded  # type: ignore[method-assign]
     frames = [live(*frames_list[k % FRAMES], prior[k % FRAMES]) for k in range(3 * FRAMES)]
     assert judged and all(f.part == "none" for f in frames[:judged[0][0] + 1])
     judge = prepare_sequence(world["sequence"], world["priors"] / "stereo_05.mat", tmp_path / "judge",
@@ -333,8 +327,8 @@ def test_the_judge_measures_what_corrects_judge_does_and_gates_what_is_applied(w
 
     def parts(sign: float) -> list[str]:
         gated = favoured(LiveCorrector(run, calibration, judge_size=(48, 72), ahead=False))
-        gated._judged_deltas = lambda *a: sign * 1e-3 * np.where(  # type: ignore[method-assign]
-            np.arange(len(a[3])) == 1, 0.5, 1.0)  # its remainder helps half as much: the mean helps too
+        gated._measure._at_judge = lambda *a: sign * 1e-3 * np.where(  # type: ignore[method-assign]
+            np.arange(len(a[2])) == 1, 0.5, 1.0)  # its remainder helps half as much: the mean helps too
         pose, out = np.eye(4), []
         for k in range(80):
             out.append(gated(*frames_list[k % FRAMES], pose))
