@@ -207,6 +207,7 @@ def measure(where: Frames, method: str, preset: str, size: tuple[int, int], coun
                 started = time.perf_counter() - k / (hz or 1.0)
             due = started + k / hz if hz is not None else time.perf_counter()
             time.sleep(max(0.0, due - time.perf_counter()))
+            live.hold()  # arrived: the measurement behind the poses stops for it (as dpc-jax vo does)
             t0 = time.perf_counter()
             left, right, grey_left, grey_right = decode(pool, where, index, paths, texture)
             if timed and profile is not None:  # the VO and the correction, not the decoding threads
@@ -240,6 +241,7 @@ def measure(where: Frames, method: str, preset: str, size: tuple[int, int], coun
                                     ("png", t3 - t0),
                                     *((stage, frame.seconds.get(stage, np.nan)) for stage in STAGES)):
                     seconds[name].append(value)
+    live.close()
     mode = INLINE if hz is None else (f"behind, {hz:g} Hz: {measured} of {pairs} pairs measured, {late} "
                                       "missed")
     return Result(method, size, compile_s, seconds, mode)

@@ -126,17 +126,9 @@ def corrector(args: argparse.Namespace, run: Path, calibration: Calibration, jud
     # (dpc_jax.correction.live); replayed as fast as possible, the decision is the synchronous one and a
     # measurement program is compiled when a pair first needs it.
     paced = args.realtime is not None
-    live = LiveCorrector(run, calibration, rotation_only=args.rotation_only, mean_test=not args.no_mean_test,
+    return LiveCorrector(run, calibration, rotation_only=args.rotation_only, mean_test=not args.no_mean_test,
                          force=args.force, disparity_offset=disparity_offset, judge_size=judge.size,
                          behind=paced, skip=paced, ahead=paced, **given)
-    if paced:
-        import gc
-
-        # What restoring and compiling the network left is collected once now and never walked again:
-        # a full collection of it took 0.1 s in the middle of a frame.
-        gc.collect()
-        gc.freeze()
-    return live
 
 
 def beside_files(out: Path, csv: Path | None, csv_path: Path | None,

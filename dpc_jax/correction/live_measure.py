@@ -14,6 +14,7 @@ from __future__ import annotations
 import os
 import pickle
 import signal
+import threading
 import time
 from collections.abc import Sequence
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
@@ -31,6 +32,8 @@ from dpc_jax.data.preparation import pair_cache, prepared_pair
 
 # The child's priority: the lowest, so that the pose's work always comes first.
 CHILD_NICE = 19
+# The longest a child is held (s): far beyond a frame's work.
+HOLD_S = 2.0
 
 
 @dataclass(frozen=True)
@@ -187,17 +190,27 @@ class ChildMeasure:
         self._pool: Executor = ProcessPoolExecutor(1, mp_context=get_context("spawn"), initializer=_start,
                                                    initargs=(pickle.dumps(measure), frame, tuple(counts)))
         self._pid = self._pool.submit(os.getpid).result()
-        self._held = False
+        self._timer: threading.Timer | None = None
 
     def hold(self) -> None:
-        if not self._held and hasattr(signal, "SIGSTOP"):
+        """Stop the child until :meth:`release`, or :data:`HOLD_S` at most (a frame that never comes
+        to its pose, an error, must not leave it stopped: the interpreter's exit waits for it)."""
+        if self._timer is None and hasattr(signal, "SIGSTOP"):
             os.kill(self._pid, signal.SIGSTOP)
-            self._held = True
+            self._timer = threading.Timer(HOLD_S, self.release)
+            self._timer.daemon = True
+            self._timer.start()
 
     def release(self) -> None:
-        if self._held:
+        timer, self._timer = self._timer, None
+        if timer is not None:
+            timer.cancel()
             os.kill(self._pid, signal.SIGCONT)
-            self._held = False
+
+    def close(self) -> None:
+        """Let the child go (it ends once its current pair is measured)."""
+        self.release()
+        self._pool.shutdown(wait=False, cancel_futures=True)
 
     def submit(self, frames: tuple[Frame, Frame], prior: np.ndarray, needs: Sequence[tuple[str, Part]],
                vectors: np.ndarray) -> Future[Measured]:
