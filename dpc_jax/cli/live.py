@@ -276,6 +276,8 @@ def run(args: argparse.Namespace) -> int:
             raise
         except (OSError, ValueError) as content:
             return error(f"{content} (the {summary.frames} frames before it are written)", 1)
+        finally:
+            live.close()
     if summary.frames == 0:
         return error(f"{name}: no records; expected one line per frame: {RECORD_SHAPE}", 1)
     network = {"checkpoint": str(args.checkpoint), "epoch": live.run.epoch, "method": live.run.config.method,

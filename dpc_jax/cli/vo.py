@@ -308,6 +308,8 @@ def _correct_live(
         print(f"dpc-jax vo: error: {error} (the {live_summary.frames} frames before it are written)",
               file=sys.stderr)
         return 1
+    finally:
+        live.close()
 
     result = step.result()
     counts = summary(result)

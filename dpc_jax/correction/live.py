@@ -220,7 +220,8 @@ class LiveCorrector:
         """Predict, measure and compose once on a blank pair, for every number of parts a pair can
         measure (``dpc_jax.correction.measure.PADDED``; forced, the first component and its remainder
         only), so that no frame compiles anything (the composition's compilation alone took 0.4 s);
-        not ``ahead``, the prediction and the composition only. A child process compiles its own."""
+        not ``ahead``, the prediction and the composition only. A child process of the measurement
+        compiles its own, between frames."""
         import jax
 
         h, w = self.size
@@ -231,13 +232,10 @@ class LiveCorrector:
         frame = Frame(0, blank, blank, disparity, full)
         self._predict((frame, frame), np.stack([np.eye(4)] * 2), {})
         self._compose(_Previous(frame, np.eye(4), np.eye(4), np.eye(4)), np.eye(4), np.zeros(6))
-        counts = PADDED[:1] if self.force else PADDED
         if self.skip and self.behind and jax.default_backend() == "cpu":
-            self._child = ChildMeasure(self._measure, frame, counts if self.ahead else ())
-            if self.ahead:
-                self._child.ready(frame)
+            self._child = ChildMeasure(self._measure)  # compiles when a pair first needs it, off the path
         elif self.ahead:
-            self._measure.compile(frame, counts)
+            self._measure.compile(frame, PADDED[:1] if self.force else PADDED)
         if self.skip:
             # What restoring and compiling left is collected once now and never walked again: a full
             # collection of it took 0.1 s in the middle of a frame.
@@ -277,7 +275,7 @@ class LiveCorrector:
             self._child.hold()
 
     def close(self) -> None:
-        """Let a child process of the measurement go (:meth:`finish` first for the last pair's Δ)."""
+        """End a child process of the measurement (:meth:`finish` first for the last pair's Δ)."""
         if self._child is not None:
             self._child.close()
 

@@ -161,14 +161,11 @@ def _lowest() -> None:
             continue
 
 
-def _start(measure: bytes, frame: Frame, counts: Sequence[int]) -> None:
-    """The child's start: lowest priority, then the measurement (pickled, so that JAX starts after) and
-    its programs compiled."""
+def _start(measure: bytes) -> None:
+    """The child's start: lowest priority, then the measurement (pickled, so that JAX starts after)."""
     global _CHILD
     os.nice(CHILD_NICE)
     _CHILD = pickle.loads(measure)
-    _CHILD.compile(frame, counts)
-    _lowest()
 
 
 def _measure_in_child(frames: tuple[Frame, Frame], prior: np.ndarray, needs: Sequence[tuple[str, Part]],
@@ -179,18 +176,22 @@ def _measure_in_child(frames: tuple[Frame, Frame], prior: np.ndarray, needs: Seq
 
 
 class ChildMeasure:
-    """A :class:`PairMeasure` run in a child process at nice :data:`CHILD_NICE` (module docstring): it
-    is started, and its programs for ``counts`` parts compiled on ``frame``, before :meth:`submit` returns
-    its first result. :meth:`hold` stops it (``SIGSTOP``) until :meth:`release`: on two cores even a
-    child at the lowest priority slowed the pose's stages by half (the cores' caches, the machine's
-    scheduler), so the corrector holds it while a frame is worked on and it runs between frames."""
+    """A :class:`PairMeasure` run in a child process at nice :data:`CHILD_NICE` (module docstring). It
+    compiles each measurement program when a pair first needs it, off the pose's path. :meth:`hold`
+    stops it (``SIGSTOP``) until :meth:`release`: on two cores even a child at the lowest priority
+    slowed the pose's stages by half (the cores' caches, the machine's scheduler), so the corrector holds
+    it while a frame is worked on and it runs between frames."""
 
-    def __init__(self, measure: PairMeasure, frame: Frame, counts: Sequence[int]) -> None:
+    def __init__(self, measure: PairMeasure) -> None:
         # Spawned, not forked: a fork of a process whose JAX runtime has started threads can hang.
         self._pool: Executor = ProcessPoolExecutor(1, mp_context=get_context("spawn"), initializer=_start,
-                                                   initargs=(pickle.dumps(measure), frame, tuple(counts)))
+                                                   initargs=(pickle.dumps(measure),))
         self._pid = self._pool.submit(os.getpid).result()
         self._timer: threading.Timer | None = None
+
+    def submit(self, frames: tuple[Frame, Frame], prior: np.ndarray, needs: Sequence[tuple[str, Part]],
+               vectors: np.ndarray) -> Future[Measured]:
+        return self._pool.submit(_measure_in_child, frames, prior, needs, vectors)
 
     def hold(self) -> None:
         """Stop the child until :meth:`release`, or :data:`HOLD_S` at most (a frame that never comes
@@ -208,15 +209,10 @@ class ChildMeasure:
             os.kill(self._pid, signal.SIGCONT)
 
     def close(self) -> None:
-        """Let the child go (it ends once its current pair is measured)."""
+        """End the child now: a pair it is measuring has no next frame to inform."""
         self.release()
         self._pool.shutdown(wait=False, cancel_futures=True)
-
-    def submit(self, frames: tuple[Frame, Frame], prior: np.ndarray, needs: Sequence[tuple[str, Part]],
-               vectors: np.ndarray) -> Future[Measured]:
-        return self._pool.submit(_measure_in_child, frames, prior, needs, vectors)
-
-    def ready(self, frame: Frame) -> None:
-        """Wait until the child has started and compiled (a job of no parts on ``frame``)."""
-        self.submit((frame, frame), np.zeros((2, 4, 4)), [], np.zeros((0, 6))).result()
-
+        try:
+            os.kill(self._pid, signal.SIGTERM)
+        except ProcessLookupError:
+            return

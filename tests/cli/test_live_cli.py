@@ -93,7 +93,7 @@ def _reference(world: dict, *, force: bool, priors: np.ndarray | None, frames: i
 
     sequence = world["sequence"]
     first = None if priors is not None else world["poses"][0]
-    live = LiveCorrector(world["run"], Calibration.of(sequence), force=force, first_pose=first)
+    live = LiveCorrector(world["run"], Calibration.of(sequence), force=force, first_pose=first, ahead=False)
     out = []
     files = sequence.images
     for k, (left, right) in enumerate(zip(files.left_paths[:frames], files.right_paths[:frames],
