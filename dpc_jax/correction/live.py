@@ -50,7 +50,7 @@ import numpy as np
 
 from dpc_jax.correction.acceptance import DEFAULT_ALPHA
 from dpc_jax.correction.corrector import default_acceptance_depth
-from dpc_jax.correction.decision import COMPONENTS, Decision
+from dpc_jax.correction.decision import COMPONENTS, NETWORK, Decision
 from dpc_jax.correction.inference import TrainedRun, load_run
 from dpc_jax.correction.judge import judge_rule, judge_size_problem
 from dpc_jax.correction.live_measure import ChildMeasure, Frame, Measured, PairMeasure
@@ -233,7 +233,10 @@ class LiveCorrector:
         self._predict((frame, frame), np.stack([np.eye(4)] * 2), {})
         self._compose(_Previous(frame, np.eye(4), np.eye(4), np.eye(4)), np.eye(4), np.zeros(6))
         if self.skip and self.behind and jax.default_backend() == "cpu":
-            self._child = ChildMeasure(self._measure)  # compiles when a pair first needs it, off the path
+            # The first pairs' programs before the first frame; any other when a pair first needs it.
+            first = sum(size == NETWORK for size, _ in self.decision.needs())
+            self._child = ChildMeasure(self._measure, frame, [min(n for n in PADDED if n >= first)]
+                                       if self.ahead else [])
         elif self.ahead:
             self._measure.compile(frame, PADDED[:1] if self.force else PADDED)
         if self.skip:

@@ -134,13 +134,13 @@ class PairMeasure:
         window = pair_cache(tuple(self._judged[f.index] for f in frames), self.judge_K, self.baseline, prior)
         return pair_deltas(self.run, pair_batch(window, False, window.stereo_depth), corrections)
 
-    def compile(self, frame: Frame, counts: Sequence[int]) -> None:
-        """The measurement's programs for each of ``counts`` parts (``PADDED``), at both sizes, on the
-        blank ``frame``, so that no pair compiles them."""
+    def compile(self, frame: Frame, counts: Sequence[int], judge: bool = True) -> None:
+        """The measurement's programs for each of ``counts`` parts (``PADDED``), at the network's size and
+        (``judge``) the judge's, on the blank ``frame``, so that no pair compiles them."""
         prior = np.stack([np.eye(4)] * 2)
         for count in counts:
             needs = [(NETWORK, Part("full"))] * count
-            if self.judge_size is not None:
+            if judge and self.judge_size is not None:
                 needs += [(JUDGE, Part("full"))] * count
             self.deltas((frame, frame), prior, needs, np.zeros((len(needs), 6)))
         self._judged = {}
@@ -161,11 +161,13 @@ def _lowest() -> None:
             continue
 
 
-def _start(measure: bytes) -> None:
-    """The child's start: lowest priority, then the measurement (pickled, so that JAX starts after)."""
+def _start(measure: bytes, frame: Frame, counts: Sequence[int]) -> None:
+    """The child's start: lowest priority, then the measurement (pickled, so that JAX starts after) and
+    its programs for ``counts`` parts at the network's size compiled on ``frame``."""
     global _CHILD
     os.nice(CHILD_NICE)
     _CHILD = pickle.loads(measure)
+    _CHILD.compile(frame, counts, judge=False)
 
 
 def _measure_in_child(frames: tuple[Frame, Frame], prior: np.ndarray, needs: Sequence[tuple[str, Part]],
@@ -176,16 +178,17 @@ def _measure_in_child(frames: tuple[Frame, Frame], prior: np.ndarray, needs: Seq
 
 
 class ChildMeasure:
-    """A :class:`PairMeasure` run in a child process at nice :data:`CHILD_NICE` (module docstring). It
-    compiles each measurement program when a pair first needs it, off the pose's path. :meth:`hold`
+    """A :class:`PairMeasure` run in a child process at nice :data:`CHILD_NICE` (module docstring),
+    started with its programs for ``counts`` parts at the network's size compiled on ``frame`` (what the
+    first pairs need); it compiles any other when a pair first needs it, off the pose's path. :meth:`hold`
     stops it (``SIGSTOP``) until :meth:`release`: on two cores even a child at the lowest priority
     slowed the pose's stages by half (the cores' caches, the machine's scheduler), so the corrector holds
     it while a frame is worked on and it runs between frames."""
 
-    def __init__(self, measure: PairMeasure) -> None:
+    def __init__(self, measure: PairMeasure, frame: Frame, counts: Sequence[int]) -> None:
         # Spawned, not forked: a fork of a process whose JAX runtime has started threads can hang.
         self._pool: Executor = ProcessPoolExecutor(1, mp_context=get_context("spawn"), initializer=_start,
-                                                   initargs=(pickle.dumps(measure),))
+                                                   initargs=(pickle.dumps(measure), frame, tuple(counts)))
         self._pid = self._pool.submit(os.getpid).result()
         self._timer: threading.Timer | None = None
 
