@@ -3,7 +3,8 @@
 trained on the other drive, with each (test prior, training prior) pair of the protocol's ``tests``.
 
 Its table is long form: one row per test drive, prior, training prior and estimate (prior, the networks
-as trained and adapted, the final trajectory, and the final of the earlier decision when asked for).
+as trained and adapted, the final trajectory, and the final of each decision the protocol asks for; the
+page shows those in a table of their own, ``dpc_jax.report.protocol_report.decisions_markdown``).
 """
 
 from __future__ import annotations
@@ -14,9 +15,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from dpc_jax.experiments.detection_answer import TOLERANCE_PCT
 from dpc_jax.experiments.folds import Context, FoldRun, Plan, Tables, Test, add_protocol_arguments
 from dpc_jax.experiments.script import add_kitti_raw_option, data_given, new_parser
 from dpc_jax.pipelines import protocol as P
+from dpc_jax.report.protocol_report import decisions_markdown
 from dpc_jax.report.tables import EMPTY, csv_text, number, table
 from dpc_jax.results.fold import FoldResult
 
@@ -129,15 +132,15 @@ def drive_of(result: FoldResult) -> str:
     return result.sequence.removesuffix(f"_{result.prior_label}")
 
 
-def long_rows(result: FoldResult, trained_on: str) -> list[dict[str, Any]]:
-    """The rows (prior, trained, adapted, final, and the final of the earlier decision when the protocol
-    asks for it) of one correction, for ``results.csv``."""
+def long_rows(result: FoldResult, trained_on: str, *, decided: bool = True) -> list[dict[str, Any]]:
+    """The rows (prior, trained, adapted, final, and with ``decided`` the final of each decision the
+    protocol asks for, ``final, NAME``) of one correction, for ``results.csv``."""
     rows = [("prior", "", result.metrics["prior"])]
     rows += [(label, result.decisions[label], result.stages[label]) for label in ("trained", "adapted")
              if label in result.stages]
     rows.append(("final", result.applied, result.metrics["corrected"]))
-    if result.earlier is not None:
-        rows.append(("final, earlier decision", result.earlier.applied, result.earlier.metrics))
+    if decided:
+        rows += [(f"final, {name}", final.applied, final.metrics) for name, final in result.decided.items()]
     return [{"drive": drive_of(result), "prior": result.prior_label, "trained_on": trained_on,
              "estimate": estimate, "decision": decision, **{k: _value(summary, k) for k in METRICS}}
             for estimate, decision, summary in rows]
@@ -145,16 +148,20 @@ def long_rows(result: FoldResult, trained_on: str) -> list[dict[str, Any]]:
 
 def _tables(trained_on: dict[str, str]) -> Tables:
     def tables(results: Sequence[FoldResult], notes: Sequence[str]) -> tuple[str, str]:
-        rows = [row for r in results for row in long_rows(r, trained_on[r.fold])]
+        shown = [row for r in results for row in long_rows(r, trained_on[r.fold], decided=False)]
         body = table(["test drive", "prior", "trained on", "estimate", "decision", *TITLES],
                      ([r["drive"], PRIOR_NAMES[r["prior"]], r["trained_on"], r["estimate"], r["decision"],
-                       *(number(r[k]) for k in METRICS)] for r in rows))
-        markdown = "\n".join([
+                       *(number(r[k]) for k in METRICS)] for r in shown))
+        lines = [
             "# Two real KITTI raw drives, cross-drive", "", *notes, "", body,
             "estimate: prior = the prior itself; trained = the network as trained applied (whatever its test "
             "said), decision = its acceptance test; adapted = the same network adapted to the test drive's "
-            "images (no ground truth) applied; final = what the acceptance tests and the choice keep; final, "
-            "earlier decision = the same networks decided without testing the correction's mean apart. "
-            f"Segment errors: {EMPTY} where the drive is shorter than 100 m. RPE over one frame."]) + "\n"
-        return markdown, csv_text(CSV_COLUMNS, ([row[c] for c in CSV_COLUMNS] for row in rows))
+            "images (no ground truth) applied; final = what the acceptance tests and the choice keep. "
+            f"Segment errors: {EMPTY} where the drive is shorter than 100 m. RPE over one frame."]
+        if any(r.decided for r in results):
+            names = ["test drive", "prior", "trained on"], lambda r: [
+                drive_of(r), PRIOR_NAMES[r.prior_label], trained_on[r.fold]]
+            lines += ["", decisions_markdown(results, *names, TOLERANCE_PCT).rstrip()]
+        rows = [row for r in results for row in long_rows(r, trained_on[r.fold])]
+        return "\n".join(lines) + "\n", csv_text(CSV_COLUMNS, ([row[c] for c in CSV_COLUMNS] for row in rows))
     return tables

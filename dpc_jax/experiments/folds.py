@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from dpc_jax._io import atomic_write
+from dpc_jax.experiments.detection_answer import TOLERANCE_PCT
 from dpc_jax.experiments.records import Records
 from dpc_jax.experiments.script import (
     Clock,
@@ -170,7 +171,8 @@ def run_protocol(script: str | Path, parser: argparse.ArgumentParser, plan: Call
 
 
 def _tables(title: str) -> Tables:
-    return lambda results, notes: (results_markdown(results, title, notes), results_csv(results))
+    return lambda results, notes: (results_markdown(results, title, notes, tolerance_pct=TOLERANCE_PCT),
+                                   results_csv(results))
 
 
 def finished_protocol(script: str | Path, parser: argparse.ArgumentParser, plan: Callable[[Context], Plan],

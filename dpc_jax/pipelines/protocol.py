@@ -109,8 +109,9 @@ class ExperimentProtocol:
     Every kind: ``select`` (epoch selection, ``dpc_jax.training.train_config.SELECTIONS``), ``acceptance``
     (False: apply every correction, the papers' way), ``mean_test`` (test the correction's mean over
     the sequence on its own, ``dpc_jax.correction.decision``; False: the earlier decision),
-    ``earlier_decision`` (also decide every correction the earlier way, from the same networks, and
-    report its final trajectory beside the new one),
+    ``decisions`` (also decide every correction by each of these, from the same networks, and report
+    each final trajectory beside the protocol's own: :data:`EARLIER`, the earlier decision, or an option
+    of where the mean is tested, ``dpc_jax.correction.decision.MEAN_TESTS``; ``docs/method.md`` §8),
     ``rotation_only`` (None: the network's own),
     ``adapt_steps`` / ``holdout_every`` (``dpc_jax.correction.adapt``), ``rectify_offset`` (rectify the
     network's images by the disparity offset our VO measures), ``judge_size`` (measure every acceptance
@@ -123,7 +124,7 @@ class ExperimentProtocol:
     acceptance: bool = True
     rotation_only: bool | None = None
     mean_test: bool = True
-    earlier_decision: bool = False
+    decisions: tuple[str, ...] = ()
     adapt_steps: int = 0
     holdout_every: int = 5
     rectify_offset: bool = False
@@ -145,11 +146,28 @@ class ExperimentProtocol:
 
         if self.select not in SELECTIONS:
             raise config_lib.ConfigError(f"select: {self.select!r} is not one of {', '.join(SELECTIONS)}")
+        for name in self.decisions:
+            decision_options(name)
         # Nested specs come as dicts from a config file: checked the same way, naming where they sit.
         for name, cls in (("folds", FoldSpec), ("drives", DriveSpec)):
             specs = {key: spec if isinstance(spec, cls) else config_lib.from_dict(cls, spec, f"{name}.{key}")
                      for key, spec in getattr(self, name).items()}
             object.__setattr__(self, name, specs)
+
+
+# The earlier decision among a protocol's ``decisions``: whole parts only, the mean never tested apart.
+EARLIER = "earlier"
+
+
+def decision_options(name: str) -> dict[str, Any]:
+    """The options of ``dpc_jax.correction.corrector.correct_cache`` that decide by the decision ``name``:
+    :data:`EARLIER` or an option of ``dpc_jax.correction.decision.MEAN_TESTS`` (else ``ConfigError``)."""
+    from dpc_jax import config as config_lib
+    from dpc_jax.correction.decision import MEAN_TESTS
+
+    if name != EARLIER and name not in MEAN_TESTS:
+        raise config_lib.ConfigError(f"decisions: {name!r} is not one of {', '.join((EARLIER, *MEAN_TESTS))}")
+    return {"mean_test": False} if name == EARLIER else {"mean_test": True, "mean": MEAN_TESTS[name]}
 
 
 def load_protocol(path: str | Path) -> tuple[Any, ExperimentProtocol]:
@@ -282,13 +300,16 @@ def correct_and_evaluate(
 ) -> FoldResult:
     """Correct the prior of ``cache`` with the run's epoch by ``select`` (None: the protocol's) as the
     ``protocol`` says (its ``acceptance``, ``mean_test``, ``rotation_only``, ``adapt_steps`` unless
-    ``adapt_steps`` is given, ``holdout_every``, ``earlier_decision``): behind the acceptance test and,
+    ``adapt_steps`` is given, ``holdout_every``, ``decisions``): behind the acceptance test and,
     adapting, also with the network adapted to ``cache``'s own pairs (``dpc_jax.correction.adapt``, the
     ground truth unread); the final trajectory is chosen by ``dpc_jax.correction.corrector.choose``
     (the adapted correction only if it passes its test and beats the trained one, else the trained one
     if it passes, else the prior). ``judge``: the same frames prepared at a larger size, where every
-    acceptance test is measured too (``dpc_jax.correction.corrector.correct_sequence``). Writes the
-    final trajectory, the reports and (adapting) the adapted network."""
+    acceptance test is measured too (``dpc_jax.correction.corrector.correct_sequence``). The same
+    proposals (and adapted network) are decided again by each of the protocol's ``decisions``
+    (``dpc_jax.correction.corrector.decided_again``: nothing retrains), each final recorded in the
+    result's ``decided``; with the acceptance test off every decision is the same forced one, and none
+    is made. Writes the final trajectory, the reports and (adapting) the adapted network."""
     from dpc_jax.correction.corrector import correct_sequence, decided_again
     from dpc_jax.correction.inference import load_run
     from dpc_jax.correction.outputs import CorrectionOutputs, write_corrected
@@ -310,11 +331,11 @@ def correct_and_evaluate(
     done = correct_sequence(run, loaded, adapt=how, mean_test=protocol.mean_test, progress=progress,
                             **options)
     final, correction, corrections = done.final, done.result, done.corrections
-    earlier = None
-    if protocol.earlier_decision and protocol.acceptance and protocol.mean_test:
-        again = decided_again(run, loaded, done=done, mean_test=False, **options)
-        applied = again.final + (f" ({again.result.acceptance.part})" if again.final != "prior" else "")
-        earlier = Final(applied, _estimates(again.result)["corrected"])
+    decided = {}
+    for decision in protocol.decisions if protocol.acceptance else ():
+        again = decided_again(run, loaded, done=done, **options, **decision_options(decision))
+        decided[decision] = Final(applied_label(again.final, again.result.acceptance),
+                                  _estimates(again.result)["corrected"])
     if correction.evaluation is None:
         raise ValueError(f"{cache}: no ground truth; the experiment needs it to evaluate")
     write_corrected(done, CorrectionOutputs(out_root / "corrected" / fold / f"{name}.txt",
@@ -330,7 +351,7 @@ def correct_and_evaluate(
     estimates = correction.evaluation.estimates
     return FoldResult(fold, name, prior_label, run.epoch, select, int(correction.corrected.shape[0]),
                       {"prior": estimates["prior"], "corrected": estimates["corrected"]},
-                      applied_label(final, correction.acceptance), stages, decisions, earlier)
+                      applied_label(final, correction.acceptance), stages, decisions, decided)
 
 
 def applied_label(final: str, acceptance: Any) -> str:

@@ -31,8 +31,9 @@ class FoldResult:
     ``metrics``: ``prior`` and ``corrected`` (the final trajectory) → metrics; ``applied``: which
     network's correction the final trajectory holds with what its test let through (``trained (full)``),
     or ``prior``; ``stages``: network label → its proposal's metrics; ``decisions``: network label → what
-    its acceptance test let through (or ``forced``); ``earlier``: the final trajectory of the same networks
-    decided the earlier way (the mean not tested apart), when asked for.
+    its acceptance test let through (or ``forced``); ``decided``: the final trajectory of the same networks
+    decided again by each decision the protocol asks for (``earlier``: the mean not tested apart; else an
+    option of where the mean is tested, ``dpc_jax.correction.decision.MEAN_TESTS``), by its name.
     """
 
     fold: str
@@ -45,15 +46,18 @@ class FoldResult:
     applied: str = "full"
     stages: dict[str, Metrics] = field(default_factory=dict)
     decisions: dict[str, str] = field(default_factory=dict)
-    earlier: Final | None = None
+    decided: dict[str, Final] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> FoldResult:
-        earlier = data.get("earlier")
-        return cls(**{**data, "earlier": None if earlier is None else Final(**earlier)})
+        fields = dict(data)
+        # Results written before the protocols decided by several options hold the earlier decision alone.
+        earlier = fields.pop("earlier", None)
+        decided = fields.pop("decided", {} if earlier is None else {"earlier": earlier})
+        return cls(**fields, decided={name: Final(**final) for name, final in decided.items()})
 
 
 def write_fold_results(path: Path, results: Sequence[FoldResult]) -> None:

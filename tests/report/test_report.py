@@ -61,7 +61,7 @@ def test_results_table_and_csv() -> None:
                    "trained (full)", {"trained": METRICS}, {"trained": "full"}),
         FoldResult("g", "05", "vo", 1, "last", 7, {"prior": METRICS, "corrected": METRICS}, "prior"),
     ]
-    text = results_markdown(results, "Title", ["a note"])
+    text = results_markdown(results, "Title", ["a note"], tolerance_pct=2.0)
     lines = text.splitlines()
     assert lines[:4] == ["# Title", "", "a note", ""]
     assert lines[4] == ("| fold | sequence | prior | epoch | applied | frames | seg. t (%) | "
@@ -76,7 +76,7 @@ def test_results_table_and_csv() -> None:
     assert lines[-2] == "| 00 | libviso2 | network trained | full | 2.5 | n/a | 1.235e+04 | n/a | 0.125 |"
     assert lines[-1] == "| 00 | libviso2 | final (trained (full)) |  | 2 | n/a | 1.235e+04 | n/a | 0.125 |"
     assert text.endswith("\n")
-    assert "# Title\n\n| fold" in results_markdown(results, "Title")
+    assert "# Title\n\n| fold" in results_markdown(results, "Title", tolerance_pct=2.0)
 
     csv_lines = results_csv(results).splitlines()
     assert csv_lines[0] == ("fold,sequence,prior,epoch,selection,applied,frames," + ",".join(
@@ -146,12 +146,18 @@ def test_results_read_back_as_they_were_written(tmp_path: Path) -> None:
     metrics = {**METRICS, "m_ate_rot_deg": 1.5}  # an evaluation's summary holds None, never NaN
     results = [FoldResult("f", "00", "vo", 3, "delta", 10, {"prior": metrics, "corrected": metrics},
                           "trained (rotation)", {"trained": metrics}, {"trained": "rotation"},
-                          Final("prior", metrics)),
+                          {"earlier": Final("prior", metrics),
+                           "mean-at-judge": Final("trained (rotation)", {**metrics, "ate_m": 0.5})}),
                FoldResult("f", "02", "vo", 3, "delta", 10, {"prior": metrics, "corrected": metrics}, "prior")]
     write_fold_results(tmp_path / "results.json", results)
     read = read_fold_results(tmp_path / "results.json")
-    assert [r.earlier for r in read] == [Final("prior", metrics), None]
+    assert [r.decided for r in read] == [results[0].decided, {}]
     assert [r.to_dict() for r in read] == json.loads(json.dumps([r.to_dict() for r in results]))
+    # Results of an earlier version hold the earlier decision alone, under its own key.
+    old = {k: v for k, v in results[0].to_dict().items() if k != "decided"}
+    legacy = FoldResult.from_dict({**old, "earlier": {"applied": "prior", "metrics": metrics}})
+    assert legacy.decided == {"earlier": Final("prior", metrics)}
+    assert FoldResult.from_dict({**old, "earlier": None}).decided == {}
 
 
 def test_table_reports_do_not_import_matplotlib() -> None:

@@ -37,11 +37,12 @@ _EXCERPT = runpy.run_path(str(Path(__file__).with_name("kitti_raw_excerpt.py")))
 
 PROTOCOL = {
     # The excerpt's date, epoch selection, rectification, adaptation, rotation-only correction, judge
-    # size and decision (every acceptance test on a test drive measured on its frames prepared at
-    # ``judge_size``, 240×376, and the correction's mean tested apart; see configs/kitti_raw_excerpt.py).
+    # size and decisions (every acceptance test on a test drive measured on its frames prepared at
+    # ``judge_size``, 240×376, the correction's mean tested apart, and every correction decided again by
+    # the earlier decision and each option of where the mean is tested; see configs/kitti_raw_excerpt.py).
     **{key: _EXCERPT["PROTOCOL"][key]
        for key in ("date", "select", "rectify_offset", "adapt_steps", "holdout_every", "rotation_only",
-                   "judge_size", "mean_test", "earlier_decision")},
+                   "judge_size", "mean_test", "decisions")},
     "drives": {
         "0001": {"libviso2": "libviso2/stereo_2011_09_26_drive_0001.mat",
                  "train_frames": (0, 80), "validation_frames": (80, 108)},

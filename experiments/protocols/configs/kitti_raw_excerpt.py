@@ -62,11 +62,12 @@ PROTOCOL = {
     # the segment translation error 0.601 → 0.621 % and the position m-ATE 0.245 → 0.308 m (the images
     # at 64×96 ask for more pitch than the ground truth). None: at the network's size.
     "judge_size": (240, 376),
-    # The correction's mean over the drive tested on its own (dpc_jax.correction.decision), and every
-    # correction also decided the earlier way (the mean not tested apart) from the same networks, its
-    # final trajectory reported beside the new one.
+    # The correction's mean over the drive tested on its own (dpc_jax.correction.decision). Every
+    # correction is also decided from the same networks the earlier way (the mean not tested apart) and by
+    # each of the four options of where the mean is tested (MEAN_TESTS; the rule of docs/method.md §8
+    # checks its choice on the real drives), each final trajectory reported beside the protocol's own.
     "mean_test": True,
-    "earlier_decision": True,
+    "decisions": ("earlier", "mean-at-network", "mean-at-judge", "mean-at-judge-a05", "mean-noninferior"),
 }
 
 CONFIG = {
