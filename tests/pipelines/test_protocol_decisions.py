@@ -68,7 +68,15 @@ def planted(tmp_path_factory: pytest.TempPathFactory):
         yield {"tmp": tmp, "cache": tmp / "cache" / "05", "run": tmp / "run"}
 
 
-def test_every_decision_is_the_same_network_decided_again_by_it(planted) -> None:
+@pytest.fixture(scope="module")
+def decided(planted):
+    """The planted sequence corrected by the protocol with every decision."""
+    protocol = dpc_protocol.ExperimentProtocol(select="delta", rotation_only=True, decisions=DECISIONS)
+    return dpc_protocol.correct_and_evaluate("f", planted["run"], planted["cache"], planted["tmp"] / "out",
+                                             protocol, judge=planted["cache"])
+
+
+def test_every_decision_is_the_same_network_decided_again_by_it(planted, decided) -> None:
     """Each decision's final is the network's proposal decided again by that decision directly
     (``decided_again`` with the option's ``MeanTest``, or without the mean's test for ``earlier``): the
     default's equals the protocol's own final, and the options that test the mean at the judge's size
@@ -77,9 +85,7 @@ def test_every_decision_is_the_same_network_decided_again_by_it(planted) -> None
     from dpc_jax.correction.decision import MEAN_TESTS
     from dpc_jax.correction.inference import load_run
 
-    protocol = dpc_protocol.ExperimentProtocol(select="delta", rotation_only=True, decisions=DECISIONS)
-    result = dpc_protocol.correct_and_evaluate("f", planted["run"], planted["cache"], planted["tmp"] / "out",
-                                               protocol, judge=planted["cache"])
+    result = decided
     assert list(result.decided) == list(DECISIONS)
     run = load_run(planted["run"], "delta")
     options = {"rotation_only": True, "force": False, "judge": planted["cache"]}
@@ -102,7 +108,7 @@ def test_every_decision_is_the_same_network_decided_again_by_it(planted) -> None
                                              forced, judge=planted["cache"]).decided == {}
 
 
-def test_the_page_holds_every_decision_and_the_rules_check(planted) -> None:
+def test_the_page_holds_every_decision_and_the_rules_check(decided) -> None:
     """The results page lists, per decision, what it applied and each figure with its change against the
     prior (computed here from the recorded figures), names the figures more than 2 % above the prior's,
     and says per decision whether the rule's check (rotation figures at most +2 %) holds."""
@@ -110,9 +116,7 @@ def test_the_page_holds_every_decision_and_the_rules_check(planted) -> None:
 
     from dpc_jax.report.protocol_report import DECIDED_COLUMNS, RULE_METRICS, results_markdown
 
-    protocol = dpc_protocol.ExperimentProtocol(select="delta", rotation_only=True, decisions=DECISIONS)
-    result = dpc_protocol.correct_and_evaluate("f", planted["run"], planted["cache"], planted["tmp"] / "page",
-                                               protocol, judge=planted["cache"])
+    result = decided
     prior = result.metrics["prior"]
     # One decision made worse than the prior on a rotation figure, to see the check fail.
     worse = {**result.decided["earlier"].metrics, "m_ate_rot_deg": 1.5 * prior["m_ate_rot_deg"]}
