@@ -65,10 +65,10 @@ def decisions_markdown(results: Sequence[FoldResult], header: Sequence[str],
                        names: Callable[[FoldResult], Sequence[str]], tolerance_pct: float) -> str:
     """The finals of the same networks decided by each decision (``FoldResult.decided``): per test sequence
     (its ``header`` cells given by ``names``) the prior's figures and each decision's final, what it
-    applied and its change against the prior (%), and the figures more than ``tolerance_pct`` above the
-    prior's; then per decision whether the rule of docs/method.md §8 holds (:data:`RULE_METRICS` at most
-    ``tolerance_pct`` above the prior's on every test sequence), with the worst change of those figures
-    and of the others."""
+    applied and its change against the prior (%; none where either lacks the figure), and the figures more
+    than ``tolerance_pct`` above the prior's; then per decision whether the rule of docs/method.md §8
+    holds (:data:`RULE_METRICS` at most ``tolerance_pct`` above the prior's on every test sequence), with
+    the worst change of those figures and of the others."""
     titles = dict(COLUMNS)
     decided = [r for r in results if r.decided]
     rows = []
@@ -79,7 +79,8 @@ def decisions_markdown(results: Sequence[FoldResult], header: Sequence[str],
             changes = {k: _change(r, decision, k) for k, _ in DECIDED_COLUMNS}
             above = ", ".join(f"{titles[k]} {v:+.1f} %" for k, v in changes.items() if v > tolerance_pct)
             rows.append([*names(r), decision, final.applied,
-                         *(f"{number(final.metrics[k])} ({number(v, '+.1f')} %)" for k, v in changes.items()),
+                         *(number(final.metrics[k]) + (f" ({v:+.1f} %)" if math.isfinite(v) else "")
+                           for k, v in changes.items()),
                          above or "none"])
     bar = f"+{tolerance_pct:g} %"
     lines = [f"Every test sequence decided by each decision from the same networks: per final, the figure "
@@ -90,7 +91,7 @@ def decisions_markdown(results: Sequence[FoldResult], header: Sequence[str],
              f"m-ATE at most {bar} above the prior's, per decision:", ""]
 
     def worst(decision: str, keys: Sequence[str]) -> str:
-        changes = [(_change(r, decision, k), f"{' '.join(names(r))}, {titles[k]}")
+        changes = [(_change(r, decision, k), f"{' / '.join(names(r))}, {titles[k]}")
                    for r in decided if decision in r.decided for k in keys]
         value, where = max(((v, w) for v, w in changes if math.isfinite(v)), default=(math.nan, EMPTY))
         return f"{number(value, '+.1f')} % ({where})"
