@@ -241,7 +241,7 @@ class LiveCorrector:
             self._measure.compile(frame, PADDED[:1] if self.force else PADDED)
         if self.skip:
             # What restoring and compiling left is collected once now and never walked again: a full
-            # collection of it took 0.1 s in the middle of a frame.
+            # collection of it in the middle of a frame made that frame miss its deadline.
             gc.collect()
             gc.freeze()
 

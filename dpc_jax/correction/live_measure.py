@@ -182,7 +182,7 @@ class ChildMeasure:
     started with its programs for ``counts`` parts at the network's size compiled on ``frame`` (what the
     first pairs need); it compiles any other when a pair first needs it, off the pose's path. :meth:`hold`
     stops it (``SIGSTOP``) until :meth:`release`: on two cores even a child at the lowest priority
-    slowed the pose's stages by half (the cores' caches, the machine's scheduler), so the corrector holds
+    slowed every stage of the pose (the cores' caches, the machine's scheduler), so the corrector holds
     it while a frame is worked on and it runs between frames."""
 
     def __init__(self, measure: PairMeasure, frame: Frame, counts: Sequence[int]) -> None:
