@@ -221,7 +221,7 @@ class LiveCorrector:
         measure (``dpc_jax.correction.measure.PADDED``; forced, the first component and its remainder
         only), so that no frame compiles anything (the composition's compilation alone took 0.4 s);
         not ``ahead``, the prediction and the composition only. A child process of the measurement
-        compiles its own, between frames."""
+        compiles the first pairs' programs before the first frame and any other between frames."""
         import jax
 
         h, w = self.size
