@@ -41,8 +41,8 @@ from dpc_jax.correction.adapt import Adaptation, AdaptConfig
 from dpc_jax.correction.adapt import adapt as adapt_network
 from dpc_jax.correction.decision import DEFAULT_MEAN_TEST, MEAN_TESTS, MeanTest, decide, refused
 from dpc_jax.correction.inference import TrainedRun, run_prediction
-from dpc_jax.correction.measure import judge_measurement, measurement, remembered
-from dpc_jax.correction.parts import MEAN_WINDOW, applied_correction
+from dpc_jax.correction.measure import judge_measurement, measurement, remember, remembered
+from dpc_jax.correction.parts import MEAN_WINDOW, Part, applied_correction
 from dpc_jax.data.poses_io import WRITE_FORMATS, frames_path, write_kitti_poses, write_tum
 from dpc_jax.data.priors import prior_for_cache
 from dpc_jax.data.sequence_cache import SequenceCache, load_cache
@@ -109,26 +109,48 @@ def correct_cache(
         cache = dataclasses.replace(cache, prior=prior_for_cache(cache, prior, prior_format))
     rotation_only = run.config.rotation_only if rotation_only is None else bool(rotation_only)
     depth = acceptance_depth or default_acceptance_depth(run)
+    components = ("rotation",) if rotation_only else ("full", "rotation")
     judged = None if judge is None else judge_measurement(run, cache, judge, batch_size, progress)
+    store = {} if store is None else store
     if proposal is None:
-        prediction = run_prediction(run, cache, batch_size=batch_size, acceptance_depth=depth,
-                                    progress=progress)
-        xi, none, delta = prediction.xi_corr, prediction.photometric, dict(prediction.delta)
+        xi, none, delta = _predicted(run, cache, store.setdefault("network", {}), components, batch_size,
+                                     depth, window if mean_test else None, progress)
     else:
         xi, none, delta = np.asarray(proposal, np.float64), None, {}
     measure = measurement(run, cache, depth=depth, batch_size=batch_size, none=none, progress=progress)
-    if store is not None:
-        measure = remembered(measure, store.setdefault("network", {}))
-        judged = None if judged is None else remembered(judged, store.setdefault("judge", {}))
-    acceptance = decide(xi, measure, components=("rotation",) if rotation_only else ("full", "rotation"),
-                        alpha=alpha, tested=held_out, judge=judged, mean_test=mean_test, window=window,
-                        mean=mean, force=force)
+    measure = remembered(measure, store.setdefault("network", {}))
+    judged = None if judged is None else remembered(judged, store.setdefault("judge", {}))
+    acceptance = decide(xi, measure, components=components, alpha=alpha, tested=held_out, judge=judged,
+                        mean_test=mean_test, window=window, mean=mean, force=force)
     if not (force or run.improves_on_prior):
         acceptance = refused(acceptance, "the run holds no epoch that lowered the validation Δ (selection "
                                          "delta, best_delta/)")
     correction = compose_correction(run, cache, xi, acceptance, rotation_only)
     return dataclasses.replace(correction, delta=delta,
                                tested=None if held_out is None else np.asarray(held_out, np.int64))
+
+
+def _predicted(run: TrainedRun, cache: SequenceCache, store: dict[bytes, np.ndarray],
+               components: tuple[str, ...], batch_size: int | None, depth: str, window: int | None,
+               progress: Progress) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """The run's proposal on ``cache`` → ``(ξ, L(0), Δ of DELTAS)``, and into ``store`` the Δ its pass
+    measured of what the decision needs first: the first component whole and, with a mean test
+    (``window``), its remainder, measured as the proposal arrives so that no second pass assembles the
+    batches again (or, with the network's depth, runs the network again)."""
+    first = [Part(components[0], True, window=window)] if window is not None else []
+    made = (lambda xi: np.stack([p.of(xi) for p in first])) if first else None
+    prediction = run_prediction(run, cache, batch_size=batch_size, acceptance_depth=depth, candidates=made,
+                                progress=progress)
+    xi = prediction.xi_corr
+    for component in components:
+        if component in prediction.delta:
+            remember(store, Part(component).of(xi), prediction.delta[component])
+    if prediction.measured is not None:
+        used, measured = prediction.measured
+        for part, values, delta in zip(first, used, measured, strict=True):
+            if np.array_equal(values, part.of(xi).astype(np.float32)):  # what the decision will ask for
+                remember(store, part.of(xi), delta)
+    return xi, prediction.photometric, dict(prediction.delta)
 
 
 def compose_correction(

@@ -17,6 +17,7 @@ the optimizer (the import contracts in ``pyproject.toml`` say so).
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -113,11 +114,13 @@ def run_prediction(
     *,
     batch_size: int | None = None,
     acceptance_depth: str | None = None,
+    candidates: Callable[[np.ndarray], np.ndarray] | None = None,
     progress: Progress = False,
 ) -> SequencePrediction:
     """:func:`dpc_jax.engine.predict.predict_sequence` with a restored run's model, loss and settings.
 
-    ``acceptance_depth``: ``network`` or ``sgbm`` (default: the run's ``acceptance_depth``).
+    ``acceptance_depth``: ``network`` or ``sgbm`` (default: the run's ``acceptance_depth``);
+    ``candidates``: corrections made from the proposal, measured in the same pass.
     """
     if cache.image_size != run.image_size:
         (h, w), (rh, rw) = cache.image_size, run.image_size
@@ -129,7 +132,7 @@ def run_prediction(
         (run.graphdef, run.state), cache, run.config.loss_config(),
         batch_size=batch_size or run.config.batch_size, use_flow=run.config.use_flow,
         stereo_depth=stereo_depth_of(cache, acceptance_depth or run.config.acceptance_depth),
-        progress=progress,
+        candidates=candidates, progress=progress,
     )
 
 

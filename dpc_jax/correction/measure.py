@@ -12,7 +12,8 @@
 * :func:`pair_deltas`: the same measurement on the one pair of a batch (the live corrector's, at the
   network's size or the judge's).
 * :func:`remembered`: a measurement that measures each candidate once into a store kept by the caller,
-  so one proposal decided with several options (``docs/method.md`` §8) measures nothing twice.
+  so one proposal decided with several options (``docs/method.md`` §8) measures nothing twice;
+  :func:`remember` puts there what the prediction's pass measured already.
 """
 
 from __future__ import annotations
@@ -146,6 +147,12 @@ def remembered(measure: Measure, store: dict[bytes, np.ndarray]) -> Measure:
         return {name: store[keys[name]] for name in candidates}
 
     return measured
+
+
+def remember(store: dict[bytes, np.ndarray], xi: np.ndarray, delta: np.ndarray) -> None:
+    """Put Δ ``[M]`` of the correction ``xi`` ``[M, 6]``, measured with the store's cache, depth and size
+    elsewhere (a prediction's pass), into a :func:`remembered` store."""
+    store[_key(xi)] = np.asarray(delta, np.float64)
 
 
 def _key(xi: np.ndarray) -> bytes:

@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import functools
 import os
+from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -46,13 +48,15 @@ class SequencePrediction:
     ``xi_corr [N-1, 6]``; ``photometric [N-1]``: ``L(0)``, the prior's gradient-masked
     photometric error; ``delta``: ``{name: [N-1]}``, ``L(ξ) − L(0)`` for each of :data:`DELTAS`
     (``dpc_jax.nn.losses.correction_deltas``);
-    ``loss``: the training loss in evaluation mode, mean over pairs.
+    ``loss``: the training loss in evaluation mode, mean over pairs; ``measured``: with
+    :func:`predict_sequence`'s ``candidates``, ``(candidates [C, N-1, 6] float32, Δ [C, N-1])``.
     """
 
     xi_corr: np.ndarray
     photometric: np.ndarray
     delta: dict[str, np.ndarray]
     loss: float
+    measured: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def gradient_loss(self) -> float:
@@ -61,7 +65,9 @@ class SequencePrediction:
 
 
 @functools.cache
-def predict_step(mesh: Mesh | None, graphdef: nnx.GraphDef, treedef: Any, config: Any) -> Any:
+def predict_step(
+    mesh: Mesh | None, graphdef: nnx.GraphDef, treedef: Any, config: Any, keep: bool = False
+) -> Any:
     """The jitted ``step(leaves, batch) -> dict`` (evaluation mode) of the model
     ``graphdef`` with the loss ``config``, its state given as the flat list of arrays ``leaves``
     (``leaves, treedef = jax.tree.flatten(state)``), compiled with the backend's options
@@ -70,10 +76,12 @@ def predict_step(mesh: Mesh | None, graphdef: nnx.GraphDef, treedef: Any, config
     The static parts are bound here, once per ``(mesh, graphdef, treedef, config)``, so a call
     neither hashes the graph definition nor walks the NNX state's Python tree. Δ is measured with
     ``batch.stereo_depth`` where the batch carries one
-    (``dpc_jax.nn.losses.with_stereo_depth``), else with the network's depth.
+    (``dpc_jax.nn.losses.with_stereo_depth``), else with the network's depth. ``keep``: the step returns
+    ``(dict, kept)``, ``kept`` the depth (and learned SSIM weight) Δ was measured with, left on the device
+    for :func:`kept_effects_step`.
     """
 
-    def step(leaves: list[jax.Array], batch: Batch) -> dict[str, jax.Array]:
+    def step(leaves: list[jax.Array], batch: Batch) -> Any:
         model = nnx.merge(graphdef, jax.tree.unflatten(treedef, leaves))
         model.eval()
         outputs = model(batch)
@@ -82,7 +90,12 @@ def predict_step(mesh: Mesh | None, graphdef: nnx.GraphDef, treedef: Any, config
         if batch.stereo_depth is not None:
             outputs, valid = with_stereo_depth(outputs, batch.stereo_depth)
         deltas = correction_deltas(outputs, batch, config, valid)
-        return {"xi_corr": outputs.xi_corr, "loss": loss, **deltas}
+        out = {"xi_corr": outputs.xi_corr, "loss": loss, **deltas}
+        if not keep:
+            return out
+        # What Δ of other corrections on this batch reads of the outputs (no explainability mask).
+        right = None if outputs.right is None else outputs.right.inv_depth
+        return out, (outputs.left.inv_depth, right, outputs.ssim_weight, valid)
 
     kwargs: dict[str, Any] = {"compiler_options": backend.compiler_options(config.method, training=False)}
     if mesh is not None:
@@ -118,11 +131,11 @@ class PreparedModel:
         self.leaves, self.treedef = jax.tree.flatten(self.state)
         self._steps: dict[tuple[str, Mesh | None, Any], Any] = {}
 
-    def predict_step(self, mesh: Mesh | None, config: Any) -> Any:
+    def predict_step(self, mesh: Mesh | None, config: Any, keep: bool = False) -> Any:
         """:func:`predict_step` of this model."""
-        key = ("predict", mesh, config)
+        key = ("predict_kept" if keep else "predict", mesh, config)
         if key not in self._steps:
-            self._steps[key] = predict_step(mesh, self.graphdef, self.treedef, config)
+            self._steps[key] = predict_step(mesh, self.graphdef, self.treedef, config, keep)
         return self._steps[key]
 
     def xi_step(self, method: str) -> Any:
@@ -152,6 +165,7 @@ def predict_sequence(
     use_flow: bool,
     stereo_depth: StereoDepth | None = None,
     mesh: Mesh | None = None,
+    candidates: Callable[[np.ndarray], np.ndarray] | None = None,
     progress: Progress = False,
 ) -> SequencePrediction:
     """Run ``model`` (``(graphdef, state)``, or a :class:`PreparedModel`) in evaluation mode over every
@@ -164,13 +178,24 @@ def predict_sequence(
     size must then divide over the devices). The batches, with their stereo depth, are assembled
     and moved to the device by the data threads; batch k+1 is dispatched before the results of
     batch k are fetched.
+
+    ``candidates``: ``f(ξ) → [C, N-1, 6]``, corrections made from the proposal ``ξ`` ``[N-1, 6]`` (e.g. it
+    without its centred moving mean) whose Δ are measured in the same pass, with the same depth
+    (:attr:`SequencePrediction.measured`): ``f`` is called as the proposal arrives, its rows not yet
+    predicted NaN, and a batch is measured once its rows of ``f`` are finite (its inputs and the
+    network's depth kept on the device until then), so neither the batches nor the network run again.
+    Not with ``mesh``.
     """
+    if candidates is not None and mesh is not None:
+        raise ValueError("predict_sequence measures candidates without a mesh only")
     cache = cache if isinstance(cache, SequenceCache) else load_cache(cache)
     prepared = model if isinstance(model, PreparedModel) else PreparedModel(*model)
     pairs = len(cache) - 1
     size = max(1, min(batch_size, pairs)) if mesh is None else batch_size
     leaves = prepared.leaves
-    step = prepared.predict_step(mesh, loss_config)
+    keep = candidates is not None
+    step = prepared.predict_step(mesh, loss_config, keep)
+    later = _Later(candidates, loss_config, pairs, size) if candidates is not None else None
     share = parallel.process_slice(size) if mesh is not None else slice(None)
 
     def place(tree: Any) -> Any:
@@ -186,7 +211,11 @@ def predict_sequence(
     totals = {"loss": 0.0, "samples": 0.0}
 
     def run(carry: None, item: tuple[Any, np.ndarray], index: int) -> tuple[None, Any]:
-        return carry, step(leaves, item[0])
+        out = step(leaves, item[0])
+        if later is not None:
+            out, kept = out
+            later.keep(index, item[0], kept, item[1])
+        return carry, out
 
     def consume(index: int, out: dict[str, np.ndarray], item: tuple[Any, np.ndarray]) -> int:
         real = item[1] > 0
@@ -194,6 +223,8 @@ def predict_sequence(
             results[k].append(np.asarray(out[k], np.float64)[real])
         totals["loss"] += float(out["loss"]) * float(real.sum())
         totals["samples"] += float(real.sum())
+        if later is not None:
+            later.predicted(out["xi_corr"][real], out["none"][real])
         return int(real.sum())
 
     # No ground truth in the batches (the self-supervised losses never read it): a sequence with it and
@@ -210,7 +241,75 @@ def predict_sequence(
         photometric=merged["none"],
         delta={k: merged[k] for k in DELTAS},
         loss=totals["loss"] / totals["samples"],
+        measured=None if later is None else later.finish(),
     )
+
+
+class _Later:
+    """The candidates' Δ of :func:`predict_sequence`: each batch kept on the device, with the depth its
+    prediction measured Δ with, until its rows of the candidates are known, then measured."""
+
+    def __init__(self, candidates: Callable[[np.ndarray], np.ndarray], config: Any, pairs: int,
+                 size: int) -> None:
+        self.candidates, self.pairs, self.size = candidates, pairs, size
+        self.step = kept_effects_step(config)
+        self.xi = np.full((pairs, 6), np.nan)
+        self.none = np.zeros(pairs, np.float32)
+        self.known = 0
+        self.waiting: deque[tuple[int, Any, Any, np.ndarray]] = deque()
+        self.dispatched: list[tuple[jax.Array, np.ndarray]] = []
+        self.used: np.ndarray | None = None
+
+    def keep(self, index: int, batch: Any, kept: Any, weight: np.ndarray) -> None:
+        self.waiting.append((index, batch, kept, weight))
+
+    def predicted(self, xi: np.ndarray, none: np.ndarray) -> None:
+        """The next rows' proposal and ``L(0)``: measure every kept batch whose candidates are known."""
+        rows = slice(self.known, self.known + len(xi))
+        self.xi[rows], self.none[rows] = xi, none
+        self.known += len(xi)
+        self._measure(final=self.known == self.pairs)
+
+    def _measure(self, final: bool) -> None:
+        made = np.asarray(self.candidates(self.xi), np.float64)
+        while self.waiting:
+            index, batch, kept, weight = self.waiting[0]
+            rows = np.minimum(np.arange(index * self.size, (index + 1) * self.size), self.pairs - 1)
+            if not np.isfinite(made[:, rows]).all():
+                if final:
+                    raise RuntimeError(f"candidates of pairs {rows[0]}..{rows[-1]} not finite with every "
+                                       "pair predicted")
+                break
+            self.waiting.popleft()
+            if self.used is None:
+                self.used = np.full(made.shape, np.nan, np.float32)
+            self.used[:, rows] = made[:, rows]
+            delta = self.step(kept, batch, jnp.asarray(made[:, rows], jnp.float32),
+                              jnp.asarray(self.none[rows]))
+            self.dispatched.append((delta, weight > 0))
+
+    def finish(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(candidates [C, N-1, 6] as measured (float32), Δ [C, N-1])``."""
+        if self.waiting or self.used is None:
+            raise RuntimeError(f"{len(self.waiting)} batches left unmeasured")
+        delta = np.concatenate([np.asarray(d, np.float64)[:, real] for d, real in self.dispatched], axis=1)
+        return self.used, delta
+
+
+@functools.cache
+def kept_effects_step(config: Any) -> Any:
+    """The jitted ``step(kept, batch, candidates, none) -> Δ [C, B]`` of :func:`predict_sequence`'s
+    candidates: :func:`dpc_jax.nn.losses.candidate_deltas` with the depth (and learned SSIM weight) a
+    prediction step with ``keep`` measured its own Δ with, no network."""
+
+    def step(kept: Any, batch: Batch, candidates: jax.Array, none: jax.Array) -> jax.Array:
+        left, right, ssim_weight, valid = kept
+        # The loss reads no explainability mask: the depth stands in for it.
+        outputs = DPCOutputs(candidates[0], BranchOutputs(left, left),
+                             None if right is None else BranchOutputs(right, right), ssim_weight)
+        return candidate_deltas(outputs, batch, config, candidates, valid, none)["delta"]
+
+    return jax.jit(step)
 
 
 @functools.cache

@@ -488,17 +488,32 @@ def test_the_measurement_without_the_network_is_the_prediction_with_stereo_depth
     prior and ξ. Measured with the network's depth it is the network-depth prediction's."""
     from dpc_jax.correction.inference import run_prediction
     from dpc_jax.correction.measure import judge_measurement, measurement
+    from dpc_jax.correction.parts import Part
     from dpc_jax.data.sequence_cache import load_cache
     from dpc_jax.engine.predict import measure_effects
 
     cache = load_cache(setup["cache"] / "05")
     rotation = np.array([0, 0, 0, 1, 1, 1.0])
+    # Remainders whose centred means reach past the batch of 2 pairs being predicted: measured in the
+    # prediction's own pass, each batch once the pairs its means need have arrived.
+    parts = [Part("full", True, window=4), Part("rotation", True, window=7)]
     for depth in ("network", "sgbm"):
-        prediction = run_prediction(run, cache, acceptance_depth=depth)
+        prediction = run_prediction(run, cache, acceptance_depth=depth, batch_size=2,
+                                    candidates=lambda xi: np.stack([p.of(xi) for p in parts]))
         candidates = {"full": prediction.xi_corr, "rotation": prediction.xi_corr * rotation}
-        measured = measurement(run, cache, depth=depth, batch_size=2)(candidates)
-        for name in candidates:
+        candidates |= {p.name: p.of(prediction.xi_corr) for p in parts}
+        measured = measurement(run, cache, depth=depth, batch_size=3)(candidates)
+        for name in ("full", "rotation"):
             np.testing.assert_allclose(measured[name], prediction.delta[name], rtol=1e-4, atol=1e-7)
+        assert prediction.measured is not None
+        used, delta = prediction.measured
+        expected = np.stack([p.of(prediction.xi_corr) for p in parts]).astype(np.float32)
+        np.testing.assert_array_equal(used, expected)
+        # Δ is a difference of two float32 losses summed over pixels in programs that differ: equal to
+        # 3e-7, far below how much removing the mean moves it.
+        for part, values in zip(parts, delta, strict=True):
+            np.testing.assert_allclose(values, measured[part.name], rtol=1e-4, atol=3e-7)
+            assert np.abs(measured[part.name] - measured[part.component]).max() > 1e-5
     # The last prediction is the StereoSGBM one: a judge of the very same frames measures its Δ.
     judged = judge_measurement(run, cache, cache, batch_size=2)(candidates)
     np.testing.assert_allclose(judged["rotation"], prediction.delta["rotation"], rtol=1e-4, atol=1e-7)
