@@ -16,17 +16,19 @@ the optimizer (the import contracts in ``pyproject.toml`` say so).
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import jax
 import numpy as np
 from flax import nnx
 
 from dpc_jax.data.sequence_cache import SequenceCache, load_cache
-from dpc_jax.engine.predict import SequencePrediction, predict_sequence, stereo_depth_of
+from dpc_jax.engine.predict import PreparedModel, SequencePrediction, predict_sequence, stereo_depth_of
 from dpc_jax.runtime.progress import Progress
 from dpc_jax.training.train_config import DEFAULT_SELECTION, SELECTIONS, TrainConfig
 
@@ -46,6 +48,16 @@ class TrainedRun:
     graphdef: nnx.GraphDef
     state: nnx.State
     improves_on_prior: bool = True
+
+    @functools.cached_property
+    def prepared(self) -> PreparedModel:
+        """The model prepared once for the backend, its compiled steps bound to it: every pass of this run
+        (prediction, measurement) shares it instead of preparing the model again."""
+        return PreparedModel(self.graphdef, self.state)
+
+    def __getstate__(self) -> dict[str, Any]:
+        # The prepared model holds compiled programs: a copy sent to another process prepares its own.
+        return {k: v for k, v in self.__dict__.items() if k != "prepared"}
 
     @property
     def image_size(self) -> tuple[int, int]:
@@ -129,7 +141,7 @@ def run_prediction(
             f"prepare the sequence with --size {rh}x{rw}"
         )
     return predict_sequence(
-        (run.graphdef, run.state), cache, run.config.loss_config(),
+        run.prepared, cache, run.config.loss_config(),
         batch_size=batch_size or run.config.batch_size, use_flow=run.config.use_flow,
         stereo_depth=stereo_depth_of(cache, acceptance_depth or run.config.acceptance_depth),
         candidates=candidates, progress=progress,

@@ -73,20 +73,15 @@ class PairMeasure:
                  judge_size: tuple[int, int] | None, judge_K: np.ndarray, disparity_offset: float) -> None:
         self.run, self.K, self.baseline, self.depth, self.flow = run, K, float(baseline), depth, flow
         self.judge_size, self.judge_K, self.disparity_offset = judge_size, judge_K, float(disparity_offset)
-        self._model: Any = None
         self._judged: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray | None]] = {}
 
     def __getstate__(self) -> dict[str, Any]:
-        return {**self.__dict__, "_model": None, "_judged": {}}
+        return {**self.__dict__, "_judged": {}}
 
     @property
     def model(self) -> Any:
         """The run prepared for the backend (``dpc_jax.engine.predict.PreparedModel``), once."""
-        if self._model is None:
-            from dpc_jax.engine.predict import PreparedModel
-
-            self._model = PreparedModel(self.run.graphdef, self.run.state)
-        return self._model
+        return self.run.prepared
 
     def batch(self, frames: tuple[Frame, Frame], prior: np.ndarray) -> Any:
         """The pair (with the prior's poses ``[2, 4, 4]``) as a batch on the device, with its optical flow

@@ -50,7 +50,7 @@ def measurement(
     The loss is the run's, with its learned SSIM weight if it learned one.
     """
     stereo = stereo_depth_of(cache, depth)
-    model = (run.graphdef, run.state) if _model_needed(run, stereo) else None
+    model = run.prepared if _model_needed(run, stereo) else None
     return _bound(cache, run.config.loss_config(), batch_size or run.config.batch_size, stereo, model,
                   run.use_flow, none, progress)
 
