@@ -140,7 +140,7 @@ def _predicted(run: TrainedRun, cache: SequenceCache, store: dict[bytes, np.ndar
     first = [Part(components[0], True, window=window)] if window is not None else []
     made = (lambda xi: np.stack([p.of(xi) for p in first])) if first else None
     prediction = run_prediction(run, cache, batch_size=batch_size, acceptance_depth=depth, candidates=made,
-                                progress=progress)
+                                training_loss=False, progress=progress)
     xi = prediction.xi_corr
     for component in components:
         if component in prediction.delta:

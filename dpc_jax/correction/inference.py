@@ -127,12 +127,14 @@ def run_prediction(
     batch_size: int | None = None,
     acceptance_depth: str | None = None,
     candidates: Callable[[np.ndarray], np.ndarray] | None = None,
+    training_loss: bool = True,
     progress: Progress = False,
 ) -> SequencePrediction:
     """:func:`dpc_jax.engine.predict.predict_sequence` with a restored run's model, loss and settings.
 
     ``acceptance_depth``: ``network`` or ``sgbm`` (default: the run's ``acceptance_depth``);
-    ``candidates``: corrections made from the proposal, measured in the same pass.
+    ``candidates``: corrections made from the proposal, measured in the same pass; ``training_loss``: False
+    spares the training loss (``loss`` NaN), which a correction never reads.
     """
     if cache.image_size != run.image_size:
         (h, w), (rh, rw) = cache.image_size, run.image_size
@@ -144,7 +146,7 @@ def run_prediction(
         run.prepared, cache, run.config.loss_config(),
         batch_size=batch_size or run.config.batch_size, use_flow=run.config.use_flow,
         stereo_depth=stereo_depth_of(cache, acceptance_depth or run.config.acceptance_depth),
-        candidates=candidates, progress=progress,
+        candidates=candidates, training_loss=training_loss, progress=progress,
     )
 
 

@@ -66,7 +66,8 @@ class SequencePrediction:
 
 @functools.cache
 def predict_step(
-    mesh: Mesh | None, graphdef: nnx.GraphDef, treedef: Any, config: Any, keep: bool = False
+    mesh: Mesh | None, graphdef: nnx.GraphDef, treedef: Any, config: Any, keep: bool = False,
+    loss: bool = True,
 ) -> Any:
     """The jitted ``step(leaves, batch) -> dict`` (evaluation mode) of the model
     ``graphdef`` with the loss ``config``, its state given as the flat list of arrays ``leaves``
@@ -78,19 +79,20 @@ def predict_step(
     ``batch.stereo_depth`` where the batch carries one
     (``dpc_jax.nn.losses.with_stereo_depth``), else with the network's depth. ``keep``: the step returns
     ``(dict, kept)``, ``kept`` the depth (and learned SSIM weight) Δ was measured with, left on the device
-    for :func:`kept_effects_step`.
+    for :func:`kept_effects_step`. ``loss``: False leaves the training loss out (NaN in its place).
     """
 
     def step(leaves: list[jax.Array], batch: Batch) -> Any:
         model = nnx.merge(graphdef, jax.tree.unflatten(treedef, leaves))
         model.eval()
         outputs = model(batch)
-        loss, _ = dpc_loss(outputs, batch, config)
+        # The training loss (validation reads it; a correction does not): NaN where not asked for.
+        value = dpc_loss(outputs, batch, config)[0] if loss else jnp.full((), jnp.nan)
         valid = None
         if batch.stereo_depth is not None:
             outputs, valid = with_stereo_depth(outputs, batch.stereo_depth)
         deltas = correction_deltas(outputs, batch, config, valid)
-        out = {"xi_corr": outputs.xi_corr, "loss": loss, **deltas}
+        out = {"xi_corr": outputs.xi_corr, "loss": value, **deltas}
         if not keep:
             return out
         # What Δ of other corrections on this batch reads of the outputs (no explainability mask).
@@ -131,11 +133,11 @@ class PreparedModel:
         self.leaves, self.treedef = jax.tree.flatten(self.state)
         self._steps: dict[tuple[str, Mesh | None, Any], Any] = {}
 
-    def predict_step(self, mesh: Mesh | None, config: Any, keep: bool = False) -> Any:
+    def predict_step(self, mesh: Mesh | None, config: Any, keep: bool = False, loss: bool = True) -> Any:
         """:func:`predict_step` of this model."""
-        key = ("predict_kept" if keep else "predict", mesh, config)
+        key = (f"predict{keep:d}{loss:d}", mesh, config)
         if key not in self._steps:
-            self._steps[key] = predict_step(mesh, self.graphdef, self.treedef, config, keep)
+            self._steps[key] = predict_step(mesh, self.graphdef, self.treedef, config, keep, loss)
         return self._steps[key]
 
     def xi_step(self, method: str) -> Any:
@@ -166,6 +168,7 @@ def predict_sequence(
     stereo_depth: StereoDepth | None = None,
     mesh: Mesh | None = None,
     candidates: Callable[[np.ndarray], np.ndarray] | None = None,
+    training_loss: bool = True,
     progress: Progress = False,
 ) -> SequencePrediction:
     """Run ``model`` (``(graphdef, state)``, or a :class:`PreparedModel`) in evaluation mode over every
@@ -184,7 +187,7 @@ def predict_sequence(
     (:attr:`SequencePrediction.measured`): ``f`` is called as the proposal arrives, its rows not yet
     predicted NaN, and a batch is measured once its rows of ``f`` are finite (its inputs and the
     network's depth kept on the device until then), so neither the batches nor the network run again.
-    Not with ``mesh``.
+    Not with ``mesh``. ``training_loss``: False spares the training loss (``loss`` is then NaN).
     """
     if candidates is not None and mesh is not None:
         raise ValueError("predict_sequence measures candidates without a mesh only")
@@ -194,7 +197,7 @@ def predict_sequence(
     size = max(1, min(batch_size, pairs)) if mesh is None else batch_size
     leaves = prepared.leaves
     keep = candidates is not None
-    step = prepared.predict_step(mesh, loss_config, keep)
+    step = prepared.predict_step(mesh, loss_config, keep, training_loss)
     later = _Later(candidates, loss_config, pairs, size) if candidates is not None else None
     share = parallel.process_slice(size) if mesh is not None else slice(None)
 
