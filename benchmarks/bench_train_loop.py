@@ -19,8 +19,11 @@ Correction: frames/s of ``dpc_jax.correction.corrector.correct_cache`` over a wh
 cache, the prediction, Δ — for Stereo DPC with the StereoSGBM depth prepared with the cache, as ``dpc-jax
 prepare`` writes it — the acceptance test, the trajectories and their evaluation) against frames/s
 of the isolated inference step over the sequence's batches, all on the device before the clock
-starts, alternating likewise. And batches/s of the input pipeline alone (the training loader with
-its transfer to the device, nothing consuming): what it could feed a faster device.
+starts, alternating likewise: the prediction step as the correction runs it (the network, ``L(0)``
+and Δ of its correction and of its rotation; not the training loss, which only validation reads),
+frames counted as the sequence's pairs in both. And batches/s of the input pipeline alone (the
+training loader with its transfer to the device, nothing consuming): what it could feed a faster
+device.
 
 Without ``--cache`` the script writes a synthetic cache (random frames and flow with the layout of
 a prepared one) in a temporary folder, sized for ``--steps`` steps per epoch, with a sequence of
@@ -194,7 +197,8 @@ def bench_method(
     size = min(args.batch, pairs)
     prepared_graphdef, prepared_state = prepare_for_backend(run_graphdef, run_state)
     prepared_leaves, treedef = jax.tree.flatten(prepared_state)
-    predict = predict_step(None, prepared_graphdef, treedef, config.loss_config())
+    # The prediction as the correction runs it: the network and Δ of its correction, no training loss.
+    predict = predict_step(None, prepared_graphdef, treedef, config.loss_config(), loss=False)
     # The same inputs the correction's step gets: the cache's stereo depth where its test uses it.
     stereo = stereo_depth_of(cache, default_acceptance_depth(run))
     # The sequence's batches, on the device before the clock starts.
