@@ -133,14 +133,15 @@ def correct_cache(
 def _predicted(run: TrainedRun, cache: SequenceCache, store: dict[bytes, np.ndarray],
                components: tuple[str, ...], batch_size: int | None, depth: str, window: int | None,
                progress: Progress) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
-    """The run's proposal on ``cache`` → ``(ξ, L(0), Δ of DELTAS)``, and into ``store`` the Δ its pass
-    measured of what the decision needs first: the first component whole and, with a mean test
+    """The run's proposal on ``cache`` → ``(ξ, L(0), {first component: Δ})``, and into ``store`` the Δ
+    its pass measured of what the decision needs first: the first component whole and, with a mean test
     (``window``), its remainder, measured as the proposal arrives so that no second pass assembles the
-    batches again (or, with the network's depth, runs the network again)."""
+    batches again (or, with the network's depth, runs the network again). Nothing else is measured
+    there: a part the decision reaches later is measured then."""
     first = [Part(components[0], True, window=window)] if window is not None else []
     made = (lambda xi: np.stack([p.of(xi) for p in first])) if first else None
     prediction = run_prediction(run, cache, batch_size=batch_size, acceptance_depth=depth, candidates=made,
-                                training_loss=False, progress=progress)
+                                training_loss=False, deltas=components[:1], progress=progress)
     xi = prediction.xi_corr
     for component in components:
         if component in prediction.delta:

@@ -28,7 +28,13 @@ import numpy as np
 from flax import nnx
 
 from dpc_jax.data.sequence_cache import SequenceCache, load_cache
-from dpc_jax.engine.predict import PreparedModel, SequencePrediction, predict_sequence, stereo_depth_of
+from dpc_jax.engine.predict import (
+    DELTAS,
+    PreparedModel,
+    SequencePrediction,
+    predict_sequence,
+    stereo_depth_of,
+)
 from dpc_jax.runtime.progress import Progress
 from dpc_jax.training.train_config import DEFAULT_SELECTION, SELECTIONS, TrainConfig
 
@@ -128,13 +134,15 @@ def run_prediction(
     acceptance_depth: str | None = None,
     candidates: Callable[[np.ndarray], np.ndarray] | None = None,
     training_loss: bool = True,
+    deltas: tuple[str, ...] = DELTAS,
     progress: Progress = False,
 ) -> SequencePrediction:
     """:func:`dpc_jax.engine.predict.predict_sequence` with a restored run's model, loss and settings.
 
     ``acceptance_depth``: ``network`` or ``sgbm`` (default: the run's ``acceptance_depth``);
     ``candidates``: corrections made from the proposal, measured in the same pass; ``training_loss``: False
-    spares the training loss (``loss`` NaN), which a correction never reads.
+    spares the training loss (``loss`` NaN), which a correction never reads; ``deltas``: which of
+    ``DELTAS`` Δ is measured of.
     """
     if cache.image_size != run.image_size:
         (h, w), (rh, rw) = cache.image_size, run.image_size
@@ -146,7 +154,7 @@ def run_prediction(
         run.prepared, cache, run.config.loss_config(),
         batch_size=batch_size or run.config.batch_size, use_flow=run.config.use_flow,
         stereo_depth=stereo_depth_of(cache, acceptance_depth or run.config.acceptance_depth),
-        candidates=candidates, training_loss=training_loss, progress=progress,
+        candidates=candidates, training_loss=training_loss, deltas=deltas, progress=progress,
     )
 
 

@@ -67,7 +67,7 @@ class SequencePrediction:
 @functools.cache
 def predict_step(
     mesh: Mesh | None, graphdef: nnx.GraphDef, treedef: Any, config: Any, keep: bool = False,
-    loss: bool = True,
+    loss: bool = True, deltas: tuple[str, ...] = DELTAS,
 ) -> Any:
     """The jitted ``step(leaves, batch) -> dict`` (evaluation mode) of the model
     ``graphdef`` with the loss ``config``, its state given as the flat list of arrays ``leaves``
@@ -79,7 +79,8 @@ def predict_step(
     ``batch.stereo_depth`` where the batch carries one
     (``dpc_jax.nn.losses.with_stereo_depth``), else with the network's depth. ``keep``: the step returns
     ``(dict, kept)``, ``kept`` the depth (and learned SSIM weight) Δ was measured with, left on the device
-    for :func:`kept_effects_step`. ``loss``: False leaves the training loss out (NaN in its place).
+    for :func:`kept_effects_step`. ``loss``: False leaves the training loss out (NaN in its place);
+    ``deltas``: which of :data:`DELTAS` Δ is measured of.
     """
 
     def step(leaves: list[jax.Array], batch: Batch) -> Any:
@@ -91,8 +92,8 @@ def predict_step(
         valid = None
         if batch.stereo_depth is not None:
             outputs, valid = with_stereo_depth(outputs, batch.stereo_depth)
-        deltas = correction_deltas(outputs, batch, config, valid)
-        out = {"xi_corr": outputs.xi_corr, "loss": value, **deltas}
+        measured = correction_deltas(outputs, batch, config, valid, deltas)
+        out = {"xi_corr": outputs.xi_corr, "loss": value, **measured}
         if not keep:
             return out
         # What Δ of other corrections on this batch reads of the outputs (no explainability mask).
@@ -133,11 +134,12 @@ class PreparedModel:
         self.leaves, self.treedef = jax.tree.flatten(self.state)
         self._steps: dict[tuple[str, Mesh | None, Any], Any] = {}
 
-    def predict_step(self, mesh: Mesh | None, config: Any, keep: bool = False, loss: bool = True) -> Any:
+    def predict_step(self, mesh: Mesh | None, config: Any, keep: bool = False, loss: bool = True,
+                     deltas: tuple[str, ...] = DELTAS) -> Any:
         """:func:`predict_step` of this model."""
-        key = (f"predict{keep:d}{loss:d}", mesh, config)
+        key = (f"predict{keep:d}{loss:d}{','.join(deltas)}", mesh, config)
         if key not in self._steps:
-            self._steps[key] = predict_step(mesh, self.graphdef, self.treedef, config, keep, loss)
+            self._steps[key] = predict_step(mesh, self.graphdef, self.treedef, config, keep, loss, deltas)
         return self._steps[key]
 
     def xi_step(self, method: str) -> Any:
@@ -169,6 +171,7 @@ def predict_sequence(
     mesh: Mesh | None = None,
     candidates: Callable[[np.ndarray], np.ndarray] | None = None,
     training_loss: bool = True,
+    deltas: tuple[str, ...] = DELTAS,
     progress: Progress = False,
 ) -> SequencePrediction:
     """Run ``model`` (``(graphdef, state)``, or a :class:`PreparedModel`) in evaluation mode over every
@@ -187,7 +190,8 @@ def predict_sequence(
     (:attr:`SequencePrediction.measured`): ``f`` is called as the proposal arrives, its rows not yet
     predicted NaN, and a batch is measured once its rows of ``f`` are finite (its inputs and the
     network's depth kept on the device until then), so neither the batches nor the network run again.
-    Not with ``mesh``. ``training_loss``: False spares the training loss (``loss`` is then NaN).
+    Not with ``mesh``. ``training_loss``: False spares the training loss (``loss`` is then NaN);
+    ``deltas``: which of :data:`DELTAS` the prediction measures Δ of (``delta`` holds those).
     """
     if candidates is not None and mesh is not None:
         raise ValueError("predict_sequence measures candidates without a mesh only")
@@ -197,7 +201,10 @@ def predict_sequence(
     size = max(1, min(batch_size, pairs)) if mesh is None else batch_size
     leaves = prepared.leaves
     keep = candidates is not None
-    step = prepared.predict_step(mesh, loss_config, keep, training_loss)
+    unknown = [d for d in deltas if d not in DELTAS]
+    if unknown or not deltas:
+        raise ValueError(f"deltas must be a non-empty part of {DELTAS}, got {deltas}")
+    step = prepared.predict_step(mesh, loss_config, keep, training_loss, tuple(deltas))
     later = _Later(candidates, loss_config, pairs, size) if candidates is not None else None
     share = parallel.process_slice(size) if mesh is not None else slice(None)
 
@@ -209,7 +216,7 @@ def predict_sequence(
     def put(batch: Batch) -> tuple[Any, np.ndarray]:
         return place(batch), np.asarray(batch.weight)
 
-    keys = ("xi_corr", "none", *DELTAS)
+    keys = ("xi_corr", "none", *deltas)
     results: dict[str, list[np.ndarray]] = {k: [] for k in keys}
     totals = {"loss": 0.0, "samples": 0.0}
 
@@ -242,7 +249,7 @@ def predict_sequence(
     return SequencePrediction(
         xi_corr=merged["xi_corr"],
         photometric=merged["none"],
-        delta={k: merged[k] for k in DELTAS},
+        delta={k: merged[k] for k in deltas},
         loss=totals["loss"] / totals["samples"],
         measured=None if later is None else later.finish(),
     )

@@ -322,6 +322,7 @@ def correction_deltas(
     batch: Batch,
     config: SSDPCLossConfig | StereoDPCLossConfig,
     depth_valid: tuple[Array | None, Array | None] | None = None,
+    names: tuple[str, ...] = ("full", "rotation"),
 ) -> dict[str, Array]:
     """Paired effect of the network's correction per sample: ``Δ = L(ξ_corr) − L(0)`` → ``{name: [B]}``.
 
@@ -330,11 +331,12 @@ def correction_deltas(
     ``rotation_only``), ``rotation`` only its rotation part ``[0, φ]``; ``none`` is ``L(0)`` itself
     (the prior). Δ < 0: the corrected pose explains the images better than the prior. What the
     validation of an epoch reads; any other correction is measured by :func:`candidate_deltas`.
+    ``names``: which of ``full`` and ``rotation`` are measured.
     """
     xi = jnp.asarray(outputs.xi_corr)
-    rotation = jnp.concatenate([jnp.zeros_like(xi[:, :3]), xi[:, 3:]], axis=-1)
-    deltas = candidate_deltas(outputs, batch, config, jnp.stack([xi, rotation]), depth_valid)
-    return {"none": deltas["none"], "full": deltas["delta"][0], "rotation": deltas["delta"][1]}
+    made = {"full": xi, "rotation": jnp.concatenate([jnp.zeros_like(xi[:, :3]), xi[:, 3:]], axis=-1)}
+    deltas = candidate_deltas(outputs, batch, config, jnp.stack([made[n] for n in names]), depth_valid)
+    return {"none": deltas["none"], **{n: deltas["delta"][i] for i, n in enumerate(names)}}
 
 
 def candidate_deltas(

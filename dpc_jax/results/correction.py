@@ -33,8 +33,9 @@ class Correction:
     applied (only their rotation for a rotation-only run); ``corrected``: the final trajectory, with
     what ``acceptance`` applied (the prior re-composed when nothing); ``evaluation``: ``prior``,
     ``network`` (the proposal) and ``corrected`` against the ground truth, or None without ground
-    truth; ``delta``: Δ ``[N-1]`` of the proposal (``full``) and of its rotation (``rotation``) on
-    every pair; ``tested``: the pairs the acceptance test used (None: all); ``adaptation``: what
+    truth; ``delta``: Δ ``[N-1]`` on every pair of the proposal's first component (``full``, or
+    ``rotation`` for a rotation-only correction) as its prediction measured it; ``tested``: the pairs
+    the acceptance test used (None: all); ``adaptation``: what
     ``dpc_jax.correction.adapt`` did first (steps, seconds, held-out pairs), if anything;
     ``choice``: how ``dpc_jax.correction.corrector.choose`` picked it among candidates (``final``,
     ``reason`` and, when two corrections were compared, the ``comparison``'s test).
