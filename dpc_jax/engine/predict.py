@@ -319,7 +319,8 @@ def kept_effects_step(config: Any) -> Any:
                              None if right is None else BranchOutputs(right, right), ssim_weight)
         return candidate_deltas(outputs, batch, config, candidates, valid, none)["delta"]
 
-    return jax.jit(step)
+    # The prediction step's options: its reconstructions are the same computation.
+    return jax.jit(step, compiler_options=backend.compiler_options(config.method, training=False) or None)
 
 
 @functools.cache
