@@ -9,7 +9,10 @@ Pipeline (docs/method.md §1, §7, §8):
    (``dpc_jax.correction.measure``, at the network's size and, with a judge, at a larger one): the
    full correction, its rotation, the rotation about some axes, each whole or without its mean over
    the sequence, or nothing — then the corrected trajectory *is* the prior (re-composed from its
-   relative poses). ``force=True`` applies the network's correction whatever the tests say.
+   relative poses). ``force=True`` applies the network's correction whatever the tests say. The
+   prediction's pass measures the first component whole and without its centred mean as the proposal
+   arrives (each batch kept on the device until the mean of its pairs is known): a decision made there
+   needs no second pass; a part it reaches later is measured then.
 3. ``T*_{k+1,k} = Exp(ξ_k) · T_vo_{k+1,k}`` with the applied part ξ_k is composed from the first
    ground-truth pose when the cache has ground truth, else from the first prior pose
    (``dpc_jax.geometry.pose_correction.corrected_trajectory``, float64); the prior, the network's proposal and

@@ -193,6 +193,11 @@ class LiveCorrector:
         # measurement runs on a thread, or skipping on a CPU in a child process at the lowest priority
         # (live_measure).
         self._pool = ThreadPoolExecutor(3, thread_name_prefix="live") if self.behind else None
+        # Measured in a child process, the pair's StereoSGBM is matched there too, off the pose's path (the
+        # network does not read it); the pairs the child skips are never matched.
+        import jax
+
+        self._apart = self.skip and self.behind and jax.default_backend() == "cpu"
         self._child: ChildMeasure | None = None
         self._pending: Future[Measured] | None = None
         self.skipped = 0
@@ -222,17 +227,16 @@ class LiveCorrector:
         only), so that no frame compiles anything (the composition's compilation alone took 0.4 s);
         not ``ahead``, the prediction and the composition only. A child process of the measurement
         compiles the first pairs' programs before the first frame and any other between frames."""
-        import jax
 
         h, w = self.size
         blank = np.zeros((h, w, 3), np.uint8)
         _, _, disparity = prepared_pair(blank, blank, self.size, self.K, self.calibration.baseline,
-                                        match=self.depth == "sgbm")
+                                        match=self.depth == "sgbm" and not self._apart)
         full = (np.zeros((*self.calibration.image_size, 3), np.uint8),) * 2 if self.judge_size else None
         frame = Frame(0, blank, blank, disparity, full)
         self._predict((frame, frame), np.stack([np.eye(4)] * 2), {})
         self._compose(_Previous(frame, np.eye(4), np.eye(4), np.eye(4)), np.eye(4), np.zeros(6))
-        if self.skip and self.behind and jax.default_backend() == "cpu":
+        if self._apart:
             # The first pairs' programs before the first frame; any other when a pair first needs it.
             first = sum(size == NETWORK for size, _ in self.decision.needs())
             self._child = ChildMeasure(self._measure, frame, [min(n for n in PADDED if n >= first)]
@@ -251,7 +255,7 @@ class LiveCorrector:
         as a batch on the device, assembled once for the network and the measurement → ``(ξ, batch)``;
         ``seconds`` gets the batch's time (with its optical flow, added to ``prepare``) and ``network``."""
         began = time.perf_counter()
-        batch = self._measure.batch(frames, prior)
+        batch = self._measure.batch(frames, prior, depth=not self._apart)
         assembled = time.perf_counter()
         seconds["prepare"] = seconds.get("prepare", 0.0) + assembled - began
         model = self._measure.model
@@ -372,7 +376,8 @@ class LiveCorrector:
         def prepare() -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
             t = time.perf_counter()
             prepared = prepared_pair(left, right, self.size, self.K, self.calibration.baseline,
-                                     self.disparity_offset, match=self.depth == "sgbm", pool=self._pool)
+                                     self.disparity_offset, match=self.depth == "sgbm" and not self._apart,
+                                     pool=self._pool)
             seconds["prepare"] = time.perf_counter() - t
             return prepared
 

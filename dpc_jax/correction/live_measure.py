@@ -11,6 +11,7 @@ is enough (and a second process would claim the device's memory again).
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import pickle
 import signal
@@ -29,6 +30,7 @@ from dpc_jax.correction.inference import TrainedRun
 from dpc_jax.correction.measure import pair_deltas
 from dpc_jax.correction.parts import Part
 from dpc_jax.data.preparation import pair_cache, prepared_pair
+from dpc_jax.data.stereo_depth import sgbm_disparity, sgbm_fits
 
 # The child's priority: the lowest, so that the pose's work always comes first.
 CHILD_NICE = 19
@@ -74,23 +76,37 @@ class PairMeasure:
         self.run, self.K, self.baseline, self.depth, self.flow = run, K, float(baseline), depth, flow
         self.judge_size, self.judge_K, self.disparity_offset = judge_size, judge_K, float(disparity_offset)
         self._judged: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray | None]] = {}
+        self._matched: dict[int, np.ndarray | None] = {}
 
     def __getstate__(self) -> dict[str, Any]:
-        return {**self.__dict__, "_judged": {}}
+        return {**self.__dict__, "_judged": {}, "_matched": {}}
 
     @property
     def model(self) -> Any:
         """The run prepared for the backend (``dpc_jax.engine.predict.PreparedModel``), once."""
         return self.run.prepared
 
-    def batch(self, frames: tuple[Frame, Frame], prior: np.ndarray) -> Any:
+    def batch(self, frames: tuple[Frame, Frame], prior: np.ndarray, depth: bool = True) -> Any:
         """The pair (with the prior's poses ``[2, 4, 4]``) as a batch on the device, with its optical flow
-        for a network that reads it and the acceptance depth."""
+        for a network that reads it and (``depth``) the acceptance depth: StereoSGBM's of a frame prepared
+        without it is matched here, as ``prepare`` matches it (each frame once: the last two kept)."""
         from dpc_jax.engine.predict import pair_batch, stereo_depth_of
 
-        window = pair_cache(tuple((f.left, f.right, f.disparity) for f in frames), self.K, self.baseline,
-                            prior, flow=self.flow)
-        return pair_batch(window, self.flow, stereo_depth_of(window, self.depth))
+        if depth and self.depth == "sgbm":
+            frames = (self._with_disparity(frames[0]), self._with_disparity(frames[1]))
+        window = pair_cache(tuple((f.left, f.right, f.disparity if depth else None) for f in frames), self.K,
+                            self.baseline, prior, flow=self.flow)
+        return pair_batch(window, self.flow, stereo_depth_of(window, self.depth) if depth else None)
+
+    def _with_disparity(self, frame: Frame) -> Frame:
+        if frame.disparity is not None:
+            return frame
+        if frame.index not in self._matched:
+            fu, width = float(self.K[0, 0]), frame.left.shape[1]
+            self._matched = {k: v for k, v in self._matched.items() if k == frame.index - 1}
+            self._matched[frame.index] = (sgbm_disparity(frame.left, frame.right, fu, self.baseline)
+                                          if sgbm_fits(width, fu, self.baseline) else None)
+        return dataclasses.replace(frame, disparity=self._matched[frame.index])
 
     def deltas(self, frames: tuple[Frame, Frame], prior: np.ndarray, needs: Sequence[tuple[str, Part]],
                vectors: np.ndarray, batch: Any = None) -> Measured:
@@ -138,6 +154,9 @@ class PairMeasure:
             if judge and self.judge_size is not None:
                 needs += [(JUDGE, Part("full"))] * count
             self.deltas((frame, frame), prior, needs, np.zeros((len(needs), 6)))
+        # The blank frame's index is a real frame's too: nothing of it is kept for that frame.
+        self._judged.clear()
+        self._matched.clear()
         self._judged = {}
 
 
