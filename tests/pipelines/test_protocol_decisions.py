@@ -62,7 +62,7 @@ def planted(tmp_path_factory: pytest.TempPathFactory):
     xi, steps, weights = _planted(FRAMES - 1)
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(corrector, "run_prediction", lambda *a, **k: types.SimpleNamespace(
-            xi_corr=xi, photometric=None, delta={}))
+            xi_corr=xi, photometric=None, delta={}, measured=None))
         patch.setattr(corrector, "measurement", lambda *a, **k: _stand_in(steps, weights))
         patch.setattr(corrector, "judge_measurement", lambda *a, **k: _stand_in(xi[:, 3:], weights))
         yield {"tmp": tmp, "cache": tmp / "cache" / "05", "run": tmp / "run"}
