@@ -146,14 +146,14 @@ def _predicted(run: TrainedRun, cache: SequenceCache, store: dict[bytes, np.ndar
     prediction = run_prediction(run, cache, batch_size=batch_size, acceptance_depth=depth, candidates=made,
                                 training_loss=False, deltas=components[:1], progress=progress)
     xi = prediction.xi_corr
-    for component in components:
-        if component in prediction.delta:
-            remember(store, Part(component).of(xi), prediction.delta[component])
+    for component, measured_whole in prediction.delta.items():
+        remember(store, Part(component).of(xi), measured_whole)
     if prediction.measured is not None:
         used, measured = prediction.measured
         for part, values, delta in zip(first, used, measured, strict=True):
-            if np.array_equal(values, part.of(xi).astype(np.float32)):  # what the decision will ask for
-                remember(store, part.of(xi), delta)
+            asked = part.of(xi)  # what the decision will ask for
+            if np.array_equal(values, asked.astype(np.float32)):
+                remember(store, asked, delta)
     return xi, prediction.photometric, dict(prediction.delta)
 
 

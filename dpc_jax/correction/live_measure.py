@@ -29,8 +29,7 @@ from dpc_jax.correction.decision import JUDGE, NETWORK
 from dpc_jax.correction.inference import TrainedRun
 from dpc_jax.correction.measure import pair_deltas
 from dpc_jax.correction.parts import Part
-from dpc_jax.data.preparation import pair_cache, prepared_pair
-from dpc_jax.data.stereo_depth import sgbm_disparity, sgbm_fits
+from dpc_jax.data.preparation import matched_pair, pair_cache, prepared_pair
 
 # The child's priority: the lowest, so that the pose's work always comes first.
 CHILD_NICE = 19
@@ -102,10 +101,8 @@ class PairMeasure:
         if frame.disparity is not None:
             return frame
         if frame.index not in self._matched:
-            fu, width = float(self.K[0, 0]), frame.left.shape[1]
             self._matched = {k: v for k, v in self._matched.items() if k == frame.index - 1}
-            self._matched[frame.index] = (sgbm_disparity(frame.left, frame.right, fu, self.baseline)
-                                          if sgbm_fits(width, fu, self.baseline) else None)
+            self._matched[frame.index] = matched_pair(frame.left, frame.right, self.K, self.baseline)
         return dataclasses.replace(frame, disparity=self._matched[frame.index])
 
     def deltas(self, frames: tuple[Frame, Frame], prior: np.ndarray, needs: Sequence[tuple[str, Part]],
@@ -155,9 +152,7 @@ class PairMeasure:
                 needs += [(JUDGE, Part("full"))] * count
             self.deltas((frame, frame), prior, needs, np.zeros((len(needs), 6)))
         # The blank frame's index is a real frame's too: nothing of it is kept for that frame.
-        self._judged.clear()
-        self._matched.clear()
-        self._judged = {}
+        self._judged, self._matched = {}, {}
 
 
 # The child's measurement, set by _start.

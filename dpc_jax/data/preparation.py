@@ -76,11 +76,18 @@ def prepared_pair(
     (``dpc_jax.data.stereo_depth.sgbm_disparity``)."""
     small_left = resized_image(left, size)
     small_right = resized_image(right, size, float(disparity_offset))
-    fu = float(K[0, 0])
-    disparity = None
-    if match and sgbm_fits(size[1], fu, baseline):
-        disparity = sgbm_disparity(small_left, small_right, fu, baseline, pool=pool)
+    disparity = matched_pair(small_left, small_right, K, baseline, pool) if match else None
     return small_left, small_right, disparity
+
+
+def matched_pair(left: np.ndarray, right: np.ndarray, K: np.ndarray, baseline: float,
+                 pool: Executor | None = None) -> np.ndarray | None:
+    """StereoSGBM's disparity of both cameras of a pair prepared at the size of ``K`` (int16 ``[2, H, W]``,
+    ``dpc_jax.data.stereo_depth.sgbm_disparity``), None when the images are too narrow to match."""
+    fu = float(K[0, 0])
+    if not sgbm_fits(left.shape[1], fu, baseline):
+        return None
+    return sgbm_disparity(left, right, fu, baseline, pool=pool)
 
 
 def pair_cache(frames: tuple[tuple[np.ndarray, np.ndarray, np.ndarray | None], ...], K: np.ndarray,

@@ -132,12 +132,12 @@ class PreparedModel:
     def __init__(self, graphdef: nnx.GraphDef, state: nnx.State) -> None:
         self.graphdef, self.state = backend.prepare_for_backend(graphdef, state)
         self.leaves, self.treedef = jax.tree.flatten(self.state)
-        self._steps: dict[tuple[str, Mesh | None, Any], Any] = {}
+        self._steps: dict[tuple[Any, ...], Any] = {}
 
     def predict_step(self, mesh: Mesh | None, config: Any, keep: bool = False, loss: bool = True,
                      deltas: tuple[str, ...] = DELTAS) -> Any:
         """:func:`predict_step` of this model."""
-        key = (f"predict{keep:d}{loss:d}{','.join(deltas)}", mesh, config)
+        key = ("predict", mesh, config, keep, loss, deltas)
         if key not in self._steps:
             self._steps[key] = predict_step(mesh, self.graphdef, self.treedef, config, keep, loss, deltas)
         return self._steps[key]
