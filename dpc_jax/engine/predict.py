@@ -33,6 +33,7 @@ from dpc_jax.data.pipeline import iterate_sequence
 from dpc_jax.data.sequence_cache import SequenceCache, StereoDepth, load_cache
 from dpc_jax.engine import backend, parallel
 from dpc_jax.engine.driver import drive
+from dpc_jax.geometry.pose_correction import check_finite
 from dpc_jax.nn.batch import Batch
 from dpc_jax.nn.losses import candidate_deltas, correction_deltas, dpc_loss, with_stereo_depth
 from dpc_jax.nn.outputs import BranchOutputs, DPCOutputs
@@ -275,6 +276,8 @@ class _Later:
 
     def predicted(self, xi: np.ndarray, none: np.ndarray) -> None:
         """The next rows' proposal and ``L(0)``: measure every kept batch whose candidates are known."""
+        # A proposal that is not finite never makes finite candidates: said here, as the pairs arrive.
+        check_finite(xi, "the network's proposal", first=self.known)
         rows = slice(self.known, self.known + len(xi))
         self.xi[rows], self.none[rows] = xi, none
         self.known += len(xi)

@@ -61,13 +61,19 @@ def corrected_trajectory(
     # Projected (see above): the rigid inverse of relative_poses and compose is exact for rotations only.
     prior = validate_poses(prior, "prior")
     first_pose = validate_poses(np.asarray(first_pose, np.float64)[None], "first_pose")[0]
-    bad = np.flatnonzero(~np.isfinite(xi_corr).all(axis=1))
-    if bad.size:
-        raise ValueError(f"xi_corr: the correction of pair {int(bad[0])} is not finite (NaN or inf); "
-                         f"{bad.size} of {xi_corr.shape[0]} pairs are")
+    check_finite(xi_corr)
     with jax.enable_x64(True):
         corrected = np.asarray(_applied(xi_corr, relative_poses(prior), rotation_only), np.float64)
     return compose(corrected, first_pose)
+
+
+def check_finite(xi_corr: np.ndarray, what: str = "xi_corr", first: int = 0) -> None:
+    """Raise ``ValueError`` naming the first pair whose correction (``xi_corr [M, 6]``, pairs ``first`` …
+    ``first + M − 1``) is not finite (NaN or inf): composed, it would turn every later pose into NaN."""
+    bad = np.flatnonzero(~np.isfinite(np.asarray(xi_corr)).all(axis=1))
+    if bad.size:
+        raise ValueError(f"{what}: the correction of pair {first + int(bad[0])} is not finite (NaN or inf); "
+                         f"{bad.size} of {len(xi_corr)} pairs are")
 
 
 # Compiled once per shape (and per float precision): a corrector of one pair at a time calls it per frame.

@@ -295,6 +295,19 @@ def test_an_untrained_network_leaves_the_prior_unchanged(setup: dict) -> None:
         np.testing.assert_allclose(corrected, cache.prior, atol=1e-12)
 
 
+def test_a_proposal_that_is_not_finite_is_named_not_measured(setup: dict, run) -> None:
+    """A network whose weights went NaN proposes NaN: ``correct`` says so by the first pair (a ValueError,
+    the command line's one-line error), instead of failing later on candidates that never become finite."""
+    import jax
+
+    from dpc_jax.correction.corrector import correct_cache
+    from dpc_jax.data.sequence_cache import load_cache
+
+    broken = dataclasses.replace(run, state=jax.tree.map(lambda x: x * np.nan, run.state))
+    with pytest.raises(ValueError, match=r"^the network's proposal: the correction of pair 0 is not finite"):
+        correct_cache(broken, load_cache(setup["cache"] / "05"))
+
+
 def test_cli_keeps_the_prior_when_no_epoch_beats_it_and_applies_with_force(
     setup: dict, tmp_path: Path, capsys
 ) -> None:
