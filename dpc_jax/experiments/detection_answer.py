@@ -12,14 +12,28 @@ from typing import Any
 
 import numpy as np
 
+from dpc_jax.correction.decision import DEFAULT_MEAN_TEST
+
 # A removal this large counts as found (the issue's bar).
 FOUND = 0.5
 # Deliver 3: a final trajectory may not raise the rotational segment error by more than this.
 TOLERANCE_PCT = 2.0
+# The removal (axis) that the default decision (``DEFAULT_MEAN_TEST``, with the judge where the cell was
+# decided by every option) made; a cell decided before the options existed has only the study's final.
+DEFAULT_REMOVAL = "found_axis_default"
+
+
+def _value(test: dict[str, Any], field: str) -> float | None:
+    if field == DEFAULT_REMOVAL:
+        default = test.get("options", {}).get(DEFAULT_MEAN_TEST)
+        return test["found_axis_final"] if default is None else default["found_axis"]
+    return test[field]
 
 
 def cell_mean(cell: dict[str, Any], field: str) -> float:
-    values = [t[field] for t in cell["tests"] if t[field] is not None and math.isfinite(t[field])]
+    """The mean of a test record's ``field`` over the cell's test sequences (NaN: none finite);
+    :data:`DEFAULT_REMOVAL` reads the default decision's removal."""
+    values = [v for v in (_value(t, field) for t in cell["tests"]) if v is not None and math.isfinite(v)]
     return float(np.mean(values)) if values else math.nan
 
 
@@ -31,7 +45,7 @@ def own_world(cells: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def smallest_found(cells: Sequence[dict[str, Any]],
-                   field: str = "found_axis_final") -> dict[tuple, float | None]:
+                   field: str = DEFAULT_REMOVAL) -> dict[tuple, float | None]:
     """Per (size, pairs): the smallest bias scale removed by at least :data:`FOUND` (None: none)."""
     out: dict[tuple, float | None] = {}
     for cell in cells:
@@ -44,7 +58,7 @@ def smallest_found(cells: Sequence[dict[str, Any]],
 
 
 def half_scale(cells: Sequence[dict[str, Any]], size: tuple[int, int], pairs: int,
-               field: str = "found_axis_final") -> tuple[float, str] | None:
+               field: str = DEFAULT_REMOVAL) -> tuple[float, str] | None:
     """The bias scale s50 at which the removal crosses :data:`FOUND`, interpolated in log s between the
     grid's scales, as ``(s50, "=")``; ``(smallest scale, "≤")`` when the smallest scale is already
     removed by that much; None when no scale of the grid is."""
@@ -66,7 +80,7 @@ def extrapolate(cells: Sequence[dict[str, Any]], size: tuple[int, int]) -> dict[
     pairs = sorted({c["pairs"] for c in cells if tuple(c["size"]) == size})
     found = [n for n in pairs for c in cells
              if tuple(c["size"]) == size and c["pairs"] == n and c["scale"] <= 1.0
-             and cell_mean(c, "found_axis_final") >= FOUND]
+             and cell_mean(c, DEFAULT_REMOVAL) >= FOUND]
     crossings = {n: half_scale(cells, size, n) for n in pairs}
     points = [(n, h[0]) for n, h in crossings.items() if h is not None and h[1] == "="]
     fit: dict[str, Any] = {"found_at": min(found) if found else None, "points": points, "slope": None,

@@ -71,6 +71,22 @@ def test_a_bias_found_at_x1_needs_no_extrapolation() -> None:
     assert answer.smallest_found(cells) == {(size, 1000): 3.0, (size, 4000): 1.0}
 
 
+def test_the_answer_reads_the_default_decisions_removal_where_every_option_decided() -> None:
+    """A cell decided by the options answers with the default option's removal (the judge's decision), not
+    the study's final at the network's size; a cell decided before the options, with its final."""
+    from dpc_jax.correction.decision import DEFAULT_MEAN_TEST
+
+    size = (64, 96)
+    decided = _cell(size, 1.0, 1000, 0.1)
+    decided["tests"][0]["options"] = {DEFAULT_MEAN_TEST: {"found_axis": 0.7},
+                                      "another": {"found_axis": 0.0}}
+    cells = [decided, _cell(size, 3.0, 1000, 0.9), _cell(size, 1.0, 4000, 0.2)]
+    assert answer.cell_mean(decided, "found_axis_final") == pytest.approx(0.1)
+    assert answer.cell_mean(decided, answer.DEFAULT_REMOVAL) == pytest.approx(0.7)
+    assert answer.smallest_found(cells) == {(size, 1000): 1.0, (size, 4000): None}
+    assert answer.extrapolate(cells, size)["found_at"] == 1000
+
+
 def test_no_trend_is_claimed_without_two_crossings() -> None:
     cells = [_cell((64, 96), s, n, 0.1) for s in (1.0, 10.0) for n in (1000, 4000)]
     fit = answer.extrapolate(cells, (64, 96))
