@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 
 from dpc_jax.cli._common import image_size, input_problem
 from dpc_jax.correction.acceptance import DEFAULT_ALPHA
+from dpc_jax.correction.decision import DEFAULT_MEAN_TEST, MEAN_TESTS
 from dpc_jax.correction.judge import JUDGE_SIZE, Judge, JudgeRequest, judge_policy
 from dpc_jax.correction.stream import MIN_RATE_HZ, OWN_TIMES
 from dpc_jax.training.train_config import SELECTIONS
@@ -38,6 +39,9 @@ def add_correction_arguments(parser: argparse.ArgumentParser, *, requires: str |
                         "chance that a correction that does not help is ever accepted, however long the run")
     parser.add_argument("--no-mean-test", action="store_true",
                         help=f"{but}do not test the correction's running mean apart (whole parts only)")
+    parser.add_argument("--decision", choices=tuple(MEAN_TESTS),
+                        help=f"{but}where and how the correction's mean is tested, as `correct --decision` "
+                        f"(docs/method.md §8; default: {DEFAULT_MEAN_TEST})")
     judge = parser.add_mutually_exclusive_group()
     judge.add_argument("--judge-size", type=image_size, metavar="HxW",
                        help=f"{but}a part of the correction is applied only once its sequential test passes "
@@ -62,6 +66,7 @@ def correction_problem(args: argparse.Namespace, run_option: str, run: Path | No
     given = [name for name, value in (("--select", args.select), ("--rotation-only", args.rotation_only),
                                       ("--force", args.force or None), ("--alpha", args.alpha),
                                       ("--no-mean-test", args.no_mean_test or None),
+                                      ("--decision", args.decision),
                                       ("--judge-size", args.judge_size),
                                       ("--no-judge", args.no_judge or None),
                                       ("--realtime", args.realtime)) if value is not None]
@@ -127,6 +132,7 @@ def corrector(args: argparse.Namespace, run: Path, calibration: Calibration, jud
     # measurement program is compiled when a pair first needs it.
     paced = args.realtime is not None
     return LiveCorrector(run, calibration, rotation_only=args.rotation_only, mean_test=not args.no_mean_test,
+                         mean=MEAN_TESTS[args.decision or DEFAULT_MEAN_TEST],
                          force=args.force, disparity_offset=disparity_offset, judge_size=judge.size,
                          behind=paced, skip=paced, ahead=paced, **given)
 

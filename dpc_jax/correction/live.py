@@ -50,7 +50,7 @@ import numpy as np
 
 from dpc_jax.correction.acceptance import DEFAULT_ALPHA
 from dpc_jax.correction.corrector import default_acceptance_depth
-from dpc_jax.correction.decision import COMPONENTS, NETWORK, Decision
+from dpc_jax.correction.decision import COMPONENTS, DEFAULT_MEAN_TEST, MEAN_TESTS, NETWORK, Decision, MeanTest
 from dpc_jax.correction.inference import TrainedRun, load_run
 from dpc_jax.correction.judge import judge_rule, judge_size_problem
 from dpc_jax.correction.live_measure import ChildMeasure, Frame, Measured, PairMeasure
@@ -119,7 +119,8 @@ class LiveCorrector:
     ``run``: a trained run (:class:`~dpc_jax.correction.inference.TrainedRun`, or its folder with
     ``select`` the epoch criterion); ``calibration``: the camera's; ``rotation_only``: None = the
     run's; ``alpha``: the level of the sequential tests; ``mean_test``: test the correction's mean
-    apart (False: whole parts only); ``force``: apply the correction to every pair whatever the
+    apart (False: whole parts only); ``mean``: where and how (``MEAN_TESTS``, as ``correct --decision``);
+    ``force``: apply the correction to every pair whatever the
     tests say; ``first_pose``: ``[4, 4]`` the pose of frame 0 (default: the prior's first pose, or
     the identity for our VO); ``disparity_offset``: px, the rig's calibration residual the images
     are rectified by (``dpc_jax.data.cache.prepare_sequence``); ``vo``: the configuration of our VO
@@ -147,6 +148,7 @@ class LiveCorrector:
         rotation_only: bool | None = None,
         alpha: float = DEFAULT_ALPHA,
         mean_test: bool = True,
+        mean: MeanTest = MEAN_TESTS[DEFAULT_MEAN_TEST],
         force: bool = False,
         first_pose: np.ndarray | None = None,
         disparity_offset: float = 0.0,
@@ -177,8 +179,8 @@ class LiveCorrector:
         self.judge_size = None if judge_size is None or self.force else self._checked_judge(judge_size)
         # The one decision of ``correct``, sequential, with the mean of the pairs seen.
         self.decision = Decision(components=self.components, alpha=self.alpha,
-                                 judge=self.judge_size is not None, mean_test=self.mean_test, trailing=True,
-                                 force=self.force, sequential=True)
+                                 judge=self.judge_size is not None, mean_test=self.mean_test, mean=mean,
+                                 trailing=True, force=self.force, sequential=True)
         self._vo_config = vo
         self._vo: Any = None
         self._previous: _Previous | None = None

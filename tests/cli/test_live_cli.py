@@ -438,8 +438,9 @@ def test_vo_correct_refuses_a_larger_run_and_options_without_it(
               "--out", str(tmp_path / "x.txt")]
     assert main([*common, "--correct", str(world["big_run"])]) == 2
     assert "takes 64x96 images, larger than the 48x72 images of 00" in _one_line(capsys.readouterr().err)
-    assert main([*common, "--force", "--realtime", "10"]) == 2
-    assert "--force, --realtime: only used with --correct RUN" in _one_line(capsys.readouterr().err)
+    assert main([*common, "--force", "--decision", "mean-at-judge", "--realtime", "10"]) == 2
+    err = _one_line(capsys.readouterr().err)
+    assert "--force, --decision, --realtime: only used with --correct RUN" in err
     assert main([*common, "--prior-out", str(tmp_path / "p.txt")]) == 2
     assert "--prior-out" in _one_line(capsys.readouterr().err)
     assert os.listdir(tmp_path) == []

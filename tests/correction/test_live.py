@@ -8,6 +8,7 @@ import gc
 import math
 import sys
 import types
+from typing import Any
 
 import numpy as np
 import pytest
@@ -273,6 +274,7 @@ def test_the_judge_measures_what_corrects_judge_does_and_gates_what_is_applied(w
     measured on the pair at the judge's size, the same Δ as ``correct``'s judge on the same frames
     prepared there; it is applied only once the judge's own tests have accepted: never while the judge
     says it hurts, from the judge's acceptance on while it says it helps."""
+    from dpc_jax.correction.decision import MEAN_TESTS
     from dpc_jax.correction.inference import load_run
     from dpc_jax.correction.live import Calibration, LiveCorrector
     from dpc_jax.correction.measure import judge_measurement
@@ -325,18 +327,26 @@ def test_the_judge_measures_what_corrects_judge_does_and_gates_what_is_applied(w
     step = np.eye(4)
     step[2, 3] = 1.0
 
-    def parts(sign: float) -> list[str]:
-        gated = favoured(LiveCorrector(run, calibration, judge_size=(48, 72), ahead=False))
+    def played(sign: float, frames: int = 80, **options: Any) -> tuple[LiveCorrector, list[str]]:
+        gated = favoured(LiveCorrector(run, calibration, judge_size=(48, 72), ahead=False, **options))
         gated._measure._at_judge = lambda *a: sign * 1e-3 * np.where(  # type: ignore[method-assign]
             np.arange(len(a[2])) == 1, 0.5, 1.0)  # its remainder helps half as much: the mean helps too
         pose, out = np.eye(4), []
-        for k in range(80):
+        for k in range(frames):
             out.append(gated(*frames_list[k % FRAMES], pose))
             pose = pose @ step
-        return [f.part for f in out[1:]]
+        return gated, [f.part for f in out[1:]]
+
+    def parts(sign: float) -> list[str]:
+        return played(sign)[1]
 
     assert set(parts(+1.0)) == {"none"}  # the judge says it hurts on every pair: never applied
     helped = parts(-1.0)
     first = next(k for k, p in enumerate(helped) if p != "none")
     assert helped[first].startswith("rotation") and set(helped[:first]) == {"none"}
     assert set(helped[first:]) <= {"rotation", "rotation ×0.25", "rotation ×0.5", "rotation ×0.75"}
+    # The live corrector takes correct's --decision: with mean-at-judge the whole rotation's mean is tested
+    # at the judge's size only (docs/method.md §8), with mean-at-network at both.
+    for name, at_network in (("mean-at-network", True), ("mean-at-judge", False)):
+        tests = played(-1.0, 30, mean=MEAN_TESTS[name])[0].decision.tests
+        assert "mean of rotation (judge)" in tests and ("mean of rotation" in tests) is at_network, name
