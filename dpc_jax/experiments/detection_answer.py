@@ -99,7 +99,8 @@ def cell_order(c: dict[str, Any]) -> tuple:
 
 def percent(value: float) -> str:
     """A removal (a fraction) as a whole percentage, n/a where there is none."""
-    return "n/a" if not math.isfinite(value) else f"{100 * value:.0f} %"
+    # + 0.0: a removal that rounds to zero from below is written 0 %, not -0 %.
+    return "n/a" if not math.isfinite(value) else f"{round(100 * value) + 0.0:.0f} %"
 
 
 def p_text(value: float | None) -> str:

@@ -85,6 +85,7 @@ def test_the_answer_reads_the_default_decisions_removal_where_every_option_decid
     assert answer.cell_mean(decided, answer.DEFAULT_REMOVAL) == pytest.approx(0.7)
     assert answer.smallest_found(cells) == {(size, 1000): 1.0, (size, 4000): None}
     assert answer.extrapolate(cells, size)["found_at"] == 1000
+    assert [answer.percent(v) for v in (-0.001, -0.006, 0.41)] == ["0 %", "-1 %", "41 %"]  # no "-0 %"
 
 
 def test_no_trend_is_claimed_without_two_crossings() -> None:
