@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from dpc_jax.correction.decision import DEFAULT_MEAN_TEST, MEAN_TESTS
+from dpc_jax.correction.decision import MEAN_TESTS
 from dpc_jax.experiments.detection_answer import TOLERANCE_PCT, cell_order, change_text, p_text, percent
 from dpc_jax.report.tables import table
 
@@ -22,6 +22,8 @@ OPTION_COLUMNS = tuple(f"{option}:{field}" for option in MEAN_TESTS for field in
 CHOOSING_WORLDS, CHECKING_WORLD = (0, 1, 2), 3
 RULE_CELLS = {"size": (64, 96), "scale": 1.0, "pairs": 1000}
 TIE_POINTS = 1.0
+# Option (a), today's decision when the rule was stated: what stays unless another option wins.
+BASELINE = "mean-at-network"
 
 
 def _worst(records: Sequence[dict[str, Any]], field: str) -> float:
@@ -75,8 +77,9 @@ def apply_rule(cells: Sequence[dict[str, Any]], options: Sequence[str],
     """The rule of ``docs/method.md`` §8 on ``cells``: per option its worst final change (rotational
     segment error, rotational m-ATE) over the choosing worlds, whether that is within
     :data:`TOLERANCE_PCT`, the median removal of its :data:`RULE_CELLS`, the worst change on the checking
-    world; and the verdict: the chosen option, or why none is chosen yet (``expected``: per world the keys
-    of its grid's cells, every one of which the choosing worlds need decided by every option)."""
+    world; and the verdict: the option chosen and whether its check on world 3 holds, or why none is
+    chosen yet (``expected``: per world the keys of its grid's cells, every one of which must be decided
+    by every option of ``options``)."""
     choosing = [c for c in cells if c.get("world_seed", 0) in CHOOSING_WORLDS]
     checking = [c for c in cells if c.get("world_seed", 0) == CHECKING_WORLD]
     rows, measured = [], {}
@@ -90,36 +93,54 @@ def apply_rule(cells: Sequence[dict[str, Any]], options: Sequence[str],
         median = float(np.median(removal)) if removal else math.nan
         checked = [d for _, d in decided_by(checking, option)]
         check = max(_worst(checked, "r_change_pct"), _worst(checked, "mate_r_change_pct"))
-        measured[option] = (worst, median)
+        measured[option] = (worst, median, check)
         rows.append([option, str(len(decided)), change_text(worst), "yes" if worst <= TOLERANCE_PCT else "no",
                      f"{percent(median)} (of {len(removal)})", change_text(check)])
-    have = {(c.get("world_seed", 0), c["key"]) for c in choosing
-            if all(o in t.get("options", {}) for t in c["tests"] for o in options)}
-    missing = [(w, k) for w in CHOOSING_WORLDS for k in sorted(expected.get(w, ())) if (w, k) not in have]
+    missing = _undecided(cells, options, expected, CHOOSING_WORLDS)
     if missing:
         total = sum(len(expected.get(w, ())) for w in CHOOSING_WORLDS)
         return rows, (f"The rule is not applied: {total - len(missing)} of the {total} cells of worlds "
                       f"{', '.join(map(str, CHOOSING_WORLDS))} are decided by every option (missing: "
                       + ", ".join(f"world {w} {k}" for w, k in missing[:8])
-                      + (", …" if len(missing) > 8 else "") + "); the default stays "
-                      f"{DEFAULT_MEAN_TEST}.")
+                      + (", …" if len(missing) > 8 else "") + f"); {BASELINE} stays the default.")
     safe = {o: v for o, v in measured.items() if v[0] <= TOLERANCE_PCT and math.isfinite(v[1])}
     if not safe:
-        return rows, f"No option is safe on worlds 0–2; the default stays {DEFAULT_MEAN_TEST}."
+        return rows, f"No option is safe on worlds 0–2; {BASELINE} stays the default."
     best = max(v[1] for v in safe.values())
+    if BASELINE in safe and 100 * (best - safe[BASELINE][1]) <= TIE_POINTS:
+        return rows, (f"No safe option removes more than {TIE_POINTS:g} point more than {BASELINE} (median "
+                      f"{percent(safe[BASELINE][1])}, the largest {percent(best)}): it stays the default.")
     tied = [o for o, v in safe.items() if 100 * (best - v[1]) <= TIE_POINTS]
     chosen = min(tied, key=lambda o: safe[o][0])
-    if DEFAULT_MEAN_TEST in safe and 100 * (safe[chosen][1] - safe[DEFAULT_MEAN_TEST][1]) <= TIE_POINTS:
-        chosen = DEFAULT_MEAN_TEST
-    return rows, (f"Chosen by the rule on worlds 0–2: {chosen} (median removal {percent(safe[chosen][1])}); "
-                  f"its check on world {CHECKING_WORLD} is in the table above.")
+    said = f"Chosen on worlds 0–2: {chosen} (median removal {percent(safe[chosen][1])})"
+    unchecked = _undecided(cells, [chosen], expected, (CHECKING_WORLD,))
+    if unchecked:
+        return rows, (f"{said}; its check on world {CHECKING_WORLD} waits for {len(unchecked)} of its "
+                      f"{len(expected.get(CHECKING_WORLD, ()))} cells: {BASELINE} stays the default until "
+                      "then.")
+    check = safe[chosen][2]
+    if not check <= TOLERANCE_PCT:
+        return rows, (f"{said}, but on world {CHECKING_WORLD} its final is {change_text(check)} above the "
+                      f"prior's (the bar: +{TOLERANCE_PCT:g} %): not adopted, {BASELINE} stays the default.")
+    return rows, (f"{said}; on world {CHECKING_WORLD} at most {change_text(check)} above the prior "
+                  f"(within +{TOLERANCE_PCT:g} %): adopted if the real drives and the excerpt hold too (the "
+                  "rule's check on their pages).")
+
+
+def _undecided(cells: Sequence[dict[str, Any]], options: Sequence[str], expected: dict[int, set[str]],
+               worlds: Sequence[int]) -> list[tuple[int, str]]:
+    """``(world, key)`` of the cells of ``expected``'s grids of ``worlds`` not decided by every option."""
+    have = {(c.get("world_seed", 0), c["key"]) for c in cells
+            if all(o in t.get("options", {}) for t in c["tests"] for o in options)}
+    return [(w, k) for w in worlds for k in sorted(expected.get(w, ())) if (w, k) not in have]
 
 
 def options_section(cells: Sequence[dict[str, Any]], expected: dict[int, set[str]]) -> list[str]:
     """The options of where the mean is tested side by side, and the rule's verdict (none decided: [])."""
-    options = [o for o in MEAN_TESTS if decided_by(cells, o)]
-    if not options:
+    if not any(decided_by(cells, o) for o in MEAN_TESTS):
         return []
+    # Every option, so that one decided nowhere holds the rule back instead of dropping out of it.
+    options = list(MEAN_TESTS)
     rows, verdict = apply_rule(cells, options, expected)
     judges = ", ".join(sorted({"×".join(map(str, c["correction"]["judge"])) for c in cells
                                if (c.get("correction") or {}).get("judge")})) or "–"

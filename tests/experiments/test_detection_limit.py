@@ -150,16 +150,27 @@ def _decided(cell, **options):
 
 def test_the_rule_picks_the_safe_option_that_removes_most() -> None:
     """docs/method.md §8: an unsafe option is out however much it removes; of two within a point of
-    each other the one with the smaller worst change; world 3 only checks; incomplete data choose
-    nothing."""
+    each other the one with the smaller worst change; world 3 only checks, and a failed check keeps
+    today's decision; incomplete data choose nothing."""
     size = (64, 96)
     options = {"mean-at-network": (0.30, 0.5), "mean-at-judge": (0.600, 1.0),
                "mean-at-judge-a05": (0.80, 3.0), "mean-noninferior": (0.605, 0.2)}
     cells = [_decided(_cell(size, 1.0, 1000, 0.3, world=w), **options) for w in (0, 1, 2)]
     checked = _decided(_cell(size, 1.0, 1000, 0.3, world=3), **{**options, "mean-noninferior": (0.6, 2.5)})
-    expected = {w: {cells[0]["key"]} for w in (0, 1, 2)}
+    expected = {w: {cells[0]["key"]} for w in (0, 1, 2, 3)}
     rows, verdict = rule.apply_rule([*cells, checked], list(options), expected)
-    assert verdict.startswith("Chosen by the rule on worlds 0–2: mean-noninferior (median removal 60 %)")
+    assert verdict.startswith("Chosen on worlds 0–2: mean-noninferior (median removal 60 %), but on world 3 "
+                              "its final is +2.50 % above") and "mean-at-network stays the default" in verdict
+    passed = _decided(_cell(size, 1.0, 1000, 0.3, world=3), **options)
+    verdict = rule.apply_rule([*cells, passed], list(options), expected)[1]
+    assert "mean-noninferior" in verdict and "on world 3 at most +0.20 % above the prior" in verdict
+    waiting = rule.apply_rule(cells, list(options), expected)[1]
+    assert "its check on world 3 waits for 1 of its 1 cells: mean-at-network stays" in waiting
+    # The best safe option is more than a point above today's: today's does not stay, even where the tied
+    # option with the smaller worst change is within a point of today's.
+    near = {"mean-at-network": (0.500, 0.5), "mean-at-judge": (0.515, 1.5), "mean-at-judge-a05": (0.508, 0.5)}
+    close_cells = [_decided(_cell(size, 1.0, 1000, 0.3, world=w), **near) for w in (0, 1, 2, 3)]
+    assert "Chosen on worlds 0–2: mean-at-judge-a05" in rule.apply_rule(close_cells, list(near), expected)[1]
     by_option = {row[0]: row for row in rows}
     assert by_option["mean-at-judge-a05"][3] == "no" and by_option["mean-at-judge"][3] == "yes"
     assert by_option["mean-noninferior"][2] == "+0.20 %" and by_option["mean-noninferior"][5] == "+2.50 %"
@@ -167,7 +178,8 @@ def test_the_rule_picks_the_safe_option_that_removes_most() -> None:
     # No option more than a point above today's: today's stays.
     close = {"mean-at-network": (0.60, 0.5), "mean-at-judge": (0.605, 0.1)}
     same = [_decided(_cell(size, 1.0, 1000, 0.3, world=w), **close) for w in (0, 1, 2)]
-    assert "mean-at-network" in rule.apply_rule(same, list(close), expected)[1]
+    assert "than mean-at-network (median 60 %, the largest 60 %): it stays the default" in (
+        rule.apply_rule(same, list(close), expected)[1])
     # A cell of a choosing world's grid not decided: the rule waits.
     wider = {**expected, 2: {cells[0]["key"], "64x96_s3_n100"}}
     rows, verdict = rule.apply_rule(cells, list(options), wider)
