@@ -1,10 +1,13 @@
 """A recording's stereo calibration: from the two cameras' ``CameraInfo`` (docs/formats.md, "Recordings") or
 from a KITTI ``calib.txt`` given for a recording without it.
 
-With all-zero ``D`` the images are taken as rectified and ``P`` used as it is (a note when ``R`` is not the
-identity); with distortion (``plumb_bob``, ``rational_polynomial``) every image is rectified with OpenCV
-from ``D``, ``K``, ``R`` and ``P``, as ROS's ``image_proc`` does. ``K`` and the baseline come from the two
-``P`` (:func:`~dpc_jax.data.kitti.rectified_pair`).
+Images on an ``image_rect…`` topic (``image_proc`` / ``stereo_image_proc``'s output) are rectified already:
+``P`` is used as it is, whatever ``D`` and ``R`` say, since the ``CameraInfo`` beside them is the raw
+camera's (ROS's convention: rectified images are described by ``P`` alone). Other images with all-zero ``D``
+are taken as rectified too (a note when ``R`` is not the identity); with distortion (``plumb_bob``,
+``rational_polynomial``) every image is rectified with OpenCV from ``D``, ``K``, ``R`` and ``P``, as
+``image_proc`` does (a note says so). ``K`` and the baseline come from the two ``P``
+(:func:`~dpc_jax.data.kitti.rectified_pair`).
 """
 
 from __future__ import annotations
@@ -19,6 +22,8 @@ from dpc_jax.data.kitti import read_calibration, rectified_pair, stereo_calibrat
 
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 DISTORTION_MODELS = ("plumb_bob", "rational_polynomial")
+# The numbers of distortion coefficients OpenCV's camera model takes.
+DISTORTION_SIZES = (4, 5, 8, 12, 14)
 
 
 def info_topic(image_topic: str, topics: dict[str, str]) -> str | None:
@@ -30,6 +35,14 @@ def info_topic(image_topic: str, topics: dict[str, str]) -> str | None:
         if topics.get(topic) == CAMERA_INFO:
             return topic
     return None
+
+
+def rectified_topic(image_topic: str) -> bool:
+    """Whether an image topic is ROS's rectified output (``…/image_rect``, ``…/image_rect_color``, also
+    under ``/compressed``)."""
+    parts = image_topic.rstrip("/").split("/")
+    name = parts[-2] if parts[-1] == "compressed" and len(parts) > 1 else parts[-1]
+    return name.startswith("image_rect")
 
 
 def _field(msg: Any, name: str) -> np.ndarray:
@@ -68,11 +81,21 @@ def calibration(
             raise ValueError(f"{where}: CameraInfo with K, R, P of {k.size}, {r.size}, {p.size} numbers; "
                             "expected 9, 9 and 12 finite numbers")
         P = p.reshape(3, 4)
-        if np.any(d != 0):
+        if rectified_topic(camera):
+            maps.append(None)
+            if np.any(d != 0) or not np.allclose(r.reshape(3, 3), np.eye(3)):
+                notes.append(f"{where}: {camera} is a rectified topic, so its images are used as they are "
+                             "with P (the CameraInfo's D and R, the raw camera's, are not applied again)")
+        elif np.any(d != 0):
             if msg.distortion_model not in DISTORTION_MODELS:
                 raise ValueError(f"{where}: distortion model {msg.distortion_model!r}; expected one of "
                                 f"{', '.join(DISTORTION_MODELS)} or rectified images (all-zero D)")
+            if d.size not in DISTORTION_SIZES:
+                raise ValueError(f"{where}: D holds {d.size} coefficients; expected "
+                                f"{', '.join(map(str, DISTORTION_SIZES))} (OpenCV's distortion models)")
             distorted = True
+            notes.append(f"{where}: {camera} is rectified here with D, K, R and P (a raw camera's images; "
+                         "an image_rect topic is used as it is)")
             maps.append(cv2.initUndistortRectifyMap(k.reshape(3, 3), d, r.reshape(3, 3), P[:, :3], (w, h),
                                                     cv2.CV_32FC1))
         else:

@@ -173,6 +173,38 @@ def test_distorted_cameras_are_rectified_as_opencv_undistorts(tmp_path: Path) ->
     assert np.abs(left[inside].astype(int) - reference[inside]).max() <= 1
 
 
+def test_an_image_rect_topic_is_not_rectified_again_and_a_bad_d_is_one_line(tmp_path: Path) -> None:
+    """``image_proc``'s ``image_rect`` beside the raw camera's CameraInfo (distortion, R): the images are used
+    as they are, with P, and a note says so; a raw camera's D of a length OpenCV has no model for is refused
+    in one line naming the topic."""
+    rng = np.random.default_rng(5)
+    image = cv2.GaussianBlur(rng.integers(0, 256, (40, 64, 3), dtype=np.uint8), (5, 5), 2)
+    K = np.array([[50.0, 0, 31.5], [0, 50.0, 19.5], [0, 0, 1]])
+    P = np.array([[45.0, 0, 32.0, 0], [0, 45.0, 20.0, 0], [0, 0, 1, 0]])
+    Pr = P.copy()
+    Pr[0, 3] = -45.0 * 0.3
+    R = cv2.Rodrigues(np.array([0.0, 0.01, 0.0]))[0]
+
+    def write(name: str, D: np.ndarray, image_name: str) -> Path:
+        bag = Bag(tmp_path / name, "mcap")
+        for stamp in stamps_of([0.0, 0.1]):
+            for side, matrix in (("left", P), ("right", Pr)):
+                bag.write(f"/{side}/camera_info", stamp, bag.camera_info(stamp, "cam", (40, 64), matrix, D=D,
+                                                                         K=K, R=R))
+                bag.write(f"/{side}/{image_name}", stamp, bag.image(stamp, "cam", image, "rgb8"))
+        return bag.close()
+
+    D = np.array([-0.2, 0.05, 0.001, -0.002, 0.0])
+    opened = open_bag(BagOptions(write("rect.mcap", D, "image_rect")))
+    left, _ = next(iter(opened.sequence.images.stream(opened.sequence.image_size))).decode()
+    np.testing.assert_array_equal(left, image)
+    np.testing.assert_array_equal(opened.sequence.K, P[:, :3])
+    assert any("/left/image_rect is a rectified topic" in note for note in opened.notes)
+    bad = write("bad_d.mcap", D[:3], "image_raw")
+    with pytest.raises(ValueError, match=r"bad_d\.mcap: /left/camera_info: D holds 3 coefficients; expected"):
+        open_bag(BagOptions(bad))
+
+
 def test_tf_static_moves_the_prior_onto_the_camera(kitti: dict, tmp_path: Path) -> None:
     """Odometry of base_link, with /tf_static holding base_link → cam_left: the prior is T_world_base ·
     T_base_cam; without the link, one line names both frames and --pose-frame."""
