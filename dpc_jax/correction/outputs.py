@@ -97,14 +97,20 @@ def _write_recording(
     its final path."""
     import numpy as np
 
+    from dpc_jax.geometry.poses import invert_poses
     from dpc_jax.sources.odometry_out import CORRECTED, PRIOR, write_odometry
 
     stamps = to.first_stamp + np.round(np.asarray(correction.times, np.float64) * 1e9).astype(np.int64)
-    trajectories = {CORRECTED: correction.corrected, PRIOR: correction.prior}
+    # Both topics are in the prior's world frame (its frame id): the corrected trajectory starts where the
+    # prior does, not at the ground truth's first pose that the text outputs and the evaluation start from.
+    corrected, prior = correction.corrected, correction.prior
+    on_prior = prior[0] @ invert_poses(corrected[:1])[0] @ corrected
+    trajectories = {CORRECTED: on_prior, PRIOR: prior}
     if kind == "rosbag2":
         # A ROS 2 bag is a folder the writer must create: written beside, then moved into the staging.
+        # Named as the output, since the bag's data file takes the folder's name.
         folder = outputs.folder(out)
-        staged = folder / ".rosbag2"
+        staged = folder / out.name
         write_odometry(staged, kind, stamps, *to.frame_ids, trajectories)
         for item in staged.iterdir():
             item.rename(folder / item.name)

@@ -50,7 +50,9 @@ class RecordingWriter:
                 remove_stale(self.path.parent, ".dpc-mcap-")
                 self._folder = self.path.parent / temp_name(".dpc-mcap-") / "bag"
                 self._folder.parent.mkdir()
-            self._writer = Writer(self._folder, version=9, storage_plugin=StoragePlugin.MCAP)
+            # Metadata version 8: version 9 writes the topics' QoS profiles as a YAML list, where the readers
+            # of older ROS 2 releases (Humble, Iron) expect the string that version 8 writes.
+            self._writer = Writer(self._folder, version=8, storage_plugin=StoragePlugin.MCAP)
 
     def __enter__(self) -> RecordingWriter:
         self._writer.open()

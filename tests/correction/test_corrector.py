@@ -583,6 +583,17 @@ def test_cli_judge_measures_the_test_on_another_cache_of_the_same_frames(setup: 
 
 
 
+def _pose_of(pose) -> np.ndarray:
+    """A geometry_msgs/Pose as a ``[4, 4]`` matrix (quaternion x, y, z, w)."""
+    from scipy.spatial.transform import Rotation
+
+    matrix = np.eye(4)
+    q, p = pose.orientation, pose.position
+    matrix[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+    matrix[:3, 3] = [p.x, p.y, p.z]
+    return matrix
+
+
 def test_cli_corrects_a_recording_as_its_kitti_layout(setup: dict, tmp_path: Path, capsys) -> None:
     """Sequence 05 as a recording written by rosbags (PNG-compressed images, CameraInfo, the prior as
     nav_msgs/Odometry): `correct --bag` writes the trajectory `correct --kitti-odometry` writes, byte for
@@ -618,21 +629,39 @@ def test_cli_corrects_a_recording_as_its_kitti_layout(setup: dict, tmp_path: Pat
             msg = reader.deserialize(raw, connection.msgtype)
             assert msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec == stamp
             assert (msg.header.frame_id, msg.child_frame_id) == ("odom", CAMERA_FRAME)
-            pose = np.eye(4)
-            q, p = msg.pose.pose.orientation, msg.pose.pose.position
-            pose[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
-            pose[:3, 3] = [p.x, p.y, p.z]
-            read[connection.topic].append((stamp, pose))
+            read[connection.topic].append((stamp, _pose_of(msg.pose.pose)))
     for topic, poses in expected.items():
         assert [s for s, _ in read[topic]] == stamps_of(times)
         np.testing.assert_allclose(np.stack([p for _, p in read[topic]]), poses, atol=1e-9)
     assert not np.allclose(expected["/dpc/odometry"], prior, atol=1e-6)  # --force: the network's correction
-    # A ROS 1 bag and a ROS 2 bag folder hold the same messages.
+    # A ROS 1 bag and a ROS 2 bag folder hold the same messages; the folder's data file is named as the
+    # folder (not hidden) and its metadata is version 8 (the QoS as a string, which older ROS 2 reads).
     for out, more in ((tmp_path / "c.bag", []), (tmp_path / "c_ros2", ["--format", "rosbag2"])):
         assert main([*common, "--bag", str(recording), "--prior-topic", "/vo", "--out", str(out), *more]) == 0
         with AnyReader([out]) as reader:
             stamps = [stamp for connection, stamp, _ in reader.messages()
                       if connection.topic == "/dpc/odometry"]
             assert stamps == stamps_of(times) and len(reader.connections) == 2
+    assert sorted(p.name for p in (tmp_path / "c_ros2").iterdir()) == ["c_ros2.mcap", "metadata.yaml"]
+    assert "  version: 8" in (tmp_path / "c_ros2" / "metadata.yaml").read_text()
     assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith("05")) == [
         "bag.txt", "c.bag", "c.mcap", "c_ros2", "files.txt"]  # nothing else left beside the outputs
+    # Ground truth elsewhere than the prior's first pose: the text output starts at it, the recording's
+    # corrected topic where the prior starts (both its topics are in the prior's frame), the same steps.
+    moved = np.eye(4)
+    moved[:3, :3], moved[:3, 3] = Rotation.from_rotvec([0.0, 0.3, 0.0]).as_matrix(), [5.0, 0.0, -2.0]
+    gt = moved @ read_trajectory(setup["kitti"] / "poses" / "05.txt", "kitti")
+    with_gt = write_recording(tmp_path / "05gt.mcap", setup["kitti"], "05", compressed=True,
+                              poses={"/vo": prior, "/gt": gt})
+    assert main([*common, "--bag", str(with_gt), "--prior-topic", "/vo", "--gt-topic", "/gt", "--out",
+                 str(tmp_path / "gt.txt")]) == 0
+    assert main([*common, "--bag", str(with_gt), "--prior-topic", "/vo", "--gt-topic", "/gt", "--out",
+                 str(tmp_path / "gt.mcap")]) == 0
+    text = read_trajectory(tmp_path / "gt.txt", "kitti")
+    np.testing.assert_allclose(text[0], gt[0], atol=1e-9)
+    with AnyReader([tmp_path / "gt.mcap"]) as reader:
+        written = np.stack([_pose_of(reader.deserialize(raw, c.msgtype).pose.pose) for c, _, raw
+                            in reader.messages() if c.topic == "/dpc/odometry"])
+    np.testing.assert_allclose(written[0], prior[0], atol=1e-9)
+    np.testing.assert_allclose(np.linalg.inv(written[:-1]) @ written[1:], np.linalg.inv(text[:-1]) @ text[1:],
+                               atol=1e-9)
