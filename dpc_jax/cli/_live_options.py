@@ -14,6 +14,7 @@ from dpc_jax.correction.acceptance import DEFAULT_ALPHA
 from dpc_jax.correction.decision import DEFAULT_MEAN_TEST, MEAN_TESTS
 from dpc_jax.correction.judge import JUDGE_SIZE, Judge, JudgeRequest, judge_policy
 from dpc_jax.correction.stream import MIN_RATE_HZ, OWN_TIMES
+from dpc_jax.sources.odometry_out import recording_kind
 from dpc_jax.training.train_config import SELECTIONS
 
 if TYPE_CHECKING:
@@ -135,6 +136,15 @@ def corrector(args: argparse.Namespace, run: Path, calibration: Calibration, jud
                          mean=MEAN_TESTS[args.decision or DEFAULT_MEAN_TEST],
                          force=args.force, disparity_offset=disparity_offset, judge_size=judge.size,
                          behind=paced, skip=paced, ahead=paced, **given)
+
+
+def text_output_problem(path: Path | None, option: str, command: str) -> str | None:
+    """Why ``path`` cannot take a pose text output: a name of a recording (``.mcap``, ``.bag``), which would
+    receive KITTI pose rows no player opens; else None."""
+    if path is None or recording_kind(path) is None:
+        return None
+    return (f"{option} {path}: {command} writes KITTI pose text, not a recording; name a .txt file (a "
+            "recording of corrected odometry is what `dpc-jax correct --out OUT.mcap` writes)")
 
 
 def beside_files(out: Path, csv: Path | None, csv_path: Path | None,

@@ -44,6 +44,7 @@ from dpc_jax.cli._live_options import (
     correction_problem,
     corrector,
     run_problem,
+    text_output_problem,
 )
 from dpc_jax.cli._source import add_source_arguments, open_recording, source_problem
 from dpc_jax.correction.stream import (
@@ -201,6 +202,7 @@ def _check(args: argparse.Namespace) -> str | None:
                    else None)
                or input_problem(args.calib, "--calib") or input_problem(records, "--records")
                or finite_problem(disparity_offset=args.disparity_offset)
+               or text_output_problem(args.out, "--out", "live")
                or output_problem(args.out, "--out") or output_problem(args.csv_path, "--csv")
                or output_problem(args.json_path, "--out (its .json summary)"))
     if problem is not None:

@@ -40,6 +40,7 @@ from dpc_jax.cli._live_options import (
     correction_problem,
     corrector,
     run_problem,
+    text_output_problem,
 )
 from dpc_jax.cli._source import add_source_arguments, open_recording, source_inputs, source_problem
 from dpc_jax.correction.judge import Judge
@@ -176,6 +177,8 @@ def run(args: argparse.Namespace) -> int:
                or correction_problem(args, "--correct", args.correct)
                or (f"--prior-out {args.prior_out}: only used with --correct RUN (the live correction), which "
                    "is not given" if args.prior_out is not None and args.correct is None else None)
+               or text_output_problem(args.out, "--out", "vo")
+               or text_output_problem(args.prior_out, "--prior-out", "vo")
                or output_problem(args.out, "--out") or output_problem(csv_path, "--csv")
                or output_problem(json_path, "--out") or output_problem(prior_out, "--prior-out")
                or finite_problem(disparity_offset=args.disparity_offset))

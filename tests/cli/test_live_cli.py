@@ -365,6 +365,8 @@ def _rescaled(fields: list[str]) -> list[str]:
 
 # case: (the options changed, None removing one; exit status; what the one line says)
 BAD = {
+    "a recording's name as --out": (
+        lambda w: {"--out": w["tmp"] / "live.bag"}, 2, ["--out", "live.bag: live writes KITTI pose text"]),
     "a record's image missing": (
         lambda w: {"--records": _records_with(w, "gone", 2, lambda f: [f[0], f[1], f[2] + ".gone", *f[3:]])},
         1, ["line 2: right image", ".gone: no such file"]),
@@ -443,6 +445,10 @@ def test_vo_correct_refuses_a_larger_run_and_options_without_it(
     assert "--force, --decision, --realtime: only used with --correct RUN" in err
     assert main([*common, "--prior-out", str(tmp_path / "p.txt")]) == 2
     assert "--prior-out" in _one_line(capsys.readouterr().err)
+    # A recording's name would receive KITTI rows no player opens: refused before anything runs.
+    recording = [*common[:-2], "--out", str(tmp_path / "live.mcap")]
+    assert main(recording) == 2
+    assert "live.mcap: vo writes KITTI pose text, not a recording" in _one_line(capsys.readouterr().err)
     assert os.listdir(tmp_path) == []
 
 
