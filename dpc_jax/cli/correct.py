@@ -277,5 +277,10 @@ def _print_summary(args: argparse.Namespace, run_: TrainedRun, done: CorrectedSe
         print(f"final: {correction.choice['final']} ({correction.choice['reason']})")
     if judge.note is not None:
         print(judge.note)
+    if args.data is not None and (recording_kind(args.out) or args.format == "rosbag2"):
+        # A cache keeps frame times, not the recording's stamps and frame ids.
+        print(f"note: {args.out} is stamped from 0 s at the cache's frame times, its odometry in frame "
+              "'world' of 'camera' (a cache keeps no recording's stamps or frame ids); correct from the "
+              "recording itself (--bag) to keep them")
     if args.report is not None:
         print(f"report: {args.report / 'report.md'}")

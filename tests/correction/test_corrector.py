@@ -186,6 +186,10 @@ def test_cli_writes_trajectory_that_reads_back_and_a_report(setup: dict, tmp_pat
     stamps, poses = read_tum(tum)
     np.testing.assert_allclose(poses, expected, atol=1e-9)
     np.testing.assert_allclose(stamps, np.arange(FRAMES) * 0.1, atol=1e-9)
+    # A recording written from a cache says that its stamps are the cache's frame times.
+    capsys.readouterr()
+    assert main([*argv[:5], "--out", str(tmp_path / "c.mcap"), "--no-progress", "--force"]) == 0
+    assert "c.mcap is stamped from 0 s at the cache's frame times" in capsys.readouterr().out
 
 
 def test_cli_prepares_raw_input_and_writes_kept_frames(setup: dict, tmp_path: Path, capsys) -> None:
