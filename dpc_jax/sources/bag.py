@@ -198,6 +198,15 @@ def _pose_topic(
         raise _Error(f"{where}: no pose within {tolerance_ns / 1e6:g} ms of frame {k} (stamp "
                      f"{stamps[k] / 1e9:.9f} s); the topic holds {pose_stamps.size} poses for {stamps.size} "
                      "frames, expected one per frame")
+    # Two frames taking one pose (a pose missing, a tolerance wider than half the frame interval) would
+    # give a zero step and then a double one.
+    shared = np.flatnonzero(np.diff(nearest) == 0)
+    if shared.size:
+        k = int(shared[0])
+        raise _Error(f"{where}: frames {k} and {k + 1} both take the pose stamped "
+                     f"{pose_stamps[nearest[k]] / 1e9:.9f} s (the nearest within {tolerance_ns / 1e6:g} ms); "
+                     "expected a pose per frame (is one missing, or --stamp-tolerance wider than half the "
+                     "frame interval?)")
     poses = np.stack([samples[order[i]].matrix @ link[k] for k, i in enumerate(nearest)])
     return validate_poses(poses, where), samples[0].parent
 

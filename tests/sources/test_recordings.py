@@ -485,5 +485,12 @@ def test_bad_recordings_get_one_line(kitti: dict, tmp_path: Path, capsys) -> Non
            "frame 4", "4 poses for 6 frames")
     _fails(capsys, ["prepare", "--bag", str(short), "--prior-topic", "/nowhere", "--out", str(cache)],
            "--prior-topic /nowhere: no such topic", "its pose topics: /odom")
+    # Frame 2's pose missing, and a tolerance that lets frame 2 take a neighbour's: refused, not reused.
+    gap = write_recording(tmp_path / "gap.bag", kitti["random"], kind="ros1",
+                          frames=lambda bag, k, s: bag.write("/odom", s, bag.odometry(
+                              s, "odom", CAMERA_FRAME, kitti["poses"][k])) if k != 2 else None)
+    _fails(capsys, ["prepare", "--bag", str(gap), "--prior-topic", "/odom", "--stamp-tolerance", "0.15",
+                    "--out", str(cache), "--size", "10x16", "--no-progress"], str(gap),
+           "--prior-topic /odom: frames 1 and 2 both take the pose stamped", "expected a pose per frame")
     assert not cache.exists()
 
