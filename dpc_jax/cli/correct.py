@@ -32,12 +32,11 @@ from dpc_jax.cli._source import add_source_arguments, open_recording
 from dpc_jax.correction.acceptance import DEFAULT_ALPHA
 from dpc_jax.correction.decision import DEFAULT_MEAN_TEST, MEAN_TESTS
 from dpc_jax.correction.judge import JUDGE_SIZE, Judge
-from dpc_jax.correction.outputs import CorrectionOutputs, adapted_path
+from dpc_jax.correction.outputs import CorrectionOutputs, adapted_path, output_recording
 from dpc_jax.data.holdout import DEFAULT_EVERY, MIN_EVERY, holdout_problem
 from dpc_jax.data.poses_io import FORMATS, WRITE_FORMATS
 from dpc_jax.report.correction_report import applied_words
 from dpc_jax.runtime.progress import progress_mode
-from dpc_jax.sources.odometry_out import recording_kind
 from dpc_jax.training.train_config import ACCEPTANCE_DEPTHS, DEFAULT_SELECTION, SELECTIONS
 
 if TYPE_CHECKING:
@@ -208,7 +207,7 @@ def run(args: argparse.Namespace) -> int:
 def _outputs(args: argparse.Namespace) -> CorrectionOutputs:
     """Where the outputs go; a recording written from raw inputs takes their stamps and frame names."""
     to = CorrectionOutputs(args.out, args.format, args.report, adapted_path(args.out) if args.adapt else None)
-    if args.data is None and (recording_kind(args.out) or args.format == "rosbag2"):
+    if args.data is None and output_recording(args.out, args.format):
         source = open_recording(args, args.sequence or args.drive)
         to = dataclasses.replace(to, first_stamp=source.first_stamp,
                                  frame_ids=(source.world_frame, source.camera_frame))
@@ -277,10 +276,11 @@ def _print_summary(args: argparse.Namespace, run_: TrainedRun, done: CorrectedSe
         print(f"final: {correction.choice['final']} ({correction.choice['reason']})")
     if judge.note is not None:
         print(judge.note)
-    if args.data is not None and (recording_kind(args.out) or args.format == "rosbag2"):
+    if args.data is not None and output_recording(args.out, args.format):
         # A cache keeps frame times, not the recording's stamps and frame ids.
+        world, camera = CorrectionOutputs(args.out).frame_ids
         print(f"note: {args.out} is stamped from 0 s at the cache's frame times, its odometry in frame "
-              "'world' of 'camera' (a cache keeps no recording's stamps or frame ids); correct from the "
+              f"{world!r} of {camera!r} (a cache keeps no recording's stamps or frame ids); correct from the "
               "recording itself (--bag) to keep them")
     if args.report is not None:
         print(f"report: {args.report / 'report.md'}")

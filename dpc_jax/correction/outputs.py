@@ -58,6 +58,12 @@ class CorrectionOutputs:
     frame_ids: tuple[str, str] = ("world", "camera")
 
 
+def output_recording(out: str | Path, format: str) -> str | None:
+    """The kind of recording the trajectory ``out`` of ``format`` is written as (``mcap``, ``ros1`` by its
+    name, ``rosbag2`` by ``format``), or None for a pose text file."""
+    return recording_kind(out) or ("rosbag2" if format == "rosbag2" else None)
+
+
 def write_corrected(done: CorrectedSequence, to: CorrectionOutputs) -> list[Path]:
     """Write the final correction of ``done`` (its ``result``), its report and the adapted network
     where ``to`` says, all or nothing (:class:`~dpc_jax._io.OutputSet`); missing folders are created.
@@ -69,7 +75,7 @@ def write_corrected(done: CorrectedSequence, to: CorrectionOutputs) -> list[Path
 
     correction, out = done.result, Path(to.trajectory)
     with OutputSet() as outputs:
-        kind = recording_kind(out) or ("rosbag2" if to.format == "rosbag2" else None)
+        kind = output_recording(out, to.format)
         if kind is not None:
             staged = [_write_recording(outputs, out, kind, correction, to)]
         else:

@@ -206,7 +206,7 @@ def predict_sequence(
     if unknown or not deltas:
         raise ValueError(f"deltas must be a non-empty part of {DELTAS}, got {deltas}")
     step = prepared.predict_step(mesh, loss_config, keep, training_loss, tuple(deltas))
-    later = _Later(candidates, loss_config, pairs, size) if candidates is not None else None
+    later = _Later(candidates, loss_config, pairs, size, str(cache.path)) if candidates is not None else None
     share = parallel.process_slice(size) if mesh is not None else slice(None)
 
     def place(tree: Any) -> Any:
@@ -261,8 +261,8 @@ class _Later:
     prediction measured Δ with, until its rows of the candidates are known, then measured."""
 
     def __init__(self, candidates: Callable[[np.ndarray], np.ndarray], config: Any, pairs: int,
-                 size: int) -> None:
-        self.candidates, self.pairs, self.size = candidates, pairs, size
+                 size: int, name: str) -> None:
+        self.candidates, self.pairs, self.size, self.name = candidates, pairs, size, name
         self.step = kept_effects_step(config)
         self.xi = np.full((pairs, 6), np.nan)
         self.none = np.zeros(pairs, np.float32)
@@ -277,7 +277,7 @@ class _Later:
     def predicted(self, xi: np.ndarray, none: np.ndarray) -> None:
         """The next rows' proposal and ``L(0)``: measure every kept batch whose candidates are known."""
         # A proposal that is not finite never makes finite candidates: said here, as the pairs arrive.
-        check_finite(xi, "the network's proposal", first=self.known)
+        check_finite(xi, f"{self.name}: the network's proposal", first=self.known)
         rows = slice(self.known, self.known + len(xi))
         self.xi[rows], self.none[rows] = xi, none
         self.known += len(xi)

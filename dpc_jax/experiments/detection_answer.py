@@ -18,22 +18,28 @@ from dpc_jax.correction.decision import DEFAULT_MEAN_TEST
 FOUND = 0.5
 # Deliver 3: a final trajectory may not raise the rotational segment error by more than this.
 TOLERANCE_PCT = 2.0
-# The removal (axis) that the default decision (``DEFAULT_MEAN_TEST``, with the judge where the cell was
-# decided by every option) made; a cell decided before the options existed has only the study's final.
+# The default decision's figures (``DEFAULT_MEAN_TEST``, with the judge, where the option decided the test
+# sequence; a test sequence decided before the options existed has only the study's final), by the name
+# a page reads them by: the option's field, the final's.
 DEFAULT_REMOVAL = "found_axis_default"
+DEFAULT_FIELDS = {DEFAULT_REMOVAL: ("found_axis", "found_axis_final"),
+                  "r_change_pct_default": ("r_change_pct", "final_r_change_pct"),
+                  "mate_r_change_pct_default": ("mate_r_change_pct", "final_mate_r_change_pct")}
 
 
-def _value(test: dict[str, Any], field: str) -> float | None:
-    if field == DEFAULT_REMOVAL:
+def test_value(test: dict[str, Any], field: str) -> float | None:
+    """A test sequence's ``field``, or the default decision's figure named in :data:`DEFAULT_FIELDS`."""
+    if field in DEFAULT_FIELDS:
+        option, final = DEFAULT_FIELDS[field]
         default = test.get("options", {}).get(DEFAULT_MEAN_TEST)
-        return test["found_axis_final"] if default is None else default["found_axis"]
+        return test[final] if default is None else default[option]
     return test[field]
 
 
 def cell_mean(cell: dict[str, Any], field: str) -> float:
     """The mean of a test record's ``field`` over the cell's test sequences (NaN: none finite);
     :data:`DEFAULT_REMOVAL` reads the default decision's removal."""
-    values = [v for v in (_value(t, field) for t in cell["tests"]) if v is not None and math.isfinite(v)]
+    values = [v for v in (test_value(t, field) for t in cell["tests"]) if v is not None and math.isfinite(v)]
     return float(np.mean(values)) if values else math.nan
 
 
@@ -99,8 +105,8 @@ def cell_order(c: dict[str, Any]) -> tuple:
 
 def percent(value: float) -> str:
     """A removal (a fraction) as a whole percentage, n/a where there is none."""
-    # + 0.0: a removal that rounds to zero from below is written 0 %, not -0 %.
-    return "n/a" if not math.isfinite(value) else f"{round(100 * value) + 0.0:.0f} %"
+    # round() gives an int, which has no negative zero: a removal that rounds to zero from below is 0 %.
+    return "n/a" if not math.isfinite(value) else f"{round(100 * value)} %"
 
 
 def p_text(value: float | None) -> str:

@@ -114,11 +114,12 @@ def apply_rule(cells: Sequence[dict[str, Any]], options: Sequence[str],
     chosen = min(tied, key=lambda o: safe[o][0])
     said = f"Chosen on worlds 0–2: {chosen} (median removal {percent(safe[chosen][1])})"
     unchecked = _undecided(cells, [chosen], expected, (CHECKING_WORLD,))
-    if unchecked:
-        return rows, (f"{said}; its check on world {CHECKING_WORLD} waits for {len(unchecked)} of its "
-                      f"{len(expected.get(CHECKING_WORLD, ()))} cells: {BASELINE} stays the default until "
-                      "then.")
     check = safe[chosen][2]
+    if unchecked or not math.isfinite(check):
+        waits = (f"{len(unchecked)} of its {len(expected.get(CHECKING_WORLD, ()))} cells" if unchecked
+                 else "its cells")
+        return rows, (f"{said}; its check on world {CHECKING_WORLD} waits for {waits}: {BASELINE} stays the "
+                      "default until then.")
     if not check <= TOLERANCE_PCT:
         return rows, (f"{said}, but on world {CHECKING_WORLD} its final is {change_text(check)} above the "
                       f"prior's (the bar: +{TOLERANCE_PCT:g} %): not adopted, {BASELINE} stays the default.")

@@ -67,13 +67,16 @@ def corrected_trajectory(
     return compose(corrected, first_pose)
 
 
-def check_finite(xi_corr: np.ndarray, what: str = "xi_corr", first: int = 0) -> None:
-    """Raise ``ValueError`` naming the first pair whose correction (``xi_corr [M, 6]``, pairs ``first`` …
-    ``first + M − 1``) is not finite (NaN or inf): composed, it would turn every later pose into NaN."""
+def check_finite(xi_corr: np.ndarray, what: str = "xi_corr", first: int | None = None) -> None:
+    """Raise ``ValueError`` naming the first pair whose correction (``xi_corr [M, 6]``: a sequence's, or with
+    ``first`` its pairs ``first`` … ``first + M − 1``) is not finite (NaN or inf): composed, it would turn
+    every later pose into NaN."""
     bad = np.flatnonzero(~np.isfinite(np.asarray(xi_corr)).all(axis=1))
     if bad.size:
-        raise ValueError(f"{what}: the correction of pair {first + int(bad[0])} is not finite (NaN or inf); "
-                         f"{bad.size} of {len(xi_corr)} pairs are")
+        start = first or 0
+        among = f"{len(xi_corr)} pairs" if first is None else f"pairs {start}–{start + len(xi_corr) - 1}"
+        raise ValueError(f"{what}: the correction of pair {start + int(bad[0])} is not finite (NaN or inf); "
+                         f"{bad.size} of {among} are")
 
 
 # Compiled once per shape (and per float precision): a corrector of one pair at a time calls it per frame.

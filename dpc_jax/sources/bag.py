@@ -397,7 +397,13 @@ class BagFrames:
             st = file.stat()
             texts.append(f"{file.resolve()}:{st.st_size}:{st.st_mtime_ns}")
         frames = hashlib.sha256(np.ascontiguousarray(self.numbers).tobytes()).hexdigest()
-        return [*texts, f"topics {self.topics[0]} {self.topics[1]} frames {frames}"]
+        # How the images are remapped (rectified here, or used as they are) is part of what a cache holds.
+        remap = hashlib.sha256()
+        for side in self.maps or ():
+            for table in side:
+                remap.update(b"none" if table is None else np.ascontiguousarray(table).tobytes())
+        return [*texts, f"topics {self.topics[0]} {self.topics[1]} frames {frames}",
+                f"remap {'none' if self.maps is None else remap.hexdigest()}"]
 
     def locations(self) -> dict[str, str]:
         return {"left_images": f"{self.path.resolve()} {self.topics[0]}",

@@ -89,7 +89,8 @@ def calibration(
         elif np.any(d != 0):
             if msg.distortion_model not in DISTORTION_MODELS:
                 raise ValueError(f"{where}: distortion model {msg.distortion_model!r}; expected one of "
-                                f"{', '.join(DISTORTION_MODELS)} or rectified images (all-zero D)")
+                                f"{', '.join(DISTORTION_MODELS)}, or rectified images (all-zero D, or an "
+                                "image_rect topic)")
             if d.size not in DISTORTION_SIZES:
                 raise ValueError(f"{where}: D holds {d.size} coefficients; expected "
                                 f"{', '.join(map(str, DISTORTION_SIZES))} (OpenCV's distortion models)")

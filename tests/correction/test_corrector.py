@@ -4,6 +4,7 @@ reference."""
 from __future__ import annotations
 
 import dataclasses
+import re
 from pathlib import Path
 
 import numpy as np
@@ -308,8 +309,10 @@ def test_a_proposal_that_is_not_finite_is_named_not_measured(setup: dict, run) -
     from dpc_jax.data.sequence_cache import load_cache
 
     broken = dataclasses.replace(run, state=jax.tree.map(lambda x: x * np.nan, run.state))
-    with pytest.raises(ValueError, match=r"^the network's proposal: the correction of pair 0 is not finite"):
-        correct_cache(broken, load_cache(setup["cache"] / "05"))
+    cache = load_cache(setup["cache"] / "05")
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(cache.path))}: the network's proposal: the "
+                       r"correction of pair 0 is not finite \(NaN or inf\); \d+ of pairs 0–\d+ are$"):
+        correct_cache(broken, cache)
 
 
 def test_cli_keeps_the_prior_when_no_epoch_beats_it_and_applies_with_force(
@@ -587,17 +590,6 @@ def test_cli_judge_measures_the_test_on_another_cache_of_the_same_frames(setup: 
 
 
 
-def _pose_of(pose) -> np.ndarray:
-    """A geometry_msgs/Pose as a ``[4, 4]`` matrix (quaternion x, y, z, w)."""
-    from scipy.spatial.transform import Rotation
-
-    matrix = np.eye(4)
-    q, p = pose.orientation, pose.position
-    matrix[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
-    matrix[:3, 3] = [p.x, p.y, p.z]
-    return matrix
-
-
 def test_cli_corrects_a_recording_as_its_kitti_layout(setup: dict, tmp_path: Path, capsys) -> None:
     """Sequence 05 as a recording written by rosbags (PNG-compressed images, CameraInfo, the prior as
     nav_msgs/Odometry): `correct --bag` writes the trajectory `correct --kitti-odometry` writes, byte for
@@ -609,6 +601,7 @@ def test_cli_corrects_a_recording_as_its_kitti_layout(setup: dict, tmp_path: Pat
 
     from dpc_jax.cli import main
     from dpc_jax.data.poses_io import read_mat, read_trajectory
+    from dpc_jax.sources.bag import read_pose_topic
 
     prior_file = setup["priors"] / "stereo_05.mat"
     _, prior = read_mat(prior_file)
@@ -633,7 +626,11 @@ def test_cli_corrects_a_recording_as_its_kitti_layout(setup: dict, tmp_path: Pat
             msg = reader.deserialize(raw, connection.msgtype)
             assert msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec == stamp
             assert (msg.header.frame_id, msg.child_frame_id) == ("odom", CAMERA_FRAME)
-            read[connection.topic].append((stamp, _pose_of(msg.pose.pose)))
+            pose = np.eye(4)
+            q, p = msg.pose.pose.orientation, msg.pose.pose.position
+            pose[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+            pose[:3, 3] = [p.x, p.y, p.z]
+            read[connection.topic].append((stamp, pose))
     for topic, poses in expected.items():
         assert [s for s, _ in read[topic]] == stamps_of(times)
         np.testing.assert_allclose(np.stack([p for _, p in read[topic]]), poses, atol=1e-9)
@@ -663,9 +660,7 @@ def test_cli_corrects_a_recording_as_its_kitti_layout(setup: dict, tmp_path: Pat
                  str(tmp_path / "gt.mcap")]) == 0
     text = read_trajectory(tmp_path / "gt.txt", "kitti")
     np.testing.assert_allclose(text[0], gt[0], atol=1e-9)
-    with AnyReader([tmp_path / "gt.mcap"]) as reader:
-        written = np.stack([_pose_of(reader.deserialize(raw, c.msgtype).pose.pose) for c, _, raw
-                            in reader.messages() if c.topic == "/dpc/odometry"])
+    written = read_pose_topic(tmp_path / "gt.mcap", "/dpc/odometry")[1]
     np.testing.assert_allclose(written[0], prior[0], atol=1e-9)
     np.testing.assert_allclose(np.linalg.inv(written[:-1]) @ written[1:], np.linalg.inv(text[:-1]) @ text[1:],
                                atol=1e-9)

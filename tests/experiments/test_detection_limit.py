@@ -77,14 +77,16 @@ def test_the_answer_reads_the_default_decisions_removal_where_every_option_decid
     from dpc_jax.correction.decision import DEFAULT_MEAN_TEST
 
     size = (64, 96)
-    decided = _cell(size, 1.0, 1000, 0.1)
-    decided["tests"][0]["options"] = {DEFAULT_MEAN_TEST: {"found_axis": 0.7},
-                                      "another": {"found_axis": 0.0}}
+    decided = _decided(_cell(size, 1.0, 1000, 0.1), **{DEFAULT_MEAN_TEST: (0.7, 3.0)})
     cells = [decided, _cell(size, 3.0, 1000, 0.9), _cell(size, 1.0, 4000, 0.2)]
     assert answer.cell_mean(decided, "found_axis_final") == pytest.approx(0.1)
     assert answer.cell_mean(decided, answer.DEFAULT_REMOVAL) == pytest.approx(0.7)
     assert answer.smallest_found(cells) == {(size, 1000): 1.0, (size, 4000): None}
     assert answer.extrapolate(cells, size)["found_at"] == 1000
+    # The page's "never worse" is the default decision's too: its +3 % breaks the bar, the final's 0 % not.
+    assert answer.test_value(decided["tests"][0], "r_change_pct_default") == 3.0
+    assert "+3.00 % in the rotational segment error (**violated**)" in page.markdown(
+        cells, {"sequences": {}, "mean": [0.0] * 3, "spread": [0.0] * 3}, 46_000, 1.0, False)
     assert [answer.percent(v) for v in (-0.001, -0.006, 0.41)] == ["0 %", "-1 %", "41 %"]  # no "-0 %"
 
 
@@ -166,6 +168,8 @@ def test_the_rule_picks_the_safe_option_that_removes_most() -> None:
     assert "mean-noninferior" in verdict and "on world 3 at most +0.20 % above the prior" in verdict
     waiting = rule.apply_rule(cells, list(options), expected)[1]
     assert "its check on world 3 waits for 1 of its 1 cells: mean-at-network stays" in waiting
+    unlisted = {w: keys for w, keys in expected.items() if w != 3}  # no grid of world 3 given
+    assert "its check on world 3 waits for its cells" in rule.apply_rule(cells, list(options), unlisted)[1]
     # The best safe option is more than a point above today's: today's does not stay, even where the tied
     # option with the smaller worst change is within a point of today's.
     near = {"mean-at-network": (0.500, 0.5), "mean-at-judge": (0.515, 1.5), "mean-at-judge-a05": (0.508, 0.5)}

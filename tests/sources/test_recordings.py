@@ -169,6 +169,8 @@ def test_distorted_cameras_are_rectified_as_opencv_undistorts(tmp_path: Path) ->
     assert sequence.baseline == pytest.approx(0.3)
     left, _ = next(iter(sequence.images.stream(sequence.image_size))).decode()
     reference = cv2.undistort(image, K, D, None, P[:, :3])
+    # The remapping is part of the inputs a cache of these frames is identified by.
+    assert sequence.images.identity()[-1] not in ("remap none", "")
     inside = (slice(4, -4), slice(4, -4))  # the border: how each fills pixels mapped from outside
     assert np.abs(left[inside].astype(int) - reference[inside]).max() <= 1
 
@@ -200,6 +202,7 @@ def test_an_image_rect_topic_is_not_rectified_again_and_a_bad_d_is_one_line(tmp_
     np.testing.assert_array_equal(left, image)
     np.testing.assert_array_equal(opened.sequence.K, P[:, :3])
     assert any("/left/image_rect is a rectified topic" in note for note in opened.notes)
+    assert opened.sequence.images.identity()[-1] == "remap none"
     bad = write("bad_d.mcap", D[:3], "image_raw")
     with pytest.raises(ValueError, match=r"bad_d\.mcap: /left/camera_info: D holds 3 coefficients; expected"):
         open_bag(BagOptions(bad))
