@@ -110,6 +110,9 @@ def _image_topics(path: Path, topics: dict[str, str], options: BagOptions) -> tu
     if options.left_topic is not None or options.right_topic is not None:
         if options.left_topic is None or options.right_topic is None:
             raise _Error(f"{path}: --left-topic and --right-topic go together; its image topics: {listed}")
+        if options.left_topic == options.right_topic:
+            raise _Error(f"{path}: --left-topic and --right-topic are both {options.left_topic}; expected "
+                         f"the two cameras' topics (its image topics: {listed})")
         for option, topic in (("--left-topic", options.left_topic), ("--right-topic", options.right_topic)):
             if topic not in topics:
                 raise _Error(f"{path}: {option} {topic}: no such topic; its image topics: {listed}")

@@ -1,8 +1,8 @@
 """Decoding a recording's image messages into the images every source gives.
 
-``sensor_msgs/Image`` with encoding ``mono8``, ``rgb8``, ``bgr8`` or ``mono16`` (scaled to 8 bits by
-its high byte, as OpenCV reads a 16-bit PNG into 8 bits), and ``sensor_msgs/CompressedImage`` holding a
-PNG or a JPEG (told by its bytes, as ``image_transport``'s ``format`` strings vary). The result is
+``sensor_msgs/Image`` with encoding ``mono8`` (or ``8UC1``), ``rgb8``, ``bgr8`` or ``mono16`` (scaled to 8
+bits by its high byte, as OpenCV reads a 16-bit PNG into 8 bits), and ``sensor_msgs/CompressedImage``
+holding a PNG or a JPEG (told by its bytes, as ``image_transport``'s ``format`` strings vary). The result is
 :func:`~dpc_jax.data.frames.load_image`'s: uint8 ``[H, W, 3]`` RGB (a grey image as three equal
 channels), or uint8 ``[H, W]`` grey, the grey of a colour image being the one OpenCV's PNG decoder
 gives (:func:`~dpc_jax.data.frames.png_grey`), so that the pixels of a PNG file and the same pixels in
@@ -21,8 +21,9 @@ from dpc_jax.data.frames import png_grey
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
 IMAGE_TYPES = (IMAGE, COMPRESSED)
-ENCODINGS = ("mono8", "rgb8", "bgr8", "mono16")
-_CHANNELS = {"mono8": 1, "rgb8": 3, "bgr8": 3, "mono16": 1}
+# 8UC1 (OpenCV's name, which cv_bridge publishes for a grey cv::Mat) is mono8's layout.
+ENCODINGS = ("mono8", "rgb8", "bgr8", "mono16", "8UC1")
+_CHANNELS = {"mono8": 1, "rgb8": 3, "bgr8": 3, "mono16": 1, "8UC1": 1}
 _MAGIC = {b"\x89PNG": "png", b"\xff\xd8\xff": "jpeg"}
 
 

@@ -79,7 +79,7 @@ def _one_camera_pair(tmp: Path, name: str, kind: str, write_frame, n: int = 3) -
 
 
 def test_encodings_decode_as_opencv_does(tmp_path: Path) -> None:
-    """mono8, bgr8, mono16 (little and big endian, scaled by its high byte as OpenCV reads a 16-bit PNG)
+    """mono8 (and 8UC1), bgr8, mono16 (little and big endian, scaled by its high byte as OpenCV reads a 16-bit PNG)
     and JPEG: the decoded images against OpenCV's decoding of the same pixels from files."""
     rng = np.random.default_rng(2)
     colour = rng.integers(0, 256, (3, 20, 32, 3), dtype=np.uint8)
@@ -87,6 +87,7 @@ def test_encodings_decode_as_opencv_does(tmp_path: Path) -> None:
     jpegs = [cv2.imencode(".jpg", c)[1].tobytes() for c in colour]
     cases = {
         "mono8": lambda bag, k, s, topic: bag.image(s, "cam", colour[k, ..., 0], "mono8"),
+        "8UC1": lambda bag, k, s, topic: bag.image(s, "cam", colour[k, ..., 0], "8UC1"),
         "bgr8": lambda bag, k, s, topic: bag.image(s, "cam", colour[k], "bgr8"),
         "mono16": lambda bag, k, s, topic: bag.image(s, "cam", deep[k], "mono16"),
         "mono16be": lambda bag, k, s, topic: _big_endian(bag.image(s, "cam", deep[k].byteswap(), "mono16")),
@@ -103,7 +104,7 @@ def test_encodings_decode_as_opencv_does(tmp_path: Path) -> None:
                 left, right = read.decode(grey)
                 np.testing.assert_array_equal(left, right)
                 path = tmp_path / f"{name}{k}.png"
-                if name == "mono8":
+                if name in ("mono8", "8UC1"):
                     cv2.imwrite(str(path), colour[k, ..., 0])
                 elif name == "bgr8":
                     cv2.imwrite(str(path), colour[k])
@@ -438,6 +439,8 @@ def test_bad_recordings_get_one_line(kitti: dict, tmp_path: Path, capsys) -> Non
     _fails(capsys, [*vo, str(two_pairs)], "2 stereo pairs", "/left/rect", "--left-topic and --right-topic")
     _fails(capsys, [*vo, str(two_pairs), "--left-topic", "/left/image", "--right-topic", "/nowhere"],
            str(two_pairs), "--right-topic /nowhere: no such topic")
+    _fails(capsys, [*vo, str(two_pairs), "--left-topic", "/left/image", "--right-topic", "/left/image"],
+           str(two_pairs), "--left-topic and --right-topic are both /left/image")
 
     def varying(bag, k, stamp, topic):
         size = (20, 32) if k < 2 else (22, 32)
