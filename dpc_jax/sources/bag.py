@@ -46,6 +46,8 @@ from dpc_jax.sources import bag_images, bag_poses
 from dpc_jax.sources.bag_calibration import calibration, info_topic
 from dpc_jax.sources.recording import BagOptions, Recording, Source
 
+# A mono16 camera whose values use this many bits or fewer is noted: its 8-bit images come out dark.
+LOW_BITS = 14
 TF_STATIC, TF_MOVING = "/tf_static", "/tf"
 
 
@@ -271,6 +273,14 @@ def open_bag(options: BagOptions) -> Recording:
     for camera in cameras:
         if not camera.stamps:
             raise _Error(f"{path}: {camera.topic}: no image; expected the images of one camera of the pair")
+    notes: list[str] = []
+    for camera in cameras:
+        assert camera.first is not None  # it has images
+        bits = bag_images.mono16_bits(camera.first[0], camera.first[1], f"{path}: {camera.topic}")
+        if bits is not None and bits <= LOW_BITS:
+            notes.append(f"{path}: {camera.topic}: the mono16 values of its first image use {bits} bits, and "
+                         "8-bit images keep the high byte, so they come out dark; shift the data to the high "
+                         "bits")
     left_stamps, right_stamps = (_increasing(path, camera) for camera in cameras)
     size = cameras[0].size or _first_size(path, cameras[0])
     right_size = cameras[1].size or _first_size(path, cameras[1])
@@ -278,7 +288,6 @@ def open_bag(options: BagOptions) -> Recording:
         raise _Error(f"{path}: {right_topic} holds {right_size[0]}x{right_size[1]} images, {left_topic} "
                      f"{size[0]}x{size[1]}; expected one size for both cameras")
     pairs = _pairs(left_stamps, right_stamps, tolerance_ns)
-    notes: list[str] = []
     skipped = (left_stamps.size - pairs.shape[0], right_stamps.size - pairs.shape[0])
     if any(skipped):
         notes.append(f"{path}: {skipped[0]} left and {skipped[1]} right images without a partner within "

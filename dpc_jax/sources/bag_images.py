@@ -57,17 +57,11 @@ def decode(msgtype: str, msg: Any, grey: bool, where: str) -> np.ndarray:
     problem = encoding_problem(msgtype, msg)
     if problem is not None:
         raise ValueError(f"{where}: {problem}")
-    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    h, w = int(msg.height), int(msg.width)
     channels = _CHANNELS[msg.encoding]
-    itemsize = 2 if msg.encoding == "mono16" else 1
-    data = np.asarray(msg.data, np.uint8)
-    if step < w * channels * itemsize or data.size < h * step:
-        raise ValueError(f"{where}: {data.size} bytes with step {step} for a {h}x{w} {msg.encoding} image; "
-                         f"expected at least {h * w * channels * itemsize}")
-    rows = data[: h * step].reshape(h, step)[:, : w * channels * itemsize]
+    rows = _rows(msg, where)
     if msg.encoding == "mono16":
-        values = rows.view(">u2" if msg.is_bigendian else "<u2")
-        mono = (values >> 8).astype(np.uint8)
+        mono = (_mono16(rows, msg) >> 8).astype(np.uint8)
         return mono if grey else np.repeat(mono[..., None], 3, axis=2)
     if channels == 1:
         mono = np.ascontiguousarray(rows)
@@ -75,3 +69,27 @@ def decode(msgtype: str, msg: Any, grey: bool, where: str) -> np.ndarray:
     rgb = rows.reshape(h, w, 3)
     rgb = np.ascontiguousarray(rgb[..., ::-1] if msg.encoding == "bgr8" else rgb)
     return png_grey(rgb) if grey else rgb
+
+
+def _rows(msg: Any, where: str) -> np.ndarray:
+    """A raw image's rows, uint8 ``[H, W · channels · bytes]`` without the ``step``'s padding."""
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    channels = _CHANNELS[msg.encoding]
+    itemsize = 2 if msg.encoding == "mono16" else 1
+    data = np.asarray(msg.data, np.uint8)
+    if step < w * channels * itemsize or data.size < h * step:
+        raise ValueError(f"{where}: {data.size} bytes with step {step} for a {h}x{w} {msg.encoding} image; "
+                         f"expected at least {h * w * channels * itemsize}")
+    return data[: h * step].reshape(h, step)[:, : w * channels * itemsize]
+
+
+def _mono16(rows: np.ndarray, msg: Any) -> np.ndarray:
+    return rows.view(">u2" if msg.is_bigendian else "<u2")
+
+
+def mono16_bits(msgtype: str, msg: Any, where: str) -> int | None:
+    """The bits the values of a raw ``mono16`` image use (its largest value's), None for another image:
+    data of 10 to 14 bits kept in the low bits comes out dark from the high byte."""
+    if msgtype != IMAGE or msg.encoding != "mono16":
+        return None
+    return int(_mono16(_rows(msg, where), msg).max()).bit_length()

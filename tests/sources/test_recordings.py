@@ -79,8 +79,8 @@ def _one_camera_pair(tmp: Path, name: str, kind: str, write_frame, n: int = 3) -
 
 
 def test_encodings_decode_as_opencv_does(tmp_path: Path) -> None:
-    """mono8 (and 8UC1), bgr8, mono16 (little and big endian, scaled by its high byte as OpenCV reads a 16-bit PNG)
-    and JPEG: the decoded images against OpenCV's decoding of the same pixels from files."""
+    """mono8 (and 8UC1), bgr8, mono16 (little and big endian, scaled by its high byte as OpenCV reads a
+    16-bit PNG) and JPEG: the decoded images against OpenCV's decoding of the same pixels from files."""
     rng = np.random.default_rng(2)
     colour = rng.integers(0, 256, (3, 20, 32, 3), dtype=np.uint8)
     deep = rng.integers(0, 65536, (3, 20, 32), dtype=np.uint16)
@@ -116,6 +116,15 @@ def test_encodings_decode_as_opencv_does(tmp_path: Path) -> None:
                 flag = cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_COLOR
                 reference = cv2.imread(str(path), flag)
                 np.testing.assert_array_equal(left, reference if grey else reference[..., ::-1])
+
+    # 12-bit data in the low bits of mono16: read by the high byte, so dark, and a note says so.
+    def twelve(bag: Bag, k: int, stamp: int) -> None:
+        for topic in ("/left/image", "/right/image"):
+            bag.write(topic, stamp, bag.image(stamp, "cam", deep[k] >> 4, "mono16"))
+
+    opened = open_bag(BagOptions(_one_camera_pair(tmp_path, "twelve", "mcap", twelve)))
+    assert any("/left/image: the mono16 values of its first image use 12 bits" in n for n in opened.notes)
+    assert not any("mono16" in n for n in open_bag(BagOptions(tmp_path / "mono16.mcap")).notes)
 
 
 def _big_endian(message):
