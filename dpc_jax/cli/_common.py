@@ -269,3 +269,9 @@ def poses_problem(sequence: StereoSequence, prior: str | np.ndarray, prior_forma
         return (f"--gt {gt}: {poses.shape[0]} ground-truth poses for the {len(sequence)} frames of "
                 f"{sequence.name}; expected one per frame")
     return None
+
+
+def mean_options_problem(decision: str) -> str:
+    """``--decision`` (where the mean is tested) given with ``--no-mean-test`` (no mean test): one of them."""
+    return (f"--decision {decision} says where the correction's mean is tested, --no-mean-test that it is "
+            "not tested: give one")

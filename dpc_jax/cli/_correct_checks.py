@@ -21,6 +21,7 @@ from dpc_jax.cli._common import (
     cache_folder_problem,
     frames_problem,
     input_problem,
+    mean_options_problem,
     poses_problem,
     stored_config,
 )
@@ -65,6 +66,8 @@ def arguments_problem(args: argparse.Namespace) -> str | None:
                 "--prior-topic TOPIC)")
     if args.prior is not None and args.prior_topic is not None:
         return "--prior and --prior-topic: give one prior"
+    if args.no_mean_test and args.decision is not None:
+        return mean_options_problem(args.decision)
     if args.format == "tum" and recording_kind(args.out) is not None:
         return f"--format tum: --out {args.out} is named as a recording; give a text file's name"
     if args.batch_size is not None and args.batch_size < 1:

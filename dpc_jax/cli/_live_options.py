@@ -9,7 +9,7 @@ import math
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from dpc_jax.cli._common import image_size, input_problem
+from dpc_jax.cli._common import image_size, input_problem, mean_options_problem
 from dpc_jax.correction.acceptance import DEFAULT_ALPHA
 from dpc_jax.correction.decision import DEFAULT_MEAN_TEST, MEAN_TESTS
 from dpc_jax.correction.judge import JUDGE_SIZE, Judge, JudgeRequest, judge_policy
@@ -76,6 +76,8 @@ def correction_problem(args: argparse.Namespace, run_option: str, run: Path | No
             return (f"{', '.join(given)}: only used with {run_option} RUN (the live correction), which is "
                     "not given")
         return None
+    if args.no_mean_test and args.decision is not None:
+        return mean_options_problem(args.decision)
     if args.alpha is not None and not 0.0 < args.alpha < 1.0:
         return f"--alpha {args.alpha}: expected a level in (0, 1), such as {DEFAULT_ALPHA:g}"
     if args.realtime not in (None, OWN_TIMES) and not (math.isfinite(args.realtime)

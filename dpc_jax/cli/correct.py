@@ -117,11 +117,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-mean-test", action="store_true",
                         help="do not test the correction's mean over the sequence on its own (the earlier "
                         "decision: a correction that passes as a whole is applied whole)")
-    parser.add_argument("--decision", choices=tuple(MEAN_TESTS), default=DEFAULT_MEAN_TEST,
-                        help="where and how the correction's mean is tested (docs/method.md §8): "
-                        "mean-at-network (at both sizes), mean-at-judge (with a judge, at its "
-                        "size only), mean-at-judge-a05 (the same at level 0.05), mean-noninferior (the same, "
-                        "passing unless it costs 5 %% of the whole's gain or more)")
+    parser.add_argument("--decision", choices=tuple(MEAN_TESTS),
+                        help=f"where and how the correction's mean is tested (docs/method.md §8; default: "
+                        f"{DEFAULT_MEAN_TEST}): mean-at-network (at both sizes), mean-at-judge (with a "
+                        "judge, at its size only), mean-at-judge-a05 (the same at level 0.05), "
+                        "mean-noninferior (the same, passing unless it costs 5 %% of the whole's gain or "
+                        "more)")
     parser.add_argument("--acceptance-depth", choices=ACCEPTANCE_DEPTHS,
                         help="depth Δ is measured with: sgbm, StereoSGBM on the cached pair (default for a "
                         "stereo run), or network, the network's own depth")
@@ -238,10 +239,11 @@ def _correct(args: argparse.Namespace, run_: TrainedRun, checked: SequenceCache 
             raise ValueError(problem)
     how = (AdaptConfig(args.adapt, holdout_every=holdout_every(args), learning_rate=args.adapt_lr)
            if args.adapt else None)
+    mean = MEAN_TESTS[args.decision or DEFAULT_MEAN_TEST]
     return correct_sequence(run_, cache, prior, adapt=how, prior_format=args.prior_format, progress=show,
                             rotation_only=args.rotation_only, batch_size=args.batch_size,
                             acceptance_depth=args.acceptance_depth, alpha=args.alpha, force=args.force,
-                            mean_test=not args.no_mean_test, mean=MEAN_TESTS[args.decision], judge=judged)
+                            mean_test=not args.no_mean_test, mean=mean, judge=judged)
 
 
 def _print_summary(args: argparse.Namespace, run_: TrainedRun, done: CorrectedSequence, written: list[Path],

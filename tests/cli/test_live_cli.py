@@ -365,6 +365,9 @@ def _rescaled(fields: list[str]) -> list[str]:
 
 # case: (the options changed, None removing one; exit status; what the one line says)
 BAD = {
+    "--decision with --no-mean-test": (
+        lambda w: {"--decision": "mean-at-judge", "--no-mean-test": ""}, 2,
+        ["--decision mean-at-judge says where the correction's mean is tested, --no-mean-test"]),
     "a recording's name as --out": (
         lambda w: {"--out": w["tmp"] / "live.bag"}, 2, ["--out", "live.bag: live writes KITTI pose text"]),
     "a record's image missing": (
@@ -423,7 +426,7 @@ def test_bad_input_is_one_line_before_jax(
             where = args.index(option)
             del args[where:where + 2]
         if value is not None:
-            args += [option, str(value)]
+            args += [option] if value == "" else [option, str(value)]  # "": a flag
     assert main(args) == status
     line = _one_line(capsys.readouterr().err)
     assert all(needle in line for needle in needles), line

@@ -102,6 +102,8 @@ def test_options_that_cannot_take_effect_are_refused_before_jax(
         # correct (Why 5, 7, 8)
         "--holdout-every 7: only used with --adapt STEPS": [*correct, "--holdout-every", "7"],
         "--adapt-lr 0.5: only used with --adapt STEPS": [*correct, "--adapt-lr", "0.5"],
+        "--decision mean-at-judge says where the correction's mean is tested, --no-mean-test that": [
+            *correct, "--decision", "mean-at-judge", "--no-mean-test"],
         "--data {l}/00: images are 20x32, but the run": [
             "correct", "--checkpoint", inputs["stereo_run"], "--data", inputs["large"] / "00",
             "--out", out / "c.txt"],
