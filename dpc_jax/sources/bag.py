@@ -42,6 +42,7 @@ import numpy as np
 from dpc_jax.data.frames import StereoFrame, checked_size
 from dpc_jax.data.kitti import StereoSequence
 from dpc_jax.data.poses_io import validate_poses
+from dpc_jax.geometry.poses import invert_poses
 from dpc_jax.sources import bag_images, bag_poses
 from dpc_jax.sources.bag_calibration import calibration, info_topic
 from dpc_jax.sources.recording import BagOptions, Recording, Source
@@ -307,6 +308,11 @@ def open_bag(options: BagOptions) -> Recording:
             options.pose_frame, static, moving)
         if option == "--prior-topic":
             world_frame = parent
+        sideways = _sideways(poses[option])
+        if sideways is not None:
+            notes.append(f"{path}: {option} {topic}: its steps point along the camera's {sideways} axis more "
+                         f"than along z (forward in an optical frame); is {camera_frame!r} the camera's "
+                         "optical frame (z forward, x right, y down)?")
     pair_stamps = np.stack([stamps, right_stamps[pairs[:, 1]]], axis=1)
     frames = BagFrames(path, (left_topic, right_topic), pairs, pair_stamps, maps)
     name = path.stem if path.is_file() else path.name
@@ -315,6 +321,15 @@ def open_bag(options: BagOptions) -> Recording:
                               sources=calib_files)
     return Recording(sequence, poses.get("--prior-topic"), int(stamps[0]), camera_frame, world_frame,
                      tuple(notes))
+
+
+def _sideways(poses: np.ndarray) -> str | None:
+    """The camera axis (``x`` or ``y``) that a trajectory's mean step points along more than along z, or
+    None: a camera that moves forward steps along z in its optical frame; a body frame's x forward would
+    show here as x."""
+    steps = (invert_poses(poses[:-1]) @ poses[1:])[:, :3, 3].mean(axis=0)
+    axis = int(np.argmax(np.abs(steps)))
+    return None if axis == 2 or not np.abs(steps).max() > 0 else "xy"[axis]
 
 
 def _index_image(path: Path, camera: _Camera, number: int, msgtype: str, msg: Any) -> None:

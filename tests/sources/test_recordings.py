@@ -57,6 +57,17 @@ def test_every_storage_gives_the_frames_of_the_kitti_layout(kitti: dict, kind: s
     np.testing.assert_allclose(bag.poses, kitti["poses"], atol=1e-12)
 
 
+def test_poses_of_a_body_frame_named_as_the_camera_are_noted(kitti: dict, tmp_path: Path) -> None:
+    """The prior of a body frame (x forward, as ROS's base_link) given as the camera's optical frame (z
+    forward): its steps point along x, and a note asks whether the frame is the optical one."""
+    body = np.eye(4)
+    body[:3, :3] = [[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]]  # columns: body x, y, z
+    assert np.abs(np.diff(kitti["poses"][:, 2, 3])).sum() > 0  # the camera moves along its z
+    path = write_recording(tmp_path / "body.mcap", kitti["random"], poses={"/odom": kitti["poses"] @ body})
+    notes = open_bag(BagOptions(path, prior_topic="/odom")).notes
+    assert any("--prior-topic /odom: its steps point along the camera's x axis" in n for n in notes), notes
+
+
 def test_grey_is_what_opencv_decodes_from_a_colour_png() -> None:
     rgb = np.random.default_rng(1).integers(0, 256, (64, 96, 3), dtype=np.uint8)
     ok, png = cv2.imencode(".png", rgb[..., ::-1])
