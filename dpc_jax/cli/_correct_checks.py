@@ -6,6 +6,7 @@ them (the judge, the hold-out split, priors and pose files, the cache folders to
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from dpc_jax._io import (
@@ -31,13 +32,32 @@ from dpc_jax.correction.outputs import REPORT_FILES, REPORT_WRITER, adapted_path
 from dpc_jax.correction.raw_inputs import cache_folders_problem
 from dpc_jax.data.holdout import DEFAULT_EVERY, MIN_EVERY, holdout_problem
 from dpc_jax.data.poses_io import frames_path
-from dpc_jax.sources.odometry_out import recording_kind
+from dpc_jax.sources.odometry_out import CORRECTED, PRIOR, recording_kind
 
 if TYPE_CHECKING:
     import numpy as np
 
     from dpc_jax.data.sequence_cache import SequenceCache
     from dpc_jax.training.train_config import TrainConfig
+
+
+def _out_problem(args: argparse.Namespace) -> str | None:
+    """Why ``--out`` cannot take the trajectory: a file's problem, or for ``--format rosbag2`` a folder's,
+    which may be replaced only when it is a bag this command wrote (its topics /dpc/odometry, /dpc/prior)."""
+    if args.format != "rosbag2":
+        return output_problem(args.out, "--out")
+    problem = output_problem(args.out, "--out", folder=True)
+    out = Path(args.out)
+    if problem is not None or not out.is_dir() or not any(out.iterdir()):
+        return problem
+    metadata = out / "metadata.yaml"
+    written = metadata.is_file() and all(f"name: {topic}" in metadata.read_text(errors="replace")
+                                         for topic in (CORRECTED, PRIOR))
+    if written:
+        return None
+    return (f"--out {args.out}: holds files but is not a ROS 2 bag that `correct` wrote (its metadata.yaml "
+            f"naming {CORRECTED} and {PRIOR}), and this command would write over it; move it away or choose "
+            "another path")
 
 
 def arguments_problem(args: argparse.Namespace) -> str | None:
@@ -92,7 +112,7 @@ def arguments_problem(args: argparse.Namespace) -> str | None:
     adapted = adapted_path(args.out) if args.adapt else None
     problem = (input_problem(args.judge, "--judge", folder=True)
                or input_problem(args.prior, "--prior") or input_problem(args.gt, "--gt")
-               or output_problem(args.out, "--out") or output_problem(args.report, "--report", folder=True)
+               or _out_problem(args) or output_problem(args.report, "--report", folder=True)
                or output_problem(args.cache, "--cache", folder=True)
                or output_problem(adapted, "--adapt", folder=True))
     if problem is not None:

@@ -645,6 +645,18 @@ def test_cli_corrects_a_recording_as_its_kitti_layout(setup: dict, tmp_path: Pat
             assert stamps == stamps_of(times) and len(reader.connections) == 2
     assert sorted(p.name for p in (tmp_path / "c_ros2").iterdir()) == ["c_ros2.mcap", "metadata.yaml"]
     assert "  version: 8" in (tmp_path / "c_ros2" / "metadata.yaml").read_text()
+    # Run again, the bag it wrote is replaced; a folder of someone else's files is not written over.
+    ros2 = [*common, "--bag", str(recording), "--prior-topic", "/vo", "--format", "rosbag2", "--out"]
+    assert main([*ros2, str(tmp_path / "c_ros2")]) == 0
+    assert sorted(p.name for p in (tmp_path / "c_ros2").iterdir()) == ["c_ros2.mcap", "metadata.yaml"]
+    (tmp_path / "theirs").mkdir()
+    (tmp_path / "theirs" / "notes.txt").write_text("mine")
+    capsys.readouterr()
+    assert main([*ros2, str(tmp_path / "theirs")]) == 2
+    assert "theirs: holds files but is not a ROS 2 bag that `correct` wrote" in capsys.readouterr().err
+    assert [p.name for p in (tmp_path / "theirs").iterdir()] == ["notes.txt"]
+    (tmp_path / "theirs" / "notes.txt").unlink()
+    (tmp_path / "theirs").rmdir()
     assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith("05")) == [
         "bag.txt", "c.bag", "c.mcap", "c_ros2", "files.txt"]  # nothing else left beside the outputs
     # Ground truth elsewhere than the prior's first pose: the text output starts at it, the recording's
