@@ -314,7 +314,9 @@ def open_bag(options: BagOptions) -> Recording:
                          f"than along z (forward in an optical frame); is {camera_frame!r} the camera's "
                          "optical frame (z forward, x right, y down)?")
     pair_stamps = np.stack([stamps, right_stamps[pairs[:, 1]]], axis=1)
-    frames = BagFrames(path, (left_topic, right_topic), pairs, pair_stamps, maps)
+    gt = poses.get("--gt-topic")
+    frames = BagFrames(path, (left_topic, right_topic), pairs, pair_stamps, maps,
+                       "" if gt is None else hashlib.sha256(np.ascontiguousarray(gt).tobytes()).hexdigest())
     name = path.stem if path.is_file() else path.name
     sequence = StereoSequence(name=name, images=frames, K=K, baseline=baseline, image_size=size,
                               times=(stamps - stamps[0]) / 1e9, poses=poses.get("--gt-topic"),
@@ -369,6 +371,9 @@ class BagFrames:
     numbers: np.ndarray
     stamps: np.ndarray
     maps: tuple[Any, Any] | None = None
+    # A digest of the ground truth read from a pose topic (none: ""): held in memory, not in a file the
+    # cache hashes, so it is part of the frames' identity.
+    ground_truth: str = ""
 
     def __len__(self) -> int:
         return int(self.numbers.shape[0])
@@ -430,7 +435,8 @@ class BagFrames:
             for table in side:
                 remap.update(b"none" if table is None else np.ascontiguousarray(table).tobytes())
         return [*texts, f"topics {self.topics[0]} {self.topics[1]} frames {frames}",
-                f"remap {'none' if self.maps is None else remap.hexdigest()}"]
+                f"remap {'none' if self.maps is None else remap.hexdigest()}",
+                f"ground truth {self.ground_truth or 'none'}"]
 
     def locations(self) -> dict[str, str]:
         return {"left_images": f"{self.path.resolve()} {self.topics[0]}",
