@@ -34,13 +34,14 @@ class World:
 
     def render(self, data: Path, sequences: Mapping[str, tuple[int, int]],
                say: Callable[[str], None] = print) -> list[str]:
-        """Render every sequence ``name → (frames, seed offset)`` into ``data`` that is not there yet (its
-        poses file, written last, marks a finished one), saying each; the names rendered."""
-        from dpc_jax.synth import write_sequence
+        """Render every sequence ``name → (frames, seed offset)`` into ``data`` that is not there yet as this
+        world renders it (``dpc_jax.synth.is_rendered``: a finished one of the same configuration), saying
+        each; the names rendered."""
+        from dpc_jax.synth import is_rendered, write_sequence
 
         rendered = []
         for name, (frames, offset) in sequences.items():
-            if (data / "poses" / f"{name}.txt").is_file():
+            if is_rendered(data, name, self.config(frames, offset)):
                 continue
             began = time.perf_counter()
             write_sequence(data, name, self.config(frames, offset), overwrite=True)

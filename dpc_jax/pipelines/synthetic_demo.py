@@ -78,14 +78,11 @@ ProgressFn = Callable[[str], None]
 
 def _render(config: DemoConfig, data_root: Path, name: str, progress: Progress) -> bool:
     """Render sequence ``name`` unless an identical one is there; whether it rendered."""
-    from dpc_jax.synth import write_sequence
+    from dpc_jax.synth import is_rendered, write_sequence
 
     synth = config.synth_config(name)
-    record = data_root / "sequences" / name / "synth.json"
-    if record.is_file() and (data_root / "poses" / f"{name}.txt").is_file():
-        stored = json.loads(record.read_text()).get("config")
-        if stored == config_lib.to_dict(synth):
-            return False
+    if is_rendered(data_root, name, synth):
+        return False
     with progress_bar(synth.frames, f"render {name}", progress) as bar:
         write_sequence(data_root, name, synth, overwrite=True, on_frame=lambda: bar.update(1))
     return True

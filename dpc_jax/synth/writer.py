@@ -116,6 +116,20 @@ def write_sequence(out: Path | str, name: str, config: SynthConfig, overwrite: b
     return seq_dir
 
 
+def is_rendered(out: Path | str, name: str, config: SynthConfig) -> bool:
+    """Whether sequence ``name`` under ``out`` is a finished rendering of ``config``: its poses file (written
+    last) is there and its ``synth.json`` holds this configuration (a changed world is rendered again)."""
+    record = Path(out) / "sequences" / name / "synth.json"
+    if not (record.is_file() and (Path(out) / "poses" / f"{name}.txt").is_file()):
+        return False
+    try:
+        stored = json.loads(record.read_text()).get("config")
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError):
+        return False
+    # Through JSON, as it was stored: tuples become lists.
+    return bool(stored == json.loads(json.dumps(dataclasses.asdict(config))))
+
+
 def _sequence_names(sequences: int) -> list[str]:
     if sequences < 1:
         raise ValueError(f"sequences must be >= 1, got {sequences}")

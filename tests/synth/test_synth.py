@@ -157,6 +157,16 @@ def test_prepare_removes_a_disparity_offset(tmp_path: Path, static):
         np.testing.assert_array_equal(cache.left, static.left)
         errors.append(np.abs(cache.right.astype(float) - static.right)[inner].mean())
     assert errors[1] < 0.3 * errors[0]
+    # The sequence written is a rendering of its config, not of another; a missing poses file (written
+    # last) is an unfinished one.
+    from dpc_jax.synth import is_rendered
+
+    rendered = dataclasses.replace(BASE, disparity_offset=offset)
+    assert is_rendered(tmp_path / "kitti", "00", rendered)
+    assert not is_rendered(tmp_path / "kitti", "00", BASE)
+    assert not is_rendered(tmp_path / "kitti", "01", rendered)
+    (tmp_path / "kitti" / "poses" / "00.txt").unlink()
+    assert not is_rendered(tmp_path / "kitti", "00", rendered)
 
 
 def test_depth_is_exact_on_ground_and_facades():
