@@ -3,14 +3,15 @@
 :func:`write_vo_prior` writes the trajectory (KITTI pose text) and beside it a record ``NAME.json``:
 ``inputs`` (a hash of the sequence's files, the VO configuration and the first pose, as
 ``dpc_jax.data.cache.input_hash`` identifies a cache's inputs) and the run's
-``dpc_jax.vo.odometry.summary``. A later call with the same inputs reads the record instead of
-running the VO again; any change (other images, another VO configuration, a changed VO code
-version) runs it again.
+``dpc_jax.vo.odometry.summary`` and the SHA-256 of the trajectory file it describes. A later call with
+the same inputs and that very file reads the record instead of running the VO again; any change (other
+images, another VO configuration, a changed VO code version, the file edited) runs it again.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import os
 from pathlib import Path
@@ -52,11 +53,19 @@ def write_vo_prior(
             record = json.loads(record_path.read_text())
         except (UnicodeDecodeError, json.JSONDecodeError):
             record = {}
-        if record.get("inputs") == inputs:
+        # The trajectory the record describes: a file edited or replaced since is run again (a record
+        # of an earlier version, without the digest, is taken at its word).
+        written = record.get("sha256")
+        if record.get("inputs") == inputs and (written is None or written == _digest(path)):
             return {**record["summary"], "path": str(path)}
     result = run_vo(sequence, config, first_pose=start, progress=progress)
     counts = summary(result)
     path.parent.mkdir(parents=True, exist_ok=True)
     write_kitti_poses(path, result.poses)
-    atomic_write(record_path, json.dumps({"inputs": inputs, "summary": counts}, indent=2) + "\n")
+    atomic_write(record_path, json.dumps({"inputs": inputs, "sha256": _digest(path), "summary": counts},
+                                         indent=2) + "\n")
     return {**counts, "path": str(path)}
+
+
+def _digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()

@@ -433,3 +433,8 @@ def test_vo_prior_file_is_reused_until_its_inputs_change(
     cv2.imwrite(str(image), cv2.flip(cv2.imread(str(image)), 1))
     write_vo_prior(sequence, out, VOConfig(estimate_offset=False), first_pose=poses[0])
     assert out.stat().st_mtime_ns != stamp
+    # The trajectory file edited beside its record: run again, not taken for what the record describes.
+    made = out.read_bytes()
+    out.write_text(out.read_text().replace("0", "1", 1))
+    write_vo_prior(sequence, out, VOConfig(estimate_offset=False), first_pose=poses[0])
+    assert out.read_bytes() == made
