@@ -9,14 +9,16 @@ held-out test sequence is corrected behind the acceptance test (StereoSGBM depth
 resolution); the ground truth is read only to measure the cells.
 
 Commands (the grid: ×1, ×3, ×10 of libviso2-s's bias, N = 100, 300, 1,000 and 4,000, 64×96 and 120×188,
-on a 2-core CPU; two more worlds at N = 100 and 1,000; the 240×376 cells on a GPU machine; the first run's
-table includes the others' ``cells/`` with ``--include``):
+on a 2-core CPU; two more worlds at N = 100 and 1,000 that the rule of docs/method.md §8 chooses on, and a
+third that only checks its choice; the 240×376 cells on a GPU machine; the first run's table includes the
+others' ``cells/`` with ``--include``):
 
     python experiments/studies/detection_limit.py --workdir runs/detection_limit
     python experiments/studies/detection_limit.py --workdir runs/dl_w1 --profile worlds --world-seed 1
     python experiments/studies/detection_limit.py --workdir runs/dl_w2 --profile worlds --world-seed 2
+    python experiments/studies/detection_limit.py --workdir runs/dl_w3 --profile worlds --world-seed 3
     python experiments/studies/detection_limit.py --workdir runs/detection_limit --include runs/dl_w1 \\
-        --include runs/dl_w2 --results-page docs/results/detection_limit.md
+        --include runs/dl_w2 --include runs/dl_w3 --results-page docs/results/detection_limit.md
     python experiments/studies/detection_limit.py --workdir runs/detection_limit_gpu --profile gpu
     python experiments/studies/detection_limit.py --quick --workdir /tmp/dl_quick   # wiring, minutes
 
