@@ -5,6 +5,7 @@ or cell so that a rerun may reuse figures of another machine or commit and still
 from __future__ import annotations
 
 import datetime
+import functools
 import platform
 import subprocess
 import sys
@@ -19,9 +20,11 @@ from dpc_jax.runtime.versions import versions_line
 _DEVICE = "import jax; d = jax.devices()[0]; print(d.platform, d.device_kind)"
 
 
+@functools.cache
 def machine() -> str:
     """The CPU (``dpc_jax.runtime.machine.this_cpu``) and, when JAX runs on another device, its kind:
-    ``"AMD EPYC (family 25, model 17, AVX-512), 2 CPUs, NVIDIA H100 80GB HBM3"``."""
+    ``"AMD EPYC (family 25, model 17, AVX-512), 2 CPUs, NVIDIA H100 80GB HBM3"``. Asked once per process
+    (a Python process of its own, which starts JAX: more than a second)."""
     found = subprocess.run([sys.executable, "-c", _DEVICE], capture_output=True, text=True, check=False)
     platform_name, _, kind = found.stdout.strip().partition(" ")
     return this_cpu() + ("" if platform_name in ("cpu", "") else f", {kind}")
