@@ -31,7 +31,6 @@ from __future__ import annotations
 import hashlib
 import math
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -45,57 +44,12 @@ from dpc_jax.data.poses_io import validate_poses
 from dpc_jax.geometry.poses import invert_poses
 from dpc_jax.sources import bag_images, bag_poses
 from dpc_jax.sources.bag_calibration import calibration, info_topic
+from dpc_jax.sources.bag_reader import BagError, open_reader, read_messages
 from dpc_jax.sources.recording import BagOptions, Recording, Source
 
 # A mono16 camera whose values use this many bits or fewer is noted: its 8-bit images come out dark.
 LOW_BITS = 14
 TF_STATIC, TF_MOVING = "/tf_static", "/tf"
-
-
-class _Error(ValueError):
-    pass
-
-
-@contextmanager
-def _reader(path: Path) -> Iterator[Any]:
-    """An open ``rosbags`` reader of ``path``; whatever it raises becomes one line naming the recording."""
-    from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_typestore
-
-    try:
-        reader = AnyReader([path], default_typestore=get_typestore(Stores.LATEST))
-        reader.open()
-    except _Error:
-        raise
-    except Exception as error:  # rosbags' errors differ by format (truncated, no footer, not a bag)
-        if "end magic" in str(error):  # rosbags' words for an MCAP file without its footer
-            raise _Error(f"{path}: the MCAP file has no footer: the recording was cut short (its recorder "
-                         "did not close it); expected a complete file (`mcap recover` writes one)") from None
-        raise _Error(f"{path}: cannot read the recording ({_words(error)}); expected a ROS 1 .bag, a ROS 2 "
-                     "bag folder or an .mcap/.db3 file") from None
-    try:
-        yield reader
-    finally:
-        reader.close()
-
-
-def _words(error: BaseException) -> str:
-    text = " ".join(str(error).split()) or type(error).__name__
-    return text[:200]
-
-
-def _messages(reader: Any, path: Path, connections: list[Any]) -> Iterator[tuple[Any, int, Any]]:
-    """``(connection, message number on its topic, message)`` in the recording's order; a recording that
-    breaks off (truncated, no MCAP footer) is one line."""
-    numbers: dict[str, int] = {}
-    try:
-        for connection, _, raw in reader.messages(connections=connections):
-            number = numbers.get(connection.topic, 0)
-            numbers[connection.topic] = number + 1
-            yield connection, number, reader.deserialize(raw, connection.msgtype)
-    except Exception as error:  # rosbags' errors differ by format
-        raise _Error(f"{path}: the recording breaks off ({_words(error)}); expected a complete recording "
-                     "(was it cut short?)") from None
 
 
 def _stereo_names(left: str, right: str) -> bool:
@@ -112,26 +66,27 @@ def _image_topics(path: Path, topics: dict[str, str], options: BagOptions) -> tu
     listed = ", ".join(images) or "none"
     if options.left_topic is not None or options.right_topic is not None:
         if options.left_topic is None or options.right_topic is None:
-            raise _Error(f"{path}: --left-topic and --right-topic go together; its image topics: {listed}")
+            raise BagError(f"{path}: --left-topic and --right-topic go together; its image topics: {listed}")
         if options.left_topic == options.right_topic:
-            raise _Error(f"{path}: --left-topic and --right-topic are both {options.left_topic}; expected "
+            raise BagError(f"{path}: --left-topic and --right-topic are both {options.left_topic}; expected "
                          f"the two cameras' topics (its image topics: {listed})")
         for option, topic in (("--left-topic", options.left_topic), ("--right-topic", options.right_topic)):
             if topic not in topics:
-                raise _Error(f"{path}: {option} {topic}: no such topic; its image topics: {listed}")
+                raise BagError(f"{path}: {option} {topic}: no such topic; its image topics: {listed}")
             if topics[topic] not in bag_images.IMAGE_TYPES:
-                raise _Error(f"{path}: {option} {topic} is {topics[topic]}; expected sensor_msgs/Image or "
+                raise BagError(f"{path}: {option} {topic} is {topics[topic]}; expected sensor_msgs/Image or "
                              f"CompressedImage (its image topics: {listed})")
         return options.left_topic, options.right_topic
     if not images:
-        raise _Error(f"{path}: no image topic (sensor_msgs/Image or CompressedImage); its topics: "
+        raise BagError(f"{path}: no image topic (sensor_msgs/Image or CompressedImage); its topics: "
                      f"{', '.join(sorted(topics)) or 'none'}")
     if len(images) == 1:
-        raise _Error(f"{path}: one camera only ({images[0]}); expected the two image topics of a stereo pair")
+        raise BagError(f"{path}: one camera only ({images[0]}); expected the two image topics of a stereo "
+                       "pair")
     pairs = [(a, b) for a in images for b in images if _stereo_names(a, b)]
     if len(pairs) != 1:
         found = "no stereo pair" if not pairs else f"{len(pairs)} stereo pairs"
-        raise _Error(f"{path}: {found} among its image topics ({listed}); pass --left-topic and "
+        raise BagError(f"{path}: {found} among its image topics ({listed}); pass --left-topic and "
                      "--right-topic")
     return pairs[0]
 
@@ -165,7 +120,7 @@ def _increasing(path: Path, camera: _Camera) -> np.ndarray:
     back = np.flatnonzero(np.diff(stamps) <= 0)
     if back.size:
         i = int(back[0]) + 1
-        raise _Error(f"{path}: {camera.topic}: the header stamp of image {i} ({stamps[i] / 1e9:.9f} s) "
+        raise BagError(f"{path}: {camera.topic}: the header stamp of image {i} ({stamps[i] / 1e9:.9f} s) "
                      f"{'repeats' if stamps[i] == stamps[i - 1] else 'goes back from'} image {i - 1}'s "
                      f"({stamps[i - 1] / 1e9:.9f} s); expected increasing stamps")
     return stamps
@@ -183,25 +138,25 @@ def _pose_topic(
         body = body or camera_frame
         samples = [s for s in samples if s.child == body]
         if not samples:
-            raise _Error(f"{path}: {option} {topic}: no transform to frame {body!r}; pass --pose-frame "
+            raise BagError(f"{path}: {option} {topic}: no transform to frame {body!r}; pass --pose-frame "
                          "FRAME to name the frame whose transforms are the poses")
     where = f"{path}: {option} {topic}"
     if not samples:
-        raise _Error(f"{where}: no pose; expected one per frame")
+        raise BagError(f"{where}: no pose; expected one per frame")
     body = body or samples[0].child
     if body is None:
-        raise _Error(f"{where}: {msgtype} names no frame for its poses; pass --pose-frame {camera_frame} if "
-                     "they are the left camera's poses (or the frame /tf_static and /tf link to it)")
+        raise BagError(f"{where}: {msgtype} names no frame for its poses; pass --pose-frame {camera_frame} "
+                       "if they are the left camera's poses (or the frame /tf_static and /tf link to it)")
     link = bag_poses.link(static, moving, body, camera_frame, stamps, tolerance_ns, where)
     if link is None:
-        raise _Error(f"{where}: poses of frame {body!r}, images of frame {camera_frame!r}, and neither "
+        raise BagError(f"{where}: poses of frame {body!r}, images of frame {camera_frame!r}, and neither "
                      f"{TF_STATIC} nor {TF_MOVING} links them; pass --pose-frame {camera_frame} if the two "
                      "coincide")
     order = np.argsort([s.stamp for s in samples], kind="stable")
     pose_stamps = np.asarray([samples[i].stamp for i in order], np.int64)
     nearest, k = bag_poses.nearest_within(pose_stamps, stamps, tolerance_ns)
     if k is not None:
-        raise _Error(f"{where}: no pose within {tolerance_ns / 1e6:g} ms of frame {k} (stamp "
+        raise BagError(f"{where}: no pose within {tolerance_ns / 1e6:g} ms of frame {k} (stamp "
                      f"{stamps[k] / 1e9:.9f} s); the topic holds {pose_stamps.size} poses for {stamps.size} "
                      "frames, expected one per frame")
     # Two frames taking one pose (a pose missing, a tolerance wider than half the frame interval) would
@@ -209,7 +164,7 @@ def _pose_topic(
     shared = np.flatnonzero(np.diff(nearest) == 0)
     if shared.size:
         k = int(shared[0])
-        raise _Error(f"{where}: frames {k} and {k + 1} both take the pose stamped "
+        raise BagError(f"{where}: frames {k} and {k + 1} both take the pose stamped "
                      f"{pose_stamps[nearest[k]] / 1e9:.9f} s (the nearest within {tolerance_ns / 1e6:g} ms); "
                      "expected a pose per frame (is one missing, or --stamp-tolerance wider than half the "
                      "frame interval?)")
@@ -227,9 +182,9 @@ def open_bag(options: BagOptions) -> Recording:
     """Open a recording (module docstring); ``ValueError`` of one line for every problem."""
     path = options.path
     if not math.isfinite(options.tolerance) or options.tolerance <= 0:
-        raise _Error(f"--stamp-tolerance {options.tolerance}: expected a positive number of seconds")
+        raise BagError(f"--stamp-tolerance {options.tolerance}: expected a positive number of seconds")
     tolerance_ns = round(options.tolerance * 1e9)
-    with _reader(path) as reader:
+    with open_reader(path) as reader:
         topics = {c.topic: c.msgtype for c in reader.connections}
         left_topic, right_topic = _image_topics(path, topics, options)
         cameras = (_Camera(left_topic, []), _Camera(right_topic, []))
@@ -244,7 +199,7 @@ def open_bag(options: BagOptions) -> Recording:
             if topics.get(topic) not in bag_poses.POSE_TYPES:
                 listed = ", ".join(sorted(t for t, kind in topics.items() if kind in bag_poses.POSE_TYPES))
                 what = "no such topic" if topic not in topics else f"a {topics[topic]} topic"
-                raise _Error(f"{path}: {option} {topic}: {what}; expected nav_msgs/Odometry, PoseStamped, "
+                raise BagError(f"{path}: {option} {topic}: {what}; expected nav_msgs/Odometry, PoseStamped, "
                              f"PoseWithCovarianceStamped or /tf (its pose topics: {listed or 'none'})")
             pose_topics[option] = topic
         wanted = {left_topic, right_topic, *pose_topics.values(),
@@ -255,7 +210,7 @@ def open_bag(options: BagOptions) -> Recording:
         static: dict[bag_poses.Edge, np.ndarray] = {}
         moving: dict[bag_poses.Edge, list[tuple[int, np.ndarray]]] = {}
         connections = [c for c in reader.connections if c.topic in wanted]
-        for connection, number, msg in _messages(reader, path, connections):
+        for connection, number, msg in read_messages(reader, path, connections):
             topic, msgtype = connection.topic, connection.msgtype
             camera = by_topic.get(topic)
             if camera is not None:
@@ -273,7 +228,7 @@ def open_bag(options: BagOptions) -> Recording:
                     moving.setdefault((s.parent, s.child or ""), []).append((s.stamp, s.matrix))
     for camera in cameras:
         if not camera.stamps:
-            raise _Error(f"{path}: {camera.topic}: no image; expected the images of one camera of the pair")
+            raise BagError(f"{path}: {camera.topic}: no image; expected the images of one camera of the pair")
     notes: list[str] = []
     for camera in cameras:
         assert camera.first is not None  # it has images
@@ -286,7 +241,7 @@ def open_bag(options: BagOptions) -> Recording:
     size = cameras[0].size or _first_size(path, cameras[0])
     right_size = cameras[1].size or _first_size(path, cameras[1])
     if right_size != size:
-        raise _Error(f"{path}: {right_topic} holds {right_size[0]}x{right_size[1]} images, {left_topic} "
+        raise BagError(f"{path}: {right_topic} holds {right_size[0]}x{right_size[1]} images, {left_topic} "
                      f"{size[0]}x{size[1]}; expected one size for both cameras")
     pairs = _pairs(left_stamps, right_stamps, tolerance_ns)
     skipped = (left_stamps.size - pairs.shape[0], right_stamps.size - pairs.shape[0])
@@ -294,7 +249,7 @@ def open_bag(options: BagOptions) -> Recording:
         notes.append(f"{path}: {skipped[0]} left and {skipped[1]} right images without a partner within "
                      f"{tolerance_ns / 1e6:g} ms skipped ({pairs.shape[0]} stereo frames)")
     if pairs.shape[0] < 2:
-        raise _Error(f"{path}: {pairs.shape[0]} stereo frames of {left_topic} and {right_topic} within "
+        raise BagError(f"{path}: {pairs.shape[0]} stereo frames of {left_topic} and {right_topic} within "
                      f"{tolerance_ns / 1e6:g} ms of each other; expected at least 2 (--stamp-tolerance)")
     K, baseline, maps, calib_files = calibration(path, infos, (left_topic, right_topic), size,
                                                  options.calib, notes)
@@ -339,7 +294,7 @@ def _index_image(path: Path, camera: _Camera, number: int, msgtype: str, msg: An
     where = f"{path}: {camera.topic}"
     problem = bag_images.encoding_problem(msgtype, msg)
     if problem is not None:
-        raise _Error(f"{where}: image {number} has {problem}")
+        raise BagError(f"{where}: image {number} has {problem}")
     camera.stamps.append(bag_poses.stamp_ns(msg.header))
     if number == 0:
         camera.frame_id = msg.header.frame_id
@@ -349,7 +304,7 @@ def _index_image(path: Path, camera: _Camera, number: int, msgtype: str, msg: An
         if camera.size is None:
             camera.size = size
         elif size != camera.size:
-            raise _Error(f"{where}: image {number} is {size[0]}x{size[1]}, image 0 {camera.size[0]}x"
+            raise BagError(f"{where}: image {number} is {size[0]}x{size[1]}, image 0 {camera.size[0]}x"
                          f"{camera.size[1]}; expected images of one size")
 
 
@@ -389,9 +344,9 @@ class BagFrames:
         needed = ({int(n) for n in wanted[:, 0]}, {int(n) for n in wanted[:, 1]})
         held: dict[tuple[int, int], tuple[str, Any]] = {}
         j = 0
-        with _reader(self.path) as reader:
+        with open_reader(self.path) as reader:
             connections = [c for c in reader.connections if c.topic in self.topics]
-            for connection, number, msg in _messages(reader, self.path, connections):
+            for connection, number, msg in read_messages(reader, self.path, connections):
                 side = self.topics.index(connection.topic)
                 if number in needed[side]:
                     held[(side, number)] = (connection.msgtype, msg)
@@ -401,8 +356,8 @@ class BagFrames:
                     j += 1
                 if j == len(chosen):
                     return
-        raise _Error(f"{self.path}: the recording holds fewer images than its index said (frame {chosen[j]} "
-                     "missing); was it changed while read?")
+        raise BagError(f"{self.path}: the recording holds fewer images than its index said (frame "
+                       f"{chosen[j]} missing); was it changed while read?")
 
     def _frame(
         self, index: int, left: tuple[str, Any], right: tuple[str, Any], size: tuple[int, int]
@@ -448,18 +403,18 @@ def read_pose_topic(path: Path, topic: str) -> tuple[np.ndarray, np.ndarray]:
     a recording, by header stamp: ``(times [N] s, poses [N, 4, 4])``, as a timed trajectory file gives
     them (``dpc-jax evaluate``); ``ValueError`` of one line naming the recording and the topic."""
     kinds = (bag_poses.ODOMETRY, bag_poses.POSE, bag_poses.POSE_COVARIANCE)
-    with _reader(path) as reader:
+    with open_reader(path) as reader:
         topics = {c.topic: c.msgtype for c in reader.connections}
         if topics.get(topic) not in kinds:
             listed = ", ".join(sorted(t for t, kind in topics.items() if kind in kinds)) or "none"
             what = "no such topic" if topic not in topics else f"a {topics[topic]} topic"
-            raise _Error(f"{path}: {topic}: {what}; expected nav_msgs/Odometry, PoseStamped or "
+            raise BagError(f"{path}: {topic}: {what}; expected nav_msgs/Odometry, PoseStamped or "
                          f"PoseWithCovarianceStamped (its pose topics: {listed})")
         connections = [c for c in reader.connections if c.topic == topic]
-        samples = [s for _, _, msg in _messages(reader, path, connections)
+        samples = [s for _, _, msg in read_messages(reader, path, connections)
                    for s in bag_poses.samples(topics[topic], msg, f"{path}: {topic}")]
     if len(samples) < 2:
-        raise _Error(f"{path}: {topic}: {len(samples)} pose; expected a trajectory of at least 2")
+        raise BagError(f"{path}: {topic}: {len(samples)} pose; expected a trajectory of at least 2")
     order = np.argsort([s.stamp for s in samples], kind="stable")
     stamps = np.asarray([samples[i].stamp for i in order], np.int64)
     poses = validate_poses(np.stack([samples[i].matrix for i in order]), f"{path}: {topic}")
