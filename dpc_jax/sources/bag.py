@@ -103,7 +103,7 @@ class _Camera:
 
 
 def _pairs(left: np.ndarray, right: np.ndarray, tolerance_ns: int) -> np.ndarray:
-    """int64 ``[N, 2]`` message numbers of the left and right images paired by nearest stamp: mutual
+    """int64 ``[N, 2]`` indices into ``left`` and ``right`` of the images paired by nearest stamp: mutual
     nearest neighbours within ``tolerance_ns`` (both stamp arrays increasing)."""
     if left.size == 0 or right.size == 0:
         return np.zeros((0, 2), np.int64)
@@ -115,15 +115,25 @@ def _pairs(left: np.ndarray, right: np.ndarray, tolerance_ns: int) -> np.ndarray
     return np.stack([k[keep], to_right[keep]], axis=1).astype(np.int64)
 
 
-def _increasing(path: Path, camera: _Camera) -> np.ndarray:
+def _increasing(path: Path, camera: _Camera, notes: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """The message numbers and header stamps (ns) of ``camera``'s images, increasing: an image whose stamp
+    repeats the one before it is dropped, with a note (a driver that publishes a frame twice, or stamps two
+    frames alike, gives no motion to pair it with); a stamp that goes back is one error line."""
     stamps = np.asarray(camera.stamps, np.int64)
-    back = np.flatnonzero(np.diff(stamps) <= 0)
+    back = np.flatnonzero(np.diff(stamps) < 0)
     if back.size:
         i = int(back[0]) + 1
         raise BagError(f"{path}: {camera.topic}: the header stamp of image {i} ({stamps[i] / 1e9:.9f} s) "
-                     f"{'repeats' if stamps[i] == stamps[i - 1] else 'goes back from'} image {i - 1}'s "
-                     f"({stamps[i - 1] / 1e9:.9f} s); expected increasing stamps")
-    return stamps
+                       f"goes back from image {i - 1}'s ({stamps[i - 1] / 1e9:.9f} s); expected increasing "
+                       "stamps")
+    repeats = np.flatnonzero(np.diff(stamps) == 0) + 1
+    if repeats.size:
+        i = int(repeats[0])
+        notes.append(f"{path}: {camera.topic}: {repeats.size} image(s) repeat the header stamp of the image "
+                     f"before them (the first: image {i} at {stamps[i] / 1e9:.9f} s); the first image of "
+                     "each stamp is kept")
+    numbers = np.delete(np.arange(stamps.size, dtype=np.int64), repeats)
+    return numbers, stamps[numbers]
 
 
 def _pose_topic(
@@ -237,13 +247,14 @@ def open_bag(options: BagOptions) -> Recording:
             notes.append(f"{path}: {camera.topic}: the mono16 values of its first image use {bits} bits, and "
                          "8-bit images keep the high byte, so they come out dark; shift the data to the high "
                          "bits")
-    left_stamps, right_stamps = (_increasing(path, camera) for camera in cameras)
+    (left_numbers, left_stamps), (right_numbers, right_stamps) = (_increasing(path, camera, notes)
+                                                                  for camera in cameras)
     size = cameras[0].size or _first_size(path, cameras[0])
     right_size = cameras[1].size or _first_size(path, cameras[1])
     if right_size != size:
         raise BagError(f"{path}: {right_topic} holds {right_size[0]}x{right_size[1]} images, {left_topic} "
                      f"{size[0]}x{size[1]}; expected one size for both cameras")
-    pairs = _pairs(left_stamps, right_stamps, tolerance_ns)
+    pairs = _pairs(left_stamps, right_stamps, tolerance_ns)  # into the kept images
     skipped = (left_stamps.size - pairs.shape[0], right_stamps.size - pairs.shape[0])
     if any(skipped):
         notes.append(f"{path}: {skipped[0]} left and {skipped[1]} right images without a partner within "
@@ -270,7 +281,8 @@ def open_bag(options: BagOptions) -> Recording:
                          "optical frame (z forward, x right, y down)?")
     pair_stamps = np.stack([stamps, right_stamps[pairs[:, 1]]], axis=1)
     gt = poses.get("--gt-topic")
-    frames = BagFrames(path, (left_topic, right_topic), pairs, pair_stamps, maps,
+    numbers = np.stack([left_numbers[pairs[:, 0]], right_numbers[pairs[:, 1]]], axis=1)
+    frames = BagFrames(path, (left_topic, right_topic), numbers, pair_stamps, maps,
                        "" if gt is None else hashlib.sha256(np.ascontiguousarray(gt).tobytes()).hexdigest())
     name = path.stem if path.is_file() else path.name
     sequence = StereoSequence(name=name, images=frames, K=K, baseline=baseline, image_size=size,

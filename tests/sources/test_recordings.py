@@ -23,6 +23,7 @@ from dpc_jax.data.frames import png_grey
 from dpc_jax.data.kitti import open_odometry, read_ground_truth
 from dpc_jax.sources import BagOptions
 from dpc_jax.sources.bag import open_bag
+from dpc_jax.sources.bag_reader import BagError
 
 SUFFIX = {"ros1": ".bag", "mcap": ".mcap", "sqlite3": "", "mcap-folder": ""}
 
@@ -182,6 +183,45 @@ def test_left_and_right_pair_by_stamp_and_the_unpaired_are_counted(tmp_path: Pat
         np.testing.assert_array_equal(right, images[k])
     tight = open_bag(BagOptions(path, tolerance=0.0018))  # frames 0, 3 and 5 are 2 ms or more apart
     assert len(tight.sequence) == 2
+
+
+def test_a_repeated_stamp_keeps_the_first_image_and_a_stamp_going_back_is_refused(tmp_path: Path) -> None:
+    """Frame 1's left image published twice (a second, different image under the same stamp) and frame 3's
+    right image too: each second image is dropped with a note, every frame pairs the first images; an image
+    stamped before the one it follows stops the reading with one line naming it."""
+    images = np.random.default_rng(4).integers(0, 256, (5, 20, 32, 3), dtype=np.uint8)
+
+    def frame(bag: Bag, k: int, stamp: int) -> None:
+        for topic in ("/left/image", "/right/image"):
+            bag.write(topic, stamp, bag.image(stamp, "cam", images[k], "rgb8"))
+            if (topic, k) in (("/left/image", 1), ("/right/image", 3)):
+                bag.write(topic, stamp, bag.image(stamp, "cam", 255 - images[k], "rgb8"))
+
+    path = _one_camera_pair(tmp_path, "repeats", "mcap", frame, n=5)
+    recording = open_bag(BagOptions(path))
+    assert recording.notes == tuple(
+        f"{path}: {topic}: 1 image(s) repeat the header stamp of the image before them (the first: image "
+        f"{number} at {at / 1e9:.9f} s); the first image of each stamp is kept"
+        for topic, number, at in zip(("/left/image", "/right/image"), (2, 4), stamps_of([0.1, 0.3]),
+                                     strict=True))
+    sequence = recording.sequence
+    np.testing.assert_allclose(sequence.times, np.arange(5) * 0.1)
+    for k, read in enumerate(sequence.images.stream(sequence.image_size)):
+        left, right = read.decode()
+        np.testing.assert_array_equal(left, images[k])
+        np.testing.assert_array_equal(right, images[k])
+
+    def back(bag: Bag, k: int, stamp: int) -> None:
+        for topic in ("/left/image", "/right/image"):
+            at = stamp - 150_000_000 if (topic, k) == ("/left/image", 2) else stamp  # before frame 1's
+            bag.write(topic, stamp, bag.image(at, "cam", images[k], "rgb8"))
+
+    path = _one_camera_pair(tmp_path, "back", "mcap", back, n=3)
+    with pytest.raises(BagError) as refused:
+        open_bag(BagOptions(path))
+    early, first = (at / 1e9 for at in stamps_of([0.05, 0.1]))
+    assert str(refused.value) == (f"{path}: /left/image: the header stamp of image 2 ({early:.9f} s) goes "
+                                  f"back from image 1's ({first:.9f} s); expected increasing stamps")
 
 
 def test_distorted_cameras_are_rectified_as_opencv_undistorts(tmp_path: Path) -> None:
