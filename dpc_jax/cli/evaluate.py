@@ -9,10 +9,18 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from dpc_jax._io import foreign_files_problem, is_stdout, output_problem, overlap_problem, stdout_problem
+from dpc_jax._io import (
+    InputWarning,
+    foreign_files_problem,
+    is_stdout,
+    output_problem,
+    overlap_problem,
+    stdout_problem,
+)
 from dpc_jax.cli._common import Formatter, file_path_text, import_jax, input_problem, path_option
 from dpc_jax.data.poses_io import FORMATS
 
@@ -126,10 +134,12 @@ def _format(path: Path, given: str | None) -> str:
 
 
 def _read(
-    path: Path, given: str | None, mat_key: str = "poses_est", *, timed: bool = True
+    path: Path, given: str | None, mat_key: str = "poses_est", *, timed: bool = True,
+    frames: dict[str, str] | None = None,
 ) -> tuple[np.ndarray | None, np.ndarray]:
     """``(times or None, poses)`` of a trajectory argument (a file, or ``REC:TOPIC``); not ``timed``: to be
-    paired by order (a TUM file's jumps in time warn)."""
+    paired by order (a TUM file's jumps in time warn). ``frames`` gains, for a topic whose messages name
+    it, the frame its poses are of."""
     from dpc_jax.data.poses_io import read_timed_trajectory, read_trajectory
 
     topic = _topic(path)
@@ -139,7 +149,20 @@ def _read(
         return read_timed_trajectory(path, given, mat_key=mat_key)
     from dpc_jax.sources.bag import read_pose_topic
 
-    return read_pose_topic(*topic)
+    times, poses, frame = read_pose_topic(*topic)
+    if frames is not None and frame is not None:
+        frames[str(path)] = frame
+    return times, poses
+
+
+def _warn_of_frames(frames: dict[str, str]) -> None:
+    """Topics are compared as recorded (no ``/tf``): a warning when they hold the poses of other frames,
+    whose relative errors would mix the two frames' motions."""
+    if len(set(frames.values())) > 1:
+        listed = ", ".join(f"{path} of {frame!r}" for path, frame in frames.items())
+        warnings.warn(f"the trajectories are the poses of different frames ({listed}); evaluate compares "
+                      "them as recorded, without /tf, so their relative errors mix the frames' motions",
+                      InputWarning, stacklevel=2)
 
 
 def _inputs(
@@ -188,18 +211,22 @@ def _inputs(
         untimed = next(path for path in files if _format(path, args.format) not in ("tum", "topic"))
         raise ValueError(f"{', '.join(timing)}: pairing by time needs times in every file, and {untimed} "
                          "has none (a KITTI or .mat trajectory is paired by order)")
+    frames: dict[str, str] = {}
     if not timed:
-        gt = _read(args.gt, args.format, mat_key="poses_gt", timed=False)[1]
-        estimates = {label: _read(path, args.format, timed=False)[1]
+        gt = _read(args.gt, args.format, mat_key="poses_gt", timed=False, frames=frames)[1]
+        estimates = {label: _read(path, args.format, timed=False, frames=frames)[1]
                      for label, path in zip(labels, args.est, strict=True)}
+        _warn_of_frames(frames)
         for path, est in zip(args.est, estimates.values(), strict=True):
             if est.shape[0] != gt.shape[0]:
                 raise ValueError(
                     f"{path} has {est.shape[0]} poses but the ground truth {args.gt} has {gt.shape[0]}"
                 )
         return gt, estimates, None
-    gt_times, gt = _read(args.gt, args.format, mat_key="poses_gt")
-    read = {label: _read(path, args.format) for label, path in zip(labels, args.est, strict=True)}
+    gt_times, gt = _read(args.gt, args.format, mat_key="poses_gt", frames=frames)
+    read = {label: _read(path, args.format, frames=frames)
+            for label, path in zip(labels, args.est, strict=True)}
+    _warn_of_frames(frames)
     # Every file is TUM here, so every one has its times.
     assert gt_times is not None and all(stamps is not None for stamps, _ in read.values())
     times = {label: stamps for label, (stamps, _) in read.items() if stamps is not None}

@@ -410,10 +410,12 @@ class BagFrames:
                 "right_images": f"{self.path.resolve()} {self.topics[1]}"}
 
 
-def read_pose_topic(path: Path, topic: str) -> tuple[np.ndarray, np.ndarray]:
+def read_pose_topic(path: Path, topic: str) -> tuple[np.ndarray, np.ndarray, str | None]:
     """Every pose of ``topic`` (``nav_msgs/Odometry``, ``PoseStamped``, ``PoseWithCovarianceStamped``) in
-    a recording, by header stamp: ``(times [N] s, poses [N, 4, 4])``, as a timed trajectory file gives
-    them (``dpc-jax evaluate``); ``ValueError`` of one line naming the recording and the topic."""
+    a recording, by header stamp: ``(times [N] s, poses [N, 4, 4], frame)``, as a timed trajectory file
+    gives them (``dpc-jax evaluate``), ``frame`` the frame they are the poses of (an odometry's first
+    ``child_frame_id``; None where the messages name none); ``ValueError`` of one line naming the
+    recording and the topic."""
     kinds = (bag_poses.ODOMETRY, bag_poses.POSE, bag_poses.POSE_COVARIANCE)
     with open_reader(path) as reader:
         topics = {c.topic: c.msgtype for c in reader.connections}
@@ -430,4 +432,4 @@ def read_pose_topic(path: Path, topic: str) -> tuple[np.ndarray, np.ndarray]:
     order = np.argsort([s.stamp for s in samples], kind="stable")
     stamps = np.asarray([samples[i].stamp for i in order], np.int64)
     poses = validate_poses(np.stack([samples[i].matrix for i in order]), f"{path}: {topic}")
-    return stamps / 1e9, poses
+    return stamps / 1e9, poses, samples[0].child or None

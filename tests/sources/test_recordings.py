@@ -439,7 +439,8 @@ def test_evaluate_reads_trajectories_from_pose_topics_paired_by_stamp(
 ) -> None:
     """`evaluate --gt REC:TOPIC --est REC:TOPIC`: the metrics of the same poses as KITTI text files, with the
     estimate's poses stamped 3 ms after the frames (paired by stamp within evo's 10 ms) and one extra pose
-    between frames that pairs with none."""
+    between frames that pairs with none; a ground truth of another frame (``base_link``) warns that the
+    topics are compared as recorded."""
     import json
 
     from dpc_jax.data.poses_io import write_kitti_poses
@@ -450,6 +451,7 @@ def test_evaluate_reads_trajectories_from_pose_topics_paired_by_stamp(
 
     def poses(bag: Bag, k: int, stamp: int) -> None:
         bag.write("/gt", stamp, bag.odometry(stamp, "odom", CAMERA_FRAME, gt[k]))
+        bag.write("/base", stamp, bag.odometry(stamp, "odom", "base_link", gt[k]))
         bag.write("/est", stamp + 3_000_000, bag.odometry(stamp + 3_000_000, "odom", CAMERA_FRAME, est[k]))
         if k == 2:
             alone = stamp + 50_000_000
@@ -458,18 +460,25 @@ def test_evaluate_reads_trajectories_from_pose_topics_paired_by_stamp(
     path = write_recording(tmp_path / "poses.bag", kitti["random"], kind="ros1", frames=poses)
     write_kitti_poses(tmp_path / "gt.txt", gt)
     write_kitti_poses(tmp_path / "est.txt", est)
-    results = []
-    for pair in ((f"{path}:/gt", f"{path}:/est"), (tmp_path / "gt.txt", tmp_path / "est.txt")):
+    results, errors = [], []
+    for pair in ((f"{path}:/gt", f"{path}:/est"), (tmp_path / "gt.txt", tmp_path / "est.txt"),
+                 (f"{path}:/base", f"{path}:/est")):
         argv = ["evaluate", "--gt", str(pair[0]), "--est", str(pair[1]), "--label", "est", "--json", "-"]
         assert main(argv) == 0
-        results.append(json.loads(capsys.readouterr().out))
-    topics, files = (result["estimates"]["est"] for result in results)
+        out, err = capsys.readouterr()
+        results.append(json.loads(out))
+        errors.append(err)
+    topics, files, base = (result["estimates"]["est"] for result in results)
     assert sum(isinstance(value, float) for value in files.values()) >= 4, files
     for key, value in files.items():
         if isinstance(value, float):
             assert topics[key] == pytest.approx(value, rel=1e-9, abs=1e-12), key
+            assert base[key] == topics[key], key
+    assert "different frames" not in errors[0] + errors[1]
+    assert errors[2].count("\n") == 1 and (f"different frames ({path}:/base of 'base_link', {path}:/est of "
+                                            f"'{CAMERA_FRAME}')") in errors[2], errors[2]
     _fails(capsys, ["evaluate", "--gt", f"{path}:/nowhere", "--est", f"{path}:/est"], str(path),
-           "/nowhere: no such topic", "its pose topics: /est, /gt")
+           "/nowhere: no such topic", "its pose topics: /base, /est, /gt")
 
 
 # --------------------------------------------------------------------------- bad recordings
