@@ -234,7 +234,8 @@ def test_the_means_own_level() -> None:
     p = stats.wilcoxon(differences, alternative="less").pvalue
     assert 0.01 < p < 0.05
     xi = BIAS + rotations(200, 1.0, 0)
-    today = decide(xi, tabled(WHOLE, differences), components=("rotation",))
+    today = decide(xi, tabled(WHOLE, differences), components=("rotation",),
+                   mean=MEAN_TESTS["mean-at-network"])
     assert today.remainder and today.tests["mean of rotation"].p_value == pytest.approx(p, rel=1e-12)
     apart = decide(xi, tabled(WHOLE, differences), components=("rotation",),
                    mean=MEAN_TESTS["mean-at-judge-a05"])  # no judge: at the network's size, at 0.05
@@ -269,7 +270,8 @@ def test_the_mean_at_the_judges_size() -> None:
     truth = BIAS + rotations(200, 1.0, 0)
     proposal = truth + rotations(200, 0.1, 1)
     network, judge = bowl(truth - BIAS), bowl(truth)
-    today = decide(proposal, network, components=("rotation",), judge=judge)
+    today = decide(proposal, network, components=("rotation",), judge=judge,
+                   mean=MEAN_TESTS["mean-at-network"])
     assert today.remainder and not today.tests["mean of rotation"].passed, today.reason
     assert "mean of rotation (judge)" not in today.tests
     at_judge = decide(proposal, network, components=("rotation",), judge=judge,

@@ -82,7 +82,7 @@ def test_every_decision_is_the_same_network_decided_again_by_it(planted, decided
     default's equals the protocol's own final, and the options that test the mean at the judge's size
     apply the whole rotation where the one testing it at the network's size applies its remainder."""
     from dpc_jax.correction.corrector import correct_sequence, decided_again
-    from dpc_jax.correction.decision import MEAN_TESTS
+    from dpc_jax.correction.decision import DEFAULT_MEAN_TEST, MEAN_TESTS
     from dpc_jax.correction.inference import load_run
 
     result = decided
@@ -97,10 +97,12 @@ def test_every_decision_is_the_same_network_decided_again_by_it(planted, decided
         assert result.decided[name].metrics == again.evaluation.estimates["corrected"], name
         assert result.decided[name].applied == f"trained ({again.acceptance.part})", name
     applied = {name: final.applied for name, final in result.decided.items()}
-    assert applied["mean-at-network"] == result.applied == "trained (rotation − mean)"
-    assert result.decided["mean-at-network"].metrics == result.metrics["corrected"]
+    assert applied["mean-at-network"] == "trained (rotation − mean)"
     assert {applied[n] for n in DECISIONS if n != "mean-at-network"} == {"trained (rotation)"}
-    assert result.decided["mean-at-judge"].metrics != result.metrics["corrected"]
+    assert result.decided["mean-at-judge"].metrics != result.decided["mean-at-network"].metrics
+    # The protocol's own final is the default decision's.
+    assert result.applied == applied[DEFAULT_MEAN_TEST]
+    assert result.decided[DEFAULT_MEAN_TEST].metrics == result.metrics["corrected"]
     # Without the acceptance test every decision is the same forced one: none is made.
     forced = dpc_protocol.ExperimentProtocol(select="delta", rotation_only=True, acceptance=False,
                                              decisions=DECISIONS)
