@@ -143,7 +143,8 @@ def markdown(cells: Sequence[dict[str, Any]], reference: dict[str, Any], paper_p
         f"both. Removed: 1 − after / prior of the mean per-axis rotation error per step (axis) and of the "
         f"rotational segment error (seg.), mean over the {len(cells[0]['tests']) if cells else 0} held-out "
         f"test sequences; network = the proposal applied whatever its tests said; final = behind the "
-        f"acceptance tests, the correction's mean tested on its own; earlier decision = the same proposal "
+        f"acceptance tests at the network's size (no judge), the correction's mean tested on its own there "
+        f"(mean-at-network); earlier decision = the same proposal "
         f"behind the earlier tests (the mean not tested apart). Applied: what the tests let through "
         f"(`− mean`: without its mean), with the p of the whole rotation, of its mean and of its remainder "
         f"(– where not tested). Steps: the optimizer steps the network trained for (matched: a small N "
@@ -159,7 +160,8 @@ def markdown(cells: Sequence[dict[str, Any]], reference: dict[str, Any], paper_p
         f"{TOLERANCE_PCT:g} %; "
         f"with the earlier decision {worst['earlier_r_change_pct']:+.2f} % and "
         f"{worst['earlier_mate_r_change_pct']:+.2f} %.", "",
-        "Where the earlier decision removed half the bias or more and the mean test refused the mean:",
+        "Where the earlier decision removed half the bias or more and the final's mean test (at the "
+        "network's size) refused the mean:",
         *(refused or ["- nowhere."]), "",
         f"The default decision ({DEFAULT_MEAN_TEST}; with the judge where the option decided the cell): "
         f"libviso2-s's bias (×1) removed by ≥ {100 * FOUND:.0f} % (axis) at the smallest N of pairs:",
