@@ -148,10 +148,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     atomic_write(workdir / "detection_limit.csv",
                  csv_text((*CSV_COLUMNS, *OPTION_COLUMNS), long_rows(tabulated)))
     figure(tabulated, reference, workdir / "detection_limit.png")
-    if args.results_page is not None:
-        # The page links the figure by the same name, beside it.
-        figure(tabulated, reference, args.results_page.with_name("detection_limit.png"))
     publish(text, args.results_page, __file__)
+    if args.results_page is not None:
+        # The page links the figure by the same name, beside it; written after the page, whose stamp
+        # would otherwise call a clean checkout dirty.
+        figure(tabulated, reference, args.results_page.with_name("detection_limit.png"))
     return 0
 
 
