@@ -245,8 +245,9 @@ def figure(cells: Sequence[dict[str, Any]], reference: dict[str, Any], path: Pat
         ax.set_xscale("log")
         if ax.get_legend_handles_labels()[0]:  # a grid with one N draws no curve on the right
             ax.legend(fontsize=7)
-    left.set_xlabel(f"training pairs N (line: the default decision, {DEFAULT_MEAN_TEST}; x: the network's "
-                    "proposal; *: the default with N = 1,000's steps)")
+    # Two lines: on one the label runs under the right panel's.
+    left.set_xlabel(f"training pairs N\nline: the default decision, {DEFAULT_MEAN_TEST}; x: the network's "
+                    "proposal; *: the default with N = 1,000's steps", fontsize=8)
     right.set_xlabel("planted bias (mrad per step); grey: libviso2-s on KITTI 00–10")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
