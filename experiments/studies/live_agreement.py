@@ -72,10 +72,10 @@ def cases(demo: Path, drives: Path, raw: Path) -> list[dict[str, Any]]:
             out.append({"name": f"drive {drive}, {prior} prior, network of drive {other}'s {trained_on}",
                         "run": drives / "runs" / f"train{other}_{trained_on}", "sequence": sequence,
                         "prior": priors[prior], "gt": gt, "rotation_only": True,
-                        "offset": offset(drives / "cache" / f"{drive}_{prior}" / "manifest.json")})
+                        "offset": offset(drives / "cache" / f"{drive}_{prior}")})
         out.append({"name": f"drive {drive}, libviso2 prior, demo network (synthetic)", "run": demo / "run",
                     "sequence": sequence, "prior": priors["libviso2"], "gt": gt, "rotation_only": True,
-                    "offset": offset(drives / "cache" / f"{drive}_libviso2" / "manifest.json")})
+                    "offset": offset(drives / "cache" / f"{drive}_libviso2")})
     return out
 
 
