@@ -33,9 +33,9 @@ from dpc_jax.experiments.world import World, planted
 # The one-sided test's normal quantiles at α = 0.01 and 80 % power, and the Wilcoxon test's asymptotic
 # efficiency against the t test (3/π): the pairs a mean test needs, from its differences' mean and spread.
 Z_ALPHA, Z_POWER, WILCOXON_EFFICIENCY = 2.326, 0.842, 3.0 / math.pi
-# The study's "final" column: the mean tested at the network's size, issue 46's decision, whatever the
-# default of ``correct`` is, so that cells measured before and after a change of the default agree; the
-# default's figures are its option's, decided with the judge (``decisions``).
+# The study's "final" column: the mean tested at the network's size (the decision its earliest cells were
+# measured by), whatever the default of ``correct`` is, so that cells measured before and after a change of
+# the default agree; the default's figures are its option's, decided with the judge (``decisions``).
 FINAL_DECISION = "mean-at-network"
 
 

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from dpc_jax.correction.decision import DEFAULT_MEAN_TEST
+from dpc_jax.experiments.detection import FINAL_DECISION
 from dpc_jax.experiments.detection_answer import (
     DEFAULT_REMOVAL,
     FOUND,
@@ -144,7 +145,7 @@ def markdown(cells: Sequence[dict[str, Any]], reference: dict[str, Any], paper_p
         f"rotational segment error (seg.), mean over the {len(cells[0]['tests']) if cells else 0} held-out "
         f"test sequences; network = the proposal applied whatever its tests said; final = behind the "
         f"acceptance tests at the network's size (no judge), the correction's mean tested on its own there "
-        f"(mean-at-network); earlier decision = the same proposal "
+        f"({FINAL_DECISION}); earlier decision = the same proposal "
         f"behind the earlier tests (the mean not tested apart). Applied: what the tests let through "
         f"(`− mean`: without its mean), with the p of the whole rotation, of its mean and of its remainder "
         f"(– where not tested). Steps: the optimizer steps the network trained for (matched: a small N "
